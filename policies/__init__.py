@@ -1,0 +1,1 @@
+"""External controllers for trajeglish_env agents (builds on trajeglish_env; never imported by it)."""

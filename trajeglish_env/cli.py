@@ -1,0 +1,168 @@
+"""The ``trajeglish`` command line: one sub-command per job, ``--json`` for machine-readable results.
+
+Progress bars and logs go to stderr; with ``--json`` the only thing on stdout is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+Handler = Callable[[argparse.Namespace], dict[str, Any]]
+
+
+def _print_result(result: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(result, indent=2, default=str))
+        return
+    for key, value in result.items():
+        print(f"{key}: {value}")
+
+
+# ---------------------------------------------------------------------------------------- commands
+def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.sources.generation import GenerationConfig, generate
+
+    kinds = tuple(k for k in (args.kinds or "").split(",") if k)
+    config = GenerationConfig(args.source, args.scenes, args.seed, kinds, args.scenes_per_shard)
+    return generate(config, args.out, workers=args.workers, progress=not args.quiet)
+
+
+def cmd_convert_womd(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.sources.womd import convert_womd
+
+    result = convert_womd([Path(f) for f in args.files], Path(args.out), progress=not args.quiet)
+    if result.get("failed"):
+        result["exit_code"] = 1
+    return result
+
+
+def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.render import RenderConfig, save_render
+    from trajeglish_env.scenario_io import load_scenario
+
+    scene = load_scenario(args.scene, args.index)
+    config = RenderConfig(view_radius=args.radius, follow_sdc=args.follow_sdc, show_ids=args.ids)
+    out = save_render(scene, args.out, config=config, fps=args.fps)
+    return {"scene": scene.scenario_id, "source": scene.source, "agents": scene.num_agents, "out": str(out)}
+
+
+def cmd_tokenizer_fit(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.tokenizer.fit import fit_from_directory
+
+    return fit_from_directory(args.data, vocab_size=args.vocab, seed=args.seed, out=args.out)
+
+
+def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.tokenizer.fit import evaluate_directory
+
+    return evaluate_directory(
+        args.data,
+        vocab_sizes=tuple(args.vocab or (128, 256, 384, 512)),
+        fit_data=args.fit_data,
+        out_dir=args.out,
+        seed=args.seed,
+    )
+
+
+def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.render import RenderConfig, save_render
+    from trajeglish_env.sources.highway import generate_scene
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = generate_scene(args.kind, seed=args.seed)
+    video = save_render(
+        scene, out / f"demo_{args.kind}.gif", config=RenderConfig(width_px=480, height_px=480)
+    )
+    picture = save_render(scene, out / f"demo_{args.kind}.png")
+    return {
+        "scene": scene.scenario_id,
+        "kind": args.kind,
+        "agents": scene.num_agents,
+        "steps": scene.num_steps,
+        "polylines": scene.num_polylines,
+        "video": str(video),
+        "picture": str(picture),
+    }
+
+
+# ---------------------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="trajeglish", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def add(name: str, handler: Handler, help_text: str, parent: Any = sub) -> argparse.ArgumentParser:
+        p = parent.add_parser(name, help=help_text, description=help_text)
+        p.add_argument("--json", action="store_true", help="print one JSON object with the results on stdout")
+        p.add_argument("--quiet", action="store_true", help="no progress bar")
+        p.set_defaults(handler=handler)
+        return p
+
+    p = add("generate", cmd_generate, "generate scenes with a built-in simulator into shard files")
+    p.add_argument("--scenes", type=int, required=True, help="number of scenes")
+    p.add_argument("--out", required=True, help="output directory (resumes if it holds a partial run)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=1, help="parallel processes")
+    p.add_argument("--source", choices=("highway", "sumo"), default="highway")
+    p.add_argument("--kinds", help="comma-separated scene kinds (default: all kinds of the source)")
+    p.add_argument("--scenes-per-shard", type=int, default=8)
+
+    p = add("convert-womd", cmd_convert_womd, "convert Waymo Open Motion Dataset TFRecords to shard files")
+    p.add_argument("files", nargs="+", help="WOMD scenario TFRecord files")
+    p.add_argument("--out", required=True)
+
+    p = add("render", cmd_render, "draw a scene as a PNG picture or a GIF/MP4 animation")
+    p.add_argument("scene", help="scenario file (*.scn.npz)")
+    p.add_argument("--out", required=True, help="output .png, .gif or .mp4")
+    p.add_argument("--index", type=int, default=0, help="which scene of a multi-scene shard")
+    p.add_argument("--radius", type=float, default=None, help="half-width of the view in metres")
+    p.add_argument("--follow-sdc", action="store_true", help="keep the sdc at the centre")
+    p.add_argument("--ids", action="store_true", help="label agents with their track ids")
+    p.add_argument("--fps", type=int, default=10)
+
+    tok = sub.add_parser("tokenizer", help="fit and evaluate motion-token vocabularies")
+    tsub = tok.add_subparsers(dest="tokenizer_command", required=True)
+    p = add(
+        "fit", cmd_tokenizer_fit, "fit k-disks vocabularies (one per agent class) on a scene directory", tsub
+    )
+    p.add_argument("--data", required=True)
+    p.add_argument("--vocab", type=int, default=384, choices=(128, 256, 384, 512))
+    p.add_argument("--out", required=True, help="output vocabulary file")
+    p.add_argument("--seed", type=int, default=0)
+    p = add("eval", cmd_tokenizer_eval, "discretization error of k-disks and the baselines", tsub)
+    p.add_argument("--data", required=True, help="held-out scenes to evaluate on")
+    p.add_argument("--fit-data", help="scenes to fit the vocabularies on (default: a split of --data)")
+    p.add_argument("--vocab", type=int, nargs="*", choices=(128, 256, 384, 512))
+    p.add_argument("--out", default="out/tokenizer_eval", help="directory for plots")
+    p.add_argument("--seed", type=int, default=0)
+
+    p = add("demo", cmd_demo, "the main job: generate a scene and render it")
+    p.add_argument("--out", default="out/demo")
+    p.add_argument("--kind", default="intersection")
+    p.add_argument("--seed", type=int, default=0)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``trajeglish`` console script; returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        result = args.handler(args)
+    except (ValueError, FileNotFoundError, KeyError, RuntimeError) as exc:
+        message = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+        if getattr(args, "json", False):
+            print(json.dumps({"error": message, "type": type(exc).__name__}))
+        print(f"trajeglish {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    code = int(result.pop("exit_code", 0))
+    _print_result(result, args.json)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

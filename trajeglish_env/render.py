@@ -1,0 +1,243 @@
+"""Top-down pictures and animations of scenes and rollouts (matplotlib, headless).
+
+The map is drawn once per renderer; each frame only moves the agent boxes, so animations of a few
+hundred frames take seconds. Works for logged scenes and for rollouts (pass ``xyh``/``valid``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.collections import LineCollection, PolyCollection  # noqa: E402
+
+from trajeglish_env.geometry import box_corners  # noqa: E402
+from trajeglish_env.scenario import (  # noqa: E402
+    LANE_KINDS,
+    ROAD_EDGE_KINDS,
+    AgentKind,
+    MapKind,
+    Scenario,
+)
+from trajeglish_env.scenario_io import atomic_path  # noqa: E402
+
+KIND_COLORS = {
+    AgentKind.VEHICLE: (0.20, 0.45, 0.85),
+    AgentKind.PEDESTRIAN: (0.95, 0.55, 0.10),
+    AgentKind.CYCLIST: (0.20, 0.70, 0.30),
+}
+SDC_COLOR = (0.85, 0.10, 0.15)
+_YELLOW = {8, 9, 10, 11, 12}
+_BROKEN = {5, 8, 9}
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Picture settings: size in pixels, the view (metres around its centre) and motion trails."""
+
+    width_px: int = 720
+    height_px: int = 720
+    view_radius: float | None = None  # half-width of the view in metres; None: fit the agents
+    follow_sdc: bool = False  # centre every frame on the sdc instead of a fixed view
+    trail_steps: int = 10
+    show_ids: bool = False
+    title: bool = True
+
+
+class SceneRenderer:
+    """Draws one scene's map once and renders agent frames on top of it."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        xyh: np.ndarray | None = None,
+        valid: np.ndarray | None = None,
+        colors: np.ndarray | None = None,
+        config: RenderConfig = RenderConfig(),
+    ):
+        self.scenario = scenario
+        self.xyh = scenario.xyh if xyh is None else np.asarray(xyh, dtype=np.float64)
+        self.valid = scenario.valid if valid is None else np.asarray(valid, dtype=bool)
+        if self.xyh.shape[:2] != self.valid.shape or self.xyh.shape[0] != scenario.num_agents:
+            raise ValueError(
+                f"render: xyh {self.xyh.shape} / valid {self.valid.shape} must be [N,T,3] / [N,T] "
+                f"with N = {scenario.num_agents} agents"
+            )
+        if colors is None:
+            colors = np.array([KIND_COLORS[AgentKind(k)] for k in scenario.kind]).reshape(-1, 3)
+            colors[scenario.sdc] = SDC_COLOR
+        self.colors = np.asarray(colors, dtype=np.float64)
+        self.config = config
+        dpi = 100
+        self.fig = plt.figure(figsize=(config.width_px / dpi, config.height_px / dpi), dpi=dpi)
+        self.ax = self.fig.add_axes((0, 0, 1, 1))
+        self.ax.set_facecolor((0.93, 0.93, 0.93))
+        self.ax.set_aspect("equal")
+        self.ax.axis("off")
+        self._draw_map()
+        self._boxes = PolyCollection([], zorder=5, linewidths=0.6, edgecolors="k")
+        self.ax.add_collection(self._boxes)
+        self._trails = LineCollection([], zorder=4, linewidths=1.0, alpha=0.6)
+        self.ax.add_collection(self._trails)
+        self._heading = LineCollection([], zorder=6, linewidths=0.8, colors="k")
+        self.ax.add_collection(self._heading)
+        self._text = self.ax.text(0.01, 0.99, "", transform=self.ax.transAxes, va="top", fontsize=9, zorder=7)
+        self._labels: list[plt.Text] = []
+        self._set_view(scenario.current_index)
+
+    def _draw_map(self) -> None:
+        sc = self.scenario
+        groups: dict[str, list[np.ndarray]] = {}
+        styles = {
+            "lane": dict(colors=(0.75, 0.75, 0.75), linewidths=0.6, linestyles=(0, (4, 4))),
+            "white": dict(colors="white", linewidths=1.2),
+            "white_broken": dict(colors="white", linewidths=1.0, linestyles=(0, (3, 3))),
+            "yellow": dict(colors=(0.95, 0.80, 0.10), linewidths=1.2),
+            "yellow_broken": dict(colors=(0.95, 0.80, 0.10), linewidths=1.0, linestyles=(0, (3, 3))),
+            "edge": dict(colors=(0.15, 0.15, 0.15), linewidths=1.4),
+            "crosswalk": dict(colors=(0.55, 0.55, 0.55), linewidths=1.0),
+            "bump": dict(colors=(0.55, 0.35, 0.75), linewidths=1.0),
+            "driveway": dict(colors=(0.65, 0.55, 0.45), linewidths=0.8),
+        }
+        stop_pts = []
+        for k in range(sc.num_polylines):
+            pts = sc.polyline(k)
+            kind = int(sc.map_kind[k])
+            if kind == MapKind.STOP_SIGN:
+                stop_pts.append(pts[0])
+                continue
+            if len(pts) < 2:
+                continue
+            if kind in LANE_KINDS:
+                key = "lane"
+            elif kind in ROAD_EDGE_KINDS:
+                key = "edge"
+            elif kind == MapKind.CROSSWALK:
+                key = "crosswalk"
+            elif kind == MapKind.SPEED_BUMP:
+                key = "bump"
+            elif kind == MapKind.DRIVEWAY:
+                key = "driveway"
+            else:
+                key = ("yellow" if kind in _YELLOW else "white") + ("_broken" if kind in _BROKEN else "")
+            groups.setdefault(key, []).append(pts)
+        for key, lines in groups.items():
+            self.ax.add_collection(LineCollection(lines, zorder=2 if key != "lane" else 1, **styles[key]))
+        if stop_pts:
+            p = np.array(stop_pts)
+            self.ax.scatter(p[:, 0], p[:, 1], marker="8", s=30, c=[(0.8, 0.1, 0.1)], zorder=3)
+
+    def _set_view(self, step: int) -> None:
+        cfg = self.config
+        if cfg.follow_sdc and self.valid[self.scenario.sdc, step]:
+            centre = self.xyh[self.scenario.sdc, step, :2]
+            r = cfg.view_radius or 50.0
+        else:
+            pts = self.xyh[..., :2][self.valid]
+            if len(pts) == 0:
+                pts = self.scenario.map_points if len(self.scenario.map_points) else np.zeros((1, 2))
+            lo, hi = pts.min(0), pts.max(0)
+            centre = (lo + hi) / 2
+            r = cfg.view_radius or max(float((hi - lo).max()) / 2 + 10.0, 20.0)
+        aspect = cfg.width_px / cfg.height_px
+        self.ax.set_xlim(centre[0] - r * aspect, centre[0] + r * aspect)
+        self.ax.set_ylim(centre[1] - r, centre[1] + r)
+
+    def frame(self, step: int, caption: str | None = None) -> np.ndarray:
+        """Render the agents at ``step``; returns an ``[H,W,3]`` uint8 image."""
+        t_max = self.xyh.shape[1]
+        if not 0 <= step < t_max:
+            raise IndexError(f"render: step {step} out of range for {t_max} steps")
+        if self.config.follow_sdc:
+            self._set_view(step)
+        live = np.flatnonzero(self.valid[:, step])
+        corners = box_corners(self.xyh[live, step], self.scenario.size[live])
+        self._boxes.set_verts(list(corners))
+        self._boxes.set_facecolor(self.colors[live])
+        front = (corners[:, 0] + corners[:, 1]) / 2
+        centre = self.xyh[live, step, :2]
+        self._heading.set_segments(list(np.stack([centre, front], 1)))
+        lo = max(0, step - self.config.trail_steps)
+        trails = [self.xyh[i, lo : step + 1, :2][self.valid[i, lo : step + 1]] for i in live]
+        self._trails.set_segments([t for t in trails if len(t) > 1])
+        self._trails.set_color([self.colors[i] for i, t in zip(live, trails, strict=True) if len(t) > 1])
+        for label in self._labels:
+            label.remove()
+        self._labels = []
+        if self.config.show_ids:
+            for i in live:
+                x, y = self.xyh[i, step, :2]
+                self._labels.append(self.ax.text(x, y, str(self.scenario.track_id[i]), fontsize=6, zorder=8))
+        if self.config.title:
+            t = (step - self.scenario.current_index) * self.scenario.dt
+            head = f"{self.scenario.source}:{self.scenario.scenario_id}  t={t:+.1f}s  agents={len(live)}"
+            self._text.set_text(head + (f"\n{caption}" if caption else ""))
+        self.fig.canvas.draw()
+        rgba = np.asarray(self.fig.canvas.buffer_rgba())
+        return np.ascontiguousarray(rgba[..., :3])
+
+    def close(self) -> None:
+        plt.close(self.fig)
+
+
+def render_image(scenario: Scenario, step: int | None = None, **kwargs: object) -> np.ndarray:
+    """One ``[H,W,3]`` uint8 picture of ``scenario`` at ``step`` (default: its current index)."""
+    renderer = SceneRenderer(scenario, **kwargs)  # type: ignore[arg-type]
+    try:
+        return renderer.frame(scenario.current_index if step is None else step)
+    finally:
+        renderer.close()
+
+
+def write_video(frames: list[np.ndarray], out: str | os.PathLike[str], fps: int = 10) -> Path:
+    """Write frames to a GIF or MP4 (chosen by the suffix) atomically."""
+    import imageio.v2 as imageio
+
+    out = Path(out)
+    suffix = out.suffix.lower()
+    if suffix not in (".gif", ".mp4"):
+        raise ValueError(f"{out}: video must end in .gif or .mp4")
+    with atomic_path(out) as tmp:
+        if suffix == ".gif":
+            imageio.mimsave(tmp, frames, format="GIF", duration=1000 / fps, loop=0)
+        else:
+            with imageio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", macro_block_size=8) as w:
+                for f in frames:
+                    w.append_data(f)
+    return out
+
+
+def save_render(
+    scenario: Scenario,
+    out: str | os.PathLike[str],
+    xyh: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+    config: RenderConfig = RenderConfig(),
+    steps: range | None = None,
+    fps: int = 10,
+) -> Path:
+    """Render ``scenario`` (or a rollout of it) to a PNG picture, or a GIF/MP4 animation over ``steps``."""
+    out = Path(out)
+    suffix = out.suffix.lower()
+    renderer = SceneRenderer(scenario, xyh=xyh, valid=valid, colors=colors, config=config)
+    try:
+        if suffix == ".png":
+            img = renderer.frame(scenario.current_index)
+            import imageio.v2 as imageio
+
+            with atomic_path(out) as tmp:
+                imageio.imwrite(tmp, img, format="PNG")
+            return out
+        if suffix not in (".gif", ".mp4"):
+            raise ValueError(f"{out}: expected a .png, .gif or .mp4 output path")
+        frames = [renderer.frame(t) for t in (steps or range(renderer.xyh.shape[1]))]
+    finally:
+        renderer.close()
+    return write_video(frames, out, fps=fps)

@@ -1,0 +1,326 @@
+"""The core data type: one driving scene as plain NumPy arrays in a global frame at 10 Hz.
+
+Every source (highway-env, SUMO, WOMD, user arrays) produces a :class:`Scenario`; every consumer
+(dataset, tokenizer, sampler, environment, metrics, rendering) reads one. Saving and loading live in
+:mod:`trajeglish_env.scenario_io`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from enum import IntEnum
+
+import numpy as np
+
+
+class AgentKind(IntEnum):
+    """Class of a road user; each class has its own motion-token vocabulary."""
+
+    VEHICLE = 0
+    PEDESTRIAN = 1
+    CYCLIST = 2
+
+
+class MapKind(IntEnum):
+    """Type of one map polyline; the values follow WOMD's map feature types so conversion is exact."""
+
+    LANE_UNDEFINED = 0
+    LANE_FREEWAY = 1
+    LANE_SURFACE_STREET = 2
+    LANE_BIKE = 3
+    ROAD_LINE_UNKNOWN = 4
+    ROAD_LINE_BROKEN_SINGLE_WHITE = 5
+    ROAD_LINE_SOLID_SINGLE_WHITE = 6
+    ROAD_LINE_SOLID_DOUBLE_WHITE = 7
+    ROAD_LINE_BROKEN_SINGLE_YELLOW = 8
+    ROAD_LINE_BROKEN_DOUBLE_YELLOW = 9
+    ROAD_LINE_SOLID_SINGLE_YELLOW = 10
+    ROAD_LINE_SOLID_DOUBLE_YELLOW = 11
+    ROAD_LINE_PASSING_DOUBLE_YELLOW = 12
+    ROAD_EDGE_UNKNOWN = 13
+    ROAD_EDGE_BOUNDARY = 14
+    ROAD_EDGE_MEDIAN = 15
+    STOP_SIGN = 16
+    CROSSWALK = 17
+    SPEED_BUMP = 18
+    DRIVEWAY = 19
+
+
+LANE_KINDS = frozenset(
+    {MapKind.LANE_UNDEFINED, MapKind.LANE_FREEWAY, MapKind.LANE_SURFACE_STREET, MapKind.LANE_BIKE}
+)
+ROAD_LINE_KINDS = frozenset(MapKind(v) for v in range(4, 13))
+ROAD_EDGE_KINDS = frozenset({MapKind.ROAD_EDGE_UNKNOWN, MapKind.ROAD_EDGE_BOUNDARY, MapKind.ROAD_EDGE_MEDIAN})
+
+
+class SignalState(IntEnum):
+    """Traffic-signal state of one controlled lane at one step (WOMD's TrafficSignalLaneState values)."""
+
+    UNKNOWN = 0
+    ARROW_STOP = 1
+    ARROW_CAUTION = 2
+    ARROW_GO = 3
+    STOP = 4
+    CAUTION = 5
+    GO = 6
+    FLASHING_STOP = 7
+    FLASHING_CAUTION = 8
+
+
+class ScenarioError(ValueError):
+    """A Scenario (or a file holding one) is malformed; the message names the field and the problem."""
+
+
+def _empty(shape: tuple[int, ...], dtype: type | np.dtype) -> np.ndarray:
+    return np.zeros(shape, dtype=dtype)
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """One driving scene: agent tracks and a map, in one global frame, sampled every ``dt`` seconds.
+
+    Agents (N agents, T steps):
+      ``xyh [N,T,3]`` float64 box-centre x, y (m) and heading (rad, CCW from +x);
+      ``valid [N,T]`` bool; ``size [N,2]`` float64 (length, width in m); ``kind [N]`` int8 AgentKind;
+      ``track_id [N]`` int64 unique ids; ``sdc`` index of the self-driving car (the default ego).
+    Map (K polylines, P points in all), stored ragged:
+      ``map_points [P,2]`` float64; ``map_offsets [K+1]`` int64 (polyline k is
+      ``map_points[map_offsets[k]:map_offsets[k+1]]``); ``map_kind [K]`` int8 MapKind; ``map_id [K]`` int64.
+    Traffic signals (L controlled lanes): ``signal_lane_id [L]`` int64 (a ``map_id``),
+      ``signal_xy [L,2]`` stop point, ``signal_state [T,L]`` int8 SignalState.
+    Metadata: ``dt`` (s), ``current_index`` (last step of given history), ``scenario_id``, ``source``,
+      ``tracks_to_predict [M]`` int64 agent indices (may be empty).
+    """
+
+    xyh: np.ndarray
+    valid: np.ndarray
+    size: np.ndarray
+    kind: np.ndarray
+    track_id: np.ndarray
+    sdc: int
+    map_points: np.ndarray
+    map_offsets: np.ndarray
+    map_kind: np.ndarray
+    map_id: np.ndarray
+    scenario_id: str = ""
+    source: str = "user"
+    dt: float = 0.1
+    current_index: int = 10
+    tracks_to_predict: np.ndarray = field(default_factory=lambda: _empty((0,), np.int64))
+    signal_lane_id: np.ndarray = field(default_factory=lambda: _empty((0,), np.int64))
+    signal_xy: np.ndarray = field(default_factory=lambda: _empty((0, 2), np.float64))
+    signal_state: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_arrays(
+        cls,
+        xyh: np.ndarray,
+        valid: np.ndarray,
+        size: np.ndarray,
+        kind: np.ndarray,
+        *,
+        track_id: np.ndarray | None = None,
+        sdc: int = 0,
+        polylines: list[np.ndarray] | None = None,
+        polyline_kinds: list[int] | np.ndarray | None = None,
+        polyline_ids: list[int] | np.ndarray | None = None,
+        **metadata: object,
+    ) -> Scenario:
+        """Build and validate a Scenario from plain arrays and a list of polylines (how users bring data)."""
+        polylines = (
+            [] if polylines is None else [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in polylines]
+        )
+        kinds = np.asarray([] if polyline_kinds is None else polyline_kinds, dtype=np.int8)
+        if len(kinds) != len(polylines):
+            raise ScenarioError(
+                f"polyline_kinds: expected {len(polylines)} kinds (one per polyline), got {len(kinds)}"
+            )
+        offsets = np.zeros(len(polylines) + 1, dtype=np.int64)
+        offsets[1:] = np.cumsum([len(p) for p in polylines])
+        points = np.concatenate(polylines) if polylines else _empty((0, 2), np.float64)
+        ids = (
+            np.arange(len(polylines), dtype=np.int64)
+            if polyline_ids is None
+            else np.asarray(polyline_ids, np.int64)
+        )
+        n = np.asarray(xyh).shape[0] if np.ndim(xyh) == 3 else 0
+        scenario = cls(
+            xyh=np.asarray(xyh, dtype=np.float64),
+            valid=np.asarray(valid, dtype=bool),
+            size=np.asarray(size, dtype=np.float64),
+            kind=np.asarray(kind, dtype=np.int8),
+            track_id=np.arange(n, dtype=np.int64)
+            if track_id is None
+            else np.asarray(track_id, dtype=np.int64),
+            sdc=int(sdc),
+            map_points=points,
+            map_offsets=offsets,
+            map_kind=kinds,
+            map_id=ids,
+            **metadata,  # type: ignore[arg-type]
+        )
+        scenario.validate()
+        return scenario
+
+    # ------------------------------------------------------------------ shape helpers
+    @property
+    def num_agents(self) -> int:
+        return int(self.xyh.shape[0])
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.xyh.shape[1])
+
+    @property
+    def num_polylines(self) -> int:
+        return int(self.map_kind.shape[0])
+
+    def polyline(self, k: int) -> np.ndarray:
+        """Points ``[n,2]`` of polyline ``k``."""
+        return self.map_points[self.map_offsets[k] : self.map_offsets[k + 1]]
+
+    def polylines(self, kinds: frozenset[MapKind] | None = None) -> list[np.ndarray]:
+        """All polylines (optionally only those whose kind is in ``kinds``)."""
+        return [
+            self.polyline(k) for k in range(self.num_polylines) if kinds is None or self.map_kind[k] in kinds
+        ]
+
+    def speed(self) -> np.ndarray:
+        """Finite-difference speed ``[N,T]`` in m/s (0 where either neighbour step is invalid)."""
+        d = np.linalg.norm(np.diff(self.xyh[..., :2], axis=1), axis=-1) / self.dt
+        ok = self.valid[:, 1:] & self.valid[:, :-1]
+        out = np.zeros(self.valid.shape, dtype=np.float64)
+        out[:, 1:] = np.where(ok, d, 0.0)
+        out[:, 0] = out[:, 1] if self.num_steps > 1 else 0.0
+        return out
+
+    def agent_index(self, track_id: int) -> int:
+        """Index of the agent with ``track_id``; a clear error if there is none."""
+        hits = np.flatnonzero(self.track_id == track_id)
+        if len(hits) == 0:
+            raise KeyError(f"scenario {self.scenario_id!r}: no agent with track_id {track_id}")
+        return int(hits[0])
+
+    def with_agents(self, index: np.ndarray) -> Scenario:
+        """A copy keeping only the agents at ``index`` (the sdc must be among them)."""
+        index = np.asarray(index, dtype=np.int64)
+        where = np.flatnonzero(index == self.sdc)
+        if len(where) == 0:
+            raise ScenarioError(f"with_agents: the sdc (agent {self.sdc}) must be kept")
+        keep_predict = np.flatnonzero(np.isin(index, self.tracks_to_predict))
+        return replace(
+            self,
+            xyh=self.xyh[index],
+            valid=self.valid[index],
+            size=self.size[index],
+            kind=self.kind[index],
+            track_id=self.track_id[index],
+            sdc=int(where[0]),
+            tracks_to_predict=keep_predict.astype(np.int64),
+        )
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> Scenario:
+        """Check shapes, dtypes, finiteness and index ranges; raise ScenarioError naming the field."""
+        sid = f"scenario {self.scenario_id!r}" if self.scenario_id else "scenario"
+
+        def fail(name: str, msg: str) -> None:
+            raise ScenarioError(f"{sid}: field '{name}': {msg}")
+
+        def check(name: str, arr: object, ndim: int, last: int | None = None) -> np.ndarray:
+            if not isinstance(arr, np.ndarray):
+                fail(name, f"expected a numpy array, got {type(arr).__name__}")
+            assert isinstance(arr, np.ndarray)
+            if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
+                want = f"{ndim}-d array" + (f" with last dimension {last}" if last is not None else "")
+                fail(name, f"expected a {want}, got shape {arr.shape}")
+            return arr
+
+        xyh = check("xyh", self.xyh, 3, 3)
+        n, t = xyh.shape[:2]
+        if t < 1:
+            fail("xyh", "needs at least one timestep")
+        valid = check("valid", self.valid, 2)
+        if valid.shape != (n, t):
+            fail("valid", f"expected shape {(n, t)} to match xyh, got {valid.shape}")
+        if valid.dtype != np.bool_:
+            fail("valid", f"expected dtype bool, got {valid.dtype}")
+        if not np.isfinite(xyh[valid]).all():
+            bad = np.argwhere(valid & ~np.isfinite(xyh).all(-1))[0]
+            fail("xyh", f"non-finite value at valid agent {bad[0]} step {bad[1]}")
+        size = check("size", self.size, 2, 2)
+        if size.shape[0] != n:
+            fail("size", f"expected {n} rows (one per agent), got {size.shape[0]}")
+        if not np.isfinite(size).all() or (size <= 0).any():
+            bad = int(np.flatnonzero(~(np.isfinite(size).all(-1) & (size > 0).all(-1)))[0])
+            fail("size", f"agent {bad}: length and width must be finite and > 0, got {size[bad].tolist()}")
+        kind = check("kind", self.kind, 1)
+        if kind.shape[0] != n:
+            fail("kind", f"expected {n} entries, got {kind.shape[0]}")
+        if n and ((kind < 0) | (kind > max(AgentKind))).any():
+            fail("kind", f"values must be AgentKind 0..{int(max(AgentKind))}, got {np.unique(kind).tolist()}")
+        track_id = check("track_id", self.track_id, 1)
+        if track_id.shape[0] != n:
+            fail("track_id", f"expected {n} entries, got {track_id.shape[0]}")
+        if len(np.unique(track_id)) != n:
+            fail("track_id", "ids must be unique")
+        if not (0 <= int(self.sdc) < max(n, 1)) or n == 0:
+            fail("sdc", f"index {self.sdc} out of range for {n} agents")
+        points = check("map_points", self.map_points, 2, 2)
+        if not np.isfinite(points).all():
+            fail("map_points", "contains non-finite values")
+        offsets = check("map_offsets", self.map_offsets, 1)
+        k = offsets.shape[0] - 1
+        if k < 0 or offsets[0] != 0 or offsets[-1] != len(points) or (np.diff(offsets) < 0).any():
+            fail(
+                "map_offsets",
+                f"must start at 0, be non-decreasing and end at {len(points)} (number of points)",
+            )
+        map_kind = check("map_kind", self.map_kind, 1)
+        if map_kind.shape[0] != k:
+            fail("map_kind", f"expected {k} entries (one per polyline), got {map_kind.shape[0]}")
+        if k and ((map_kind < 0) | (map_kind > max(MapKind))).any():
+            fail("map_kind", f"values must be MapKind 0..{int(max(MapKind))}")
+        map_id = check("map_id", self.map_id, 1)
+        if map_id.shape[0] != k:
+            fail("map_id", f"expected {k} entries (one per polyline), got {map_id.shape[0]}")
+        if not (self.dt > 0 and np.isfinite(self.dt)):
+            fail("dt", f"must be a positive number of seconds, got {self.dt}")
+        if not (0 <= self.current_index < t):
+            fail("current_index", f"{self.current_index} out of range for {t} steps")
+        ttp = check("tracks_to_predict", self.tracks_to_predict, 1)
+        if len(ttp) and ((ttp < 0) | (ttp >= n)).any():
+            fail("tracks_to_predict", f"agent indices must be in 0..{n - 1}, got {ttp.tolist()}")
+        lanes = check("signal_lane_id", self.signal_lane_id, 1)
+        sxy = check("signal_xy", self.signal_xy, 2, 2)
+        if sxy.shape[0] != lanes.shape[0]:
+            fail("signal_xy", f"expected {lanes.shape[0]} rows (one per signal), got {sxy.shape[0]}")
+        if self.signal_state is not None:
+            st = check("signal_state", self.signal_state, 2)
+            if st.shape != (t, lanes.shape[0]):
+                fail("signal_state", f"expected shape {(t, lanes.shape[0])}, got {st.shape}")
+            if st.size and ((st < 0) | (st > max(SignalState))).any():
+                fail("signal_state", f"values must be SignalState 0..{int(max(SignalState))}")
+        elif lanes.shape[0]:
+            fail("signal_state", "signals are listed but their states are missing")
+        return self
+
+    # ------------------------------------------------------------------ equality (exact, array-wise)
+    def equals(self, other: Scenario) -> bool:
+        """Exact equality of every field (arrays compared element-wise, dtypes included)."""
+        from trajeglish_env.scenario_io import scenario_fields
+
+        for name in scenario_fields():
+            a, b = getattr(self, name), getattr(other, name)
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if not (
+                    isinstance(a, np.ndarray)
+                    and isinstance(b, np.ndarray)
+                    and a.dtype == b.dtype
+                    and np.array_equal(a, b)
+                ):
+                    return False
+            elif a != b:
+                return False
+        return True

@@ -1,0 +1,137 @@
+"""Versioned, compressed on-disk format for Scenarios, with atomic writes.
+
+A file (``*.scn.npz``) holds one or more scenes (a "shard"). It is a NumPy ``.npz`` archive whose
+``__format__`` entry names this format and whose ``__version__`` entry is checked on load, so a wrong,
+truncated or future file fails with a message naming the file instead of a NumPy traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import tempfile
+import zipfile
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from trajeglish_env.scenario import Scenario, ScenarioError
+
+FORMAT_NAME = "trajeglish_env.scenario"
+FORMAT_VERSION = 1
+SUFFIX = ".scn.npz"
+
+_SCALARS = {"sdc": int, "scenario_id": str, "source": str, "dt": float, "current_index": int}
+
+
+def scenario_fields() -> list[str]:
+    """Names of all Scenario fields, in declaration order."""
+    return [f.name for f in dataclasses.fields(Scenario)]
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success it replaces ``path`` in one rename.
+
+    A crash or exception leaves any previous ``path`` untouched and no partial file behind.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        with open(tmp_path, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def save_scenarios(path: str | os.PathLike[str], scenarios: Sequence[Scenario]) -> Path:
+    """Validate and write ``scenarios`` to ``path`` atomically; returns the path."""
+    arrays: dict[str, np.ndarray] = {
+        "__format__": np.array(FORMAT_NAME),
+        "__version__": np.array(FORMAT_VERSION),
+        "__count__": np.array(len(scenarios)),
+    }
+    for i, sc in enumerate(scenarios):
+        sc.validate()
+        for name in scenario_fields():
+            value = getattr(sc, name)
+            if value is None:
+                continue
+            arrays[f"{i}/{name}"] = np.asarray(value)
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
+    return path
+
+
+def load_scenarios(path: str | os.PathLike[str]) -> list[Scenario]:
+    """Read every scene of a file written by :func:`save_scenarios`; clear errors for bad files."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such scenario file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            header = _check_header(path, data)
+            items = {k: data[k] for k in data.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+        if isinstance(exc, ScenarioError):
+            raise
+        raise ScenarioError(f"{path}: not a readable scenario file (truncated or corrupt?): {exc}") from exc
+    scenes = []
+    for i in range(header):
+        kwargs: dict[str, object] = {}
+        for name in scenario_fields():
+            key = f"{i}/{name}"
+            if key not in items:
+                if name == "signal_state":
+                    continue
+                raise ScenarioError(f"{path}: scene {i} is missing field '{name}'")
+            value = items[key]
+            kwargs[name] = _SCALARS[name](value.item()) if name in _SCALARS else value
+        try:
+            scenes.append(Scenario(**kwargs).validate())  # type: ignore[arg-type]
+        except ScenarioError as exc:
+            raise ScenarioError(f"{path}: scene {i}: {exc}") from exc
+    return scenes
+
+
+def _check_header(path: Path, data: np.lib.npyio.NpzFile) -> int:
+    if "__format__" not in data.files or str(data["__format__"]) != FORMAT_NAME:
+        raise ScenarioError(f"{path}: not a trajeglish_env scenario file (no '{FORMAT_NAME}' header)")
+    version = int(data["__version__"])
+    if version != FORMAT_VERSION:
+        raise ScenarioError(
+            f"{path}: scenario format version {version} is not supported (this build reads {FORMAT_VERSION})"
+        )
+    return int(data["__count__"])
+
+
+def save_scenario(path: str | os.PathLike[str], scenario: Scenario) -> Path:
+    """Write a single scene (a shard of one)."""
+    return save_scenarios(path, [scenario])
+
+
+def load_scenario(path: str | os.PathLike[str], index: int = 0) -> Scenario:
+    """Read scene ``index`` of a scenario file."""
+    scenes = load_scenarios(path)
+    if not 0 <= index < len(scenes):
+        raise IndexError(f"{path}: scene {index} requested but the file holds {len(scenes)}")
+    return scenes[index]
+
+
+def list_scenario_files(directory: str | os.PathLike[str]) -> list[Path]:
+    """Sorted scenario files under ``directory`` (or ``[directory]`` if it is itself a file)."""
+    directory = Path(directory)
+    if directory.is_file():
+        return [directory]
+    if not directory.is_dir():
+        raise FileNotFoundError(f"{directory}: no such scenario file or directory")
+    return sorted(p for p in directory.rglob(f"*{SUFFIX}") if not p.name.startswith("."))
