@@ -91,7 +91,7 @@ def test_round_trip_is_exact(tmp_path, straight_scene: Scenario) -> None:
     assert load_scenario(path, 1).scenario_id == "straight-7"
     with pytest.raises(IndexError, match="holds 2"):
         load_scenario(path, 2)
-    assert not list(tmp_path.glob(".*tmp"))  # no temporary file left behind
+    assert not list(tmp_path.glob(".*tmp*"))  # no temporary file left behind
 
 
 def test_truncated_and_foreign_files_fail_clearly(tmp_path, straight_scene: Scenario) -> None:

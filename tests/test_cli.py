@@ -1,0 +1,49 @@
+"""The ``trajeglish`` command line: JSON contract, exit codes and clear errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from conftest import WOMD_TFRECORD
+
+from trajeglish_env.cli import main
+from trajeglish_env.scenario_io import load_scenario, save_scenario
+
+
+def _json(capsys: pytest.CaptureFixture[str]) -> dict:
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.skipif(not WOMD_TFRECORD.exists(), reason="shared WOMD sample not present")
+def test_convert_womd_then_render(tmp_path, capsys) -> None:
+    assert main(["convert-womd", str(WOMD_TFRECORD), "--out", str(tmp_path), "--json", "--quiet"]) == 0
+    result = _json(capsys)
+    assert result["scenes"] == 1 and result["failed"] == []
+    shard = tmp_path / "motion_data_one_scenario.scn.npz"
+    assert load_scenario(shard).scenario_id == "637f20cafde22ff8"
+    assert main(["render", str(shard), "--out", str(tmp_path / "w.png"), "--json"]) == 0
+    assert _json(capsys) == {
+        "scene": "637f20cafde22ff8",
+        "source": "womd",
+        "agents": 83,
+        "out": str(tmp_path / "w.png"),
+    }
+    # a corrupt file among the inputs makes the command fail, but the good file stays converted
+    bad = tmp_path / "bad.tfrecord"
+    bad.write_bytes(WOMD_TFRECORD.read_bytes()[:1000])
+    out2 = tmp_path / "second"
+    assert main(["convert-womd", str(WOMD_TFRECORD), str(bad), "--out", str(out2), "--json", "--quiet"]) == 1
+    result = _json(capsys)
+    assert result["failed"][0]["file"].endswith("bad.tfrecord") and "record 0" in result["failed"][0]["error"]
+    assert (out2 / "motion_data_one_scenario.scn.npz").is_file()
+
+
+def test_errors_are_one_line_and_exit_2(tmp_path, capsys, straight_scene) -> None:
+    assert main(["render", str(tmp_path / "nope.scn.npz"), "--out", str(tmp_path / "x.png"), "--json"]) == 2
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["error"].endswith("nope.scn.npz: no such scenario file")
+    assert "trajeglish render: error:" in captured.err
+    path = save_scenario(tmp_path / "s.scn.npz", straight_scene)
+    assert main(["render", str(path), "--out", str(tmp_path / "x.bmp")]) == 2
+    assert "expected a .png, .gif or .mp4" in capsys.readouterr().err

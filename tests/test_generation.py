@@ -1,0 +1,93 @@
+"""Parallel, resumable, atomic scene generation (``trajeglish generate``)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from trajeglish_env.cli import main
+from trajeglish_env.scenario_io import list_scenario_files, load_scenarios
+from trajeglish_env.sources import generation
+from trajeglish_env.sources.generation import GenerationConfig, generate
+
+FAST = ("two-way", "u-turn")
+
+
+def _scenes(directory):
+    return [s for f in list_scenario_files(directory) for s in load_scenarios(f)]
+
+
+def test_output_is_independent_of_workers_and_resumes_after_damage(tmp_path) -> None:
+    config = GenerationConfig("highway", scenes=5, seed=3, kinds=FAST, scenes_per_shard=2)
+    one = generate(config, tmp_path / "one", workers=1, progress=False)
+    assert one["shards"] == 3 and one["generated"] == 5 and one["resumed_from"] == 0
+    files = list_scenario_files(tmp_path / "one")
+    assert [f.name for f in files] == [
+        "highway-00000.scn.npz",
+        "highway-00001.scn.npz",
+        "highway-00002.scn.npz",
+    ]
+    assert [len(load_scenarios(f)) for f in files] == [2, 2, 1]
+    two = generate(config, tmp_path / "two", workers=2, progress=False)
+    assert two["generated"] == 5
+    a, b = _scenes(tmp_path / "one"), _scenes(tmp_path / "two")
+    assert all(x.equals(y) for x, y in zip(a, b, strict=True))
+    assert len({s.scenario_id for s in a}) == 5
+
+    # damage: one shard deleted, one truncated -> only those two are regenerated, identically
+    files[0].unlink()
+    files[2].write_bytes(files[2].read_bytes()[:100])
+    again = generate(config, tmp_path / "one", workers=1, progress=False)
+    assert again["generated"] == 3 and again["resumed_from"] == 2
+    assert all(x.equals(y) for x, y in zip(_scenes(tmp_path / "one"), b, strict=True))
+    nothing = generate(config, tmp_path / "one", workers=1, progress=False)
+    assert nothing["generated"] == 0 and nothing["resumed_from"] == 5
+
+
+def test_interrupted_run_leaves_no_partial_shard(tmp_path, monkeypatch) -> None:
+    config = GenerationConfig("highway", scenes=4, seed=1, kinds=FAST, scenes_per_shard=2)
+    real = generation._write_shard
+    calls = []
+
+    def crash_on_second(cfg, index, out):
+        calls.append(index)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # as if the user pressed Ctrl-C while shard 1 was being made
+        return real(cfg, index, out)
+
+    monkeypatch.setattr(generation, "_write_shard", crash_on_second)
+    with pytest.raises(KeyboardInterrupt):
+        generate(config, tmp_path, workers=1, progress=False)
+    assert [p.name for p in tmp_path.iterdir() if p.name != "manifest.json"] == ["highway-00000.scn.npz"]
+    monkeypatch.setattr(generation, "_write_shard", real)
+    resumed = generate(config, tmp_path, workers=1, progress=False)
+    assert resumed["generated"] == 2 and resumed["resumed_from"] == 2
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_mismatched_resume_and_bad_kinds_are_refused(tmp_path) -> None:
+    generate(GenerationConfig("highway", 1, seed=0, kinds=("two-way",)), tmp_path, progress=False)
+    with pytest.raises(ValueError, match="generated with different settings"):
+        generate(GenerationConfig("highway", 1, seed=1, kinds=("two-way",)), tmp_path, progress=False)
+    with pytest.raises(ValueError, match=r"unknown highway scene kinds \['parking'\]"):
+        generate(GenerationConfig("highway", 1, kinds=("parking",)), tmp_path / "x", progress=False)
+    with pytest.raises(ValueError, match="unknown scene source 'carla'"):
+        generate(GenerationConfig("carla", 1), tmp_path / "y", progress=False)
+
+
+def test_cli_generate_json(tmp_path, capsys) -> None:
+    args = ["generate", "--scenes", "2", "--out", str(tmp_path), "--kinds", "u-turn", "--seed", "5", "--json"]
+    assert main([*args, "--quiet"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["generated"] == 2 and result["kinds"] == ["u-turn"] and result["scenes_per_second"] > 0
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert manifest["config"] == {
+        "source": "highway",
+        "scenes": 2,
+        "seed": 5,
+        "kinds": ["u-turn"],
+        "scenes_per_shard": 8,
+    }
+    assert main(["generate", "--scenes", "2", "--out", str(tmp_path), "--kinds", "nope", "--quiet"]) == 2
+    assert "unknown highway scene kinds" in capsys.readouterr().err

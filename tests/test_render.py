@@ -1,0 +1,69 @@
+"""Top-down rendering of scenes to pictures and animations."""
+
+from __future__ import annotations
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+
+from trajeglish_env.render import (
+    KIND_COLORS,
+    SDC_COLOR,
+    RenderConfig,
+    SceneRenderer,
+    render_image,
+    save_render,
+)
+from trajeglish_env.scenario import AgentKind, Scenario
+
+
+def _rgb(color: tuple[float, float, float]) -> np.ndarray:
+    return (np.array(color) * 255).round()
+
+
+def test_sdc_is_drawn_at_the_centre_when_followed(straight_scene: Scenario) -> None:
+    img = render_image(
+        straight_scene, config=RenderConfig(200, 160, view_radius=10.0, follow_sdc=True, title=False)
+    )
+    assert img.shape == (160, 200, 3) and img.dtype == np.uint8
+    centre = img[80, 100 - 10].astype(
+        float
+    )  # slightly behind the centre: inside the box, off the heading tick
+    assert np.abs(centre - _rgb(SDC_COLOR)).max() <= 3
+
+
+def test_agents_get_kind_colours_and_rollouts_override_log(straight_scene: Scenario) -> None:
+    xyh = straight_scene.xyh.copy()
+    xyh[1, :, :2] = [100.0, -30.0]  # park the cyclist at a known place inside the view
+    cfg = RenderConfig(200, 200, view_radius=50.0, title=False)
+    r = SceneRenderer(straight_scene, xyh=xyh, config=cfg)
+    try:
+        img = r.frame(0)
+    finally:
+        r.close()
+    # the fixed view is centred on the box around all valid positions; find the pixel of (100, -30)
+    pts = xyh[..., :2][straight_scene.valid]
+    centre = (pts.min(0) + pts.max(0)) / 2
+    col = int(round((100.0 - (centre[0] - 50)) / 100 * 200))
+    row = int(round(((centre[1] + 50) - (-30.0)) / 100 * 200))
+    patch = img[row - 1 : row + 2, col - 3 : col].reshape(-1, 3).astype(float)
+    assert (np.abs(patch - _rgb(KIND_COLORS[AgentKind.CYCLIST])).max(-1) <= 3).any()
+
+
+def test_png_gif_and_mp4_outputs(tmp_path, straight_scene: Scenario) -> None:
+    png = save_render(straight_scene, tmp_path / "scene.png", config=RenderConfig(160, 120))
+    assert imageio.imread(png).shape[:2] == (120, 160)
+    gif = save_render(
+        straight_scene, tmp_path / "scene.gif", config=RenderConfig(96, 96), steps=range(0, 30, 3)
+    )
+    assert len(imageio.mimread(gif)) == 10
+    mp4 = save_render(straight_scene, tmp_path / "scene.mp4", config=RenderConfig(96, 96), steps=range(5))
+    assert mp4.stat().st_size > 1000
+    with pytest.raises(ValueError, match=r"scene.bmp: expected a .png, .gif or .mp4"):
+        save_render(straight_scene, tmp_path / "scene.bmp")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.gif", "scene.mp4", "scene.png"]
+
+
+def test_wrong_rollout_shape_is_refused(straight_scene: Scenario) -> None:
+    with pytest.raises(ValueError, match="with N = 6 agents"):
+        SceneRenderer(straight_scene, xyh=np.zeros((5, 91, 3)), valid=np.ones((5, 91), bool))
