@@ -1,0 +1,122 @@
+"""Model shapes, variant masks (by perturbing forbidden inputs) and KV-cache equivalence."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from trajeglish_env.model import SceneInputs, TrajeglishModel, Variant, preset
+from trajeglish_env.model.masks import carried_position
+
+
+def random_scene(cfg, b: int = 2, seed: int = 0, padded: int = 1) -> tuple[SceneInputs, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    a, m, p = cfg.max_agents, cfg.max_polylines, cfg.points_per_polyline
+    agent_mask = torch.ones(b, a, dtype=torch.bool)
+    agent_mask[:, a - padded :] = False
+    scene = SceneInputs(
+        agent_xyh=torch.randn(b, a, 3, generator=g) * 10,
+        agent_size=torch.rand(b, a, 2, generator=g) * 4 + 0.5,
+        agent_kind=torch.randint(0, 3, (b, a), generator=g),
+        agent_mask=agent_mask,
+        map_points=torch.randn(b, m, p, 2, generator=g) * 30,
+        map_point_mask=torch.rand(b, m, p, generator=g) > 0.2,
+        map_kind=torch.randint(0, 20, (b, m), generator=g),
+        map_mask=torch.rand(b, m, generator=g) > 0.3,
+    )
+    tokens = torch.randint(0, cfg.vocab_size, (b, a, cfg.steps), generator=g)
+    tokens[:, a - padded :] = -1
+    tokens[0, 1, 3] = -1  # an unobserved step
+    return scene, tokens
+
+
+def may_use(variant: Variant, target: tuple[int, int], token: tuple[int, int], agents: int) -> bool:
+    """The specification: may the prediction for (step, agent) ``target`` depend on ``token``?"""
+    (t, a), (s, j) = target, token
+    if variant is Variant.TRAJEGLISH:
+        return s * agents + j < t * agents + a  # earlier in the flattened, time-major order
+    if variant is Variant.NO_INTRA:
+        return s < t  # nothing of its own timestep
+    return s < t and j == a  # marginal / no-map: only its own past
+
+
+@pytest.mark.parametrize("variant", list(Variant))
+def test_a_token_never_sees_what_its_variant_forbids(variant: Variant) -> None:
+    torch.manual_seed(0)
+    cfg = preset("tiny", variant=variant)
+    model = TrajeglishModel(cfg).eval()
+    scene, tokens = random_scene(cfg)
+    base = model(scene, tokens)
+    assert base.shape == (2, cfg.steps, cfg.max_agents, cfg.vocab_size)
+    real = cfg.max_agents - 1  # the last slot is padding
+    used = torch.zeros(cfg.steps, real, dtype=torch.bool)  # targets that reacted to an allowed change
+    for j in range(real):
+        for s in range(cfg.steps):
+            changed = tokens.clone()
+            changed[:, j, s] = (changed[:, j, s] + 7) % cfg.vocab_size
+            diff = (model(scene, changed) - base).abs().amax(dim=(0, 3))  # [T,A]
+            for t in range(cfg.steps):
+                for a in range(real):
+                    if may_use(variant, (t, a), (s, j), cfg.max_agents):
+                        used[t, a] |= bool(diff[t, a] > 1e-5)
+                    else:
+                        assert diff[t, a] < 1e-5, (
+                            f"{variant.value}: target (t={t}, a={a}) saw token ({j}, {s})"
+                        )
+    assert used[1:].all()  # every target after the first step does use what it may
+
+
+def test_no_map_variant_ignores_the_map() -> None:
+    cfg = preset("tiny", variant=Variant.NO_MAP)
+    model = TrajeglishModel(cfg).eval()
+    scene, tokens = random_scene(cfg)
+    other = SceneInputs(
+        **{**scene.__dict__, "map_points": scene.map_points * 3.0, "map_kind": scene.map_kind // 2}
+    )
+    torch.testing.assert_close(model(scene, tokens), model(other, tokens))
+    full = TrajeglishModel(preset("tiny")).eval()
+    assert (full(scene, tokens) - full(other, tokens)).abs().max() > 1e-3
+
+
+@pytest.mark.parametrize("variant", list(Variant))
+def test_cached_decoding_equals_full_forward(variant: Variant) -> None:
+    torch.manual_seed(1)
+    cfg = preset("tiny", variant=variant)
+    model = TrajeglishModel(cfg).eval()
+    scene, tokens = random_scene(cfg, b=2, padded=2)
+    full = model(scene, tokens)  # [B,T,A,V]
+    ids = model.global_ids(tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(2, -1)
+    a = cfg.max_agents
+    # one position at a time (how trajeglish samples), and one timestep at a time (the other variants)
+    chunk = 1 if variant is Variant.TRAJEGLISH else a
+    cache, agents = model.start_decoding(scene)
+    worst = 0.0
+    for p in range(0, cfg.steps * a, chunk):
+        carried = torch.stack(
+            [
+                ids[:, q] if q >= 0 else torch.full((2,), -2)
+                for q in (carried_position(variant, p + i, a) for i in range(chunk))
+            ],
+            1,
+        )
+        kinds = scene.agent_kind[:, [(p + i) % a for i in range(chunk)]]
+        logits = model.decode(cache, agents, kinds, carried)
+        t = p // a
+        want = full[:, t, p % a : p % a + chunk]
+        worst = max(worst, (logits - want).abs().max().item())
+    assert worst <= 1e-4
+    with pytest.raises(RuntimeError, match="cache holds"):
+        model.decode(cache, agents, kinds, carried)
+
+
+def test_loss_ignores_unobserved_and_padding() -> None:
+    cfg = preset("tiny")
+    model = TrajeglishModel(cfg)
+    scene, tokens = random_scene(cfg, padded=2)
+    loss, n = model.loss(scene, tokens, tokens)
+    assert n == 2 * (cfg.max_agents - 2) * cfg.steps - 1
+    assert (
+        abs(loss.item() - torch.log(torch.tensor(float(cfg.vocab_size))).item()) < 1.0
+    )  # near uniform at init
+    with pytest.raises(ValueError, match="at most 6 agents x 8 steps"):
+        model(scene, torch.zeros(2, 6, 9, dtype=torch.long))

@@ -1,0 +1,6 @@
+"""The Trajeglish model: configuration, masks, layers and the encoder-decoder network."""
+
+from trajeglish_env.model.config import PRESETS, ModelConfig, Variant, preset
+from trajeglish_env.model.network import SceneInputs, TrajeglishModel
+
+__all__ = ["PRESETS", "ModelConfig", "SceneInputs", "TrajeglishModel", "Variant", "preset"]

@@ -1,0 +1,107 @@
+"""Typed configuration of the Trajeglish model: the variant and the size presets."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from enum import Enum
+
+
+class Variant(str, Enum):
+    """Decoder masking variants of the paper's ablation (same code path, different attention masks)."""
+
+    TRAJEGLISH = "trajeglish"  # full intra-timestep attention (causal over the flattened sequence)
+    NO_INTRA = "no-intra"  # a token may not attend to tokens of its own timestep
+    MARGINAL = "marginal"  # only its own agent's past tokens
+    NO_MAP = "no-map"  # marginal, and no map encoder
+
+    @property
+    def uses_map(self) -> bool:
+        return self is not Variant.NO_MAP
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Model hyper-parameters. ``steps`` is the number of future tokens per agent in a training window."""
+
+    d_model: int = 512
+    num_heads: int = 8
+    map_layers: int = 2
+    encoder_layers: int = 2
+    decoder_layers: int = 6
+    latent_queries: int = 64
+    max_agents: int = 24
+    max_polylines: int = 96
+    points_per_polyline: int = 20
+    steps: int = 32
+    vocab_size: int = 384
+    num_kinds: int = 3
+    num_map_kinds: int = 20
+    ff_mult: int = 4
+    dropout: float = 0.0
+    variant: Variant = Variant.TRAJEGLISH
+
+    def __post_init__(self) -> None:
+        if self.d_model % self.num_heads:
+            raise ValueError(
+                f"ModelConfig: d_model {self.d_model} must be divisible by num_heads {self.num_heads}"
+            )
+        for name in (
+            "d_model",
+            "num_heads",
+            "decoder_layers",
+            "latent_queries",
+            "max_agents",
+            "steps",
+            "vocab_size",
+        ):
+            if getattr(self, name) < 1:
+                raise ValueError(f"ModelConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if not isinstance(self.variant, Variant):
+            object.__setattr__(self, "variant", Variant(self.variant))
+
+    @property
+    def seq_len(self) -> int:
+        """Length of the flattened token sequence (time-major, agents within a timestep)."""
+        return self.steps * self.max_agents
+
+    def with_variant(self, variant: Variant | str) -> ModelConfig:
+        return replace(self, variant=Variant(variant))
+
+
+PRESETS: dict[str, ModelConfig] = {
+    # seconds on CPU: unit tests
+    "tiny": ModelConfig(
+        d_model=32,
+        num_heads=2,
+        map_layers=1,
+        encoder_layers=1,
+        decoder_layers=2,
+        latent_queries=8,
+        max_agents=6,
+        max_polylines=16,
+        points_per_polyline=10,
+        steps=8,
+    ),
+    # the shipped model: trainable on a 2-core CPU in about an hour
+    "small": ModelConfig(
+        d_model=128,
+        num_heads=4,
+        map_layers=1,
+        encoder_layers=1,
+        decoder_layers=4,
+        latent_queries=32,
+        max_agents=16,
+        max_polylines=64,
+        points_per_polyline=20,
+        steps=24,
+    ),
+    # the paper's WOMD model (appendix "Training hyperparameters")
+    "paper": ModelConfig(),
+}
+
+
+def preset(name: str, **overrides: object) -> ModelConfig:
+    """A preset by name (``tiny``, ``small``, ``paper``), optionally with fields overridden."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown model preset {name!r}; expected one of {sorted(PRESETS)}")
+    return replace(PRESETS[name], **overrides)  # type: ignore[arg-type]

@@ -1,0 +1,122 @@
+"""Transformer building blocks with an optional key/value cache for incremental decoding."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class Attention(nn.Module):
+    """Multi-head attention through PyTorch SDPA (flash/efficient kernels on CUDA)."""
+
+    def __init__(self, d_model: int, num_heads: int, dropout: float = 0.0):
+        super().__init__()
+        self.num_heads = num_heads
+        self.q = nn.Linear(d_model, d_model)
+        self.kv = nn.Linear(d_model, 2 * d_model)
+        self.out = nn.Linear(d_model, d_model)
+        self.dropout = dropout
+
+    def split(self, x: torch.Tensor) -> torch.Tensor:
+        b, n, c = x.shape
+        return x.view(b, n, self.num_heads, c // self.num_heads).transpose(1, 2)  # [B,H,N,Dh]
+
+    def keys_values(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        k, v = self.kv(context).chunk(2, dim=-1)
+        return self.split(k), self.split(v)
+
+    def attend(
+        self, x: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None
+    ) -> torch.Tensor:
+        """Queries from ``x [B,N,C]`` against split keys/values; ``mask`` broadcastable to [B,H,N,K]."""
+        q = self.split(self.q(x))
+        p = self.dropout if self.training else 0.0
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
+        b, h, n, dh = y.shape
+        return self.out(y.transpose(1, 2).reshape(b, n, h * dh))
+
+    def forward(
+        self, x: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        k, v = self.keys_values(context)
+        return self.attend(x, k, v, mask)
+
+
+class FeedForward(nn.Sequential):
+    def __init__(self, d_model: int, mult: int, dropout: float):
+        super().__init__(
+            nn.Linear(d_model, mult * d_model),
+            nn.GELU(),
+            nn.Linear(mult * d_model, d_model),
+            nn.Dropout(dropout),
+        )
+
+
+class EncoderBlock(nn.Module):
+    """Pre-norm block: (cross- or self-) attention, then a feed-forward layer."""
+
+    def __init__(self, d_model: int, num_heads: int, ff_mult: int, dropout: float):
+        super().__init__()
+        self.norm_x = nn.LayerNorm(d_model)
+        self.norm_ctx = nn.LayerNorm(d_model)
+        self.attn = Attention(d_model, num_heads, dropout)
+        self.norm_ff = nn.LayerNorm(d_model)
+        self.ff = FeedForward(d_model, ff_mult, dropout)
+
+    def forward(
+        self, x: torch.Tensor, context: torch.Tensor | None = None, mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        h = self.norm_x(x)
+        ctx = h if context is None else self.norm_ctx(context)
+        x = x + self.attn(h, ctx, mask)
+        return x + self.ff(self.norm_ff(x))
+
+
+@dataclass
+class DecoderCache:
+    """Preallocated self-attention keys/values per layer and precomputed cross-attention keys/values."""
+
+    self_k: list[torch.Tensor]
+    self_v: list[torch.Tensor]
+    cross_k: list[torch.Tensor]
+    cross_v: list[torch.Tensor]
+    memory_mask: torch.Tensor  # [B,1,1,M]
+    length: int = 0
+
+
+class DecoderBlock(nn.Module):
+    """Pre-norm block: masked self-attention (cacheable), cross-attention to the scene, feed-forward."""
+
+    def __init__(self, d_model: int, num_heads: int, ff_mult: int, dropout: float):
+        super().__init__()
+        self.norm_self = nn.LayerNorm(d_model)
+        self.self_attn = Attention(d_model, num_heads, dropout)
+        self.norm_cross = nn.LayerNorm(d_model)
+        self.cross_attn = Attention(d_model, num_heads, dropout)
+        self.norm_ff = nn.LayerNorm(d_model)
+        self.ff = FeedForward(d_model, ff_mult, dropout)
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        self_mask: torch.Tensor,
+        cross_k: torch.Tensor,
+        cross_v: torch.Tensor,
+        memory_mask: torch.Tensor,
+        cache: tuple[torch.Tensor, torch.Tensor, int] | None = None,
+    ) -> torch.Tensor:
+        """``x [B,N,C]``; with ``cache = (K, V, start)`` the new keys/values are written at ``start``."""
+        h = self.norm_self(x)
+        k, v = self.self_attn.keys_values(h)
+        if cache is not None:
+            ck, cv, start = cache
+            n = x.shape[1]
+            ck[:, :, start : start + n] = k
+            cv[:, :, start : start + n] = v
+            k, v = ck[:, :, : start + n], cv[:, :, : start + n]
+        x = x + self.self_attn.attend(h, k, v, self_mask)
+        x = x + self.cross_attn.attend(self.norm_cross(x), cross_k, cross_v, memory_mask)
+        return x + self.ff(self.norm_ff(x))

@@ -1,0 +1,296 @@
+"""The Trajeglish encoder-decoder (paper Sec. 3.2).
+
+Encoder: each agent's initial state (length, width, position, heading, class) through an MLP, plus a
+learned embedding of its slot in the order (also its identity across the token sequence); a
+VectorNet-style polyline encoder (permutation invariant over polylines); a latent-query attention layer
+(Wayformer-style) and self-attention layers give the scene memory.
+Decoder: the multi-agent token sequence flattened time-major in agent order, a start token prepended and
+the last token popped; token embeddings (zeros where the agent is not observed) plus time and target-agent
+embeddings; a masked transformer with cross-attention to the memory; a head tied to the token embedding.
+Tokens of class ``k`` live at ids ``k * V .. k * V + V - 1``; logits are restricted to the agent's class.
+
+Shapes: B batch, A agent slots, T future steps, M polylines, P points, C width, V vocabulary.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from trajeglish_env.model.config import ModelConfig
+from trajeglish_env.model.layers import DecoderBlock, DecoderCache, EncoderBlock
+from trajeglish_env.model.masks import decoder_mask, input_shift
+
+POSITION_SCALE = 50.0  # metres -> network units
+SIZE_SCALE = 5.0
+
+
+@dataclass
+class SceneInputs:
+    """What the encoder sees: agents' initial states and the map, in the window's frame.
+
+    ``agent_xyh [B,A,3]`` initial states, ``agent_size [B,A,2]``, ``agent_kind [B,A]`` long,
+    ``agent_mask [B,A]`` bool; ``map_points [B,M,P,2]``, ``map_point_mask [B,M,P]``, ``map_kind [B,M]``,
+    ``map_mask [B,M]``.
+    """
+
+    agent_xyh: torch.Tensor
+    agent_size: torch.Tensor
+    agent_kind: torch.Tensor
+    agent_mask: torch.Tensor
+    map_points: torch.Tensor
+    map_point_mask: torch.Tensor
+    map_kind: torch.Tensor
+    map_mask: torch.Tensor
+
+    @classmethod
+    def from_batch(cls, batch: dict[str, torch.Tensor]) -> SceneInputs:
+        """From a collated training batch (``agent_xyh [B,A,S,3]``: the first state is the initial one)."""
+        return cls(
+            agent_xyh=batch["agent_xyh"][:, :, 0].float(),
+            agent_size=batch["agent_size"].float(),
+            agent_kind=batch["agent_kind"].long(),
+            agent_mask=batch["agent_mask"] & batch["agent_valid"][:, :, 0],
+            map_points=batch["map_points"].float(),
+            map_point_mask=batch["map_point_mask"],
+            map_kind=batch["map_kind"].long(),
+            map_mask=batch["map_mask"],
+        )
+
+
+class PolylineEncoder(nn.Module):
+    """VectorNet-style: per-point MLP, max-pool, second MLP on [point, pooled], max-pool again."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        c = cfg.d_model
+        self.point = nn.Sequential(nn.Linear(5, c), nn.LayerNorm(c), nn.GELU(), nn.Linear(c, c))
+        self.second = nn.Sequential(nn.Linear(2 * c, c), nn.LayerNorm(c), nn.GELU(), nn.Linear(c, c))
+        self.kind = nn.Embedding(cfg.num_map_kinds, c)
+
+    def forward(self, points: torch.Tensor, point_mask: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
+        nxt = torch.cat([points[:, :, 1:], points[:, :, -1:]], dim=2)
+        feats = torch.cat([points / POSITION_SCALE, nxt - points, point_mask[..., None].float()], dim=-1)
+        h = self.point(feats)
+        neg = torch.finfo(h.dtype).min
+        pooled = h.masked_fill(~point_mask[..., None], neg).amax(dim=2, keepdim=True)
+        h = self.second(torch.cat([h, pooled.expand_as(h)], dim=-1))
+        out = h.masked_fill(~point_mask[..., None], neg).amax(dim=2)
+        out = torch.where(point_mask.any(-1, keepdim=True), out, torch.zeros_like(out))
+        return out + self.kind(kind.clamp(0, self.kind.num_embeddings - 1))
+
+
+class SceneEncoder(nn.Module):
+    """Agents + map -> scene memory ``[B, A + Q, C]`` and its padding mask."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        c = cfg.d_model
+        self.cfg = cfg
+        self.agent = nn.Sequential(nn.Linear(4 + 2 + cfg.num_kinds, c), nn.GELU(), nn.Linear(c, c))
+        self.slot = nn.Embedding(cfg.max_agents, c)
+        self.polylines = PolylineEncoder(cfg) if cfg.variant.uses_map else None
+        self.map_layers = nn.ModuleList(
+            EncoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout) for _ in range(cfg.map_layers)
+        )
+        self.latents = nn.Parameter(torch.randn(cfg.latent_queries, c) * 0.02)
+        self.latent_attn = EncoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout)
+        self.layers = nn.ModuleList(
+            EncoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout) for _ in range(cfg.encoder_layers)
+        )
+        self.norm = nn.LayerNorm(c)
+
+    def agent_embedding(self, scene: SceneInputs) -> torch.Tensor:
+        """Per-agent embedding of the initial state plus slot embedding, ``[B,A,C]``."""
+        xyh = scene.agent_xyh
+        feats = torch.cat(
+            [
+                xyh[..., :2] / POSITION_SCALE,
+                torch.cos(xyh[..., 2:3]),
+                torch.sin(xyh[..., 2:3]),
+                scene.agent_size / SIZE_SCALE,
+                F.one_hot(scene.agent_kind.clamp(0, self.cfg.num_kinds - 1), self.cfg.num_kinds).to(
+                    xyh.dtype
+                ),
+            ],
+            dim=-1,
+        )
+        a = xyh.shape[1]
+        emb = self.agent(feats) + self.slot.weight[:a]
+        return emb * scene.agent_mask[..., None]
+
+    def forward(self, scene: SceneInputs) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Returns ``(memory [B,A+Q,C], memory_mask [B,A+Q], agent_embedding [B,A,C])``."""
+        agents = self.agent_embedding(scene)
+        b = agents.shape[0]
+        context, context_mask = agents, scene.agent_mask
+        if self.polylines is not None:
+            pl = self.polylines(scene.map_points, scene.map_point_mask, scene.map_kind)
+            pl_mask = scene.map_mask
+            for layer in self.map_layers:
+                pl = layer(pl, mask=pl_mask[:, None, None, :] | _eye_like(pl_mask))
+            context = torch.cat([agents, pl], dim=1)
+            context_mask = torch.cat([scene.agent_mask, pl_mask], dim=1)
+        latents = self.latents.expand(b, -1, -1)
+        latents = self.latent_attn(
+            latents, context, mask=context_mask[:, None, None, :] | _any_false(context_mask)
+        )
+        memory = torch.cat([agents, latents], dim=1)
+        memory_mask = torch.cat([scene.agent_mask, torch.ones_like(latents[..., 0], dtype=torch.bool)], dim=1)
+        for layer in self.layers:
+            memory = layer(memory, mask=memory_mask[:, None, None, :])
+        return self.norm(memory), memory_mask, agents
+
+
+def _eye_like(mask: torch.Tensor) -> torch.Tensor:
+    """Let every (even padded) query attend to itself so that no attention row is empty."""
+    n = mask.shape[-1]
+    return torch.eye(n, dtype=torch.bool, device=mask.device)[None, None]
+
+
+def _any_false(mask: torch.Tensor) -> torch.Tensor:
+    """Where a context is entirely padding, open it (its values are zeros) to keep SDPA finite."""
+    return (~mask.any(-1))[:, None, None, None]
+
+
+class TrajeglishModel(nn.Module):
+    """Encoder-decoder over multi-agent motion tokens; see the module docstring for the layout."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        c = cfg.d_model
+        self.encoder = SceneEncoder(cfg)
+        self.token = nn.Embedding(cfg.num_kinds * cfg.vocab_size, c)
+        self.start = nn.Parameter(torch.randn(c) * 0.02)
+        self.time = nn.Embedding(cfg.steps, c)
+        self.target_agent = nn.Linear(c, c)
+        self.blocks = nn.ModuleList(
+            DecoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout) for _ in range(cfg.decoder_layers)
+        )
+        self.norm = nn.LayerNorm(c)
+        nn.init.normal_(self.token.weight, std=0.02)
+        self.register_buffer("mask", decoder_mask(cfg.variant, cfg.steps, cfg.max_agents), persistent=False)
+
+    # ---------------------------------------------------------------------------------- helpers
+    def global_ids(self, tokens: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
+        """Class-local token ids (``-1`` = unobserved) -> ids in the joint embedding table (``-1`` kept)."""
+        return torch.where(tokens >= 0, tokens + kind * self.cfg.vocab_size, torch.full_like(tokens, -1))
+
+    def embed_tokens(self, ids: torch.Tensor) -> torch.Tensor:
+        """Embeddings of joint ids, zeros where ``ids < 0`` (unobserved agent or padding)."""
+        return self.token(ids.clamp(min=0)) * (ids >= 0)[..., None]
+
+    def class_logits(self, hidden: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
+        """Tied head restricted to the class: ``hidden [...,C]``, ``kind [...]`` -> ``[...,V]``."""
+        logits = F.linear(self.norm(hidden), self.token.weight)  # [..., K*V]
+        logits = logits.view(*logits.shape[:-1], self.cfg.num_kinds, self.cfg.vocab_size)
+        index = kind.clamp(0, self.cfg.num_kinds - 1)[..., None, None].expand(
+            *kind.shape, 1, self.cfg.vocab_size
+        )
+        return logits.gather(-2, index).squeeze(-2)
+
+    def _positions(self, agents: torch.Tensor, start: int, length: int, a: int) -> torch.Tensor:
+        """Time + target-agent embeddings for flattened positions ``start .. start+length-1``."""
+        p = torch.arange(start, start + length, device=agents.device)
+        return self.time(p // a)[None] + self.target_agent(agents[:, p % a])
+
+    # ---------------------------------------------------------------------------------- training
+    def forward(self, scene: SceneInputs, input_tokens: torch.Tensor) -> torch.Tensor:
+        """Teacher-forced logits ``[B,T,A,V]`` for targets at every (step, agent slot).
+
+        ``input_tokens [B,A,T]`` class-local ids of the tokens fed as input (the noisy ones in training;
+        ``-1`` where unobserved); position (t, a) never sees its own or later tokens.
+        """
+        b, a, t = input_tokens.shape
+        if a > self.cfg.max_agents or t > self.cfg.steps:
+            raise ValueError(
+                f"model takes at most {self.cfg.max_agents} agents x {self.cfg.steps} steps, got {a} x {t}"
+            )
+        memory, memory_mask, agents = self.encoder(scene)
+        ids = self.global_ids(input_tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, t * a)
+        shift = input_shift(self.cfg.variant, a)
+        x = torch.cat([self.start.expand(b, shift, -1), self.embed_tokens(ids[:, :-shift])], dim=1)
+        x = x + self._positions(agents, 0, t * a, a)
+        mask = (
+            decoder_mask(self.cfg.variant, t, a, x.device)
+            if a != self.cfg.max_agents
+            else self.mask[: t * a, : t * a]
+        )
+        mem_mask = memory_mask[:, None, None, :]
+        for block in self.blocks:
+            k, v = block.cross_attn.keys_values(memory)
+            x = block(x, mask, k, v, mem_mask)
+        kind = scene.agent_kind[:, None, :].expand(b, t, a)
+        return self.class_logits(x.view(b, t, a, -1), kind)
+
+    def loss(
+        self, scene: SceneInputs, input_tokens: torch.Tensor, targets: torch.Tensor
+    ) -> tuple[torch.Tensor, int]:
+        """Mean cross-entropy (nats) over observed targets ``[B,A,T]`` (``-1`` ignored) and their count."""
+        logits = self.forward(scene, input_tokens)
+        tgt = targets.transpose(1, 2)  # [B,T,A]
+        tgt = torch.where(scene.agent_mask[:, None, :], tgt, torch.full_like(tgt, -1))
+        n = int((tgt >= 0).sum())
+        loss = F.cross_entropy(
+            logits.reshape(-1, logits.shape[-1]), tgt.reshape(-1), ignore_index=-1, reduction="sum"
+        )
+        return loss / max(n, 1), n
+
+    # ---------------------------------------------------------------------------------- decoding
+    @torch.no_grad()
+    def start_decoding(
+        self, scene: SceneInputs, max_length: int | None = None
+    ) -> tuple[DecoderCache, torch.Tensor]:
+        """Encode the scene once and allocate the cache; returns it with the agent embeddings."""
+        memory, memory_mask, agents = self.encoder(scene)
+        b = memory.shape[0]
+        length = max_length or scene.agent_xyh.shape[1] * self.cfg.steps
+        h, dh = self.cfg.num_heads, self.cfg.d_model // self.cfg.num_heads
+        shape = (b, h, length, dh)
+        cross = [blk.cross_attn.keys_values(memory) for blk in self.blocks]
+        cache = DecoderCache(
+            self_k=[memory.new_zeros(shape) for _ in self.blocks],
+            self_v=[memory.new_zeros(shape) for _ in self.blocks],
+            cross_k=[k for k, _ in cross],
+            cross_v=[v for _, v in cross],
+            memory_mask=memory_mask[:, None, None, :],
+        )
+        return cache, agents
+
+    @torch.no_grad()
+    def decode(
+        self, cache: DecoderCache, agents: torch.Tensor, kind: torch.Tensor, carried_ids: torch.Tensor
+    ) -> torch.Tensor:
+        """Logits ``[B,n,V]`` for the next ``n`` flattened positions, appending them to the cache.
+
+        ``carried_ids [B,n]``: joint ids of the tokens those positions carry as input (see
+        :func:`~trajeglish_env.model.masks.carried_position`; ``-2`` = the start token, ``-1`` = unobserved).
+        ``kind [B,n]``: classes of the agents to predict. Positions that attend to each other within the
+        chunk must be decodable together (for trajeglish: one position at a time while sampling).
+        """
+        p, n = cache.length, carried_ids.shape[1]
+        a = agents.shape[1]
+        if p + n > cache.self_k[0].shape[2]:
+            raise RuntimeError(f"decoder cache holds {cache.self_k[0].shape[2]} positions; {p + n} requested")
+        is_start = (carried_ids == -2)[..., None]
+        x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
+        x = x + self._positions(agents, p, n, a)
+        mask = self._mask_rows(p, n, a)
+        for i, block in enumerate(self.blocks):
+            kv = (cache.self_k[i], cache.self_v[i], p)
+            x = block(x, mask, cache.cross_k[i], cache.cross_v[i], cache.memory_mask, kv)
+        cache.length = p + n
+        return self.class_logits(x, kind)
+
+    def _mask_rows(self, start: int, n: int, agents: int) -> torch.Tensor:
+        """Rows ``start..start+n-1`` of the decoder mask over keys ``0..start+n-1``."""
+        steps = (start + n - 1) // agents + 1
+        if agents == self.cfg.max_agents and steps <= self.cfg.steps:
+            full = self.mask
+        else:
+            full = decoder_mask(self.cfg.variant, steps, agents, self.mask.device)
+        return full[start : start + n, : start + n]
