@@ -56,12 +56,12 @@ class FeedForward(nn.Sequential):
 
 
 class EncoderBlock(nn.Module):
-    """Pre-norm block: (cross- or self-) attention, then a feed-forward layer."""
+    """Pre-norm block: self-attention (or, with ``cross``, attention to a context), then feed-forward."""
 
-    def __init__(self, d_model: int, num_heads: int, ff_mult: int, dropout: float):
+    def __init__(self, d_model: int, num_heads: int, ff_mult: int, dropout: float, cross: bool = False):
         super().__init__()
         self.norm_x = nn.LayerNorm(d_model)
-        self.norm_ctx = nn.LayerNorm(d_model)
+        self.norm_ctx = nn.LayerNorm(d_model) if cross else None
         self.attn = Attention(d_model, num_heads, dropout)
         self.norm_ff = nn.LayerNorm(d_model)
         self.ff = FeedForward(d_model, ff_mult, dropout)
@@ -70,7 +70,9 @@ class EncoderBlock(nn.Module):
         self, x: torch.Tensor, context: torch.Tensor | None = None, mask: torch.Tensor | None = None
     ) -> torch.Tensor:
         h = self.norm_x(x)
-        ctx = h if context is None else self.norm_ctx(context)
+        if (context is None) != (self.norm_ctx is None):
+            raise ValueError("EncoderBlock: pass a context exactly when the block was built with cross=True")
+        ctx = h if self.norm_ctx is None else self.norm_ctx(context)
         x = x + self.attn(h, ctx, mask)
         return x + self.ff(self.norm_ff(x))
 

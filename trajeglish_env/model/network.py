@@ -97,7 +97,7 @@ class SceneEncoder(nn.Module):
             EncoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout) for _ in range(cfg.map_layers)
         )
         self.latents = nn.Parameter(torch.randn(cfg.latent_queries, c) * 0.02)
-        self.latent_attn = EncoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout)
+        self.latent_attn = EncoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout, cross=True)
         self.layers = nn.ModuleList(
             EncoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout) for _ in range(cfg.encoder_layers)
         )

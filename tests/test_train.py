@@ -1,0 +1,153 @@
+"""Training: a tiny model overfits, resume is exact, two DDP processes equal one, checkpoints are safe."""
+
+from __future__ import annotations
+
+import os
+import socket
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+from conftest import straight_road_scene
+
+from trajeglish_env.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from trajeglish_env.model import TrajeglishModel, preset
+from trajeglish_env.scenario_io import save_scenarios
+from trajeglish_env.tokenizer.baselines import xyh_grid_templates
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+from trajeglish_env.train import TrainConfig, train
+
+VOCAB = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
+CFG = preset("tiny", vocab_size=VOCAB.size)
+
+
+@pytest.fixture(scope="module")
+def scenes_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scenes")
+    save_scenarios(d / "a.scn.npz", [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)])
+    return d
+
+
+def _quick(**kw) -> TrainConfig:
+    base = dict(
+        steps=6,
+        batch_size=4,
+        warmup_steps=2,
+        val_every=100,
+        log_every=1,
+        checkpoint_every=3,
+        num_workers=0,
+        val_fraction=0.0,
+    )
+    return TrainConfig(**{**base, **kw})
+
+
+def _weights(path) -> dict[str, torch.Tensor]:
+    return load_checkpoint(path).model.state_dict()
+
+
+def test_tiny_model_overfits_a_tiny_dataset(scenes_dir, tmp_path) -> None:
+    cfg = _quick(steps=60, lr=3e-3, warmup_steps=5, noisy_inputs=False, log_every=5)
+    result = train(scenes_dir, tmp_path, CFG, cfg, vocabulary=VOCAB, progress=False)
+    history = load_checkpoint(tmp_path / "last.pt").trainer["history"]
+    first, last = history[0]["loss"], result["train_loss"]
+    assert first > 4.0  # ~log(144) at the start
+    assert last < 0.5 * first, (first, last)
+    assert (tmp_path / "metrics.csv").read_text().startswith("step,loss,val_nll")
+    assert (tmp_path / "training_curve.png").stat().st_size > 1000
+
+
+def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
+    straight = train(scenes_dir, tmp_path / "a", CFG, _quick(), vocabulary=VOCAB, progress=False)
+    assert straight["steps"] == 6 and straight["resumed_from"] == 0
+
+    import trajeglish_env.train as train_module
+
+    real_write = train_module._write_metrics
+
+    def crash_at_step_4(path, history):
+        if history[-1]["step"] == 4:
+            raise KeyboardInterrupt  # the job is killed after the step-3 checkpoint
+        real_write(path, history)
+
+    monkeypatch.setattr(train_module, "_write_metrics", crash_at_step_4)
+    with pytest.raises(KeyboardInterrupt):
+        train(scenes_dir, tmp_path / "b", CFG, _quick(), vocabulary=VOCAB, progress=False)
+    assert load_checkpoint(tmp_path / "b" / "last.pt").trainer["step"] == 3
+    monkeypatch.setattr(train_module, "_write_metrics", real_write)
+    resumed = train(scenes_dir, tmp_path / "b", CFG, _quick(), vocabulary=VOCAB, resume=True, progress=False)
+    assert resumed["resumed_from"] == 3 and resumed["steps"] == 6
+    a, b = _weights(tmp_path / "a" / "model.pt"), _weights(tmp_path / "b" / "model.pt")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=f"parameter {k} differs after resume")
+    with pytest.raises(CheckpointError, match="it was trained with"):
+        train(scenes_dir, tmp_path / "b", CFG, _quick(lr=1e-3), vocabulary=VOCAB, resume=True, progress=False)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ddp_worker(rank: int, world: int, port: int, scenes: str, out: str) -> None:
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        WORLD_SIZE=str(world),
+        RANK=str(rank),
+        LOCAL_RANK=str(rank),
+    )
+    torch.set_num_threads(1)
+    train(scenes, out, CFG, _quick(steps=3), vocabulary=VOCAB, progress=False)
+    torch.distributed.destroy_process_group()
+
+
+def test_two_processes_equal_one_process_on_the_combined_batch(scenes_dir, tmp_path) -> None:
+    train(scenes_dir, tmp_path / "one", CFG, _quick(steps=3), vocabulary=VOCAB, progress=False)
+    mp.start_processes(
+        _ddp_worker,
+        args=(2, _free_port(), str(scenes_dir), str(tmp_path / "two")),
+        nprocs=2,
+        start_method="spawn",
+    )
+    a, b = _weights(tmp_path / "one" / "model.pt"), _weights(tmp_path / "two" / "model.pt")
+    for k in a:
+        # Key biases get a gradient of exactly zero in theory (softmax ignores them), i.e. float noise that
+        # Adam normalises to lr-sized steps; every other parameter must match to float precision.
+        atol = 2e-5 if k.endswith("kv.bias") else 1e-6
+        torch.testing.assert_close(
+            a[k], b[k], rtol=0, atol=atol, msg=lambda m, k=k: f"{k} differs under DDP: {m}"
+        )
+    assert load_checkpoint(tmp_path / "two" / "model.pt").training["processes"] == 2
+
+
+def test_checkpoint_round_trip_and_clear_errors(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = TrajeglishModel(CFG)
+    path = save_checkpoint(tmp_path / "m.pt", model, VOCAB, training={"note": "test"})
+    ckpt = load_checkpoint(path)
+    assert ckpt.config == CFG and ckpt.vocabulary.equals(VOCAB) and ckpt.training == {"note": "test"}
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, ckpt.model.state_dict()[k])
+    truncated = tmp_path / "cut.pt"
+    truncated.write_bytes(path.read_bytes()[:2000])
+    with pytest.raises(CheckpointError, match="cut.pt: not a readable checkpoint"):
+        load_checkpoint(truncated)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(CheckpointError, match="not a trajeglish_env checkpoint"):
+        load_checkpoint(foreign)
+    payload = torch.load(path, weights_only=True)
+    payload["version"] = 7
+    torch.save(payload, tmp_path / "future.pt")
+    with pytest.raises(CheckpointError, match="version 7 is not supported"):
+        load_checkpoint(tmp_path / "future.pt")
+    small = MotionVocabulary(np.stack([xyh_grid_templates(256)] * 3), method="xyh-grid")
+    with pytest.raises(
+        CheckpointError, match="vocabulary has 3 classes x 294 templates but the model expects 3 x 144"
+    ):
+        save_checkpoint(tmp_path / "bad.pt", model, small)
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        load_checkpoint(tmp_path / "missing.pt")

@@ -1,0 +1,159 @@
+"""Self-describing, versioned model checkpoints: config + vocabulary + weights + training metadata.
+
+One ``torch.save`` file holding only tensors and plain Python values, read back with
+``torch.load(weights_only=True)`` (no pickled code runs on load). Wrong, corrupt, truncated or
+mismatched files fail with a :class:`CheckpointError` that names the file and the problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from trajeglish_env.model.config import ModelConfig, Variant
+from trajeglish_env.model.network import TrajeglishModel
+from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, VocabularyError
+
+FORMAT_NAME = "trajeglish_env.checkpoint"
+FORMAT_VERSION = 1
+PRETRAINED_ASSET = "trajeglish_small.pt"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, corrupt, of another format/version, or inconsistent."""
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint: the model (eval mode), its vocabulary and what training recorded."""
+
+    model: TrajeglishModel
+    vocabulary: MotionVocabulary
+    training: dict[str, Any]
+    path: Path | None = None
+    optimizer: dict[str, Any] | None = None
+    trainer: dict[str, Any] | None = None
+
+    @property
+    def config(self) -> ModelConfig:
+        return self.model.cfg
+
+
+def _to_plain(state: dict[str, Any]) -> dict[str, Any]:
+    """NumPy arrays -> tensors so the file loads with ``weights_only=True``."""
+    return {
+        k: torch.from_numpy(np.ascontiguousarray(v)) if isinstance(v, np.ndarray) else v
+        for k, v in state.items()
+    }
+
+
+def _from_plain(state: dict[str, Any]) -> dict[str, Any]:
+    return {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in state.items()}
+
+
+def save_checkpoint(
+    path: str | os.PathLike[str],
+    model: TrajeglishModel,
+    vocabulary: MotionVocabulary,
+    training: dict[str, Any] | None = None,
+    optimizer: dict[str, Any] | None = None,
+    trainer: dict[str, Any] | None = None,
+) -> Path:
+    """Write a checkpoint atomically (a crash never leaves a half-written file in place)."""
+    check_compatible(model.cfg, vocabulary, where=str(path))
+    config = dataclasses.asdict(model.cfg)
+    config["variant"] = model.cfg.variant.value
+    payload = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "config": config,
+        "vocabulary": _to_plain(vocabulary.to_state()),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "training": training or {},
+        "optimizer": optimizer,
+        "trainer": trainer,
+    }
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+    return path
+
+
+def check_compatible(cfg: ModelConfig, vocabulary: MotionVocabulary, where: str) -> None:
+    """The vocabulary must have the model's size and number of classes."""
+    if vocabulary.size != cfg.vocab_size or vocabulary.num_kinds != cfg.num_kinds:
+        raise CheckpointError(
+            f"{where}: vocabulary has {vocabulary.num_kinds} classes x {vocabulary.size} templates but the model "
+            f"expects {cfg.num_kinds} x {cfg.vocab_size}"
+        )
+
+
+def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> Checkpoint:
+    """Read a checkpoint written by :func:`save_checkpoint`; the model is returned in eval mode."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupt/truncated/foreign files
+        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt?): {exc}") from exc
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT_NAME:
+        raise CheckpointError(f"{path}: not a trajeglish_env checkpoint (no '{FORMAT_NAME}' header)")
+    if payload.get("version") != FORMAT_VERSION:
+        raise CheckpointError(
+            f"{path}: checkpoint format version {payload.get('version')} is not supported "
+            f"(this build reads {FORMAT_VERSION})"
+        )
+    try:
+        raw = dict(payload["config"])
+        raw["variant"] = Variant(raw["variant"])
+        known = {f.name for f in dataclasses.fields(ModelConfig)}
+        unknown = sorted(set(raw) - known)
+        if unknown:
+            raise CheckpointError(
+                f"{path}: config has unknown fields {unknown} (written by a newer version?)"
+            )
+        cfg = ModelConfig(**raw)
+        vocabulary = MotionVocabulary.from_state(_from_plain(payload["vocabulary"]), where=str(path))
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, CheckpointError):
+            raise
+        if isinstance(exc, VocabularyError):
+            raise CheckpointError(str(exc)) from exc
+        raise CheckpointError(f"{path}: malformed checkpoint config: {exc}") from exc
+    check_compatible(cfg, vocabulary, where=str(path))
+    model = TrajeglishModel(cfg)
+    try:
+        model.load_state_dict(payload["state_dict"])
+    except (RuntimeError, KeyError) as exc:
+        raise CheckpointError(f"{path}: weights do not match the stored config: {exc}") from exc
+    model.eval()
+    return Checkpoint(
+        model=model,
+        vocabulary=vocabulary,
+        training=dict(payload.get("training") or {}),
+        path=path,
+        optimizer=payload.get("optimizer"),
+        trainer=payload.get("trainer"),
+    )
+
+
+def pretrained_path() -> Path:
+    """Path of the checkpoint shipped inside the package."""
+    return Path(str(resources.files("trajeglish_env") / "assets" / PRETRAINED_ASSET))
+
+
+def load_pretrained(map_location: str | torch.device = "cpu") -> Checkpoint:
+    """The shipped pretrained model and its tokenizer (no download: it lives in the package)."""
+    path = pretrained_path()
+    if not path.is_file():
+        raise CheckpointError(f"{path}: the shipped pretrained checkpoint is missing from this installation")
+    return load_checkpoint(path, map_location)

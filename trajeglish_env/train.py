@@ -1,0 +1,386 @@
+"""Training loop (paper appendix "Training hyperparameters"), one process or many through ``torchrun``.
+
+Random time window, random agent's frame, random agent order, noisy input tokens (sigma 0.008, nucleus
+0.95) with argmin targets, AdamW with warmup and linear decay, gradient clipping. On CUDA: bf16 autocast
+(attention runs through SDPA, i.e. flash attention where available); on CPU: float32. Progress bar with
+loss and tokens/s, CSV metrics, periodic validation NLL, atomic checkpoints, exact ``--resume``.
+Under ``torchrun`` each process takes its share of every global batch (DistributedDataParallel); the
+loss is normalised by the global token count so that W processes compute exactly the one-process update.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import os
+import sys
+import time
+from collections.abc import Sequence
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.distributed as dist
+from torch import nn
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from trajeglish_env.checkpoint import CheckpointError, check_compatible, load_checkpoint, save_checkpoint
+from trajeglish_env.dataset import SceneStore, WindowConfig, collate_windows
+from trajeglish_env.model.config import ModelConfig
+from trajeglish_env.model.network import SceneInputs, TrajeglishModel
+from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.tokenizer.noise import NoiseConfig
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
+from trajeglish_env.training_data import StepBatchSampler, TokenizedWindows
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings (paper: lr 5e-4, 500 warmup steps, linear decay, AdamW, batch 96)."""
+
+    steps: int = 2000
+    batch_size: int = 16
+    lr: float = 5e-4
+    warmup_steps: int = 100
+    weight_decay: float = 0.01
+    grad_clip: float = 1.0
+    noise_sigma: float = 0.008
+    noise_top_p: float = 0.95
+    noisy_inputs: bool = True
+    seed: int = 0
+    val_fraction: float = 0.05
+    val_windows: int = 64
+    val_every: int = 200
+    log_every: int = 10
+    checkpoint_every: int = 200
+    num_workers: int = 1
+
+    def lr_at(self, step: int) -> float:
+        """Learning rate at ``step``: linear warmup, then linear decay to 0 at ``steps``."""
+        if step < self.warmup_steps:
+            return self.lr * (step + 1) / self.warmup_steps
+        return self.lr * max(0.0, (self.steps - step) / max(1, self.steps - self.warmup_steps))
+
+
+def window_config(cfg: ModelConfig) -> WindowConfig:
+    """The training window that matches a model's context."""
+    return WindowConfig(
+        steps=cfg.steps + 1,
+        max_agents=cfg.max_agents,
+        max_polylines=cfg.max_polylines,
+        points_per_polyline=cfg.points_per_polyline,
+    )
+
+
+class _LossModule(nn.Module):
+    """Wraps the model so that DDP sees one forward that returns (summed loss, token count)."""
+
+    def __init__(self, model: TrajeglishModel):
+        super().__init__()
+        self.model = model
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        scene = SceneInputs.from_batch(batch)
+        mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"])
+        return mean * n, torch.tensor(float(n), device=mean.device)
+
+
+@dataclass
+class _Dist:
+    rank: int = 0
+    world: int = 1
+    local_rank: int = 0
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def _init_distributed(device: torch.device) -> _Dist:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return _Dist()
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+    return _Dist(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")))
+
+
+def split_scenes(scenes: Sequence[Scenario], fraction: float) -> tuple[list[Scenario], list[Scenario]]:
+    """Deterministic train/validation split: every k-th scene goes to validation."""
+    if fraction <= 0 or len(scenes) < 2:
+        return list(scenes), []
+    k = max(2, round(1 / fraction))
+    return [s for i, s in enumerate(scenes) if i % k], [s for i, s in enumerate(scenes) if not i % k]
+
+
+def _batch_to(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
+
+
+@torch.no_grad()
+def validation_nll(
+    model: TrajeglishModel,
+    scenes: Sequence[Scenario],
+    vocabulary: MotionVocabulary,
+    windows: int,
+    seed: int,
+    device: torch.device,
+    batch_size: int = 16,
+) -> float:
+    """Mean NLL (nats/token) on fixed windows of held-out scenes, with argmin input tokens."""
+    ds = TokenizedWindows(scenes, window_config(model.cfg), vocabulary, None, seed + 1_000_003)
+    was_training = model.training
+    model.eval()
+    total, count = 0.0, 0
+    for first in range(0, windows, batch_size):
+        batch = _batch_to(
+            collate_windows([ds[g] for g in range(first, min(windows, first + batch_size))]), device
+        )
+        mean, n = model.loss(SceneInputs.from_batch(batch), batch["input_tokens"], batch["tokens"])
+        total += float(mean) * n
+        count += n
+    model.train(was_training)
+    return total / max(count, 1)
+
+
+def train(
+    data: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    out: str | os.PathLike[str],
+    model_config: ModelConfig,
+    config: TrainConfig = TrainConfig(),
+    vocabulary: MotionVocabulary | None = None,
+    val_data: str | os.PathLike[str] | None = None,
+    resume: bool = False,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Train (or resume training) a model on scene shards; writes ``last.pt``, ``model.pt``, ``metrics.csv``."""
+    out = Path(out)
+    device = (
+        torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        if torch.cuda.is_available()
+        else torch.device("cpu")
+    )
+    dd = _init_distributed(device)
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    vocabulary = vocabulary or load_default_tokenizer(model_config.vocab_size)
+    check_compatible(model_config, vocabulary, where="train: --vocab")
+    scenes = SceneStore(data).scenes
+    if val_data is not None:
+        train_scenes, val_scenes = scenes, SceneStore(val_data).scenes
+    else:
+        train_scenes, val_scenes = split_scenes(scenes, config.val_fraction)
+
+    torch.manual_seed(config.seed)
+    model = TrajeglishModel(model_config).to(device)
+    decay = [p for n, p in model.named_parameters() if p.ndim >= 2]
+    no_decay = [p for n, p in model.named_parameters() if p.ndim < 2]
+    optimizer = torch.optim.AdamW(
+        [{"params": decay, "weight_decay": config.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
+        lr=config.lr,
+        betas=(0.9, 0.95),
+    )
+    start_step, history = 0, []
+    last = out / "last.pt"
+    if resume and last.is_file():
+        ckpt = load_checkpoint(last, map_location=device)
+        if ckpt.config != model_config:
+            raise CheckpointError(
+                f"{last}: saved model config {ckpt.config} differs from the requested {model_config}"
+            )
+        trainer = ckpt.trainer or {}
+        if trainer.get("train_config") != dataclasses.asdict(config):
+            raise CheckpointError(f"{last}: it was trained with {trainer.get('train_config')}, not {config}")
+        model.load_state_dict(ckpt.model.state_dict())
+        optimizer.load_state_dict(ckpt.optimizer or {})
+        start_step = int(trainer["step"])
+        history = list(trainer.get("history", []))
+    elif resume and dd.main:
+        print(f"train: no {last} to resume from; starting from scratch", file=sys.stderr)
+
+    loss_module: nn.Module = _LossModule(model)
+    if dd.world > 1:
+        loss_module = nn.parallel.DistributedDataParallel(
+            loss_module, device_ids=[device.index] if device.type == "cuda" else None
+        )
+    noise = NoiseConfig(config.noise_sigma, config.noise_top_p) if config.noisy_inputs else None
+    dataset = TokenizedWindows(train_scenes, window_config(model_config), vocabulary, noise, config.seed)
+    sampler = StepBatchSampler(config.batch_size, start_step, config.steps, dd.rank, dd.world)
+    loader = DataLoader(
+        dataset,
+        batch_sampler=sampler,
+        num_workers=config.num_workers,
+        collate_fn=collate_windows,
+        persistent_workers=False,
+        pin_memory=device.type == "cuda",
+    )
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else nullcontext()
+    out.mkdir(parents=True, exist_ok=True)
+    metrics_path = out / "metrics.csv"
+    bar = tqdm(
+        total=config.steps,
+        initial=start_step,
+        disable=not (progress and dd.main),
+        file=sys.stderr,
+        desc="train",
+        unit="step",
+    )
+    model.train()
+    step, t0, tokens_seen, last_log = start_step, time.perf_counter(), 0, time.perf_counter()
+    window_tokens, window_loss = 0.0, 0.0
+    for batch in loader:
+        batch = _batch_to(batch, device)
+        for group in optimizer.param_groups:
+            group["lr"] = config.lr_at(step)
+        with autocast:
+            loss_sum, n = loss_module(batch)
+        global_n = n.detach().clone()
+        if dd.world > 1:
+            dist.all_reduce(global_n)
+        # DDP averages gradients over W processes, hence the factor W: the update equals one process's.
+        (loss_sum * dd.world / global_n.clamp(min=1)).backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        step += 1
+        batch_loss = torch.stack([loss_sum.detach().float(), n.float()])
+        if dd.world > 1:
+            dist.all_reduce(batch_loss)
+        window_loss += float(batch_loss[0])
+        window_tokens += float(batch_loss[1])
+        tokens_seen += int(batch_loss[1])
+        if dd.main:
+            row: dict[str, Any] = {}
+            if step % config.log_every == 0 or step == config.steps:
+                now = time.perf_counter()
+                row = {
+                    "step": step,
+                    "loss": window_loss / max(window_tokens, 1),
+                    "lr": config.lr_at(step - 1),
+                    "grad_norm": float(grad_norm),
+                    "tokens_per_s": window_tokens / max(now - last_log, 1e-9),
+                }
+                window_loss, window_tokens, last_log = 0.0, 0.0, now
+            if val_scenes and (step % config.val_every == 0 or step == config.steps):
+                row.setdefault("step", step)
+                row["val_nll"] = validation_nll(
+                    model, val_scenes, vocabulary, config.val_windows, config.seed, device
+                )
+            if row:
+                history.append(row)
+                _write_metrics(metrics_path, history)
+                bar.set_postfix(
+                    {k: f"{v:.3g}" for k, v in row.items() if k in ("loss", "val_nll", "tokens_per_s")}
+                )
+            if step % config.checkpoint_every == 0 or step == config.steps:
+                _save(
+                    last,
+                    model,
+                    vocabulary,
+                    optimizer,
+                    config,
+                    step,
+                    history,
+                    train_scenes,
+                    val_scenes,
+                    dd.world,
+                )
+        bar.update(1)
+    bar.close()
+    elapsed = time.perf_counter() - t0
+    result: dict[str, Any] = {"out": str(out), "steps": step, "resumed_from": start_step}
+    if dd.main:
+        final = out / "model.pt"
+        info = _training_info(config, step, history, train_scenes, val_scenes, dd.world)
+        info["seconds"] = round(elapsed, 1)
+        save_checkpoint(final, model, vocabulary, training=info)
+        _plot_curve(history, out / "training_curve.png")
+        vals = [h["val_nll"] for h in history if "val_nll" in h]
+        result.update(
+            checkpoint=str(final),
+            train_loss=next((h["loss"] for h in reversed(history) if "loss" in h), math.nan),
+            val_nll=vals[-1] if vals else None,
+            tokens_per_second=round(tokens_seen / max(elapsed, 1e-9), 1),
+            seconds=round(elapsed, 1),
+            device=str(device),
+            processes=dd.world,
+        )
+    if dd.world > 1:
+        dist.barrier()
+    return result
+
+
+def _training_info(
+    config: TrainConfig,
+    step: int,
+    history: list[dict],
+    train: Sequence[Scenario],
+    val: Sequence[Scenario],
+    world: int,
+) -> dict[str, Any]:
+    sources = sorted({s.source for s in train})
+    return {
+        "train_config": dataclasses.asdict(config),
+        "step": step,
+        "train_scenes": len(train),
+        "val_scenes": len(val),
+        "sources": sources,
+        "processes": world,
+        "val_nll": next((h["val_nll"] for h in reversed(history) if "val_nll" in h), None),
+        "torch": str(torch.__version__),
+        "device": "cuda" if torch.cuda.is_available() else "cpu",
+    }
+
+
+def _save(
+    path: Path,
+    model: TrajeglishModel,
+    vocabulary: MotionVocabulary,
+    optimizer: torch.optim.Optimizer,
+    config: TrainConfig,
+    step: int,
+    history: list[dict],
+    train: Sequence[Scenario],
+    val: Sequence[Scenario],
+    world: int,
+) -> None:
+    trainer = {"train_config": dataclasses.asdict(config), "step": step, "history": history}
+    info = _training_info(config, step, history, train, val, world)
+    save_checkpoint(path, model, vocabulary, training=info, optimizer=optimizer.state_dict(), trainer=trainer)
+
+
+def _write_metrics(path: Path, history: list[dict]) -> None:
+    fields = ["step", "loss", "val_nll", "lr", "grad_norm", "tokens_per_s"]
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer.writeheader()
+        for row in history:
+            writer.writerow({k: row.get(k, "") for k in fields})
+
+
+def _plot_curve(history: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    tr = [(h["step"], h["loss"]) for h in history if "loss" in h]
+    va = [(h["step"], h["val_nll"]) for h in history if "val_nll" in h]
+    if tr:
+        ax.plot(*zip(*tr, strict=True), label="train loss (noisy inputs)")
+    if va:
+        ax.plot(*zip(*va, strict=True), "o-", label="validation NLL")
+    ax.set_xlabel("optimisation step")
+    ax.set_ylabel("nats / token")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
