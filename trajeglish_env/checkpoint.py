@@ -91,7 +91,8 @@ def check_compatible(cfg: ModelConfig, vocabulary: MotionVocabulary, where: str)
     """The vocabulary must have the model's size and number of classes."""
     if vocabulary.size != cfg.vocab_size or vocabulary.num_kinds != cfg.num_kinds:
         raise CheckpointError(
-            f"{where}: vocabulary has {vocabulary.num_kinds} classes x {vocabulary.size} templates but the model "
+            f"{where}: vocabulary has {vocabulary.num_kinds} classes x {vocabulary.size} templates but the "
+            "model "
             f"expects {cfg.num_kinds} x {cfg.vocab_size}"
         )
 

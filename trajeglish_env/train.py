@@ -158,7 +158,7 @@ def train(
     resume: bool = False,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Train (or resume training) a model on scene shards; writes ``last.pt``, ``model.pt``, ``metrics.csv``."""
+    """Train (or resume) a model on scene shards; writes ``last.pt``, ``model.pt`` and ``metrics.csv``."""
     out = Path(out)
     device = (
         torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
