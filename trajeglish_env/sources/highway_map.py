@@ -8,11 +8,15 @@ region of interest, and converted to WOMD-style map features:
 - each painted side -> a road line: ``LineType.STRIPED`` -> ROAD_LINE_BROKEN_SINGLE_WHITE,
   ``CONTINUOUS``/``CONTINUOUS_LINE`` -> ROAD_LINE_SOLID_SINGLE_WHITE, ``NONE`` -> nothing (highway-env
   paints a boundary shared by two lanes on one of them only, so shared lines are not duplicated);
-- road edges (ROAD_EDGE_BOUNDARY): the parts of a continuous lane side where no other lane lies just
-  beyond it. The test is geometric (a probe point ``edge_probe`` metres outside the side must not lie
-  on any lane), so kerbs stop where an entry or exit lane joins a roundabout ring, a splitter island
-  between diverging entry/exit lanes is bounded, and the open inner box of an intersection (crossed by
-  lanes whose sides carry no continuous line) gets no edge. Edges sit on the painted line (no shoulder).
+- road edges (ROAD_EDGE_BOUNDARY): the parts of a painted lane side (continuous or striped) where no
+  other lane lies just beyond it. The test is geometric (a probe point ``edge_probe`` metres outside
+  the side must not lie on any lane), so kerbs stop where an entry or exit lane joins a roundabout
+  ring or a highway exit ramp leaves, the splitter island between diverging entry/exit lanes and the
+  gore of an exit ramp (whose sides highway-env paints striped) are bounded, and the inner box of an
+  intersection gets no edge (its turning lanes' unpainted sides are never edges: in highway-env an
+  unpainted side is either painted by the neighbouring lane or lies inside a junction). Edges sit on
+  the painted line (no shoulder) and are oriented with the road on their left (counter-clockwise
+  around the drivable area, the convention of the WOSAC off-road metric).
 
 Geometry is computed in highway-env's native frame; the caller passes ``mirror_y`` to express it in the
 Scenario frame (see :mod:`trajeglish_env.sources.highway`).
@@ -34,7 +38,6 @@ _LINE_KIND = {
     LineType.CONTINUOUS: MapKind.ROAD_LINE_SOLID_SINGLE_WHITE,
     LineType.CONTINUOUS_LINE: MapKind.ROAD_LINE_SOLID_SINGLE_WHITE,
 }
-_CONTINUOUS = frozenset({LineType.CONTINUOUS, LineType.CONTINUOUS_LINE})
 
 
 @dataclass(frozen=True)
@@ -81,15 +84,41 @@ def lane_local(lane: AbstractLane, points: np.ndarray) -> tuple[np.ndarray, np.n
     return coords[:, 0], coords[:, 1]
 
 
-def _on_any_lane(lanes: list[AbstractLane], points: np.ndarray, skip: int) -> np.ndarray:
-    """Mask ``[n]`` of points lying on some lane other than ``lanes[skip]`` (within its width and length)."""
+def _covered(lanes: list[AbstractLane], points: np.ndarray, owner: np.ndarray, inset: float) -> np.ndarray:
+    """Mask ``[n]`` of points lying on some lane other than their owner ``lanes[owner[i]]``: within the
+    lane's length and within its width narrowed by ``inset`` metres on each side (one pass per lane)."""
     covered = np.zeros(len(points), dtype=bool)
     for k, lane in enumerate(lanes):
-        if k == skip:
-            continue
         s, lat = lane_local(lane, points)
-        covered |= (np.abs(lat) <= 0.5 * float(lane.width_at(0.0))) & (s >= 0.0) & (s <= lane.length)
+        on = (np.abs(lat) <= 0.5 * float(lane.width_at(0.0)) - inset) & (s >= 0.0) & (s <= lane.length)
+        covered |= on & (owner != k)
     return covered
+
+
+def _sample_in_region(
+    lane: AbstractLane, low: np.ndarray, high: np.ndarray, spacing: float, mirror: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Longitudinal samples ``[n]`` (every ``spacing / 2``) spanning the part of ``lane`` near the region,
+    and the mask of those whose centre point lies inside it; None when the lane misses the region.
+
+    A coarse 5 m pass finds the span first, so a 10 km highway lane costs what its cropped part costs.
+    """
+    length, coarse_step = float(lane.length), 5.0
+    coarse = np.linspace(0.0, length, max(int(np.ceil(length / coarse_step)), 1) + 1)
+    near = np.all(
+        np.abs(lane_points(lane, coarse, 0.0) * mirror - (low + high) / 2) <= (high - low) / 2 + 5.0, 1
+    )
+    if not near.any():
+        return None
+    first, last = (
+        coarse[near.argmax()] - coarse_step,
+        coarse[len(near) - 1 - near[::-1].argmax()] + coarse_step,
+    )
+    first, last = max(first, 0.0), min(last, length)
+    s = np.linspace(first, last, max(int(np.ceil((last - first) / (0.5 * spacing))), 1) + 1)
+    centre = lane_points(lane, s, 0.0) * mirror
+    inside = np.all((centre >= low) & (centre <= high), axis=1)
+    return (s, inside) if inside.sum() >= 2 else None
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -107,6 +136,7 @@ def _emit(
     spacing: float,
     mirror: np.ndarray,
     seen: set[tuple[int, ...]] | None = None,
+    reverse: bool = False,
 ) -> None:
     """Append each run of kept points (at least two) as a resampled polyline of ``kind``.
 
@@ -122,7 +152,8 @@ def _emit(
             if key in seen:
                 continue
             seen.add(key)
-        out.polylines.append(resample_polyline(points[start:end] * mirror, spacing))
+        run = points[start:end] * mirror
+        out.polylines.append(resample_polyline(run[::-1] if reverse else run, spacing))
         out.kinds.append(int(kind))
 
 
@@ -143,29 +174,43 @@ def network_polylines(
     mirror = np.array([1.0, -1.0 if mirror_y else 1.0])
     low, high = (np.asarray(c, dtype=np.float64) for c in region)
     lanes = network.lanes_list()
-    out = MapPolylines([], [])
+    centres = MapPolylines([], [])
     lines = MapPolylines([], [])
     edges = MapPolylines([], [])
     seen: set[tuple[int, ...]] = set()
+    # Painted sides: (lane, side, its boundary points, region mask); their edge tests run batched below.
+    sides: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+    probes: list[np.ndarray] = []
     for k, lane in enumerate(lanes):
-        length = float(lane.length)
-        s = np.linspace(0.0, length, max(int(np.ceil(length / (0.5 * spacing))), 1) + 1)
-        half = 0.5 * float(lane.width_at(0.0))
-        centre = lane_points(lane, s, 0.0)
-        inside = np.all((centre * mirror >= low) & (centre * mirror <= high), axis=1)
-        if inside.sum() < 2:
+        sampled = _sample_in_region(lane, low, high, spacing, mirror)
+        if sampled is None:
             continue
-        _emit(out, centre, inside, lane_kind, spacing, mirror)
+        s, inside = sampled
+        _emit(centres, lane_points(lane, s, 0.0), inside, lane_kind, spacing, mirror)
+        half = 0.5 * float(lane.width_at(0.0))
         for side, line_type in enumerate(lane.line_types or ()):
             if line_type not in _LINE_KIND:
                 continue
             sign = 2.0 * side - 1.0  # side 0 lies at lateral -width/2, side 1 at +width/2
             boundary = lane_points(lane, s, sign * half)
             _emit(lines, boundary, inside, _LINE_KIND[line_type], spacing, mirror, seen)
-            if line_type in _CONTINUOUS:
-                probe = lane_points(lane, s, sign * (half + edge_probe))
-                is_edge = inside & ~_on_any_lane(lanes, probe, skip=k)
-                _emit(edges, boundary, is_edge, MapKind.ROAD_EDGE_BOUNDARY, spacing, mirror, seen)
-    out.polylines.extend(lines.polylines + edges.polylines)
-    out.kinds.extend(lines.kinds + edges.kinds)
-    return out
+            sides.append((k, side, boundary, inside))
+            probes.append(lane_points(lane, s, sign * (half + edge_probe)))
+    if sides:
+        owner = np.concatenate([np.full(len(b), k) for k, _, b, _ in sides])
+        boundaries = np.concatenate([b for _, _, b, _ in sides])
+        # An edge needs open ground just beyond the side, and must not itself cut into another lane
+        # (where an entry lane meets a roundabout ring obliquely, its kerb would poke into the ring).
+        open_side = ~_covered(lanes, np.concatenate(probes), owner, 0.0)
+        open_side &= ~_covered(lanes, boundaries, owner, edge_probe)
+        splits = np.cumsum([len(b) for _, _, b, _ in sides])[:-1]
+        for (_, side, boundary, inside), is_open in zip(sides, np.split(open_side, splits), strict=True):
+            # Along the lane, side 1 lies on the lane's left in highway-env's frame, so the road is on
+            # the edge's right there and on its left once y is mirrored; orient every edge road-on-left.
+            reverse = (side == 1) != mirror_y
+            _emit(
+                edges, boundary, inside & is_open, MapKind.ROAD_EDGE_BOUNDARY, spacing, mirror, seen, reverse
+            )
+    return MapPolylines(
+        centres.polylines + lines.polylines + edges.polylines, centres.kinds + lines.kinds + edges.kinds
+    )
