@@ -20,7 +20,7 @@ def test_window_is_in_a_random_agents_frame_and_maps_back_exactly() -> None:
     scene = straight_road_scene(num_agents=6)
     w = make_window(scene, WindowConfig(steps=33, max_agents=4), np.random.default_rng(3))
     a = int(w["agent_mask"].sum())
-    assert a == 4 and not w["agent_mask"][a:].any()
+    assert a == 4 and w["agent_mask"][-a:].all()  # padding first
     start = int(w["start"])
     # exactly one agent sits at the origin with heading 0 at the window's first step: the frame agent
     at_origin = np.flatnonzero(np.abs(w["agent_xyh"][:a, 0]).sum(-1) < 1e-9)
@@ -48,11 +48,13 @@ def test_radius_limits_agents_and_map() -> None:
     start = int(w["start"])
     a = int(w["agent_mask"].sum())
     assert a < scene.num_agents  # somebody is out of range
-    frame_slot = np.flatnonzero(np.abs(w["agent_xyh"][:a, 0]).sum(-1) < 1e-9)[0]
-    dist = np.linalg.norm(w["agent_xyh"][:a, 0, :2] - w["agent_xyh"][frame_slot, 0, :2], axis=-1)
+    assert w["agent_mask"][-a:].all() and not w["agent_mask"][:-a].any()  # padding first
+    real = w["agent_xyh"][-a:, 0]
+    frame_slot = np.flatnonzero(np.abs(real).sum(-1) < 1e-9)[0]
+    dist = np.linalg.norm(real[:, :2] - real[frame_slot, :2], axis=-1)
     assert (dist <= 13.0 + 1e-4).all()
     live = np.flatnonzero(scene.valid[:, start])
-    frame_i = scene.agent_index(int(w["agent_track_id"][frame_slot]))
+    frame_i = scene.agent_index(int(w["agent_track_id"][-a:][frame_slot]))
     all_d = np.linalg.norm(scene.xyh[live, start, :2] - scene.xyh[frame_i, start, :2], axis=-1)
     assert a == int((all_d <= 13.0).sum())
     pts = w["map_points"][w["map_mask"]]

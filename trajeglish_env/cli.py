@@ -69,6 +69,46 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
     )
 
 
+def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.model.config import preset
+    from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+    from trajeglish_env.train import TrainConfig, train
+
+    vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
+    overrides: dict[str, Any] = {"variant": args.variant}
+    if vocabulary is not None:
+        overrides["vocab_size"] = vocabulary.size
+    model_config = preset(args.preset, **overrides)
+    config = TrainConfig(
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        warmup_steps=args.warmup,
+        seed=args.seed,
+        num_workers=args.workers,
+        val_every=args.val_every,
+        checkpoint_every=args.checkpoint_every,
+        noisy_inputs=not args.no_noise,
+    )
+    return train(
+        args.data, args.out, model_config, config, vocabulary, args.val_data, args.resume, not args.quiet
+    )
+
+
+def cmd_nll(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+    from trajeglish_env.density import evaluate_nll
+
+    ckpts = {}
+    for item in args.ckpt or []:
+        name, _, path = item.rpartition("=")
+        ckpt = load_checkpoint(path)
+        ckpts[name or ckpt.config.variant.value] = ckpt
+    if not ckpts:
+        ckpts["pretrained"] = load_pretrained()
+    return evaluate_nll(ckpts, args.data, args.windows, args.seed, args.unigram_data, args.plots)
+
+
 def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.render import RenderConfig, save_render
     from trajeglish_env.sources.highway import generate_scene
@@ -140,6 +180,40 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vocab", type=int, nargs="*", choices=(128, 256, 384, 512))
     p.add_argument("--out", default="out/tokenizer_eval", help="directory for plots")
     p.add_argument("--seed", type=int, default=0)
+
+    p = add("train", cmd_train, "train a Trajeglish model on scene shards (torchrun for several processes)")
+    p.add_argument("--data", nargs="+", required=True, help="scene directories")
+    p.add_argument(
+        "--out", required=True, help="run directory (checkpoints, metrics.csv, training_curve.png)"
+    )
+    p.add_argument("--preset", choices=("tiny", "small", "paper"), default="small")
+    p.add_argument(
+        "--variant", choices=("trajeglish", "no-intra", "marginal", "no-map"), default="trajeglish"
+    )
+    p.add_argument("--vocab", help="vocabulary file (default: the shipped 384-token vocabulary)")
+    p.add_argument("--steps", type=int, default=2000, help="optimisation steps")
+    p.add_argument("--batch-size", type=int, default=16, help="global batch size (split over processes)")
+    p.add_argument("--lr", type=float, default=5e-4)
+    p.add_argument("--warmup", type=int, default=100)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=1, help="DataLoader worker processes")
+    p.add_argument("--val-data", help="held-out scenes (default: every 20th training scene)")
+    p.add_argument("--val-every", type=int, default=200)
+    p.add_argument("--checkpoint-every", type=int, default=200)
+    p.add_argument("--no-noise", action="store_true", help="argmin input tokens (no noisy tokenization)")
+    p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
+
+    p = add(
+        "nll", cmd_nll, "held-out NLL per token: per class, vs agents-before and context length, vs unigram"
+    )
+    p.add_argument("--data", required=True, help="held-out scenes")
+    p.add_argument(
+        "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
+    )
+    p.add_argument("--windows", type=int, default=256)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--unigram-data", help="training scenes to fit the unigram baseline on")
+    p.add_argument("--plots", help="directory for the analysis plots")
 
     p = add("demo", cmd_demo, "the main job: generate a scene and render it")
     p.add_argument("--out", default="out/demo")

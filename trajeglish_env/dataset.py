@@ -75,7 +75,8 @@ class WindowDataset(Dataset):
     Fields: ``agent_xyh [A,S,3]`` float32 in the frame, ``agent_valid [A,S]``, ``agent_size [A,2]``,
     ``agent_kind [A]`` int64, ``agent_mask [A]`` (real vs padding), ``map_points [M,P,2]`` float32,
     ``map_point_mask [M,P]``, ``map_kind [M]`` int64, ``map_mask [M]``, ``frame [3]`` float64 (the
-    global state defining the frame), ``scene [ ]`` and ``start [ ]`` int64. Padding agents come last.
+    global state defining the frame), ``scene [ ]`` and ``start [ ]`` int64. Padding agents come first
+    (the order the sampler uses: padding, then agents in acting order).
     """
 
     def __init__(
@@ -141,13 +142,14 @@ def make_window(
     kind = np.zeros(c.max_agents, dtype=np.int64)
     mask = np.zeros(c.max_agents, dtype=bool)
     track = np.full(c.max_agents, -1, dtype=np.int64)
+    real = slice(c.max_agents - a, c.max_agents)  # padding first, as when sampling (paper appendix)
     local = to_local(frame, scene.xyh[chosen, window])
-    valid[:a] = scene.valid[chosen, window]
-    xyh[:a] = np.where(valid[:a, :, None], local, 0.0)
-    size[:a] = scene.size[chosen]
-    kind[:a] = scene.kind[chosen]
-    mask[:a] = True
-    track[:a] = scene.track_id[chosen]
+    valid[real] = scene.valid[chosen, window]
+    xyh[real] = np.where(valid[real, :, None], local, 0.0)
+    size[real] = scene.size[chosen]
+    kind[real] = scene.kind[chosen]
+    mask[real] = True
+    track[real] = scene.track_id[chosen]
 
     chunks = _chunks_for(scene, c.points_per_polyline)
     pts, pmask, mkind, mmask = nearest_chunks(chunks, frame, c.max_polylines, c.map_radius)

@@ -1,0 +1,168 @@
+"""Density estimates on held-out scenes (paper Sec. 4 "Analysis"): NLL per token, per class, against
+the number of agents that already acted in the same timestep and against context length, and the
+per-class unigram baseline.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from trajeglish_env.checkpoint import Checkpoint
+from trajeglish_env.dataset import SceneStore, collate_windows
+from trajeglish_env.model.network import SceneInputs
+from trajeglish_env.scenario import AgentKind, Scenario
+from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.train import window_config
+from trajeglish_env.training_data import TokenizedWindows
+
+KIND_NAMES = [k.name.lower() for k in AgentKind]
+
+
+@torch.no_grad()
+def token_nll(
+    ckpt: Checkpoint, scenes: Sequence[Scenario], windows: int, seed: int = 0, batch_size: int = 16
+) -> dict[str, np.ndarray]:
+    """Per-token NLL on fixed held-out windows (argmin inputs).
+
+    Returns flat arrays over observed targets: ``nll`` (nats), ``kind``, ``slot`` (agents before it in the
+    timestep), ``step`` (timestep in the window), ``token`` (target id).
+    """
+    model = ckpt.model.eval()
+    ds = TokenizedWindows(scenes, window_config(model.cfg), ckpt.vocabulary, None, seed + 1_000_003)
+    out: dict[str, list[np.ndarray]] = {k: [] for k in ("nll", "kind", "slot", "step", "token")}
+    for first in range(0, windows, batch_size):
+        batch = collate_windows([ds[g] for g in range(first, min(windows, first + batch_size))])
+        scene = SceneInputs.from_batch(batch)
+        logits = model(scene, batch["input_tokens"])  # [B,T,A,V]
+        tgt = batch["tokens"].transpose(1, 2)  # [B,T,A]
+        ok = (tgt >= 0) & scene.agent_mask[:, None, :]
+        nll = F.cross_entropy(logits[ok], tgt[ok], reduction="none")
+        b, t, a = tgt.shape
+        # how many real agents act before each one in the timestep (padding slots come first and do not count)
+        before = (scene.agent_mask.long().cumsum(-1) - 1)[:, None, :].expand(b, t, a)
+        out["nll"].append(nll.numpy())
+        out["kind"].append(scene.agent_kind[:, None, :].expand(b, t, a)[ok].numpy())
+        out["slot"].append(before[ok].numpy())
+        out["step"].append(torch.arange(t)[None, :, None].expand(b, t, a)[ok].numpy())
+        out["token"].append(tgt[ok].numpy())
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def unigram_nll(
+    train_tokens: np.ndarray, train_kind: np.ndarray, tokens: np.ndarray, kind: np.ndarray, vocab: int
+) -> np.ndarray:
+    """NLL of each token under per-class token frequencies (add-one smoothed) fitted on ``train_*``."""
+    counts = np.ones((len(AgentKind), vocab))
+    np.add.at(counts, (train_kind, train_tokens), 1.0)
+    logp = np.log(counts / counts.sum(-1, keepdims=True))
+    return -logp[kind, tokens]
+
+
+def _by(values: np.ndarray, groups: np.ndarray, n: int) -> list[float | None]:
+    sums = np.bincount(groups, weights=values, minlength=n)[:n]
+    counts = np.bincount(groups, minlength=n)[:n]
+    return [float(s / c) if c else None for s, c in zip(sums, counts, strict=True)]
+
+
+def summarize(tok: dict[str, np.ndarray], unigram: np.ndarray | None = None) -> dict[str, Any]:
+    """Overall/per-class NLL and the two analysis curves, JSON-able."""
+    kinds = len(AgentKind)
+    res: dict[str, Any] = {
+        "tokens": int(len(tok["nll"])),
+        "nll": float(tok["nll"].mean()) if len(tok["nll"]) else math.nan,
+        "nll_per_class": dict(zip(KIND_NAMES, _by(tok["nll"], tok["kind"], kinds), strict=True)),
+        "tokens_per_class": dict(
+            zip(KIND_NAMES, np.bincount(tok["kind"], minlength=kinds).tolist(), strict=True)
+        ),
+    }
+    n_slots = int(tok["slot"].max()) + 1 if len(tok["slot"]) else 0
+    n_steps = int(tok["step"].max()) + 1 if len(tok["step"]) else 0
+    res["nll_vs_agents_before"] = {
+        name: _by(tok["nll"][tok["kind"] == k], tok["slot"][tok["kind"] == k], n_slots)
+        for k, name in enumerate(KIND_NAMES)
+    }
+    res["nll_vs_context_steps"] = {
+        name: _by(tok["nll"][tok["kind"] == k], tok["step"][tok["kind"] == k], n_steps)
+        for k, name in enumerate(KIND_NAMES)
+    }
+    if unigram is not None:
+        res["unigram_nll"] = float(unigram.mean())
+        res["unigram_nll_per_class"] = dict(zip(KIND_NAMES, _by(unigram, tok["kind"], kinds), strict=True))
+    return res
+
+
+def evaluate_nll(
+    checkpoints: dict[str, Checkpoint],
+    data: str | os.PathLike[str],
+    windows: int = 256,
+    seed: int = 0,
+    unigram_data: str | os.PathLike[str] | None = None,
+    plot_dir: str | os.PathLike[str] | None = None,
+) -> dict[str, Any]:
+    """NLL table for checkpoints (e.g. trajeglish / no-intra / marginal) plus the unigram baseline.
+
+    The unigram is fitted on ``unigram_data`` (training scenes) when given, else on the held-out tokens
+    themselves (an optimistic baseline; reported as such).
+    """
+    scenes = SceneStore(data).scenes
+    result: dict[str, Any] = {"data": str(data), "windows": windows, "models": {}}
+    first = next(iter(checkpoints.values()))
+    for name, ckpt in checkpoints.items():
+        tok = token_nll(ckpt, scenes, windows, seed)
+        if unigram_data is not None:
+            fit = token_nll(first, SceneStore(unigram_data).scenes, windows, seed + 1)
+            result["unigram_fit"] = str(unigram_data)
+        else:
+            fit = tok
+            result["unigram_fit"] = "held-out tokens (optimistic)"
+        uni = unigram_nll(fit["token"], fit["kind"], tok["token"], tok["kind"], ckpt.config.vocab_size)
+        summary = summarize(tok, uni)
+        summary["variant"] = ckpt.config.variant.value
+        result["models"][name] = summary
+    any_model = next(iter(result["models"].values()))
+    result["unigram_nll"] = any_model["unigram_nll"]
+    if plot_dir is not None:
+        result["plots"] = plot_density(result, Path(plot_dir))
+    return result
+
+
+def plot_density(result: dict[str, Any], out: Path) -> list[str]:
+    """Plots of NLL against agents-before and against context length, one line per model and class."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    for key, xlabel, fname in (
+        ("nll_vs_agents_before", "agents that already acted in the timestep", "nll_vs_agents_before.png"),
+        ("nll_vs_context_steps", "context length (timesteps)", "nll_vs_context.png"),
+    ):
+        fig, axes = plt.subplots(1, len(KIND_NAMES), figsize=(4 * len(KIND_NAMES), 3.2), sharey=False)
+        for ax, cls in zip(axes, KIND_NAMES, strict=True):
+            for name, summary in result["models"].items():
+                ys = summary[key][cls]
+                xs = [i for i, y in enumerate(ys) if y is not None]
+                if xs:
+                    ax.plot(xs, [ys[i] for i in xs], marker=".", label=name)
+            ax.set_title(cls)
+            ax.set_xlabel(xlabel)
+            ax.grid(alpha=0.3)
+        axes[0].set_ylabel("NLL (nats / token)")
+        axes[0].legend(fontsize=8)
+        fig.tight_layout()
+        path = out / fname
+        out.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=100)
+        plt.close(fig)
+        paths.append(str(path))
+    return paths
