@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario
 
@@ -52,3 +53,8 @@ def straight_road_scene(num_agents: int = 6, steps: int = 91, seed: int = 0) -> 
 @pytest.fixture
 def straight_scene() -> Scenario:
     return straight_road_scene()
+
+
+# Tests run in parallel workers (pytest -n 2) on small tensors: one intra-op thread each avoids
+# oversubscribing the cores (thread spin-waits made small decodes ~20x slower).
+torch.set_num_threads(1)

@@ -33,8 +33,10 @@ _SCHEMA: dict[str, list[tuple[str, int, str, bool, str]]] = {
     "ObjectState": [
         ("center_x", 2, "double", False, ""),
         ("center_y", 3, "double", False, ""),
+        ("center_z", 4, "double", False, ""),
         ("length", 5, "float", False, ""),
         ("width", 6, "float", False, ""),
+        ("height", 7, "float", False, ""),
         ("heading", 8, "float", False, ""),
         ("valid", 11, "bool", False, ""),
     ],

@@ -1,0 +1,154 @@
+"""Closed-loop rollouts: subset planning, sliding windows, partial control, external agents, determinism."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from conftest import WOMD_TFRECORD, straight_road_scene
+
+from trajeglish_env.checkpoint import Checkpoint
+from trajeglish_env.geometry import to_global
+from trajeglish_env.model import TrajeglishModel, preset
+from trajeglish_env.sampler import RolloutEngine, SamplingConfig, plan_subsets, rollout
+from trajeglish_env.scenario import AgentKind, Scenario
+from trajeglish_env.tokenizer.baselines import xyh_grid_templates
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+
+VOCAB = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
+
+
+def tiny_ckpt(variant: str = "trajeglish") -> Checkpoint:
+    torch.manual_seed(0)
+    model = TrajeglishModel(preset("tiny", vocab_size=VOCAB.size, variant=variant)).eval()
+    return Checkpoint(model=model, vocabulary=VOCAB, training={})
+
+
+def crowd_scene(n: int = 210, steps: int = 40, seed: int = 0) -> Scenario:
+    """``n`` agents on a 15 x 14 grid 8 m apart, all driving +x at 5-10 m/s."""
+    rng = np.random.default_rng(seed)
+    gx, gy = np.meshgrid(np.arange(15) * 8.0, np.arange(14) * 8.0)
+    start = np.stack([gx.ravel(), gy.ravel()], -1)[:n]
+    speed = rng.uniform(5, 10, n)
+    t = np.arange(steps) * 0.1
+    xyh = np.zeros((n, steps, 3))
+    xyh[..., 0] = start[:, :1] + speed[:, None] * t
+    xyh[..., 1] = start[:, 1:]
+    kind = np.where(np.arange(n) % 10 == 0, AgentKind.PEDESTRIAN, AgentKind.VEHICLE)
+    size = np.where(kind[:, None] == AgentKind.PEDESTRIAN, [0.6, 0.6], [4.0, 1.8])
+    return Scenario.from_arrays(
+        xyh,
+        np.ones((n, steps), bool),
+        size,
+        kind,
+        sdc=17,
+        scenario_id="crowd",
+        polylines=[np.array([[0.0, y], [200.0, y]]) for y in np.arange(14) * 8.0],
+        polyline_kinds=[1] * 14,
+    )
+
+
+def test_subsets_cover_everyone_with_the_sdc_first_and_padding_first() -> None:
+    sc = crowd_scene()
+    pos = sc.xyh[:, 10, :2]
+    active = np.ones(sc.num_agents, bool)
+    active[5] = False
+    plan = plan_subsets(pos, active, 24, first=sc.sdc)
+    covered = np.unique(plan.slots[plan.slots >= 0])
+    assert set(covered.tolist()) == set(np.flatnonzero(active).tolist())
+    assert plan.centres[0] == sc.sdc and plan.acting_order[0] == sc.sdc
+    assert plan.slots[0, -24] == sc.sdc  # a full subset: the sdc acts first in its slot order
+    assert sorted(plan.acting_order.tolist()) == covered.tolist()
+    rank = {a: i for i, a in enumerate(plan.acting_order)}
+    for row in plan.slots:
+        real = row[row >= 0]
+        assert (row[: 24 - len(real)] == -1).all()  # padding first
+        ranks = [rank[a] for a in real]
+        assert ranks == sorted(ranks)  # agents that already acted come before the ones acting here
+    # a scene smaller than the subset: one subset, padding in front
+    small = plan_subsets(pos[:5], np.ones(5, bool), 24, first=2)
+    assert small.num_subsets == 1 and (small.slots[0, :19] == -1).all() and small.slots[0, 19] == 2
+
+
+def test_rollouts_are_deterministic_and_respect_control() -> None:
+    sc = straight_road_scene(num_agents=5, steps=40)
+    ckpt = tiny_ckpt()
+    controlled = np.array([True, True, False, True, False])
+    a = rollout(ckpt, sc, rollouts=3, horizon=20, controlled=controlled, config=SamplingConfig(seed=1))
+    b = rollout(ckpt, sc, rollouts=3, horizon=20, controlled=controlled, config=SamplingConfig(seed=1))
+    c = rollout(ckpt, sc, rollouts=3, horizon=20, controlled=controlled, config=SamplingConfig(seed=2))
+    assert a.xyh.shape == (3, 5, 31, 3)
+    np.testing.assert_array_equal(a.xyh, b.xyh)
+    assert not np.array_equal(a.xyh, c.xyh)
+    cur = sc.current_index
+    hist = np.where(sc.valid[:, : cur + 1, None], sc.xyh[:, : cur + 1], 0.0)
+    np.testing.assert_array_equal(a.xyh[:, :, : cur + 1], np.broadcast_to(hist, (3, 5, cur + 1, 3)))
+    log = np.where(sc.valid[~controlled, :31, None], sc.xyh[~controlled, :31], 0.0)
+    np.testing.assert_array_equal(a.xyh[:, ~controlled], np.broadcast_to(log, (3, 2, 31, 3)))
+    np.testing.assert_array_equal(
+        a.valid[:, ~controlled], np.broadcast_to(sc.valid[~controlled, :31], (3, 2, 31))
+    )
+    assert a.valid[:, controlled, cur:].all()
+    assert ((a.tokens[:, controlled, cur:30] >= 0) & (a.tokens[:, controlled, cur:30] < VOCAB.size)).all()
+    # controlled motion is exactly the rendered tokens
+    k = sc.kind[0]
+    step = to_global(a.xyh[:, 0, cur + 3], VOCAB.templates[k][a.tokens[:, 0, cur + 3]])
+    np.testing.assert_allclose(step, a.xyh[:, 0, cur + 4], atol=1e-9)
+
+
+@pytest.mark.parametrize(("variant", "agents"), [("trajeglish", 210), ("no-intra", 60)])
+def test_sliding_window_on_a_210_agent_scene_beyond_the_model_horizon(variant: str, agents: int) -> None:
+    sc = crowd_scene(agents)
+    ckpt = tiny_ckpt(variant)  # 6 agents x 8 steps of context
+    # prime 3: windows are recomputed at steps 10 and 15, so the rollout runs past one model window
+    out = rollout(ckpt, sc, rollouts=2, horizon=7, config=SamplingConfig(prime_steps=3, seed=0))
+    assert out.xyh.shape == (2, agents, 18, 3)
+    assert out.valid[:, :, sc.current_index :].all()
+    assert np.isfinite(out.xyh).all()
+    moved = np.linalg.norm(out.xyh[:, :, -1, :2] - out.xyh[:, :, sc.current_index, :2], axis=-1)
+    assert (moved < 7 * 3.6).all()  # at most 3.5 m per step with any template of this grid
+
+
+def test_window_schedule_is_validated() -> None:
+    sc = straight_road_scene(num_agents=3, steps=30)
+    with pytest.raises(ValueError, match="recompute_every=9 must be in 1..6"):
+        rollout(tiny_ckpt(), sc, horizon=5, config=SamplingConfig(prime_steps=2, recompute_every=9))
+    bad = sc.valid.copy()
+    bad[1, 10] = False
+    with pytest.raises(
+        ValueError,
+        match=r"controlled agents must be valid at the current step 10; track ids \[101, 102\] are not",
+    ):
+        rollout(tiny_ckpt(), dataclasses.replace(sc, valid=bad), horizon=5, controlled=np.ones(3, bool))
+
+
+def test_external_agent_is_asked_for_in_order_and_seen_by_later_agents() -> None:
+    sc = straight_road_scene(num_agents=4, steps=30)
+    ckpt = tiny_ckpt()
+    external = np.array([False, False, True, False])
+    priority = np.array([1.0, 2.0, 0.0, 3.0])  # the external agent acts first
+    controlled = ~external & sc.valid[:, sc.current_index]
+    eng = RolloutEngine(ckpt, sc, 2, 5, controlled=controlled, external=external, priority=priority)
+    asked = eng.advance()
+    assert asked == 2 and eng.t == sc.current_index
+    nxt = sc.xyh[2, sc.current_index] + np.array([1.0, 0.05, 0.01])
+    eng.supply(2, nxt)
+    assert eng.advance() is None and eng.t == sc.current_index + 1
+    np.testing.assert_allclose(eng.xyh[:, 2, sc.current_index + 1], np.broadcast_to(nxt, (2, 3)))
+    assert (eng.tokens[:, 2, sc.current_index] >= 0).all()
+    with pytest.raises(RuntimeError, match="external agent 2 must be supplied"):
+        eng.step()
+
+
+@pytest.mark.skipif(not WOMD_TFRECORD.exists(), reason="shared WOMD sample not present")
+def test_rollout_on_the_womd_sample() -> None:
+    from trajeglish_env.sources.womd import read_womd
+
+    sc = next(read_womd(WOMD_TFRECORD))
+    out = rollout(tiny_ckpt(), sc, rollouts=2, horizon=12, config=SamplingConfig(prime_steps=3))
+    live = sc.valid[:, sc.current_index]
+    assert live.sum() == 50
+    assert out.valid[:, live, sc.current_index :].all()
+    assert np.isfinite(out.xyh[out.valid]).all()

@@ -1,0 +1,90 @@
+"""Agent subsets for scenes larger than the model's context (paper appendix "Extended rollouts").
+
+Every active agent defines a candidate subset: itself and its nearest neighbours, ``size`` agents in all.
+The sdc's subset is chosen first; then, among agents not yet covered, the one whose subset holds the most
+already-covered agents is chosen next, until every active agent is in some subset. Inside a subset the
+order is: padding first, then the agents that already acted in an earlier subset (in acting order), then
+the rest by (priority, distance to the centre agent) -- so the sdc, as centre of the first subset, acts
+first at every timestep.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SubsetPlan:
+    """Subsets of one scene: ``slots [K, size]`` agent indices in acting order (-1 = padding, first),
+    ``centres [K]`` centre agents, ``acting_order [n]`` every covered agent in the order it acts."""
+
+    slots: np.ndarray
+    centres: np.ndarray
+    acting_order: np.ndarray
+
+    @property
+    def num_subsets(self) -> int:
+        return int(self.slots.shape[0])
+
+
+def candidate_subsets(positions: np.ndarray, active: np.ndarray, size: int) -> np.ndarray:
+    """``[N, m]`` nearest active agents of every agent (itself first), ``m = min(size, #active)``."""
+    idx = np.flatnonzero(active)
+    d = np.linalg.norm(positions[:, None, :] - positions[None, idx, :], axis=-1)  # [N, n]
+    m = min(size, len(idx))
+    near = np.argsort(d, axis=1, kind="stable")[:, :m]
+    return idx[near]
+
+
+def plan_subsets(
+    positions: np.ndarray,
+    active: np.ndarray,
+    size: int,
+    first: int,
+    priority: np.ndarray | None = None,
+) -> SubsetPlan:
+    """Cover every active agent with subsets of ``size`` agents; see the module docstring for the rules.
+
+    ``positions [N,2]``, ``active [N]`` bool, ``first`` the agent whose subset goes first (the sdc; if it
+    is inactive, the lowest-priority active agent), ``priority [N]`` lower acts earlier (default 0).
+    """
+    n_agents = positions.shape[0]
+    active = np.asarray(active, dtype=bool)
+    if size < 1:
+        raise ValueError(f"subset size must be >= 1, got {size}")
+    prio = np.zeros(n_agents) if priority is None else np.asarray(priority, dtype=np.float64)
+    if not active.any():
+        return SubsetPlan(np.zeros((0, size), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    cands = candidate_subsets(positions, active, size)
+    if not active[first]:
+        act = np.flatnonzero(active)
+        first = int(act[np.argmin(prio[act])])
+    covered = np.zeros(n_agents, dtype=bool)
+    acted_rank = np.full(n_agents, -1, dtype=np.int64)
+    order: list[int] = []
+    slots, centres = [], []
+    centre = first
+    while True:
+        members = cands[centre]
+        acted = members[acted_rank[members] >= 0]
+        acted = acted[np.argsort(acted_rank[acted], kind="stable")]
+        fresh = members[acted_rank[members] < 0]
+        dist = np.linalg.norm(positions[fresh] - positions[centre], axis=-1)
+        fresh = fresh[np.lexsort((dist, prio[fresh]))]
+        for a in fresh:
+            acted_rank[a] = len(order)
+            order.append(int(a))
+        row = np.full(size, -1, dtype=np.int64)
+        body = np.concatenate([acted, fresh])
+        row[size - len(body) :] = body
+        slots.append(row)
+        centres.append(centre)
+        covered[members] = True
+        todo = np.flatnonzero(active & ~covered)
+        if len(todo) == 0:
+            break
+        overlap = covered[cands[todo]].sum(axis=1)
+        centre = int(todo[np.argmax(overlap)])  # ties: the lowest index
+    return SubsetPlan(np.stack(slots), np.array(centres, dtype=np.int64), np.array(order, dtype=np.int64))
