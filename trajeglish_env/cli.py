@@ -96,17 +96,51 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_nll(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
     from trajeglish_env.density import evaluate_nll
 
+    return evaluate_nll(
+        _checkpoints(args.ckpt), args.data, args.windows, args.seed, args.unigram_data, args.plots
+    )
+
+
+def _checkpoints(items: list[str] | None) -> dict[str, Any]:
+    """``[NAME=]PATH`` items -> {name: Checkpoint}; none -> the shipped pretrained model."""
+    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+
     ckpts = {}
-    for item in args.ckpt or []:
+    for item in items or []:
         name, _, path = item.rpartition("=")
         ckpt = load_checkpoint(path)
         ckpts[name or ckpt.config.variant.value] = ckpt
-    if not ckpts:
-        ckpts["pretrained"] = load_pretrained()
-    return evaluate_nll(ckpts, args.data, args.windows, args.seed, args.unigram_data, args.plots)
+    return ckpts or {"trajeglish": load_pretrained()}
+
+
+def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.evaluation import EvalConfig, evaluate
+
+    ckpts = _checkpoints(args.ckpt)
+    config = EvalConfig(
+        args.rollouts, args.scenes, tuple(args.temperature), args.top_p, args.metrics, args.seed
+    )
+    partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts)))
+    return evaluate(args.data, ckpts, config, args.out, partial=partial, progress=not args.quiet)
+
+
+def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.render import RenderConfig, save_render
+    from trajeglish_env.sampler import SamplingConfig, rollout
+    from trajeglish_env.scenario_io import load_scenario
+
+    ckpt = next(iter(_checkpoints([args.ckpt] if args.ckpt else None).values()))
+    scene = load_scenario(args.scenario, args.index)
+    horizon = args.horizon or scene.num_steps - scene.current_index - 1
+    res = rollout(
+        ckpt, scene, 1, horizon, config=SamplingConfig(args.temperature, args.top_p, seed=args.seed)
+    )
+    out = save_render(
+        scene, args.out, xyh=res.xyh[0], valid=res.valid[0], config=RenderConfig(follow_sdc=args.follow_sdc)
+    )
+    return {"scene": scene.scenario_id, "agents": scene.num_agents, "horizon": horizon, "out": str(out)}
 
 
 def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
@@ -214,6 +248,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--unigram-data", help="training scenes to fit the unigram baseline on")
     p.add_argument("--plots", help="directory for the analysis plots")
+
+    p = add("evaluate", cmd_evaluate, "realism of rollouts vs the log and baselines on held-out scenes")
+    p.add_argument("--data", required=True, help="held-out scenes")
+    p.add_argument(
+        "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
+    )
+    p.add_argument("--rollouts", type=int, default=8)
+    p.add_argument("--scenes", type=int, default=16, help="evaluate the first N scenes")
+    p.add_argument("--temperature", type=float, nargs="+", default=[1.0])
+    p.add_argument("--top-p", type=float, default=1.0)
+    p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
+    p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="out/evaluate", help="directory for the table and plots")
+
+    p = add("rollout", cmd_rollout, "sample one rollout of a scene and render it")
+    p.add_argument("--scenario", required=True, help="scenario file (*.scn.npz)")
+    p.add_argument("--index", type=int, default=0)
+    p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
+    p.add_argument("--out", required=True, help="output .gif, .mp4 or .png")
+    p.add_argument("--horizon", type=int, help="steps after the current one (default: to the end of the log)")
+    p.add_argument("--temperature", type=float, default=1.0)
+    p.add_argument("--top-p", type=float, default=1.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--follow-sdc", action="store_true")
 
     p = add("demo", cmd_demo, "the main job: generate a scene and render it")
     p.add_argument("--out", default="out/demo")

@@ -1,0 +1,301 @@
+"""Realism evaluation of traffic models on held-out scenes (``trajeglish evaluate``).
+
+Methods compared on the same scenes and seeds: the log itself (upper bound), constant velocity, and any
+number of model checkpoints (e.g. the marginal, no-intra and trajeglish variants) at one or more sampling
+temperatures. Every scene's rollouts are scored with the WOSAC-style metrics; results are averaged over
+scenes and written as JSON, a Markdown table and plots (collision rate over time, speed/acceleration
+histograms of log vs rollouts). Partial control: one agent driven by the model, everyone else replaying
+the log, with the controlled agent placed first versus last in the intra-timestep order.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from trajeglish_env.checkpoint import Checkpoint
+from trajeglish_env.dataset import SceneStore
+from trajeglish_env.metrics import box_collisions, mean_scores, score_rollouts
+from trajeglish_env.sampler import SamplingConfig, rollout
+from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario_io import atomic_path
+
+Method = Callable[[Scenario, int, int], np.ndarray]  # (scene, rollouts, seed) -> [R, N_sim, H, 3]
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """What to evaluate: scenes, rollouts per scene, temperatures, metric configuration and seed."""
+
+    rollouts: int = 8
+    scenes: int = 16
+    temperatures: tuple[float, ...] = (1.0,)
+    top_p: float = 1.0
+    metrics: str = "2025"
+    seed: int = 0
+
+
+def simulated(scene: Scenario) -> np.ndarray:
+    """Indices of the agents simulated in a scene: those valid at the current step."""
+    return np.flatnonzero(scene.valid[:, scene.current_index])
+
+
+def horizon(scene: Scenario) -> int:
+    return scene.num_steps - scene.current_index - 1
+
+
+def log_method(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
+    """The logged future repeated; after an agent leaves, its last valid state is held."""
+    sim = simulated(scene)
+    xyh = scene.xyh[sim].copy()
+    valid = scene.valid[sim]
+    last = np.maximum.accumulate(np.where(valid, np.arange(scene.num_steps), 0), axis=1)
+    xyh = np.take_along_axis(xyh, last[..., None], axis=1)
+    fut = xyh[:, scene.current_index + 1 :]
+    return np.broadcast_to(fut, (rollouts, *fut.shape)).copy()
+
+
+def constant_velocity_method(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
+    """Each agent keeps its current velocity (from the last two logged steps) and heading."""
+    sim = simulated(scene)
+    c = scene.current_index
+    now = scene.xyh[sim, c]
+    prev_ok = scene.valid[sim, c - 1] if c > 0 else np.zeros(len(sim), bool)
+    vel = np.where(prev_ok[:, None], (now[:, :2] - scene.xyh[sim, max(c - 1, 0), :2]) / scene.dt, 0.0)
+    steps = np.arange(1, horizon(scene) + 1) * scene.dt
+    fut = np.empty((len(sim), len(steps), 3))
+    fut[..., :2] = now[:, None, :2] + vel[:, None, :] * steps[None, :, None]
+    fut[..., 2] = now[:, None, 2]
+    return np.broadcast_to(fut, (rollouts, *fut.shape)).copy()
+
+
+def model_method(ckpt: Checkpoint, temperature: float, top_p: float = 1.0) -> Method:
+    """Full-control rollouts of a checkpoint (every simulated agent driven by the model)."""
+
+    def run(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
+        out = rollout(
+            ckpt, scene, rollouts, horizon(scene), config=SamplingConfig(temperature, top_p, seed=seed)
+        )
+        return out.xyh[:, simulated(scene), scene.current_index + 1 :]
+
+    return run
+
+
+def collisions_over_time(scene: Scenario, fut: np.ndarray) -> np.ndarray:
+    """Per rollout and future step, the fraction of simulated agents overlapping another agent ``[R,H]``.
+
+    Non-simulated agents are absent; simulated agents are present at every future step.
+    """
+    sim = simulated(scene)
+    size = scene.size[sim]
+    n = len(sim)
+    i, j = np.triu_indices(n, k=1)
+    centre = fut[..., :2]
+    near = (
+        np.linalg.norm(centre[:, i] - centre[:, j], axis=-1)
+        < (np.linalg.norm(size[i], axis=-1) + np.linalg.norm(size[j], axis=-1))[None, :, None] / 2
+    )  # [R,P,H]: only pairs whose bounding circles touch can collide
+    hit = np.zeros(near.shape, dtype=bool)
+    r, p, h = np.nonzero(near)
+    hit[r, p, h] = box_collisions(fut[r, i[p], h], size[i[p]], fut[r, j[p], h], size[j[p]])
+    agent_hit = np.zeros((fut.shape[0], n, fut.shape[2]), dtype=bool)
+    np.logical_or.at(agent_hit, (r, i[p], h), hit[r, p, h])
+    np.logical_or.at(agent_hit, (r, j[p], h), hit[r, p, h])
+    return agent_hit.mean(axis=1)
+
+
+def _kinematics(scene: Scenario, fut: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    speed = np.linalg.norm(np.diff(fut[..., :2], axis=2), axis=-1) / scene.dt
+    accel = np.diff(speed, axis=2) / scene.dt
+    return speed.ravel(), accel.ravel()
+
+
+def evaluate_methods(
+    scenes: Sequence[Scenario], methods: dict[str, Method], config: EvalConfig, progress: bool = True
+) -> dict[str, Any]:
+    """Score every method on every scene; returns per-method mean scores, curves and samples."""
+    results: dict[str, Any] = {}
+    bar = tqdm(total=len(scenes) * len(methods), disable=not progress, file=sys.stderr, desc="evaluate")
+    for name, method in methods.items():
+        scores, curves, speeds, accels = [], [], [], []
+        for k, scene in enumerate(scenes):
+            fut = method(scene, config.rollouts, config.seed + k)
+            ids = scene.track_id[simulated(scene)]
+            scores.append(score_rollouts(scene, fut, ids, config.metrics))
+            curves.append(collisions_over_time(scene, fut).mean(0))
+            s, a = _kinematics(scene, fut)
+            speeds.append(s)
+            accels.append(a)
+            bar.update(1)
+        mean = mean_scores(scores)
+        results[name] = {
+            "scores": mean.to_dict(),
+            "collision_rate_over_time": np.mean(curves, axis=0).tolist(),
+            "_speed": np.concatenate(speeds),
+            "_accel": np.concatenate(accels),
+        }
+    bar.close()
+    return results
+
+
+def partial_control(
+    ckpt: Checkpoint, scenes: Sequence[Scenario], config: EvalConfig, progress: bool = True
+) -> dict[str, dict[str, float]]:
+    """The sdc driven by the model, all others replaying the log; the sdc acts first vs last."""
+    out: dict[str, dict[str, float]] = {}
+    for place in ("first", "last"):
+        ades, cols = [], []
+        for k, scene in enumerate(
+            tqdm(scenes, disable=not progress, file=sys.stderr, desc=f"partial ({place})")
+        ):
+            controlled = np.zeros(scene.num_agents, bool)
+            controlled[scene.sdc] = True
+            priority = np.zeros(scene.num_agents)
+            priority[scene.sdc] = -1.0 if place == "first" else 1.0
+            res = rollout(
+                ckpt,
+                scene,
+                config.rollouts,
+                horizon(scene),
+                controlled,
+                priority=priority,
+                config=SamplingConfig(config.temperatures[0], config.top_p, seed=config.seed + k),
+            )
+            fut = slice(scene.current_index + 1, scene.num_steps)
+            log_ok = scene.valid[scene.sdc, fut]
+            err = np.linalg.norm(res.xyh[:, scene.sdc, fut, :2] - scene.xyh[scene.sdc, fut, :2], axis=-1)
+            ades.append(float(err[:, log_ok].mean()))
+            others = np.flatnonzero(np.arange(scene.num_agents) != scene.sdc)
+            ego = res.xyh[:, scene.sdc, fut][:, None]  # [R,1,H,3]
+            oth = res.xyh[:, others, fut]
+            ok = res.valid[:, others, fut]
+            hit = box_collisions(ego, scene.size[scene.sdc], oth, scene.size[others][None, :, None]) & ok
+            cols.append(float(hit.any(axis=(1, 2)).mean()))
+        out[place] = {"ade": float(np.mean(ades)), "collision_rate": float(np.mean(cols))}
+    return out
+
+
+def evaluate(
+    data: str | os.PathLike[str],
+    checkpoints: dict[str, Checkpoint],
+    config: EvalConfig = EvalConfig(),
+    out_dir: str | os.PathLike[str] = "out/evaluate",
+    partial: str | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """The evaluation table (JSON + Markdown + plots) for the log, constant velocity and checkpoints."""
+    scenes = SceneStore(data).scenes[: config.scenes]
+    if not scenes:
+        raise ValueError(f"{data}: no scenes to evaluate")
+    methods: dict[str, Method] = {"log": log_method, "constant_velocity": constant_velocity_method}
+    for name, ckpt in checkpoints.items():
+        for temp in config.temperatures:
+            methods[f"{name}@T={temp:g}"] = model_method(ckpt, temp, config.top_p)
+    raw = evaluate_methods(scenes, methods, config, progress)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    plots = _plot(raw, scenes[0].dt, out)
+    table = {name: {k: v for k, v in r.items() if not k.startswith("_")} for name, r in raw.items()}
+    best = {}
+    for name in checkpoints:
+        cands = {t: table[f"{name}@T={t:g}"]["scores"]["metametric"] for t in config.temperatures}
+        best[name] = max(cands, key=cands.get)  # type: ignore[arg-type]
+    result: dict[str, Any] = {
+        "data": str(data),
+        "scenes": len(scenes),
+        "rollouts": config.rollouts,
+        "metrics_config": config.metrics,
+        "methods": table,
+        "best_temperature": best,
+        "plots": plots,
+    }
+    if partial is not None:
+        result["partial_control"] = {
+            "model": partial,
+            **partial_control(checkpoints[partial], scenes, config, progress),
+        }
+    md = markdown_table(result)
+    with atomic_path(out / "evaluation.md") as tmp:
+        tmp.write_text(md)
+    with atomic_path(out / "evaluation.json") as tmp:
+        tmp.write_text(json.dumps(result, indent=2))
+    result["markdown"] = str(out / "evaluation.md")
+    return result
+
+
+def markdown_table(result: dict[str, Any]) -> str:
+    """The evaluation as a Markdown table (one row per method)."""
+    cols = [
+        "metametric",
+        "kinematic",
+        "interactive",
+        "map_based",
+        "min_ade",
+        "collision_rate",
+        "offroad_rate",
+    ]
+    lines = [
+        f"Held-out scenes: {result['scenes']}, rollouts per scene: {result['rollouts']}, "
+        f"metrics: WOSAC {result['metrics_config']}",
+        "",
+        "| method | " + " | ".join(cols) + " |",
+        "|---|" + "---|" * len(cols),
+    ]
+    for name, r in result["methods"].items():
+        lines.append(f"| {name} | " + " | ".join(f"{r['scores'][c]:.4f}" for c in cols) + " |")
+    if "partial_control" in result:
+        pc = result["partial_control"]
+        lines += [
+            "",
+            f"Partial control ({pc['model']} drives the sdc, others replay the log):",
+            "",
+            "| sdc placed | ADE (m) | collision rate |",
+            "|---|---|---|",
+        ]
+        for place in ("first", "last"):
+            lines.append(f"| {place} | {pc[place]['ade']:.3f} | {pc[place]['collision_rate']:.4f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _plot(raw: dict[str, Any], dt: float, out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, r in raw.items():
+        curve = np.asarray(r["collision_rate_over_time"])
+        ax.plot((np.arange(len(curve)) + 1) * dt, curve, label=name, lw=2 if name == "log" else 1)
+    ax.set_xlabel("time after the current step (s)")
+    ax.set_ylabel("fraction of agents in collision")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    paths.append(_save(fig, out / "collision_rate_over_time.png"))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for name, r in raw.items():
+        axes[0].hist(r["_speed"], bins=60, range=(0, 35), histtype="step", density=True, label=name)
+        axes[1].hist(r["_accel"], bins=60, range=(-10, 10), histtype="step", density=True, label=name)
+    axes[0].set_xlabel("speed (m/s)")
+    axes[1].set_xlabel("acceleration (m/s²)")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    paths.append(_save(fig, out / "kinematics_histograms.png"))
+    plt.close("all")
+    return paths
+
+
+def _save(fig: Any, path: Path) -> str:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    return str(path)
