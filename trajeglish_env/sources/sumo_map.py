@@ -1,0 +1,283 @@
+"""WOMD-like map polylines and traffic-signal links extracted from a parsed SUMO network.
+
+What the map holds (all polylines resampled at ``spacing`` metres, crosswalks as closed polygons):
+
+- lane centre lines: every vehicle lane of a normal edge (``LANE_SURFACE_STREET``; bike-only lanes
+  ``LANE_BIKE``) and, through junctions, one polyline per movement (SUMO's internal lanes of one
+  connection joined). Sidewalks and walking areas are not lanes and are left out (the curb that
+  separates them from the road is a road edge, and crossings are crosswalks).
+- road lines: the boundary between two same-direction lanes (``BROKEN_SINGLE_WHITE``, or
+  ``SOLID_SINGLE_WHITE`` next to a bike lane) and the centre line between the two directions of a
+  two-way road (``SOLID_DOUBLE_YELLOW``, emitted once per road).
+- road edges: ``ROAD_EDGE_BOUNDARY`` for the curb on the right of every edge's rightmost vehicle lane,
+  the left side of one-way roads, and, inside junctions, the curb around each corner: the right
+  boundary of the rightmost movement (right turn, else straight on) leaving each incoming edge's
+  rightmost lane, so intersections are bounded corner to corner and open where roads continue;
+  ``ROAD_EDGE_MEDIAN`` for both sides of the gap SUMO leaves between the two directions of a road
+  whose lanes are not adjacent (beside turn pockets).
+- crosswalks (``CROSSWALK``): the rectangle of every SUMO pedestrian crossing.
+
+Signals: one per signalized vehicle movement, keyed by the ``map_id`` of the movement's lane polyline,
+with the stop point at the end of the incoming lane (WOMD's convention for lane states).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from trajeglish_env.geometry import resample_polyline
+from trajeglish_env.scenario import MapKind, SignalState
+from trajeglish_env.sources.sumo_net import Connection, Lane, SumoNet
+
+_MIN_SEGMENT = 1e-6
+_MEDIAN_WIDTH = 4.5  # opposite lanes at most this far apart (m) are separated by a median, not the roadside
+
+# SUMO link-state characters -> WOMD lane signal states.
+SIGNAL_CHARS = {
+    "G": SignalState.GO,  # green, priority
+    "g": SignalState.GO,  # green, must yield (permissive)
+    "y": SignalState.CAUTION,
+    "Y": SignalState.CAUTION,
+    "u": SignalState.CAUTION,  # red-yellow: about to turn green
+    "r": SignalState.STOP,
+    "s": SignalState.FLASHING_STOP,  # green right turn on red: stop, then go
+    "o": SignalState.FLASHING_CAUTION,  # signal off, blinking
+    "O": SignalState.UNKNOWN,  # signal off
+}
+
+
+@dataclass(frozen=True)
+class NetworkMap:
+    """All map polylines of a network, ragged (like Scenario's map arrays), plus its signal links."""
+
+    points: np.ndarray  # [P,2]
+    offsets: np.ndarray  # [K+1]
+    kind: np.ndarray  # [K] int8 MapKind
+    map_id: np.ndarray  # [K] int64
+    signal_tls: tuple[str, ...]  # [L] traffic-light id of each signalized movement
+    signal_link: np.ndarray  # [L] int64 link index within its traffic light's state string
+    signal_lane_id: np.ndarray  # [L] int64 map_id of the movement's lane polyline
+    signal_xy: np.ndarray  # [L,2] stop point
+
+    def polyline_min_distance(self, centre: np.ndarray) -> np.ndarray:
+        """Distance ``[K]`` from ``centre [2]`` to the nearest point of each polyline."""
+        if len(self.kind) == 0:
+            return np.zeros(0)
+        dist = np.linalg.norm(self.points - centre, axis=1)
+        return np.minimum.reduceat(dist, self.offsets[:-1])
+
+
+def offset_polyline(points: np.ndarray, offset: float) -> np.ndarray:
+    """Shift a polyline ``[n,2]`` sideways by ``offset`` metres (positive = left of its direction), mitred."""
+    points = np.asarray(points, dtype=np.float64)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > _MIN_SEGMENT])
+    points = points[keep]
+    if len(points) < 2:
+        return points.copy()
+    direction = np.diff(points, axis=0)
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    normal = np.stack([-direction[:, 1], direction[:, 0]], axis=1)  # [n-1,2], left normals
+    before = np.concatenate([normal[:1], normal])  # segment normal before each vertex
+    after = np.concatenate([normal, normal[-1:]])  # and after it
+    # Mitre vector (n1 + n2) / (1 + n1.n2): unit offset along both adjacent segments; clipped at sharp turns.
+    denom = np.maximum(1.0 + np.sum(before * after, axis=1, keepdims=True), 0.5)
+    return points + offset * (before + after) / denom
+
+
+class _MapBuilder:
+    """Collects polylines with their kinds; ids are consecutive integers in insertion order."""
+
+    def __init__(self, spacing: float) -> None:
+        self.spacing = spacing
+        self.lines: list[np.ndarray] = []
+        self.kinds: list[int] = []
+
+    def add(self, points: np.ndarray, kind: MapKind, resample: bool = True) -> int:
+        points = resample_polyline(points, self.spacing) if resample else np.asarray(points, np.float64)
+        self.lines.append(points)
+        self.kinds.append(int(kind))
+        return len(self.lines) - 1
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        offsets = np.zeros(len(self.lines) + 1, dtype=np.int64)
+        offsets[1:] = np.cumsum([len(p) for p in self.lines])
+        points = np.concatenate(self.lines) if self.lines else np.zeros((0, 2))
+        ids = np.arange(len(self.lines), dtype=np.int64)
+        return points, offsets, np.asarray(self.kinds, dtype=np.int8), ids
+
+
+def _lane_kind(lane: Lane) -> MapKind:
+    return MapKind.LANE_BIKE if lane.role == "bike" else MapKind.LANE_SURFACE_STREET
+
+
+def _joined_shape(lanes: list[Lane]) -> np.ndarray:
+    return np.concatenate([lanes[0].shape, *[lane.shape[1:] for lane in lanes[1:]]])
+
+
+def opposite_partner(
+    points: np.ndarray, owner: np.ndarray, direction: np.ndarray, radius: float
+) -> np.ndarray:
+    """Per point, the lowest other ``owner`` with a point within ``radius`` running the opposite way, else -1.
+
+    A grid hash with cells of ``radius`` compares each point with the points of its 3x3 neighbouring cells.
+    """
+    cell = np.floor(points / radius).astype(np.int64)
+    cell -= cell.min(axis=0) - 1
+    stride = int(cell[:, 1].max()) + 2
+    key = cell[:, 0] * stride + cell[:, 1]
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    partner = np.full(len(points), np.iinfo(np.int64).max)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            probe = key + dx * stride + dy
+            lo, hi = np.searchsorted(sorted_key, probe, "left"), np.searchsorted(sorted_key, probe, "right")
+            counts = hi - lo
+            query = np.repeat(np.arange(len(points)), counts)
+            within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+            other = order[np.repeat(lo, counts) + within]
+            match = (
+                (owner[query] != owner[other])
+                & (np.linalg.norm(points[query] - points[other], axis=1) <= radius)
+                & (np.sum(direction[query] * direction[other], axis=1) < -0.5)
+            )
+            np.minimum.at(partner, query[match], owner[other[match]])
+    return np.where(partner == np.iinfo(np.int64).max, -1, partner)
+
+
+def _runs(labels: np.ndarray) -> list[tuple[int, int, int]]:
+    """(label, start, stop) of the runs of equal labels; each run also keeps the first point of the next."""
+    cuts = np.flatnonzero(np.diff(labels)) + 1
+    starts = np.concatenate([[0], cuts])
+    stops = np.concatenate([cuts + 1, [len(labels)]])
+    return [(int(labels[a]), int(a), int(min(b, len(labels)))) for a, b in zip(starts, stops, strict=True)]
+
+
+def _add_edges(net: SumoNet, builder: _MapBuilder) -> None:
+    """Lane centre lines, road lines between lanes, centre lines and curbs of every normal edge.
+
+    The left side of an edge's leftmost lane is the centre line of a two-way road where a lane of the
+    opposite direction runs alongside (found geometrically, so it also works where SUMO splits one
+    direction for a turn pocket), and a road edge elsewhere.
+    """
+    left_sides = []
+    for edge in net.edges.values():
+        lanes = edge.vehicle_lanes
+        if not lanes:
+            continue
+        for lane in lanes:
+            builder.add(lane.shape, _lane_kind(lane))
+        for right, left in zip(lanes[:-1], lanes[1:], strict=False):
+            bike = "bike" in (right.role, left.role)
+            line = MapKind.ROAD_LINE_SOLID_SINGLE_WHITE if bike else MapKind.ROAD_LINE_BROKEN_SINGLE_WHITE
+            builder.add(offset_polyline(right.shape, 0.5 * right.width), line)
+        builder.add(offset_polyline(lanes[0].shape, -0.5 * lanes[0].width), MapKind.ROAD_EDGE_BOUNDARY)
+        left_sides.append(
+            resample_polyline(offset_polyline(lanes[-1].shape, 0.5 * lanes[-1].width), builder.spacing)
+        )
+    if not left_sides:
+        return
+    points = np.concatenate(left_sides)
+    owner = np.repeat(np.arange(len(left_sides)), [len(side) for side in left_sides])
+    tangent = np.concatenate([np.gradient(side, axis=0) for side in left_sides])
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), _MIN_SEGMENT)
+    partner = opposite_partner(points, owner, tangent, radius=0.75 * builder.spacing)
+    across = opposite_partner(points, owner, tangent, radius=_MEDIAN_WIDTH)
+    # Per point: the shared centre line, emitted by the lower-numbered edge of the pair (1) or by its
+    # partner (0); the edge of a median (opposite lanes further apart, e.g. beside SUMO's turn pockets,
+    # 2); or the outer boundary of a one-way road (3).
+    label = np.where(partner >= 0, (partner > owner).astype(np.int64), np.where(across >= 0, 2, 3))
+    kinds = {
+        1: MapKind.ROAD_LINE_SOLID_DOUBLE_YELLOW,
+        2: MapKind.ROAD_EDGE_MEDIAN,
+        3: MapKind.ROAD_EDGE_BOUNDARY,
+    }
+    start = 0
+    for side in left_sides:
+        for value, a, b in _runs(label[start : start + len(side)]):
+            if value != 0 and b - a >= 2:
+                builder.add(side[a:b], kinds[value], resample=False)
+        start += len(side)
+
+
+_CURB_PREFERENCE = {"R": 0, "r": 0, "s": 1}
+
+
+def _add_junctions(net: SumoNet, builder: _MapBuilder) -> dict[str, int]:
+    """Lane polylines of every vehicle movement through a junction and the curbs around each corner.
+
+    Returns the map id of each movement's lane, keyed by its first internal lane.
+    """
+    movement_id: dict[str, int] = {}
+    corner: dict[str, tuple[int, Connection]] = {}
+    for conn in net.connections:
+        edge = net.edges.get(conn.from_edge)
+        target = net.edges.get(conn.to_edge)
+        if edge is None or target is None or not conn.via or conn.via in movement_id:
+            continue
+        chain = net.internal_chain(conn.via)
+        if chain[0].role not in ("drive", "bike"):
+            continue
+        movement_id[conn.via] = builder.add(_joined_shape(chain), _lane_kind(chain[0]))
+        rightmost = edge.vehicle_lanes[0].index
+        rank = _CURB_PREFERENCE.get(conn.direction)
+        if conn.from_lane == rightmost and rank is not None:
+            if conn.from_edge not in corner or rank < corner[conn.from_edge][0]:
+                corner[conn.from_edge] = (rank, conn)
+    for _, conn in corner.values():
+        chain = net.internal_chain(conn.via)
+        builder.add(offset_polyline(_joined_shape(chain), -0.5 * chain[0].width), MapKind.ROAD_EDGE_BOUNDARY)
+    return movement_id
+
+
+def _add_crosswalks(net: SumoNet, builder: _MapBuilder) -> None:
+    for lane in net.lanes.values():
+        if lane.role != "crossing":
+            continue
+        ends = lane.shape[[0, -1]]
+        left = offset_polyline(ends, 0.5 * lane.width)
+        right = offset_polyline(ends, -0.5 * lane.width)
+        polygon = np.concatenate([right, left[::-1], right[:1]])
+        builder.add(polygon, MapKind.CROSSWALK, resample=False)
+
+
+def build_network_map(net: SumoNet, spacing: float = 1.0) -> NetworkMap:
+    """All lanes, road lines, road edges, crosswalks and signalized movements of ``net``."""
+    builder = _MapBuilder(spacing)
+    _add_edges(net, builder)
+    movement_id = _add_junctions(net, builder)
+    _add_crosswalks(net, builder)
+    tls, links, lane_ids, stops = [], [], [], []
+    for conn in net.connections:
+        if conn.tl and conn.link_index >= 0 and conn.via in movement_id:
+            tls.append(conn.tl)
+            links.append(conn.link_index)
+            lane_ids.append(movement_id[conn.via])
+            stops.append(net.lanes[conn.via].shape[0])
+    points, offsets, kinds, ids = builder.arrays()
+    return NetworkMap(
+        points=points,
+        offsets=offsets,
+        kind=kinds,
+        map_id=ids,
+        signal_tls=tuple(tls),
+        signal_link=np.asarray(links, dtype=np.int64),
+        signal_lane_id=np.asarray(lane_ids, dtype=np.int64),
+        signal_xy=np.asarray(stops, dtype=np.float64).reshape(-1, 2),
+    )
+
+
+def signal_states(state_strings: np.ndarray, links: np.ndarray) -> np.ndarray:
+    """SignalState codes for link indices ``links [L]`` of SUMO state strings ``state_strings [T]``."""
+    lookup = np.zeros(256, dtype=np.int8)
+    for char, state in SIGNAL_CHARS.items():
+        lookup[ord(char)] = int(state)
+    if len(state_strings) == 0 or len(links) == 0:
+        return np.zeros((len(state_strings), len(links)), dtype=np.int8)
+    codes = np.frombuffer("".join(state_strings).encode("ascii"), dtype=np.uint8)
+    width = len(state_strings[0])
+    if len(codes) != width * len(state_strings) or links.max() >= width:
+        raise ValueError(f"traffic-light states: expected equal-length strings covering link {links.max()}")
+    return lookup[codes.reshape(len(state_strings), width)[:, links]]
