@@ -77,7 +77,7 @@ class SceneRenderer:
         dpi = 100
         self.fig = plt.figure(figsize=(config.width_px / dpi, config.height_px / dpi), dpi=dpi)
         self.ax = self.fig.add_axes((0, 0, 1, 1))
-        self.ax.set_facecolor((0.86, 0.86, 0.86))
+        self.fig.set_facecolor((0.86, 0.86, 0.86))  # the axes patch is hidden with the axis
         self.ax.set_aspect("equal")
         self.ax.axis("off")
         self._draw_map()
