@@ -1,0 +1,270 @@
+"""Tokenize trajectories into motion tokens (paper, Sec. 3.1) and render tokens back into states.
+
+Tokenization is iterative: the token of step ``t -> t+1`` is the template nearest (mean corner distance,
+with the agent's own length and width) to the logged state at ``t+1``, applied from the *tokenized* state
+at ``t``, so the discretization error never accumulates. Arrays have any leading batch shape
+``[..., N, T]`` (scenes x agents); all agents of one class are processed together at each step.
+
+Gaps (documented contract):
+- ``tokens[..., t]`` is the token of the transition ``t -> t+1``; it is ``-1`` unless the agent is valid
+  at both ``t`` and ``t+1``.
+- The tokenized state at the first valid step of an agent, and at the first step after any gap, is the
+  logged state itself ("anchored", flagged in ``anchored``); error there is 0 and it is excluded from error
+  statistics. Tokenized states are NaN where the agent is invalid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from trajeglish_env.geometry import to_global, to_local
+from trajeglish_env.scenario import AgentKind, Scenario
+from trajeglish_env.tokenizer.nearest import nearest_templates, templates_within
+from trajeglish_env.tokenizer.noise import NoiseConfig, sample_nucleus
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+
+
+class TokenizeError(ValueError):
+    """Bad input to tokenize/render; the message names the argument, agent and step."""
+
+
+@dataclass(frozen=True)
+class TokenizedTrajectories:
+    """Result of :func:`tokenize` (shapes for input ``xyh [..., N, T, 3]``)."""
+
+    tokens: np.ndarray  # [..., N, T-1] int64 argmin token of step t -> t+1 (the training target); -1 if none
+    input_tokens: np.ndarray  # [..., N, T-1] int64 noisy token (equals ``tokens`` without noise)
+    xyh: np.ndarray  # [..., N, T, 3] tokenized states (NaN where invalid)
+    valid: np.ndarray  # [..., N, T] bool, as given
+    anchored: np.ndarray  # [..., N, T] bool: state copied from the log (first step of each valid run)
+    error: np.ndarray  # [..., N, T] mean corner distance logged vs tokenized (m); NaN where invalid
+
+    @cached_property
+    def steps_since_anchor(self) -> np.ndarray:
+        """``[..., N, T]`` int64 steps since the last anchor (0 at anchors); -1 where invalid."""
+        t = np.arange(self.valid.shape[-1])
+        last_anchor = np.maximum.accumulate(np.where(self.anchored, t, -1), axis=-1)
+        return np.where(self.valid, t - last_anchor, -1)
+
+
+def _fail(msg: str) -> None:
+    raise TokenizeError(msg)
+
+
+def _where(shape: tuple[int, ...], flat_index: int) -> str:
+    index = np.unravel_index(flat_index, shape)
+    names = [f"batch {i}" for i in index[:-2]] + [f"agent {index[-2]}", f"step {index[-1]}"]
+    return ", ".join(names)
+
+
+def check_inputs(xyh: np.ndarray, valid: np.ndarray, size: np.ndarray, kind: np.ndarray) -> None:
+    """Validate shapes, dtypes and values of trajectory arrays; raise TokenizeError naming the problem."""
+    if not isinstance(xyh, np.ndarray) or xyh.ndim < 3 or xyh.shape[-1] != 3:
+        _fail(
+            f"xyh: expected an array [..., N, T, 3] (x, y, heading), got shape {getattr(xyh, 'shape', None)}"
+        )
+    if not isinstance(valid, np.ndarray) or valid.shape != xyh.shape[:-1]:
+        _fail(f"valid: expected shape {xyh.shape[:-1]} to match xyh, got {getattr(valid, 'shape', None)}")
+    if valid.dtype != np.bool_:
+        _fail(f"valid: expected dtype bool, got {valid.dtype}")
+    if not isinstance(size, np.ndarray) or size.shape != xyh.shape[:-2] + (2,):
+        _fail(
+            f"size: expected shape {xyh.shape[:-2] + (2,)} (length, width per agent), "
+            f"got {getattr(size, 'shape', None)}"
+        )
+    if not isinstance(kind, np.ndarray) or kind.shape != xyh.shape[:-2]:
+        _fail(
+            f"kind: expected shape {xyh.shape[:-2]} (one AgentKind per agent), "
+            f"got {getattr(kind, 'shape', None)}"
+        )
+    if not np.issubdtype(kind.dtype, np.integer) or (
+        kind.size and ((kind < 0) | (kind >= len(AgentKind))).any()
+    ):
+        _fail(
+            f"kind: expected integer AgentKind values 0..{len(AgentKind) - 1}, got {np.unique(kind).tolist()}"
+        )
+    bad = valid & ~np.isfinite(xyh).all(-1)
+    if bad.any():
+        flat = int(np.flatnonzero(bad)[0])
+        _fail(
+            f"xyh: non-finite state at {_where(valid.shape, flat)} marked valid: {xyh.reshape(-1, 3)[flat]}"
+        )
+    used = valid.any(-1)
+    bad_size = used & ~(np.isfinite(size).all(-1) & (size > 0).all(-1))
+    if bad_size.any():
+        flat = int(np.flatnonzero(bad_size)[0])
+        agent = ", ".join(_where(valid.shape, flat * valid.shape[-1]).split(", ")[:-1])
+        _fail(f"size: {agent} needs a finite length and width > 0, got {size.reshape(-1, 2)[flat].tolist()}")
+
+
+def tokenize(
+    vocab: MotionVocabulary,
+    xyh: np.ndarray,
+    valid: np.ndarray,
+    size: np.ndarray,
+    kind: np.ndarray,
+    *,
+    noise: NoiseConfig | None = None,
+    rng: np.random.Generator | None = None,
+    threads: int = 1,
+) -> TokenizedTrajectories:
+    """Tokenize ``xyh [..., N, T, 3]`` (``valid [..., N, T]``, ``size [..., N, 2]``, ``kind [..., N]``).
+
+    With ``noise`` (and a NumPy ``rng``), ``input_tokens`` are sampled as in the paper's regularization;
+    ``tokens`` (targets) and ``xyh`` (states) are always those of the argmin tokenization. ``threads``
+    splits the nearest-template search over a thread pool (the result does not depend on it).
+    """
+    xyh = np.asarray(xyh)
+    kind = np.asarray(kind)
+    check_inputs(xyh, valid, size, kind)
+    if noise is not None and not isinstance(rng, np.random.Generator):
+        _fail("rng: noisy tokenization needs a numpy.random.Generator (for reproducible sampling)")
+    batch_shape, steps = xyh.shape[:-2], xyh.shape[-2]
+    rows = int(np.prod(batch_shape))
+    # Rows sorted by class (each class one contiguous block) and stored time-major (each step contiguous).
+    order = np.argsort(kind.reshape(rows), kind="stable")
+    identity = bool((order == np.arange(rows)).all())
+    bounds = np.searchsorted(kind.reshape(rows)[order], np.arange(vocab.num_kinds + 1))
+    by_row = xyh.reshape(rows, steps, 3) if identity else xyh.reshape(rows, steps, 3)[order]
+    logged = np.ascontiguousarray(by_row.transpose(1, 0, 2), dtype=np.float64)
+    ok = np.ascontiguousarray(
+        (valid.reshape(rows, steps) if identity else valid.reshape(rows, steps)[order]).T
+    )
+    box = size.reshape(rows, 2)[order].astype(np.float64)
+
+    anchored = ok.copy()
+    anchored[1:] &= ~ok[:-1]
+    states = np.where(anchored[..., None], logged, np.nan)
+    tokens = np.full((max(steps - 1, 0), rows), -1, dtype=np.int64)
+    input_tokens = tokens.copy() if noise is not None else tokens
+    # The template's distance to the local target *is* the corner distance between the tokenized and the
+    # logged state (the metric is frame-invariant), so errors come out of the search for free.
+    error = np.where(ok, 0.0, np.nan)
+    margin = noise.margin(vocab.size) if noise is not None else 0.0
+
+    for t in range(steps - 1):
+        moving = ok[t] & ok[t + 1]
+        for k in range(vocab.num_kinds):
+            lo, hi = int(bounds[k]), int(bounds[k + 1])
+            if hi == lo:
+                continue
+            part = moving[lo:hi]
+            active: slice | np.ndarray = slice(lo, hi) if part.all() else lo + np.flatnonzero(part)
+            if isinstance(active, np.ndarray) and not len(active):
+                continue
+            base = states[t, active]
+            local = to_local(base, logged[t + 1, active])
+            table = vocab.search_tables[k]
+            if noise is None:
+                index, dist = nearest_templates(table, local, box[active], threads=threads)
+                noisy = index
+            else:
+                pair_row, pair_template, pair_dist = templates_within(table, local, box[active], margin)
+                heads = np.flatnonzero(np.r_[True, pair_row[1:] != pair_row[:-1]])
+                index, dist = pair_template[heads], pair_dist[heads]
+                noisy = pair_template[sample_nucleus(pair_row, pair_dist, len(local), noise, rng)]  # type: ignore[arg-type]
+            tokens[t, active] = index
+            if noise is not None:
+                input_tokens[t, active] = noisy
+            states[t + 1, active] = to_global(base, table.templates[index])
+            error[t + 1, active] = dist
+
+    inverse = np.argsort(order)
+
+    def back(a: np.ndarray) -> np.ndarray:
+        """Time-major, class-sorted ``[T, R, ...]`` back to the caller's ``[..., N, T, ...]``."""
+        a = np.ascontiguousarray(np.swapaxes(a, 0, 1))
+        if not identity:
+            a = a[inverse]
+        return a.reshape(*batch_shape, *a.shape[1:])
+
+    valid_out = valid.copy()
+    anchored_out = valid.copy()
+    anchored_out[..., 1:] &= ~valid[..., :-1]
+    tokens_out = back(tokens)
+    return TokenizedTrajectories(
+        tokens=tokens_out,
+        input_tokens=tokens_out.copy() if noise is None else back(input_tokens),
+        xyh=back(states),
+        valid=valid_out,
+        anchored=anchored_out,
+        error=back(error),
+    )
+
+
+def render(
+    vocab: MotionVocabulary,
+    tokens: np.ndarray,
+    kind: np.ndarray,
+    start_xyh: np.ndarray | None = None,
+    *,
+    anchor_xyh: np.ndarray | None = None,
+    anchored: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """States ``[..., N, T, 3]`` and validity ``[..., N, T]`` produced by ``tokens [..., N, T-1]``.
+
+    Either from ``start_xyh [..., N, 3]`` (a NaN row means "not present"), or, as :func:`tokenize` does,
+    from anchors: where ``anchored [..., N, T]`` is set the state is taken from ``anchor_xyh [..., N, T, 3]``.
+    A ``-1`` token makes the agent invalid from the next step until it is anchored again.
+    """
+    tokens = np.asarray(tokens)
+    kind = np.asarray(kind)
+    if tokens.ndim < 2 or not np.issubdtype(tokens.dtype, np.integer):
+        _fail(f"tokens: expected an integer array [..., N, T-1], got {tokens.dtype} shape {tokens.shape}")
+    batch_shape, steps = tokens.shape[:-1], tokens.shape[-1] + 1
+    if kind.shape != batch_shape:
+        _fail(f"kind: expected shape {batch_shape} to match tokens, got {kind.shape}")
+    if not np.issubdtype(kind.dtype, np.integer) or (
+        kind.size and ((kind < 0) | (kind >= vocab.num_kinds)).any()
+    ):
+        _fail(f"kind: expected integer AgentKind values 0..{vocab.num_kinds - 1}")
+    if ((tokens < -1) | (tokens >= vocab.size)).any():
+        _fail(
+            f"tokens: values must be -1 (none) or 0..{vocab.size - 1}, "
+            f"got range [{tokens.min()}, {tokens.max()}]"
+        )
+    if (anchor_xyh is None) != (anchored is None) or (start_xyh is None) == (anchored is None):
+        _fail("render: give either start_xyh, or anchor_xyh together with anchored")
+    rows = int(np.prod(batch_shape))
+    tok = tokens.reshape(rows, steps - 1)
+    agent_kind = kind.reshape(rows).astype(np.int64)
+    anchor_flag = np.zeros((rows, steps), dtype=bool)
+    anchor_state = np.zeros((rows, steps, 3))
+    if anchored is not None and anchor_xyh is not None:
+        anchored, anchor_xyh = np.asarray(anchored), np.asarray(anchor_xyh)
+        if anchored.shape != batch_shape + (steps,) or anchor_xyh.shape != batch_shape + (steps, 3):
+            _fail(
+                f"anchored/anchor_xyh: expected shapes {batch_shape + (steps,)} and "
+                f"{batch_shape + (steps, 3)}"
+            )
+        anchor_flag = anchored.reshape(rows, steps).astype(bool)
+        anchor_state = anchor_xyh.reshape(rows, steps, 3).astype(np.float64)
+        start = np.where(anchor_flag[:, :1], anchor_state[:, 0], np.nan)
+    else:
+        start = np.asarray(start_xyh, dtype=np.float64)
+        if start.shape != batch_shape + (3,):
+            _fail(f"start_xyh: expected shape {batch_shape + (3,)}, got {start.shape}")
+        start = start.reshape(rows, 3)
+    states = np.full((rows, steps, 3), np.nan)
+    states[:, 0] = start
+    for t in range(steps - 1):  # sequential in time only; all agents at once
+        template = vocab.templates[agent_kind, np.maximum(tok[:, t], 0)]
+        moved = to_global(states[:, t], template)
+        nxt = np.where((tok[:, t] >= 0)[:, None], moved, np.nan)
+        states[:, t + 1] = np.where(anchor_flag[:, t + 1, None], anchor_state[:, t + 1], nxt)
+    ok = np.isfinite(states).all(-1)
+    return states.reshape(*batch_shape, steps, 3), ok.reshape(*batch_shape, steps)
+
+
+def tokenize_scenario(
+    vocab: MotionVocabulary,
+    scenario: Scenario,
+    *,
+    noise: NoiseConfig | None = None,
+    rng: np.random.Generator | None = None,
+) -> TokenizedTrajectories:
+    """Tokenize every agent of a Scenario (``[N, T]`` outputs)."""
+    return tokenize(vocab, scenario.xyh, scenario.valid, scenario.size, scenario.kind, noise=noise, rng=rng)
