@@ -47,3 +47,43 @@ def test_errors_are_one_line_and_exit_2(tmp_path, capsys, straight_scene) -> Non
     path = save_scenario(tmp_path / "s.scn.npz", straight_scene)
     assert main(["render", str(path), "--out", str(tmp_path / "x.bmp")]) == 2
     assert "expected a .png, .gif or .mp4" in capsys.readouterr().err
+
+
+def test_tokenizer_fit_and_eval_commands(tmp_path, capsys) -> None:
+    from trajeglish_env.scenario_io import save_scenarios
+    from trajeglish_env.sources.highway import generate_scene
+    from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+
+    save_scenarios(tmp_path / "d" / "a.scn.npz", [generate_scene("two-way", s) for s in range(5)])
+    out = tmp_path / "vocab.npz"
+    args = [
+        "tokenizer",
+        "fit",
+        "--data",
+        str(tmp_path / "d"),
+        "--vocab",
+        "128",
+        "--out",
+        str(out),
+        "--trials",
+        "2",
+    ]
+    assert main([*args, "--json", "--quiet"]) == 0
+    fit = _json(capsys)
+    vocab = MotionVocabulary.load(out)
+    assert vocab.size == 128 and fit["vocab_size"] == 128
+    assert fit["heldout"]["mean_cm"] < 10.0
+    args = [
+        "tokenizer",
+        "eval",
+        "--data",
+        str(tmp_path / "d"),
+        "--vocab",
+        "128",
+        "--out",
+        str(tmp_path / "e"),
+    ]
+    assert main([*args, "--trials", "1", "--json", "--quiet"]) == 0
+    table = json.dumps(_json(capsys))
+    for method in ("k-disks", "k-means", "xyh-grid", "xy-grid"):
+        assert method in table

@@ -54,7 +54,9 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
 def cmd_tokenizer_fit(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.tokenizer.fit import fit_from_directory
 
-    return fit_from_directory(args.data, vocab_size=args.vocab, seed=args.seed, out=args.out)
+    return fit_from_directory(
+        args.data, vocab_size=args.vocab, seed=args.seed, out=args.out, trials=args.trials
+    )
 
 
 def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
@@ -66,6 +68,7 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
         fit_data=args.fit_data,
         out_dir=args.out,
         seed=args.seed,
+        trials=args.trials,
     )
 
 
@@ -144,25 +147,19 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.render import RenderConfig, save_render
-    from trajeglish_env.sources.highway import generate_scene
+    from trajeglish_env.env.demo import run_demo
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    scene = generate_scene(args.kind, seed=args.seed)
-    video = save_render(
-        scene, out / f"demo_{args.kind}.gif", config=RenderConfig(width_px=480, height_px=480)
+    return run_demo(
+        out=Path(args.out),
+        scene=args.scene,
+        seed=args.seed,
+        steps=args.steps,
+        checkpoint=args.checkpoint,
+        ego=args.ego,
+        order=args.order,
+        video_format=args.format,
+        progress=not args.quiet,
     )
-    picture = save_render(scene, out / f"demo_{args.kind}.png")
-    return {
-        "scene": scene.scenario_id,
-        "kind": args.kind,
-        "agents": scene.num_agents,
-        "steps": scene.num_steps,
-        "polylines": scene.num_polylines,
-        "video": str(video),
-        "picture": str(picture),
-    }
 
 
 # ---------------------------------------------------------------------------------------- parser
@@ -204,13 +201,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = add(
         "fit", cmd_tokenizer_fit, "fit k-disks vocabularies (one per agent class) on a scene directory", tsub
     )
-    p.add_argument("--data", required=True)
+    p.add_argument("--data", nargs="+", required=True, help="scene directories")
     p.add_argument("--vocab", type=int, default=384, choices=(128, 256, 384, 512))
     p.add_argument("--out", required=True, help="output vocabulary file")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--trials", type=int, default=8, help="k-disks trials (the best on held-out data is kept)")
     p = add("eval", cmd_tokenizer_eval, "discretization error of k-disks and the baselines", tsub)
-    p.add_argument("--data", required=True, help="held-out scenes to evaluate on")
-    p.add_argument("--fit-data", help="scenes to fit the vocabularies on (default: a split of --data)")
+    p.add_argument("--data", nargs="+", required=True, help="held-out scenes to evaluate on")
+    p.add_argument(
+        "--fit-data", nargs="+", help="scenes to fit the vocabularies on (default: a split of --data)"
+    )
+    p.add_argument("--trials", type=int, default=4)
     p.add_argument("--vocab", type=int, nargs="*", choices=(128, 256, 384, 512))
     p.add_argument("--out", default="out/tokenizer_eval", help="directory for plots")
     p.add_argument("--seed", type=int, default=0)
@@ -274,10 +275,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--follow-sdc", action="store_true")
 
-    p = add("demo", cmd_demo, "the main job: generate a scene and render it")
+    p = add(
+        "demo",
+        cmd_demo,
+        "the main job: the shipped model drives a built-in scene around an external ego; video + metrics",
+    )
     p.add_argument("--out", default="out/demo")
-    p.add_argument("--kind", default="intersection")
+    p.add_argument("--scene", default="highway-intersection-999000", help="bundled scene id or index")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--steps", type=int, default=None, help="episode length (default: the rest of the log)")
+    p.add_argument("--checkpoint", help="model for the NPCs (default: the shipped pretrained model)")
+    p.add_argument("--ego", choices=("idm", "replay", "constant_velocity"), default="idm")
+    p.add_argument("--order", choices=("first", "last", "random"), default="first")
+    p.add_argument("--format", choices=("gif", "mp4"), default="gif")
     return parser
 
 
