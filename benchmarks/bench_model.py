@@ -75,8 +75,11 @@ def decoding_speed(name: str, probes: int = 32) -> dict[str, float]:
         t = p // a + 1  # the sequence up to and including the timestep of position p
         model(scene, tokens[:, :, :t])
     uncached = len(positions) / (time.perf_counter() - start)
-    return {"decode_tokens_per_s_cached": round(cached, 1), "decode_tokens_per_s_uncached": round(uncached, 2),
-            "cache_speedup": round(cached / uncached, 1)}
+    return {
+        "decode_tokens_per_s_cached": round(cached, 1),
+        "decode_tokens_per_s_uncached": round(uncached, 2),
+        "cache_speedup": round(cached / uncached, 1),
+    }
 
 
 def main() -> None:

@@ -5,13 +5,63 @@ from trajeglish_env.scenario_io import load_scenario, load_scenarios, save_scena
 
 __version__ = "0.1.0"
 
+# Heavy parts (torch, PettingZoo) load on first use. ``trajeglish_env.env`` is the environment subpackage
+# and is callable: ``trajeglish_env.env(...)`` builds the wrapped AEC env (PettingZoo's ``env()``).
+_LAZY = {
+    "raw_env": "trajeglish_env.env.aec",
+    "parallel_env": "trajeglish_env.env.parallel",
+    "EgoEnv": "trajeglish_env.env.gym_ego",
+    "EnvConfig": "trajeglish_env.env.config",
+    "load_pretrained": "trajeglish_env.checkpoint",
+}
+
+
+def __getattr__(name: str) -> object:
+    """Lazy exports (PEP 562): the environments and the pretrained model import torch/PettingZoo."""
+    import importlib
+
+    if name == "env":
+        return importlib.import_module("trajeglish_env.env")
+    if name in _LAZY:
+        if name != "load_pretrained":
+            importlib.import_module("trajeglish_env.env")  # registers with PettingZoo as well
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'trajeglish_env' has no attribute {name!r}")
+
+
+# Gymnasium single-ego envs (entry points are strings: nothing heavy is imported until one is made).
+GYM_ENVS = {
+    "trajeglish_env/Ego-v0": {},
+    "trajeglish_env/EgoBev-v0": {"observation": "bev"},
+    "trajeglish_env/EgoIDM-v0": {"npc": "idm"},
+}
+
+
+def register_gymnasium() -> None:
+    """Register :data:`GYM_ENVS` with Gymnasium (idempotent), so that ``gymnasium.make(
+    "trajeglish_env/Ego-v0")`` works after ``import trajeglish_env``."""
+    from gymnasium.envs.registration import register, registry
+
+    for env_id, kwargs in GYM_ENVS.items():
+        if env_id not in registry:
+            register(env_id, entry_point="trajeglish_env.env.gym_ego:EgoEnv", kwargs=kwargs)
+
+
+register_gymnasium()
+
 __all__ = [
     "AgentKind",
+    "EgoEnv",
+    "EnvConfig",
     "MapKind",
     "Scenario",
     "ScenarioError",
     "SignalState",
+    "env",
+    "load_pretrained",
     "load_scenario",
+    "parallel_env",
+    "raw_env",
     "load_scenarios",
     "save_scenario",
     "save_scenarios",

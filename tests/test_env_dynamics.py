@@ -1,0 +1,190 @@
+"""The pieces under the environment: kinematic bicycle and inverse actions, logged routes, the IDM and
+constant-velocity NPCs, observations (vector and bev) and the scene sources."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import straight_road_scene
+from test_env import SMALL_SCENES, bundle_scene
+
+from trajeglish_env.env import EnvConfig, IDMParams, ObservationConfig, VehicleLimits, raw_env
+from trajeglish_env.env.actions import DELTA_HIGH, action_towards, bicycle_step, make_action_space
+from trajeglish_env.env.drivers import OrderedDriver
+from trajeglish_env.env.npc import IDMNPC, ConstantVelocityNPC
+from trajeglish_env.env.observations import BEV_CHANNELS, EGO_FEATURES, NEIGHBOUR_FEATURES, sample_map_points
+from trajeglish_env.env.routes import logged_paths
+from trajeglish_env.env.scenes import SceneFiles, scene_set
+from trajeglish_env.scenario import AgentKind, MapKind, Scenario
+from trajeglish_env.scenario_io import save_scenarios
+
+LIMITS = VehicleLimits()
+
+
+def test_bicycle_model_limits_and_turning() -> None:
+    start = np.array([0.0, 0.0, 0.0])
+    nxt, v = bicycle_step(start, np.float64(10.0), np.array([1.0, 0.0]), np.float64(5.0), LIMITS, 0.1)
+    assert v == pytest.approx(10.4)  # +4 m/s^2 for 0.1 s
+    np.testing.assert_allclose(nxt, [1.02, 0.0, 0.0])  # mean speed 10.2 m/s
+    _, v = bicycle_step(start, np.float64(0.3), np.array([-1.0, 0.0]), np.float64(5.0), LIMITS, 0.1)
+    assert v == 0.0  # -6 m/s^2 stops, never reverses
+    _, v = bicycle_step(start, np.float64(39.9), np.array([1.0, 0.0]), np.float64(5.0), LIMITS, 0.1)
+    assert v == LIMITS.max_speed
+    nxt, _ = bicycle_step(start, np.float64(10.0), np.array([0.0, 1.0]), np.float64(5.0), LIMITS, 0.1)
+    steer = np.arctan(8.0 * 3.0 / 10.0**2)  # grip: 8 m/s^2 of lateral acceleration at 10 m/s, wheelbase 3 m
+    assert LIMITS.steer_limit(10.0, 5.0) == pytest.approx(steer) and LIMITS.steer_limit(2.0, 5.0) == 0.5
+    beta = np.arctan(np.tan(steer) / 2)
+    assert nxt[2] == pytest.approx(10.0 / 1.5 * np.sin(beta) * 0.1)  # half wheelbase 0.6 * 5 / 2
+    assert 10.0 * nxt[2] / 0.1 == pytest.approx(8.0, rel=0.05)  # lateral acceleration v * yaw rate
+    assert nxt[1] > 0  # turning left (positive steering) moves left
+
+
+def test_inverse_actions_reach_the_target() -> None:
+    now, target = np.array([5.0, 2.0, 0.3]), np.array([6.1, 2.4, 0.33])
+    delta = action_towards("delta", now, 11.0, target, 4.5, LIMITS, 0.1)
+    assert make_action_space("delta", 1).contains(delta)
+    cont = action_towards("continuous", now, 11.0, target, 4.5, LIMITS, 0.1)
+    nxt, _ = bicycle_step(now, np.float64(11.0), cont.astype(np.float64), np.float64(4.5), LIMITS, 0.1)
+    assert np.hypot(*(nxt[:2] - target[:2])) < 0.1 and abs(nxt[2] - target[2]) < 0.01
+    far = action_towards("delta", now, 11.0, now + [30.0, 0.0, 0.0], 4.5, LIMITS, 0.1)
+    assert far[0] == DELTA_HIGH[0]  # clipped to the space
+    templates = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.2, 0.1, 0.05]])
+    assert action_towards("token", now, 11.0, target, 4.5, LIMITS, 0.1, templates) == 2
+
+
+def test_logged_paths_resample_extend_and_project() -> None:
+    t = np.arange(11)
+    xyh = np.zeros((2, 11, 3))
+    xyh[0, :, 0] = 2.0 * t  # 20 m straight along +x
+    xyh[1, :, 1] = 3.0  # parked
+    valid = np.ones((2, 11), dtype=bool)
+    valid[0, 4] = False  # a gap is bridged
+    paths = logged_paths(xyh, valid, spacing=1.0, extension=np.array([5.0, 0.0]))
+    assert paths.length.tolist() == [25.0, 0.0] and paths.count.tolist() == [26, 1]
+    p, h = paths.at(np.array([0, 0]), np.array([7.5, 24.0]))
+    np.testing.assert_allclose(p, [[7.5, 0.0], [24.0, 0.0]])  # the extension continues straight
+    s, lateral, _ = paths.project(np.array([0]), np.array([[12.3, 0.8]]), np.array([10.0]))
+    assert s[0] == pytest.approx(12.3) and lateral[0] == pytest.approx(0.8)
+    assert (paths.points[1] == [0.0, 3.0]).all()  # a one-point path, padded with that point
+
+
+def two_car_scene(gap: float, leader_speed: float) -> Scenario:
+    """An ego far behind, a follower at 10 m/s and a leader ``gap`` m ahead of it on a straight lane."""
+    steps = 91
+    t = np.arange(steps) * 0.1
+    xyh = np.zeros((3, steps, 3))
+    xyh[0, :, 0] = -200.0 + 10.0 * t  # ego, external
+    xyh[1, :, 0] = 10.0 * t  # follower: its log drives through the leader
+    xyh[2, :, 0] = 10.0 + gap + leader_speed * np.maximum(t - 1.0, 0.0)
+    xs = np.arange(-300.0, 400.0, 1.0)
+    lines = [np.stack([xs, np.full_like(xs, y)], -1) for y in (0.0, -1.75, 1.75)]
+    return Scenario.from_arrays(
+        xyh,
+        np.ones((3, steps), dtype=bool),
+        np.tile([4.5, 2.0], (3, 1)),
+        np.full(3, AgentKind.VEHICLE),
+        sdc=0,
+        polylines=[lines[0], lines[1], lines[2][::-1]],
+        polyline_kinds=[MapKind.LANE_FREEWAY, MapKind.ROAD_EDGE_BOUNDARY, MapKind.ROAD_EDGE_BOUNDARY],
+        scenario_id="two-cars",
+    )
+
+
+def test_idm_follower_stops_behind_a_stopped_leader_and_speeds_up_on_a_free_road() -> None:
+    scene = two_car_scene(gap=30.0, leader_speed=0.0)
+    external = np.array([True, False, False])
+    driver = OrderedDriver(IDMNPC(IDMParams()), scene, external, 80, np.array([-1.0, 0.0, 0.0]), seed=0)
+    gaps, speeds = [], []
+    for _ in range(80):
+        assert driver.advance() == 0
+        driver.supply(0, scene.xyh[0, driver.t + 1])
+        assert driver.advance() is None
+        t = driver.t
+        gaps.append(driver.xyh[2, t, 0] - driver.xyh[1, t, 0] - 4.5)
+        speeds.append(np.hypot(*(driver.xyh[1, t, :2] - driver.xyh[1, t - 1, :2])) / 0.1)
+    # the leader's log ends stopped: the end of its path stops it; the follower stops behind it
+    assert min(gaps) > 1.0 and speeds[-1] < 0.1 and gaps[-1] < 6.0
+    assert np.abs(driver.xyh[1, 11:, 1]).max() == 0.0  # stays on its path
+    free = two_car_scene(gap=300.0, leader_speed=10.0)
+    driver = OrderedDriver(IDMNPC(IDMParams(min_desired_speed=20.0)), free, external, 30, np.zeros(3), seed=0)
+    for _ in range(30):
+        while (a := driver.advance()) is not None:
+            driver.supply(a, free.xyh[a, driver.t + 1])
+    speed = np.hypot(*(driver.xyh[1, -1, :2] - driver.xyh[1, -2, :2])) / 0.1
+    assert 12.0 < speed < 20.0  # accelerating towards 20 m/s at under 1.5 m/s^2
+
+
+def test_constant_velocity_npcs_keep_their_last_step() -> None:
+    scene = straight_road_scene(num_agents=3, steps=40)
+    driver = OrderedDriver(
+        ConstantVelocityNPC(), scene, np.array([True, False, False]), 5, np.zeros(3), seed=0
+    )
+    for _ in range(5):
+        while (a := driver.advance()) is not None:
+            driver.supply(a, scene.xyh[a, driver.t + 1])
+    step = scene.xyh[1, 10] - scene.xyh[1, 9]
+    np.testing.assert_allclose(driver.xyh[1, 15], scene.xyh[1, 10] + 5 * step)
+
+
+def test_vector_observation_layout() -> None:
+    e = raw_env(SMALL_SCENES, npc="replay")
+    e.reset(seed=0, options={"scene": 2})
+    obs = e.observe(e.agent_selection)
+    cfg = EnvConfig().obs
+    assert obs.shape == e.observation_space(e.agent_selection).shape and obs.dtype == np.float32
+    assert np.abs(obs).max() <= 1.0
+    sc, i = e.scenario, e.agent_index(e.agent_selection)
+    assert obs[0] == pytest.approx(sc.speed()[i, sc.current_index] / 30.0, rel=1e-5)
+    assert obs[3] == pytest.approx(sc.size[i, 0] / 10.0) and obs[5] == 0.0  # no progress yet
+    near = obs[EGO_FEATURES : EGO_FEATURES + NEIGHBOUR_FEATURES * cfg.neighbours].reshape(cfg.neighbours, -1)
+    shown = near[near[:, 0] == 1]
+    dist = np.hypot(shown[:, 1], shown[:, 2])
+    assert len(shown) >= 1 and (np.diff(dist) >= 0).all()  # nearest first
+    route = obs[-2 * cfg.route_points :].reshape(-1, 2)
+    assert (route[:, 0] > 0).all() and np.abs(route[:, 1]).max() < 0.1  # the route lies ahead
+    map_part = obs[EGO_FEATURES + NEIGHBOUR_FEATURES * cfg.neighbours : -2 * cfg.route_points].reshape(-1, 6)
+    assert map_part[:, 0].all() and map_part[:, 5].any() and map_part[:, 3].any()  # edges and lanes seen
+
+
+def test_bev_observation_draws_ego_route_map_and_agents() -> None:
+    e = raw_env(SMALL_SCENES, npc="replay", observation="bev", obs=ObservationConfig(bev_resolution=3.0))
+    e.reset(seed=0, options={"scene": 2})
+    bev = e.observe(e.agent_selection)
+    n = EnvConfig().obs.bev_size
+    assert bev.shape == (BEV_CHANNELS, n, n) and bev.dtype == np.uint8
+    assert bev[4, n // 2, n // 2] == 255  # the ego sits at the centre
+    assert (bev[4, : n // 2 - 4] == 128).any()  # its route is drawn ahead (upwards)
+    assert bev[0].any() and (bev[1] == 255).any()  # lanes and road edges
+    assert bev[2].any() and not bev[3].any()  # other agents, none moved yet (ego acts first)
+
+
+def test_map_points_are_resampled_per_polyline() -> None:
+    scene = straight_road_scene()
+    points, category = sample_map_points(scene, 3.0)
+    assert len(points) == 5 * 150  # 5 polylines of 450 m at 1 m spacing, kept every 3 m
+    assert set(np.unique(category).tolist()) == {0, 1, 2}
+
+
+def test_scene_sources(tmp_path: object) -> None:
+    path = tmp_path / "shard.scn.npz"  # type: ignore[operator]
+    save_scenarios(path, SMALL_SCENES)
+    files = scene_set(tmp_path)
+    assert isinstance(files, SceneFiles) and len(files) == 3
+    assert files.get(files.index_of("highway-two-way-999000")).scenario_id == "highway-two-way-999000"
+    assert len(scene_set(None)) == 20  # the shipped bundle
+    generated = scene_set("highway:merge")
+    assert generated.get(7).scenario_id == "highway-merge-7" and generated.index_of("highway-merge-7") == 7
+    with pytest.raises(TypeError, match="scenes: expected None"):
+        scene_set(42)
+
+
+def test_bundle_scenes_are_held_out_and_small() -> None:
+    from trajeglish_env.env.scenes import BUNDLE_SEED, bundle_path
+
+    assert bundle_path().stat().st_size < 3_000_000
+    bundle = scene_set(None)
+    ids = [bundle.get(i).scenario_id for i in range(len(bundle))]
+    seeds = [int(s.split("-")[-1]) for s in ids if s.startswith("highway-")]
+    assert len(seeds) == 16 and min(seeds) >= BUNDLE_SEED
+    assert sum(s.startswith("sumo-") for s in ids) == 4
+    assert bundle_scene(ids[0]).num_agents >= 2

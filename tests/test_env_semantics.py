@@ -1,0 +1,235 @@
+"""What the AEC order means (who sees whose move), determinism, episode ends and refused inputs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from conftest import straight_road_scene
+from test_env import MERGE, SMALL_SCENES, TINY, bundle_scene, tiny_checkpoint
+
+import trajeglish_env.sampler.engine as engine_module
+from trajeglish_env.checkpoint import Checkpoint, CheckpointError
+from trajeglish_env.env import (
+    EnvConfig,
+    ObservationConfig,
+    RandomAgents,
+    RewardConfig,
+    TrajeglishNPC,
+    parallel_env,
+    raw_env,
+)
+from trajeglish_env.env.observations import EGO_FEATURES, NEIGHBOUR_FEATURES
+from trajeglish_env.geometry import to_local
+
+WIDE = ObservationConfig(radius=500.0)
+KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
+
+
+def neighbours(obs: np.ndarray, k: int = 8) -> np.ndarray:
+    return obs[EGO_FEATURES : EGO_FEATURES + NEIGHBOUR_FEATURES * k].reshape(k, NEIGHBOUR_FEATURES)
+
+
+@pytest.mark.parametrize("npc", ["tiny", "idm"])
+def test_external_acting_last_observes_the_npcs_moves_and_acting_first_observes_none(npc: str) -> None:
+    scene = bundle_scene(MERGE)  # 5 vehicles: one model context
+    spec = TrajeglishNPC(TINY) if npc == "tiny" else npc
+    for order, moved in (("last", 1.0), ("first", 0.0)):
+        e = raw_env([scene], npc=spec, order=order, max_cycles=5, reward=KEEP_GOING, obs=WIDE)
+        e.reset(seed=0)
+        sim = e.sim
+        t, ego = sim.t, int(sim.external_index[0])
+        near = neighbours(e.observe(e.agent_selection))
+        shown = near[near[:, 0] == 1]
+        assert len(shown) == 4  # the 4 NPCs, all within the 500 m radius
+        np.testing.assert_array_equal(shown[:, 9], moved)
+        step = t + 1 if order == "last" else t  # where the NPCs are shown: after or before their move
+        others = np.flatnonzero(np.arange(scene.num_agents) != ego)
+        local = to_local(sim.driver.xyh[ego, t], sim.driver.xyh[others, step])[:, :2] / WIDE.radius
+        order_shown = np.argsort(np.hypot(local[:, 0], local[:, 1]), kind="stable")
+        np.testing.assert_allclose(shown[:, 1:3], local[order_shown], atol=1e-6)
+        if npc == "tiny":  # the engine's own record: the NPC tokens of this step are decided (or not) yet
+            assert sim.driver.engine.known[0, others, t].all() == (order == "last")
+
+
+def _npc_logits(monkeypatch: pytest.MonkeyPatch, order: str, action: list[float]) -> list[torch.Tensor]:
+    """Logits of every NPC token sampled while the ego takes ``action`` for two steps."""
+    seen: list[torch.Tensor] = []
+    original = engine_module.sample_logits
+
+    def spy(logits: torch.Tensor, *args: object, **kwargs: object) -> torch.Tensor:
+        seen.append(logits.clone())
+        return original(logits, *args, **kwargs)
+
+    monkeypatch.setattr(engine_module, "sample_logits", spy)
+    e = raw_env([bundle_scene(MERGE)], npc=TrajeglishNPC(TINY), order=order, max_cycles=3, reward=KEEP_GOING)
+    e.reset(seed=0)
+    for _ in range(2):
+        e.step(np.array(action, dtype=np.float32))
+    monkeypatch.setattr(engine_module, "sample_logits", original)
+    return seen
+
+
+def test_npcs_after_the_external_condition_on_its_move(monkeypatch: pytest.MonkeyPatch) -> None:
+    # first: the 4 NPCs of the first step decode after the ego's token -> their logits depend on its action
+    fast = _npc_logits(monkeypatch, "first", [1.0, 0.5])
+    slow = _npc_logits(monkeypatch, "first", [-1.0, -0.5])
+    assert len(fast) == len(slow) == 8
+    assert not any(torch.equal(a, b) for a, b in zip(fast[:4], slow[:4], strict=True))
+    # last: they decode before it -> identical logits whatever the ego does; later steps see its past move
+    fast = _npc_logits(monkeypatch, "last", [1.0, 0.5])
+    slow = _npc_logits(monkeypatch, "last", [-1.0, -0.5])
+    assert len(fast) == len(slow) == 12  # the env also decodes the NPCs of the next step before the ego
+    assert all(torch.equal(a, b) for a, b in zip(fast[:4], slow[:4], strict=True))
+    assert not any(torch.equal(a, b) for a, b in zip(fast[4:8], slow[4:8], strict=True))
+
+
+def test_order_first_holds_across_model_contexts_with_several_external_agents() -> None:
+    scene = bundle_scene("sumo-random-999000-0-0")  # ~30 agents: five contexts of the tiny model
+    e = raw_env([scene], npc=TrajeglishNPC(TINY), external=RandomAgents(3), order="first", max_cycles=2)
+    e.reset(seed=1)
+    sim = e.sim
+    t = sim.t
+    listed = list(e.agents)
+    assert len(listed) == 3
+    for agent in listed:
+        assert e.agent_selection == agent  # externals act in the configured order
+        npcs = np.flatnonzero(sim.npc)
+        assert not sim.driver.moved()[npcs].any()  # ... before every NPC of every context
+        e.step(np.zeros(2, dtype=np.float32))
+    assert sim.t == t + 1 and sim.driver.valid[np.flatnonzero(sim.npc), t + 1].all()
+    assert len(sim.driver.engine.plan[0].centres) > 1  # the NPCs were decoded in several model contexts
+
+
+def test_explicit_order_puts_the_named_agents_first() -> None:
+    scene = bundle_scene(MERGE)
+    names = [f"vehicle_{i}" for i in scene.track_id]
+    ego = names[scene.sdc]
+    leader = names[(scene.sdc + 2) % scene.num_agents]
+    e = raw_env([scene], npc=TrajeglishNPC(TINY), order=(leader, ego), max_cycles=3)
+    e.reset(seed=0)
+    moved = e.sim.driver.moved()
+    assert moved[names.index(leader)] and moved.sum() == 1  # only the named NPC acted before the ego
+    with pytest.raises(ValueError, match=r"order: unknown agent name\(s\) \['vehicle_999999'\]"):
+        raw_env([scene], npc="replay", order=("vehicle_999999",)).reset(seed=0)
+
+
+def test_parallel_env_is_deterministic_over_many_steps() -> None:
+    def play(seed: int) -> tuple[list[np.ndarray], list[float]]:
+        scene = bundle_scene(MERGE)
+        two = tuple(int(i) for i in scene.track_id[:2])  # two external agents, three Trajeglish NPCs
+        par = parallel_env([scene], npc=TrajeglishNPC(TINY), external=two, max_cycles=6, reward=KEEP_GOING)
+        obs, _ = par.reset(seed=seed)
+        rng = np.random.default_rng(0)
+        seen, rewards = [], []
+        while par.agents:
+            actions = {a: rng.uniform(-1, 1, 2).astype(np.float32) for a in sorted(par.agents)}
+            obs, rew, _, _, _ = par.step(actions)
+            seen += [obs[a] for a in sorted(obs)]
+            rewards += [rew[a] for a in sorted(rew)]
+        return seen, rewards
+
+    a, b, c = play(5), play(5), play(6)
+    assert len(a[0]) == 6 * 2  # 6 steps x 2 agents
+    assert all(np.array_equal(x, y) for x, y in zip(a[0], b[0], strict=True)) and a[1] == b[1]
+    assert not all(np.array_equal(x, y) for x, y in zip(a[0], c[0], strict=True))
+
+
+def test_reset_picks_scenes_by_seed_index_or_id() -> None:
+    e = raw_env(SMALL_SCENES, npc="replay")
+    e.reset(seed=0, options={"scene": "highway-two-way-999000"})
+    assert e.scenario.scenario_id == "highway-two-way-999000"
+    e.reset(seed=0, options={"scene": 2})
+    assert e.scenario.scenario_id == "highway-highway-999000"
+    picks = set()
+    for seed in range(12):
+        e.reset(seed=seed)
+        picks.add(e.scenario.scenario_id)
+        again = raw_env(SMALL_SCENES, npc="replay")
+        again.reset(seed=seed)
+        assert again.scenario.scenario_id == e.scenario.scenario_id
+    assert len(picks) == 3
+    with pytest.raises(KeyError, match="no scene with scenario_id 'nope'"):
+        e.reset(options={"scene": "nope"})
+
+
+def test_collision_terminates_and_the_agent_leaves_the_scene() -> None:
+    scene = straight_road_scene(num_agents=4, steps=91)  # agent 2 drives 24 m ahead of the sdc, same lane
+    e = raw_env([scene], npc="replay", action="delta", max_cycles=40)
+    e.reset(seed=0)
+    agent = e.agent_selection
+    rewards = []
+    while not e.terminations[agent]:
+        e.step(np.array([5.0, 0.0, 0.0], dtype=np.float32))  # 50 m/s: rams the car ahead
+        rewards.append(e.rewards[agent])
+    info = e.infos[agent]
+    assert info["collision"] and not info["offroad"] and not e.truncations[agent]
+    assert len(rewards) < 10 and rewards[-1] < -0.9
+    assert all(type(r) is float for r in rewards) and type(e.terminations[agent]) is bool
+    t = e.sim.t
+    e.step(None)  # the dead step removes it
+    assert e.agents == [] and e.sim.driver.valid[scene.sdc, t]
+
+
+def test_offroad_and_goal_end_the_episode() -> None:
+    scene = bundle_scene("highway-highway-999000")
+    e = raw_env([scene], npc="replay", action="delta")
+    e.reset(seed=0)
+    agent = e.agent_selection
+    while not e.terminations[agent]:
+        e.step(np.array([1.0, -1.0, 0.0], dtype=np.float32))  # drift right, off the road
+    assert e.infos[agent]["offroad"] and not e.infos[agent]["collision"]
+    # the logged route, driven with the exact logged displacements, ends the episode at its goal
+    from policies import ReplayPolicy, play_episode
+
+    result = play_episode(raw_env([scene], npc="replay", action="delta"), ReplayPolicy(), seed=0)
+    assert result.goal[agent] and result.route_fraction[agent] > 0.95 and not result.collision[agent]
+
+
+def test_bad_inputs_are_refused_with_clear_errors(tmp_path: object) -> None:
+    scene = bundle_scene(MERGE)
+    with pytest.raises(ValueError, match=r"unknown agent id\(s\) \[123456\] in the external"):
+        raw_env([scene], npc="replay", external=(123456,)).reset(seed=0)
+    e = raw_env([scene], npc="replay")
+    e.reset(seed=0)
+    with pytest.raises(ValueError, match=r"action \[2.0, 0.0\] is outside the action space bounds"):
+        e.step(np.array([2.0, 0.0], dtype=np.float32))
+    with pytest.raises(ValueError, match=r"must be a finite array of shape \(2,\)"):
+        e.step(np.zeros(3, dtype=np.float32))
+    tok = raw_env([scene], npc=TrajeglishNPC(TINY), action="token")
+    tok.reset(seed=0)
+    n = tok.action_space(tok.agent_selection).n
+    with pytest.raises(ValueError, match=f"action {n} is outside the action space Discrete"):
+        tok.step(n)
+    with pytest.raises(ValueError, match="action 1.5 is outside"):
+        tok.step(1.5)
+    gone = scene.valid.copy()
+    gone[scene.sdc, scene.current_index] = False
+    no_sdc = dataclasses.replace(scene, valid=gone)
+    with pytest.raises(ValueError, match="its sdc .* is not present at the current step 10"):
+        raw_env([no_sdc], npc="replay").reset(seed=0)
+    mismatched = Checkpoint(
+        model=tiny_checkpoint(128).model, vocabulary=tiny_checkpoint(256).vocabulary, training={}
+    )
+    with pytest.raises(
+        CheckpointError, match="vocabulary has 3 classes x 294 templates but the model expects 3 x 144"
+    ):
+        raw_env([scene], npc=TrajeglishNPC(mismatched))
+    with pytest.raises(TypeError, match=r"unknown environment option\(s\) \['max_cycle'\]"):
+        raw_env([scene], npc="replay", max_cycle=3)
+    with pytest.raises(ValueError, match="EnvConfig.order: expected one of"):
+        EnvConfig(order="sometimes")
+
+
+def test_missing_shipped_model_names_the_alternatives(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: object
+) -> None:
+    import trajeglish_env.checkpoint as checkpoint_module
+
+    monkeypatch.setattr(checkpoint_module, "pretrained_path", lambda: tmp_path / "absent.pt")  # type: ignore[operator]
+    with pytest.raises(
+        CheckpointError, match=r"missing from this installation\. Trajeglish NPCs need a model.*npc='idm'"
+    ):
+        raw_env()

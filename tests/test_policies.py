@@ -1,0 +1,104 @@
+"""Policies for external agents and the episode runner."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_env import MERGE, SMALL_SCENES, TINY, bundle_scene
+
+from policies import (
+    ConstantVelocityPolicy,
+    IDMPolicy,
+    RandomPolicy,
+    ReplayPolicy,
+    SB3Policy,
+    TrajeglishPolicy,
+    evaluate,
+    play_episode,
+    policy_for,
+    summarize,
+)
+from trajeglish_env.env import TrajeglishNPC, raw_env
+
+HIGHWAY = "highway-highway-999000"
+
+
+def test_rule_based_egos_follow_their_route() -> None:
+    for policy in (ReplayPolicy(), IDMPolicy()):
+        env = raw_env([bundle_scene(HIGHWAY)], npc="idm")
+        result = play_episode(env, policy, seed=0)
+        (agent,) = result.returns
+        assert (
+            result.route_fraction[agent] > 0.9 and not result.collision[agent] and not result.offroad[agent]
+        )
+        assert result.goal[agent] and result.steps <= 80
+    cv = play_episode(
+        raw_env([bundle_scene(HIGHWAY)], npc="idm", max_cycles=20), ConstantVelocityPolicy(), seed=0
+    )
+    (agent,) = cv.returns
+    speed = bundle_scene(HIGHWAY).speed()[bundle_scene(HIGHWAY).sdc, 10]
+    assert cv.steps == 20 and cv.progress_m[agent] == pytest.approx(20 * 0.1 * speed, rel=0.05)
+
+
+def test_random_policy_is_seeded_and_stays_in_the_space() -> None:
+    env = raw_env(SMALL_SCENES, npc="replay", max_cycles=10)
+    a = play_episode(env, RandomPolicy(seed=3), seed=1)
+    b = play_episode(env, RandomPolicy(seed=3), seed=1)
+    c = play_episode(env, RandomPolicy(seed=4), seed=1)
+    assert a == b and a.returns != c.returns
+
+
+class _ConstantModel:
+    """Stands in for an SB3 model: ``predict`` returns the same action for every observation."""
+
+    def __init__(self, action: np.ndarray):
+        self.action = action
+        self.calls = 0
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        self.calls += 1
+        batch = obs.shape[:-1]
+        return np.broadcast_to(self.action, (*batch, *self.action.shape)).copy(), None
+
+
+def test_sb3_policy_drives_one_or_many_agents() -> None:
+    model = _ConstantModel(np.array([0.5, 0.0], dtype=np.float32))
+    policy = SB3Policy(model)
+    env = raw_env([bundle_scene(MERGE)], npc="replay", external="all", max_cycles=4)
+    result = play_episode(env, lambda agent: policy, seed=0)  # a factory: the same policy for all agents
+    assert len(result.returns) == 5 and model.calls > 0
+    batch = policy.act_many({"a": np.zeros(300, np.float32), "b": np.ones(300, np.float32)})
+    assert set(batch) == {"a", "b"} and batch["b"].tolist() == [0.5, 0.0]
+    token = SB3Policy(_ConstantModel(np.array(7)))
+    assert token.act(None, "x", np.zeros(3)) == 7
+
+
+def test_trajeglish_policy_drives_an_external_agent() -> None:
+    env = raw_env([bundle_scene(MERGE)], npc=TrajeglishNPC(TINY), action="token", max_cycles=5)
+    policy = TrajeglishPolicy(TINY, seed=0)
+    a = play_episode(env, policy, seed=0)
+    b = play_episode(env, TrajeglishPolicy(TINY, seed=0), seed=0)
+    assert a.steps >= 1 and a.returns == b.returns
+    other = raw_env([bundle_scene(MERGE)], npc="idm", action="token")  # the default 384-token vocabulary
+    other.reset(seed=0)
+    with pytest.raises(
+        ValueError, match="checkpoint's vocabulary .* does not match the env's token vocabulary"
+    ):
+        policy.reset(other, other.agent_selection)
+
+
+def test_runner_maps_agents_and_summarises() -> None:
+    env = raw_env([bundle_scene(MERGE)], npc="replay", external="all", max_cycles=3)
+    env.reset(seed=0)
+    names = list(env.agents)
+    mapping = {name: (ReplayPolicy() if k % 2 else ConstantVelocityPolicy()) for k, name in enumerate(names)}
+    result = play_episode(env, mapping, seed=0)
+    assert sorted(result.returns) == sorted(names) and result.steps == 3
+    with pytest.raises(KeyError, match="no policy for agent"):
+        policy_for({"someone": ReplayPolicy()}, names[0])
+    summary = summarize([result, result])
+    assert summary["episodes"] == 2 and summary["agents"] == 10
+    assert summary["collision_rate"] == np.mean(list(result.collision.values()))
+    assert summary["mean_progress_m"] == pytest.approx(np.mean(list(result.progress_m.values())))
+    several = evaluate(raw_env(SMALL_SCENES, npc="idm", max_cycles=5), IDMPolicy(), 3, scenes=[0, 1, 2])
+    assert several["episodes"] == 3 and several["mean_steps"] == 5

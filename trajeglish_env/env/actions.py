@@ -1,0 +1,136 @@
+"""Action spaces of external agents and how an action becomes the agent's next state.
+
+``continuous``: Box[-1,1]^2 float32 (acceleration, steering) through a kinematic bicycle model about the
+box centre (grip-limited steering; limits in :class:`~trajeglish_env.env.config.VehicleLimits`);
+``delta``: Box float32 of the local displacement (dx, dy in m, dh in rad) over one step, bounds
+:data:`DELTA_LOW` / :data:`DELTA_HIGH`; ``token``: Discrete(V), template ``a`` of the agent's class in the
+motion vocabulary, applied to its exact state. :func:`action_towards` inverts each of them (the action
+that best reaches a given state).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from gymnasium import spaces
+
+from trajeglish_env.env.config import VehicleLimits
+from trajeglish_env.geometry import to_global, to_local, wrap_angle
+
+DELTA_LOW = np.array([-1.0, -1.0, -0.6], dtype=np.float32)  # m, m, rad per 0.1 s step
+DELTA_HIGH = np.array([5.0, 1.0, 0.6], dtype=np.float32)
+STEERING_CANDIDATES = 201  # steering values tried by action_towards (continuous)
+
+
+def make_action_space(action_type: str, vocab_size: int) -> spaces.Space:
+    """The (per-agent) action space of an action type."""
+    if action_type == "continuous":
+        return spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+    if action_type == "delta":
+        return spaces.Box(DELTA_LOW, DELTA_HIGH, dtype=np.float32)
+    if action_type == "token":
+        return spaces.Discrete(int(vocab_size))
+    raise ValueError(f"unknown action type {action_type!r}")
+
+
+def check_action(space: spaces.Space, action: object, agent: str) -> np.ndarray | int:
+    """``action`` as an array (Box) or int (Discrete); a ValueError naming the agent if it is outside."""
+    if isinstance(space, spaces.Discrete):
+        ok = isinstance(action, (int, np.integer)) or (
+            isinstance(action, np.ndarray) and action.shape == () and np.issubdtype(action.dtype, np.integer)
+        )
+        value = int(action) if ok else None  # type: ignore[arg-type]
+        if value is None or not 0 <= value < int(space.n):
+            raise ValueError(f"agent {agent}: action {action} is outside the action space {space}")
+        return value
+    assert isinstance(space, spaces.Box)
+    try:
+        arr = np.asarray(action, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"agent {agent}: action {action!r} is not numeric; expected {space}") from None
+    if arr.shape != space.shape or not np.isfinite(arr).all():
+        raise ValueError(
+            f"agent {agent}: action {action!r} must be a finite array of shape {space.shape} ({space})"
+        )
+    low, high = space.low.astype(np.float64), space.high.astype(np.float64)
+    tol = 1e-6 * np.maximum(1.0, np.abs(high - low))
+    if (arr < low - tol).any() or (arr > high + tol).any():
+        raise ValueError(
+            f"agent {agent}: action {arr.tolist()} is outside the action space bounds "
+            f"low={low.tolist()} high={high.tolist()}"
+        )
+    return np.clip(arr, low, high)
+
+
+def bicycle_step(
+    xyh: np.ndarray,
+    speed: np.ndarray,
+    action: np.ndarray,
+    length: np.ndarray,
+    limits: VehicleLimits,
+    dt: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Next states ``[...,3]`` and speeds of a kinematic bicycle about the box centre (slip angle
+    ``beta = atan(tan(steer) / 2)``, rear and front axles ``wheelbase / 2`` from the centre; the steering
+    range shrinks with speed, see VehicleLimits)."""
+    a = np.where(action[..., 0] >= 0, action[..., 0] * limits.max_accel, action[..., 0] * limits.max_brake)
+    steer = action[..., 1] * limits.steer_limit(speed, length)
+    v_next = np.clip(speed + a * dt, 0.0, limits.max_speed)
+    v_mean = (speed + v_next) / 2
+    beta = np.arctan(np.tan(steer) / 2)
+    half_base = limits.wheelbase_ratio * length / 2
+    heading = xyh[..., 2]
+    x = xyh[..., 0] + v_mean * np.cos(heading + beta) * dt
+    y = xyh[..., 1] + v_mean * np.sin(heading + beta) * dt
+    h = wrap_angle(heading + v_mean / half_base * np.sin(beta) * dt)
+    return np.stack([x, y, h], -1), v_next
+
+
+def delta_step(xyh: np.ndarray, action: np.ndarray) -> np.ndarray:
+    """Next state from a local displacement ``(dx, dy, dh)``."""
+    return to_global(xyh, np.asarray(action, dtype=np.float64))
+
+
+def token_step(xyh: np.ndarray, templates: np.ndarray, token: int) -> np.ndarray:
+    """Next state from template ``token`` of the agent's class (``templates [V,3]``)."""
+    return to_global(xyh, templates[int(token)])
+
+
+def action_towards(
+    action_type: str,
+    xyh: np.ndarray,
+    speed: float,
+    target: np.ndarray,
+    length: float,
+    limits: VehicleLimits,
+    dt: float,
+    templates: np.ndarray | None = None,
+) -> np.ndarray | int:
+    """The action whose next state is nearest to ``target [3]`` from state ``xyh [3]`` at ``speed``
+    (clipped to the action space; ``templates [V,3]`` of the agent's class for ``token``)."""
+    local = to_local(np.asarray(xyh, dtype=np.float64), np.asarray(target, dtype=np.float64))
+    if action_type == "delta":
+        return np.clip(local, DELTA_LOW, DELTA_HIGH).astype(np.float32)
+    if action_type == "token":
+        if templates is None:
+            raise ValueError("action_towards: token actions need the agent's templates")
+        return int(np.argmin(_corner_gap(templates, local, length)))
+    # continuous: the acceleration to the speed that covers the displacement, then the steering (searched
+    # on a grid) whose next state is nearest in position and heading (which also corrects lateral drift)
+    dist = float(np.hypot(local[0], local[1])) * (1.0 if local[0] >= 0 else -1.0)
+    v_target = float(np.clip(dist / dt, 0.0, limits.max_speed))
+    a = (v_target - speed) / dt
+    a_cmd = float(np.clip(a / limits.max_accel if a >= 0 else a / limits.max_brake, -1.0, 1.0))
+    steering = np.linspace(-1.0, 1.0, STEERING_CANDIDATES)
+    actions = np.stack([np.full_like(steering, a_cmd), steering], -1)
+    origin = np.zeros(3)
+    nxt, _ = bicycle_step(origin, np.float64(speed), actions, np.float64(length), limits, dt)
+    gap = ((nxt[:, :2] - local[:2]) ** 2).sum(-1) + (wrap_angle(nxt[:, 2] - local[2]) * length / 2) ** 2
+    return np.array([a_cmd, steering[np.argmin(gap)]], dtype=np.float32)
+
+
+def _corner_gap(templates: np.ndarray, local: np.ndarray, length: float) -> np.ndarray:
+    """Squared distance between templates and a local displacement, heading error weighted by the
+    distance of the box's front from its centre (a cheap stand-in for the tokenizer's corner distance)."""
+    d = templates - local
+    d[:, 2] = wrap_angle(d[:, 2]) * (length / 2)
+    return (d**2).sum(-1)

@@ -1,0 +1,207 @@
+"""Typed settings of the environment: which agents are external, their order, the NPC policy, the action
+and observation types, rewards, vehicle limits, episode length and rendering (frozen dataclasses)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import numpy as np
+
+ACTION_TYPES = ("token", "continuous", "delta")
+OBSERVATION_TYPES = ("vector", "bev")
+ORDERS = ("first", "last", "random")
+NPC_NAMES = ("trajeglish", "replay", "constant_velocity", "idm")
+
+
+@dataclass(frozen=True)
+class RandomAgents:
+    """``k`` external agents drawn at every reset among the agents present at the current step."""
+
+    k: int
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.k, int) or self.k < 1:
+            raise ValueError(f"RandomAgents.k must be a positive integer, got {self.k!r}")
+
+
+@dataclass(frozen=True)
+class TrajeglishNPC:
+    """NPCs driven by a Trajeglish model: ``checkpoint`` (a path or a loaded ``Checkpoint``; None: the
+    shipped model) sampled with ``temperature`` and nucleus ``top_p``."""
+
+    checkpoint: Any = None
+    temperature: float = 1.0
+    top_p: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (self.temperature >= 0):
+            raise ValueError(f"TrajeglishNPC.temperature must be >= 0, got {self.temperature}")
+        if not (0 < self.top_p <= 1):
+            raise ValueError(f"TrajeglishNPC.top_p must be in (0, 1], got {self.top_p}")
+        ok = self.checkpoint is None or isinstance(self.checkpoint, (str, os.PathLike))
+        if not ok and not hasattr(self.checkpoint, "vocabulary"):
+            raise TypeError(
+                "TrajeglishNPC.checkpoint must be None (the shipped model), a path or a Checkpoint, "
+                f"got {type(self.checkpoint).__name__}"
+            )
+
+
+@dataclass(frozen=True)
+class VehicleLimits:
+    """Kinematic bicycle limits of the ``continuous`` action: action[0] in [-1, 1] maps to
+    [-max_brake, max_accel] m/s^2 (linearly on each side of 0), action[1] to the front-wheel angle in
+    [-s, s] with s = min(max_steer, atan(max_lateral_accel x wheelbase / v^2)) at speed v (tyre grip:
+    full steering is a turn at ``max_lateral_accel`` at most); the speed stays in [0, max_speed] m/s (no
+    reversing); the wheelbase is ``wheelbase_ratio`` times the agent's length."""
+
+    max_accel: float = 4.0
+    max_brake: float = 6.0
+    max_steer: float = 0.5
+    max_lateral_accel: float = 8.0
+    max_speed: float = 40.0
+    wheelbase_ratio: float = 0.6
+
+    def steer_limit(self, speed: np.ndarray | float, length: np.ndarray | float) -> np.ndarray:
+        """Largest front-wheel angle (rad) at ``speed`` for an agent of ``length``."""
+        base = self.wheelbase_ratio * np.asarray(length, dtype=np.float64)
+        v2 = np.maximum(np.asarray(speed, dtype=np.float64), 1.0) ** 2
+        return np.minimum(self.max_steer, np.arctan(self.max_lateral_accel * base / v2))
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if not getattr(self, f.name) > 0:
+                raise ValueError(f"VehicleLimits.{f.name} must be > 0, got {getattr(self, f.name)}")
+
+
+@dataclass(frozen=True)
+class ObservationConfig:
+    """Sizes of the observations: ``neighbours`` nearest agents, ``map_points`` nearest map points
+    (polylines resampled every ``map_spacing`` m), ``route_points`` route points ``route_spacing`` m apart,
+    all within ``radius`` m; the bev raster is ``bev_size`` x ``bev_size`` pixels of ``bev_resolution`` m."""
+
+    neighbours: int = 8
+    map_points: int = 32
+    map_spacing: float = 3.0
+    route_points: int = 10
+    route_spacing: float = 5.0
+    radius: float = 50.0
+    bev_size: int = 64
+    bev_resolution: float = 1.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if not getattr(self, f.name) > 0:
+                raise ValueError(f"ObservationConfig.{f.name} must be > 0, got {getattr(self, f.name)}")
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Reward terms per external agent and step, and what ends its episode.
+
+    progress: ``progress`` x (metres gained along the logged route) / (route length, at least 10 m);
+    collision / offroad: added once, when it happens (off-road: a vehicle's box corner more than
+    ``offroad_margin`` m beyond a road edge; logged roundabout turns cut up to ~1 m); comfort:
+    ``comfort`` x (longitudinal and lateral acceleration beyond ``comfort_accel`` m/s^2, in units of
+    ``comfort_accel``); goal: added when the end of the route (within ``goal_tolerance`` m) is
+    reached. Routes shorter than ``min_route_length`` m (agents parked in the log) have no goal.
+    """
+
+    progress: float = 1.0
+    collision: float = -1.0
+    offroad: float = -1.0
+    comfort: float = -0.005
+    comfort_accel: float = 3.0
+    offroad_margin: float = 0.5
+    goal: float = 0.0
+    goal_tolerance: float = 2.0
+    min_route_length: float = 5.0
+    terminate_on_collision: bool = True
+    terminate_on_offroad: bool = True
+    terminate_on_goal: bool = True
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything that defines an environment besides its scenes.
+
+    external: ``"sdc"`` (default), ``"all"``, a tuple of track ids, or :class:`RandomAgents`; the other
+      agents present at the current step are NPCs (agents that appear later follow the log).
+    order: intra-timestep position of the external agents: ``"first"`` (before every NPC: NPCs react to
+      them within the step), ``"last"`` (after the NPCs of their model context), ``"random"`` (a random
+      order of all agents per episode), or a tuple of agent names acting first, in that order.
+    npc: ``"trajeglish"`` (the shipped model; or a :class:`TrajeglishNPC`), ``"replay"``,
+      ``"constant_velocity"``, ``"idm"``, or any object with the NPC interface
+      (:class:`trajeglish_env.env.npc.NPCPolicy`).
+    action / observation: one of :data:`ACTION_TYPES` / :data:`OBSERVATION_TYPES`.
+    max_cycles: steps per episode (None: the rest of the scene's log).
+    torch_threads: torch intra-op threads set when the model is used (1: small decoding calls are far
+      faster single-threaded, and vectorized envs get one thread per worker); None leaves torch alone.
+    """
+
+    external: str | tuple[int, ...] | RandomAgents = "sdc"
+    order: str | tuple[str, ...] = "first"
+    npc: Any = "trajeglish"
+    action: str = "continuous"
+    observation: str = "vector"
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    limits: VehicleLimits = field(default_factory=VehicleLimits)
+    obs: ObservationConfig = field(default_factory=ObservationConfig)
+    max_cycles: int | None = None
+    render_size: int = 480
+    render_radius: float = 40.0
+    torch_threads: int | None = 1
+
+    def __post_init__(self) -> None:
+        ext = self.external
+        if isinstance(ext, list):
+            object.__setattr__(self, "external", ext := tuple(ext))
+        if isinstance(ext, str):
+            if ext not in ("sdc", "all"):
+                raise ValueError(
+                    f"EnvConfig.external: expected 'sdc', 'all', track ids or RandomAgents, got {ext!r}"
+                )
+        elif isinstance(ext, tuple):
+            if not ext or not all(isinstance(i, (int,)) or hasattr(i, "__index__") for i in ext):
+                raise ValueError(f"EnvConfig.external: expected a non-empty tuple of track ids, got {ext!r}")
+            object.__setattr__(self, "external", tuple(int(i) for i in ext))
+        elif not isinstance(ext, RandomAgents):
+            raise ValueError(
+                f"EnvConfig.external: expected 'sdc', 'all', track ids or RandomAgents, got {ext!r}"
+            )
+        order = self.order
+        if isinstance(order, list):
+            object.__setattr__(self, "order", order := tuple(order))
+        if isinstance(order, str) and order not in ORDERS:
+            raise ValueError(
+                f"EnvConfig.order: expected one of {ORDERS} or a tuple of agent names, got {order!r}"
+            )
+        if isinstance(order, tuple) and not all(isinstance(a, str) for a in order):
+            raise ValueError(f"EnvConfig.order: an explicit order is a tuple of agent names, got {order!r}")
+        if isinstance(self.npc, str) and self.npc not in NPC_NAMES:
+            raise ValueError(
+                f"EnvConfig.npc: expected one of {NPC_NAMES} or an NPC policy object, got {self.npc!r}"
+            )
+        if self.action not in ACTION_TYPES:
+            raise ValueError(f"EnvConfig.action: expected one of {ACTION_TYPES}, got {self.action!r}")
+        if self.observation not in OBSERVATION_TYPES:
+            raise ValueError(
+                f"EnvConfig.observation: expected one of {OBSERVATION_TYPES}, got {self.observation!r}"
+            )
+        if self.max_cycles is not None and (not isinstance(self.max_cycles, int) or self.max_cycles < 1):
+            raise ValueError(
+                f"EnvConfig.max_cycles must be a positive integer or None, got {self.max_cycles!r}"
+            )
+        if self.render_size < 16 or not self.render_radius > 0:
+            raise ValueError("EnvConfig.render_size must be >= 16 pixels and render_radius > 0 m")
+        if self.torch_threads is not None and self.torch_threads < 1:
+            raise ValueError(f"EnvConfig.torch_threads must be >= 1 or None, got {self.torch_threads}")
+
+    def with_overrides(self, **overrides: Any) -> EnvConfig:
+        """A copy with some fields replaced (unknown names are refused, naming the valid ones)."""
+        known = {f.name for f in fields(self)}
+        unknown = sorted(set(overrides) - known)
+        if unknown:
+            raise TypeError(f"unknown environment option(s) {unknown}; valid options: {sorted(known)}")
+        return replace(self, **overrides)

@@ -1,0 +1,92 @@
+"""``trajeglish demo``: the shipped model drives the NPCs of a bundled scene around an external ego (a
+rule-based controller), then the episode is written as a video and summarised (ego outcome, NPC
+collision and off-road rates, speed)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from trajeglish_env.checkpoint import CheckpointError
+from trajeglish_env.env.aec import raw_env
+from trajeglish_env.env.config import RewardConfig, TrajeglishNPC
+from trajeglish_env.env.controllers import RuleBasedController
+from trajeglish_env.env.rewards import collisions, offroad
+
+
+def npc_outcomes(raw: Any) -> dict[str, float]:
+    """Fraction of NPCs that collided with anyone / drove off-road at some step of the episode."""
+    sim = raw.sim
+    sc, cur, end = raw.scenario, raw.scenario.current_index, sim.t
+    npcs = np.flatnonzero(sim.npc)
+    hit = np.zeros(len(npcs), dtype=bool)
+    off = np.zeros(len(npcs), dtype=bool)
+    for t in range(cur + 1, end + 1):  # one vectorized check per step
+        valid = sim.driver.valid[:, t]
+        hit |= collisions(sim.driver.xyh[:, t], valid, sc.size, npcs)
+        off |= offroad(sim.driver.xyh[npcs, t], sc.size[npcs], sc.kind[npcs], sim.edges, 0.5) & valid[npcs]
+    n = max(len(npcs), 1)
+    return {"npc_collision_rate": float(hit.sum() / n), "npc_offroad_rate": float(off.sum() / n)}
+
+
+def run_demo(
+    out: Path,
+    scene: str = "highway-intersection-999000",
+    seed: int = 0,
+    steps: int | None = None,
+    checkpoint: str | None = None,
+    ego: str = "idm",
+    order: str = "first",
+    video_format: str = "gif",
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Play one episode and write ``out/demo.<format>``; returns the episode's metrics."""
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        env = raw_env(
+            npc=TrajeglishNPC(checkpoint),
+            order=order,
+            max_cycles=steps,
+            reward=RewardConfig(terminate_on_collision=False, terminate_on_offroad=False),
+        )
+    except CheckpointError as exc:
+        raise CheckpointError(f"{exc}; or run the demo with --checkpoint PATH") from exc
+    env.reset(seed=seed, options={"scene": int(scene) if scene.isdigit() else scene})
+    sim = env.sim
+    assert sim is not None
+    controller = RuleBasedController(ego)
+    agent = env.agent_selection
+    ego_index = env.agent_index(agent)
+    total, start = 0.0, time.perf_counter()
+    for name in env.agent_iter():
+        _, reward, terminated, truncated, _ = env.last()
+        total += float(reward)
+        env.step(None if terminated or truncated else controller.action(env, name))
+        if progress and sim.steps % 10 == 0:
+            print(f"step {sim.steps}/{sim.horizon}", end="\r", flush=True, file=sys.stderr)
+    seconds = time.perf_counter() - start
+    row = sim.route_row[ego_index]
+    video = env.save_video(out / f"demo.{video_format}")
+    ckpt = env.checkpoint
+    return {
+        "scene": env.scenario.scenario_id,
+        "agents": int(env.scenario.num_agents),
+        "npcs": int(sim.npc.sum()),
+        "ego": agent,
+        "ego_policy": ego,
+        "order": order,
+        "steps": int(sim.steps),
+        "ego_return": round(total, 4),
+        "ego_collision_steps": int(sim.collision_steps[row]),
+        "ego_offroad_steps": int(sim.offroad_steps[row]),
+        "ego_progress_m": round(float(sim.progress[row]), 2),
+        "ego_route_fraction": round(float(sim.progress[row] / max(sim.routes.length[row], 1e-6)), 3),
+        **{k: round(v, 3) for k, v in npc_outcomes(env).items()},
+        "env_steps_per_s": round(sim.steps / seconds, 2),
+        "model": str(getattr(ckpt, "path", None) or "in-memory checkpoint"),
+        "video": str(video),
+    }

@@ -1,0 +1,82 @@
+"""Gymnasium single-ego environment (``trajeglish_env/Ego-v0`` and friends) for Stable-Baselines3: one
+external agent (the sdc by default) against reactive NPCs, built on the AEC env."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+from trajeglish_env.env.aec import raw_env
+from trajeglish_env.env.config import EnvConfig, RandomAgents
+
+
+class EgoEnv(gymnasium.Env):
+    """One ego in the AEC env (same arguments as :class:`~trajeglish_env.env.aec.raw_env`; ``external``
+    must name a single agent: ``"sdc"``, one track id or ``RandomAgents(1)``).
+
+    Observation, action and reward are those of that agent in the AEC env; ``terminated`` on collision,
+    off-road or the end of its route, ``truncated`` at ``max_cycles``. Spawn-safe under SubprocVecEnv (the
+    env sets one torch thread per process when it runs the model; see EnvConfig.torch_threads).
+    """
+
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        scenes: Any = None,
+        config: EnvConfig | None = None,
+        render_mode: str | None = None,
+        **options: Any,
+    ):
+        config = (config or EnvConfig()).with_overrides(**options)
+        ext = config.external
+        single = ext == "sdc" or (isinstance(ext, tuple) and len(ext) == 1) or ext == RandomAgents(1)
+        if not single:
+            raise ValueError(
+                "EgoEnv controls exactly one agent: external must be 'sdc', one track id or "
+                f"RandomAgents(1), got {ext!r} (use trajeglish_env.parallel_env for several)"
+            )
+        self.aec = raw_env(scenes, config, render_mode)
+        self.render_mode = render_mode
+        self.observation_space = self.aec.observation_space("ego")
+        self.action_space = self.aec.action_space("ego")
+        self.agent = ""
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start an episode (``options["scene"]`` picks the scene); info names the ego and the scene."""
+        super().reset(seed=seed)
+        self.aec.reset(seed=seed, options=options)
+        self.agent = self.aec.agents[0]
+        return self.aec.observe(self.agent), {
+            "agent": self.agent,
+            "scenario_id": self.aec.scenario.scenario_id,
+        }
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """One timestep: the ego's action, every NPC's move, the ego's reward and flags."""
+        aec, agent = self.aec, self.agent
+        if not agent:
+            raise RuntimeError("call reset() before step()")
+        if aec.terminations[agent] or aec.truncations[agent]:
+            raise RuntimeError(f"the episode of {agent} is over; call reset()")
+        aec.step(action)
+        info = dict(aec.infos[agent])
+        return (
+            aec.observe(agent),
+            float(aec._cumulative_rewards[agent]),
+            bool(aec.terminations[agent]),
+            bool(aec.truncations[agent]),
+            info,
+        )
+
+    def render(self) -> np.ndarray | None:
+        """See :meth:`raw_env.render`."""
+        return self.aec.render()
+
+    def close(self) -> None:
+        """Release the renderer."""
+        self.aec.close()

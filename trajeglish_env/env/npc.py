@@ -1,0 +1,193 @@
+"""NPC policies: the documented interface and the rule-based ones (log replay, constant velocity, and the
+Intelligent Driver Model along each agent's logged path). The Trajeglish model is the default NPC policy;
+it is run by the rollout engine (:mod:`trajeglish_env.env.drivers`), not through this interface.
+
+The NPC interface (any object with these two methods can drive the NPCs)::
+
+    class MyNPCs:
+        def reset(self, scenario: Scenario, npc: np.ndarray, current_index: int, seed: int) -> None:
+            ...  # npc [N] bool: the agents this policy drives from current_index on
+
+        def act(self, view: WorldView, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            ...  # next states [k,3] and validity [k] of ``agents`` (indices, k >= 1) at step view.t + 1
+
+``act`` is called once per group of consecutive NPCs in the intra-timestep order (the NPCs between two
+external agents), so a group sees every move made before it; all of it is vectorized over the group.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from trajeglish_env.env.routes import Paths, logged_paths
+from trajeglish_env.env.world import WorldView
+from trajeglish_env.scenario import Scenario
+
+
+@runtime_checkable
+class NPCPolicy(Protocol):
+    """Drives the NPCs of an episode (see the module docstring)."""
+
+    def reset(self, scenario: Scenario, npc: np.ndarray, current_index: int, seed: int) -> None: ...
+
+    def act(self, view: WorldView, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class ReplayNPC:
+    """NPCs follow the log exactly (and leave where the log ends)."""
+
+    def reset(self, scenario: Scenario, npc: np.ndarray, current_index: int, seed: int) -> None:
+        """Prepare for a new episode (see the NPC interface)."""
+        self.scenario = scenario
+
+    def act(self, view: WorldView, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Next states and validity of ``agents`` (see the NPC interface)."""
+        t1 = view.t + 1
+        if t1 >= self.scenario.num_steps:
+            return np.zeros((len(agents), 3)), np.zeros(len(agents), dtype=bool)
+        return self.scenario.xyh[agents, t1].copy(), self.scenario.valid[agents, t1].copy()
+
+
+class ConstantVelocityNPC:
+    """NPCs keep the velocity (and heading) of their last step."""
+
+    def reset(self, scenario: Scenario, npc: np.ndarray, current_index: int, seed: int) -> None:
+        """Prepare for a new episode (see the NPC interface)."""
+        self.dt = float(scenario.dt)
+
+    def act(self, view: WorldView, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Next states and validity of ``agents`` (see the NPC interface)."""
+        t = view.t
+        now = view.xyh[agents, t]
+        before = view.xyh[agents, max(t - 1, 0)]
+        ok = view.valid[agents, max(t - 1, 0)] & (t > 0)
+        step = np.where(ok[:, None], now[:, :2] - before[:, :2], 0.0)
+        nxt = now.copy()
+        nxt[:, :2] += step
+        return nxt, np.ones(len(agents), dtype=bool)
+
+
+@dataclass(frozen=True)
+class IDMParams:
+    """Intelligent Driver Model parameters (Treiber et al. 2000) and the leader search along the path.
+
+    The desired speed is the agent's highest logged speed (at least ``min_desired_speed``); a path whose
+    log ends slower than ``stop_speed`` ends with a stopped obstacle (the agent stops where the log
+    stopped), otherwise it is extended straight by ``path_extension`` m. Another agent is a leader when its
+    centre is ahead on the path within ``lookahead`` m and closer to it than half the two widths plus
+    ``lateral_margin``.
+    """
+
+    accel: float = 1.5
+    comfort_brake: float = 2.0
+    max_brake: float = 8.0
+    time_headway: float = 1.5
+    min_gap: float = 2.0
+    delta: float = 4.0
+    lookahead: float = 50.0
+    lateral_margin: float = 0.5
+    min_desired_speed: float = 1.0
+    stop_speed: float = 1.0
+    path_extension: float = 100.0
+    spacing: float = 1.0
+
+
+class IDMNPC:
+    """IDM along each NPC's logged path, the leader found on that path (vectorized over agents)."""
+
+    def __init__(self, params: IDMParams = IDMParams()):
+        self.params = params
+
+    def reset(self, scenario: Scenario, npc: np.ndarray, current_index: int, seed: int) -> None:
+        """Prepare for a new episode (see the NPC interface)."""
+        p = self.params
+        self.scenario = scenario
+        future = scenario.valid[:, current_index:]
+        speed = scenario.speed()[:, current_index:]
+        last = future.shape[1] - 1 - np.argmax(future[:, ::-1], axis=1)
+        end_speed = speed[np.arange(scenario.num_agents), last]
+        self.stops_at_end = end_speed < p.stop_speed
+        extension = np.where(self.stops_at_end, 0.0, p.path_extension)
+        self.paths: Paths = logged_paths(scenario.xyh[:, current_index:], future, p.spacing, extension)
+        self.s = np.zeros(scenario.num_agents)
+        self.v = np.where(scenario.valid[:, current_index], speed[:, 0], 0.0)
+        self.v0 = np.maximum(np.where(future, speed, 0.0).max(axis=1), p.min_desired_speed)
+
+    def _leaders(
+        self, agents: np.ndarray, state: np.ndarray, present: np.ndarray, velocity: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Gap ``[G,N]`` (m, bumper to bumper; inf where agent j does not lead agent i on i's path) and
+        leader speed along the path ``[G,N]``; only pairs within ``lookahead`` m are examined."""
+        p, paths, sc = self.params, self.paths, self.scenario
+        g, n = len(agents), sc.num_agents
+        s = self.s[agents]
+        here, _ = paths.at(agents, s)
+        reach_far = p.lookahead + sc.size[agents, 0][:, None] + sc.size[None, :, 0]
+        close = np.linalg.norm(here[:, None] - state[None, :, :2], axis=-1) <= reach_far
+        close &= present[None, :] & (np.arange(n)[None, :] != agents[:, None])
+        gi, j = np.nonzero(close)
+        gap = np.full((g, n), np.inf)
+        v_lead = np.zeros((g, n))
+        if len(gi) == 0:
+            return gap, v_lead
+        i = agents[gi]
+        width = int(np.ceil(p.lookahead / p.spacing)) + 1
+        idx = np.minimum(
+            np.floor(s[gi] / p.spacing).astype(np.int64)[:, None] + np.arange(width),
+            (paths.count[i] - 1)[:, None],
+        )
+        d2 = ((paths.points[i[:, None], idx] - state[j, None, :2]) ** 2).sum(-1)  # [pairs, W]
+        best = np.argmin(d2, axis=1)
+        at = idx[np.arange(len(gi)), best]
+        s_other = at * p.spacing
+        reach = (sc.size[i, 1] + sc.size[j, 1]) / 2 + p.lateral_margin
+        lead = (d2[np.arange(len(gi)), best] <= reach**2) & (s_other > s[gi])
+        heading = paths.heading[i, at]
+        gap[gi, j] = np.where(lead, s_other - s[gi] - (sc.size[i, 0] + sc.size[j, 0]) / 2, np.inf)
+        v_lead[gi, j] = np.maximum(velocity[j, 0] * np.cos(heading) + velocity[j, 1] * np.sin(heading), 0.0)
+        return gap, v_lead
+
+    def act(self, view: WorldView, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Next states and validity of ``agents`` (see the NPC interface)."""
+        p, paths, sc = self.params, self.paths, self.scenario
+        agents = np.asarray(agents, dtype=np.int64)
+        state, present, velocity = view.latest()
+        s, v = self.s[agents], self.v[agents]
+        gap, v_lead = self._leaders(agents, state, present, velocity)
+        # the end of a path that stops in the log is a stopped obstacle
+        end_gap = np.where(
+            self.stops_at_end[agents], paths.length[agents] - s - sc.size[agents, 0] / 2, np.inf
+        )
+        gap = np.concatenate([gap, end_gap[:, None]], axis=1)
+        v_lead = np.concatenate([v_lead, np.zeros((len(agents), 1))], axis=1)
+        nearest = np.argmin(gap, axis=1)
+        g = gap[np.arange(len(agents)), nearest]
+        dv = v - v_lead[np.arange(len(agents)), nearest]
+        free = 1.0 - (v / self.v0[agents]) ** p.delta
+        s_star = p.min_gap + np.maximum(
+            0.0, v * p.time_headway + v * dv / (2 * np.sqrt(p.accel * p.comfort_brake))
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            interaction = np.where(np.isfinite(g), (s_star / np.maximum(g, 0.1)) ** 2, 0.0)
+        acc = np.clip(p.accel * (free - interaction), -p.max_brake, p.accel)
+        dt = view.dt
+        v_next = np.maximum(v + acc * dt, 0.0)
+        s_next = np.minimum(s + (v + v_next) / 2 * dt, paths.length[agents])
+        v_next = np.where(s_next >= paths.length[agents], np.minimum(v_next, (s_next - s) / dt), v_next)
+        xy, h = paths.at(agents, s_next)
+        self.s[agents], self.v[agents] = s_next, v_next
+        nxt = np.concatenate([xy, h[:, None]], axis=1)
+        return nxt, np.ones(len(agents), dtype=bool)
+
+
+RULE_BASED = {"replay": ReplayNPC, "constant_velocity": ConstantVelocityNPC, "idm": IDMNPC}
+
+
+def make_npc_policy(name: str) -> NPCPolicy:
+    """A fresh rule-based NPC policy by name (``replay``, ``constant_velocity`` or ``idm``)."""
+    if name not in RULE_BASED:
+        raise ValueError(f"unknown rule-based NPC policy {name!r}; expected one of {sorted(RULE_BASED)}")
+    return RULE_BASED[name]()

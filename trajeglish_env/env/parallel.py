@@ -1,0 +1,33 @@
+"""The parallel API, derived from the AEC env with PettingZoo's ``aec_to_parallel`` wrapper.
+
+Meaning: every external agent's action is chosen from the observations taken when the first external
+agent of the step is to act (NPCs ordered before it have moved, the others not), and the actions are
+applied in the intra-timestep order, NPCs acting in between exactly as in the AEC env.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pettingzoo import ParallelEnv
+from pettingzoo.utils.conversions import aec_to_parallel_wrapper
+
+from trajeglish_env.env.aec import raw_env
+from trajeglish_env.env.config import EnvConfig
+
+
+class SceneAwareParallelEnv(aec_to_parallel_wrapper):
+    """``aec_to_parallel_wrapper`` that refreshes ``possible_agents`` at every reset (each scene has its
+    own agents; the stock wrapper copies them once, at construction)."""
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        out = super().reset(seed=seed, options=options)
+        self.possible_agents = list(self.aec_env.possible_agents)
+        return out
+
+
+def parallel_env(
+    scenes: Any = None, config: EnvConfig | None = None, render_mode: str | None = None, **options: Any
+) -> ParallelEnv:
+    """The parallel environment (same arguments as :class:`~trajeglish_env.env.aec.raw_env`)."""
+    return SceneAwareParallelEnv(raw_env(scenes, config, render_mode, **options))

@@ -1,0 +1,203 @@
+"""Where the environment's scenes come from: a list of Scenarios, scenario files or a directory of shards,
+the built-in highway-env generator, or (by default) the small bundle of held-out scenes shipped in the
+package. Also builds that bundle (``python -m trajeglish_env.env.scenes --out FILE``)."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import os
+from collections.abc import Sequence
+from importlib import resources
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario_io import list_scenario_files, load_scenarios, save_scenarios
+
+BUNDLE_ASSET = "scenes_bundle.scn.npz"
+BUNDLE_SEED = 999_000  # highway scenes of the bundle use seeds 999_000+ (training data uses small seeds)
+GENERATOR_PREFIX = "highway"
+
+
+class SceneSet(Protocol):
+    """A collection of scenes the env picks from at every reset."""
+
+    def __len__(self) -> int: ...
+
+    def get(self, index: int) -> Scenario: ...
+
+    def index_of(self, name: str) -> int: ...
+
+
+class SceneList:
+    """Scenes held in memory (a user's list, or the shipped bundle)."""
+
+    def __init__(self, scenes: Sequence[Scenario], where: str = "scenes"):
+        if not scenes:
+            raise ValueError(f"{where}: no scenes given")
+        for i, sc in enumerate(scenes):
+            if not isinstance(sc, Scenario):
+                raise TypeError(f"{where}[{i}]: expected a Scenario, got {type(sc).__name__}")
+        self.scenes = tuple(scenes)
+        self.where = where
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def get(self, index: int) -> Scenario:
+        return self.scenes[index]
+
+    def index_of(self, name: str) -> int:
+        for i, sc in enumerate(self.scenes):
+            if sc.scenario_id == name:
+                return i
+        ids = [sc.scenario_id for sc in self.scenes[:20]]
+        raise KeyError(
+            f"{self.where}: no scene with scenario_id {name!r} (have {ids}{'...' if len(self) > 20 else ''})"
+        )
+
+
+class SceneFiles:
+    """Scenes in scenario files (a directory of shards is indexed once; a shard is loaded when needed)."""
+
+    def __init__(self, path: str | os.PathLike[str]):
+        self.files = list_scenario_files(path)
+        if not self.files:
+            raise ValueError(f"{path}: no scenario files (*.scn.npz) found")
+        self.where = str(path)
+        self._counts = np.array([_count_scenes(f) for f in self.files], dtype=np.int64)
+        self._starts = np.concatenate([[0], np.cumsum(self._counts)])
+        self._cache: tuple[int, list[Scenario]] | None = None
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    def get(self, index: int) -> Scenario:
+        if not 0 <= index < len(self):
+            raise IndexError(f"{self.where}: scene {index} out of range for {len(self)} scenes")
+        shard = int(np.searchsorted(self._starts, index, side="right") - 1)
+        if self._cache is None or self._cache[0] != shard:
+            self._cache = (shard, load_scenarios(self.files[shard]))
+        return self._cache[1][index - int(self._starts[shard])]
+
+    def index_of(self, name: str) -> int:
+        for shard, path in enumerate(self.files):
+            for i, sc in enumerate(load_scenarios(path)):
+                if sc.scenario_id == name:
+                    return int(self._starts[shard]) + i
+        raise KeyError(f"{self.where}: no scene with scenario_id {name!r}")
+
+
+class GeneratedScenes:
+    """Fresh highway-env scenes: scene ``i`` is ``generate_scene(kinds[i % len(kinds)], seed=i)``.
+
+    It holds ``size`` scenes (default 1,000,000) so a reset seed picks one; generation takes about a second.
+    """
+
+    def __init__(self, kinds: Sequence[str] = (), size: int = 1_000_000):
+        from trajeglish_env.sources.highway import KINDS, check_kind
+
+        self.kinds = tuple(kinds) or KINDS
+        for kind in self.kinds:
+            check_kind(kind)
+        self.size = int(size)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def get(self, index: int) -> Scenario:
+        return _generated(self.kinds[index % len(self.kinds)], int(index))
+
+    def index_of(self, name: str) -> int:
+        # "highway-<kind>-<seed>" as written by the generator
+        prefix, _, seed = name.rpartition("-")
+        if not seed.isdigit() or not prefix.startswith(f"{GENERATOR_PREFIX}-"):
+            raise KeyError(f"generated scenes: expected an id 'highway-<kind>-<seed>', got {name!r}")
+        return int(seed)
+
+
+@functools.lru_cache(maxsize=8)
+def _generated(kind: str, seed: int) -> Scenario:
+    from trajeglish_env.sources.highway import generate_scene
+
+    return generate_scene(kind, seed)
+
+
+def _count_scenes(path: Path) -> int:
+    with np.load(path, allow_pickle=False) as data:
+        if "__count__" in data.files:
+            return int(data["__count__"])
+    return len(load_scenarios(path))
+
+
+def bundle_path() -> Path:
+    """Path of the bundle of held-out scenes shipped in the package."""
+    return Path(str(resources.files("trajeglish_env") / "assets" / BUNDLE_ASSET))
+
+
+@functools.cache
+def load_bundle() -> SceneList:
+    """The shipped held-out scenes (read once per process)."""
+    path = bundle_path()
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: the bundled scenes are missing from this installation")
+    return SceneList(load_scenarios(path), where=str(path))
+
+
+def scene_set(scenes: object) -> SceneSet:
+    """Turn what the user passed as ``scenes`` into a SceneSet.
+
+    None: the shipped bundle; a Scenario or a list of them; a path to a scenario file or a directory of
+    shards; ``"highway"`` or ``"highway:kind1,kind2"``: the built-in generator.
+    """
+    if scenes is None:
+        return load_bundle()
+    if isinstance(scenes, Scenario):
+        return SceneList([scenes])
+    if isinstance(scenes, str) and (scenes == GENERATOR_PREFIX or scenes.startswith(GENERATOR_PREFIX + ":")):
+        kinds = [k for k in scenes.partition(":")[2].split(",") if k]
+        return GeneratedScenes(kinds)
+    if isinstance(scenes, (str, os.PathLike)):
+        return SceneFiles(scenes)
+    if isinstance(scenes, (list, tuple)):
+        return SceneList(list(scenes))
+    if all(hasattr(scenes, a) for a in ("__len__", "get", "index_of")):
+        return scenes  # type: ignore[return-value]
+    raise TypeError(
+        "scenes: expected None (the bundled scenes), a Scenario, a list of Scenarios, a path to scenario "
+        f"files, or 'highway[:kinds]', got {type(scenes).__name__}"
+    )
+
+
+def build_bundle(out: str | os.PathLike[str], per_kind: int = 2, sumo_scenes: int = 4) -> Path:
+    """Generate the shipped bundle: ``per_kind`` highway scenes of every kind (seeds from
+    :data:`BUNDLE_SEED`) and ``sumo_scenes`` SUMO urban scenes (skipped when SUMO is not installed)."""
+    from trajeglish_env.sources.highway import KINDS, generate_scene
+
+    scenes = [generate_scene(kind, BUNDLE_SEED + i) for i in range(per_kind) for kind in KINDS]
+    if sumo_scenes:
+        try:
+            from trajeglish_env.sources import sumo
+
+            scenes += sumo.generate_shard(sumo.KINDS, BUNDLE_SEED, 0, sumo_scenes)
+        except Exception as exc:  # SUMO missing or failing: the bundle is still usable without it
+            print(f"SUMO scenes skipped: {exc}")
+    return save_scenarios(out, scenes)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Command line of :func:`build_bundle`."""
+    parser = argparse.ArgumentParser(description=build_bundle.__doc__)
+    parser.add_argument("--out", default=str(bundle_path()))
+    parser.add_argument("--per-kind", type=int, default=2)
+    parser.add_argument("--sumo-scenes", type=int, default=4)
+    args = parser.parse_args(argv)
+    path = build_bundle(args.out, args.per_kind, args.sumo_scenes)
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+
+
+if __name__ == "__main__":
+    main()

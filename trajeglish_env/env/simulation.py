@@ -1,0 +1,291 @@
+"""One episode of one scene, apart from any RL API: roles, intra-timestep order, the step driver, the
+external agents' kinematics and routes, observations and per-step outcomes. The AEC env
+(:mod:`trajeglish_env.env.aec`) is a thin PettingZoo adapter around it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from trajeglish_env.env.actions import bicycle_step, delta_step, token_step
+from trajeglish_env.env.config import EnvConfig, RandomAgents
+from trajeglish_env.env.drivers import EngineDriver, OrderedDriver, StepDriver
+from trajeglish_env.env.npc import NPCPolicy
+from trajeglish_env.env.observations import EgoState, Picture, make_observer
+from trajeglish_env.env.rewards import StepOutcome, collisions, offroad, road_edges, step_reward
+from trajeglish_env.env.routes import logged_paths
+from trajeglish_env.env.world import WorldView, latest_states
+from trajeglish_env.geometry import wrap_angle
+from trajeglish_env.scenario import AgentKind, Scenario
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+
+
+def agent_name(kind: int, track_id: int) -> str:
+    """PettingZoo-style agent name, e.g. ``vehicle_2406``."""
+    return f"{AgentKind(int(kind)).name.lower()}_{int(track_id)}"
+
+
+def agent_names(scenario: Scenario) -> list[str]:
+    """Names of every agent of a scene, in index order."""
+    return [agent_name(k, i) for k, i in zip(scenario.kind, scenario.track_id, strict=True)]
+
+
+def select_external(scenario: Scenario, spec: object, rng: np.random.Generator) -> np.ndarray:
+    """Indices of the external agents, in their configured order; clear errors for unknown ids or agents
+    absent at the current step (e.g. a scene whose sdc is not present)."""
+    cur, sid = scenario.current_index, scenario.scenario_id
+    present = scenario.valid[:, cur]
+    if spec == "sdc":
+        if not present[scenario.sdc]:
+            raise ValueError(
+                f"scenario {sid!r}: its sdc (agent {scenario.sdc}, track id "
+                f"{scenario.track_id[scenario.sdc]}) is not present at the current step {cur}; "
+                "choose external agents by track id"
+            )
+        return np.array([scenario.sdc], dtype=np.int64)
+    if spec == "all":
+        return np.flatnonzero(present)
+    if isinstance(spec, RandomAgents):
+        pool = np.flatnonzero(present)
+        if spec.k > len(pool):
+            raise ValueError(
+                f"scenario {sid!r}: RandomAgents(k={spec.k}) but only {len(pool)} agents are present"
+            )
+        return rng.choice(pool, size=spec.k, replace=False).astype(np.int64)
+    ids = list(spec)  # type: ignore[call-overload]
+    known = {int(t): i for i, t in enumerate(scenario.track_id)}
+    unknown = [t for t in ids if t not in known]
+    if unknown:
+        raise ValueError(
+            f"scenario {sid!r}: unknown agent id(s) {unknown} in the external (controlled) agents; "
+            f"track ids present at step {cur}: {scenario.track_id[present].tolist()}"
+        )
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"scenario {sid!r}: external track ids must be unique, got {ids}")
+    idx = np.array([known[t] for t in ids], dtype=np.int64)
+    absent = [int(scenario.track_id[i]) for i in idx if not present[i]]
+    if absent:
+        raise ValueError(
+            f"scenario {sid!r}: external agents {absent} are not present at the current step {cur}"
+        )
+    return idx
+
+
+def acting_priority(
+    order: object, external: np.ndarray, names: list[str], rng: np.random.Generator
+) -> np.ndarray:
+    """Priorities ``[N]`` (lower acts earlier) realising an order setting (see EnvConfig.order)."""
+    n, k = len(names), len(external)
+    prio = np.zeros(n)
+    if order == "first":
+        prio[external] = np.arange(k) - k
+    elif order == "last":
+        prio[external] = np.arange(k) + 1.0
+    elif order == "random":
+        prio = rng.permutation(n).astype(np.float64)
+    else:
+        index = {name: i for i, name in enumerate(names)}
+        listed = list(order)  # type: ignore[call-overload]
+        unknown = [a for a in listed if a not in index]
+        if unknown:
+            raise ValueError(f"order: unknown agent name(s) {unknown}; this scene's agents are {names[:30]}")
+        prio[[index[a] for a in listed]] = np.arange(len(listed)) - len(listed)
+    return prio
+
+
+@dataclass
+class Kinematics:
+    """Per-agent speed, last accelerations and yaw rate of the external agents (arrays over all agents)."""
+
+    speed: np.ndarray
+    accel: np.ndarray
+    lateral: np.ndarray
+    yaw_rate: np.ndarray
+
+
+class Simulation:
+    """A running episode (see the module docstring). ``npc`` is an NPCPolicy, or a Checkpoint for Trajeglish
+    NPCs (``temperature``/``top_p`` from the config's TrajeglishNPC)."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        config: EnvConfig,
+        npc: object,
+        vocabulary: MotionVocabulary | None,
+        rng: np.random.Generator,
+        sampling: tuple[float, float] = (1.0, 1.0),
+    ):
+        self.sc, self.config, self.vocabulary = scenario, config, vocabulary
+        cur = scenario.current_index
+        self.dt = float(scenario.dt)
+        remaining = scenario.num_steps - 1 - cur
+        self.horizon = config.max_cycles if config.max_cycles is not None else remaining
+        if self.horizon < 1:
+            raise ValueError(f"scenario {scenario.scenario_id!r}: no steps after the current index {cur}")
+        self.names = agent_names(scenario)
+        self.external_index = select_external(scenario, config.external, rng)
+        self.external = np.zeros(scenario.num_agents, dtype=bool)
+        self.external[self.external_index] = True
+        self.npc = scenario.valid[:, cur] & ~self.external
+        self.priority = acting_priority(config.order, self.external_index, self.names, rng)
+        seed = int(rng.integers(2**31 - 1))
+        self.driver: StepDriver
+        if isinstance(npc, NPCPolicy):
+            self.driver = OrderedDriver(npc, scenario, self.external, self.horizon, self.priority, seed)
+        else:
+            self.driver = EngineDriver(
+                npc,
+                scenario,
+                self.external,
+                self.horizon,
+                self.priority,
+                seed,
+                *sampling,
+                externals_first=config.order == "first",
+            )
+        self.retired = np.zeros(scenario.num_agents, dtype=bool)
+        ext = self.external_index
+        speed = scenario.speed()[:, cur]
+        prev = max(cur - 1, 0)
+        turn = wrap_angle(scenario.xyh[:, cur, 2] - scenario.xyh[:, prev, 2]) / self.dt
+        turn = np.where(scenario.valid[:, prev] & (cur > 0), turn, 0.0)
+        zeros = np.zeros(scenario.num_agents)
+        self.kin = Kinematics(speed.copy(), zeros.copy(), zeros.copy(), turn)
+        # routes: each external agent's logged path from the current step on
+        self.routes = logged_paths(scenario.xyh[ext, cur:], scenario.valid[ext, cur:], spacing=1.0)
+        self.route_row = np.full(scenario.num_agents, -1, dtype=np.int64)  # agent -> its route's row
+        self.route_row[ext] = np.arange(len(ext))
+        self.progress = np.zeros(len(ext))
+        self.collision_steps = np.zeros(len(ext), dtype=np.int64)  # steps spent in collision / off-road
+        self.offroad_steps = np.zeros(len(ext), dtype=np.int64)
+        self.last_collision = np.zeros(len(ext), dtype=bool)
+        self.last_offroad = np.zeros(len(ext), dtype=bool)
+        self.has_goal = self.routes.length >= config.reward.min_route_length
+        self.observer = make_observer(config.observation, scenario, config.obs)
+        self.edges = road_edges(scenario)
+        self.steps = 0
+
+    # ------------------------------------------------------------------ the step protocol
+    @property
+    def t(self) -> int:
+        return self.driver.t
+
+    def advance(self) -> int | None:
+        """The next external agent (index) whose action is needed, or None when the step is complete.
+        Retired external agents are taken out of the scene when their turn comes."""
+        while True:
+            agent = self.driver.advance()
+            if agent is None or not self.retired[agent]:
+                return agent
+            self.driver.supply(agent, np.zeros(3), valid=False)
+
+    def external_order(self) -> list[int]:
+        """Live external agents still to act this step, in order."""
+        return [int(a) for a in self.driver.external_order() if not self.retired[a]]
+
+    def apply(self, agent: int, action: np.ndarray | int) -> None:
+        """Turn an (already validated) action of external ``agent`` into its next state."""
+        t, sc, kin = self.t, self.sc, self.kin
+        now = self.driver.xyh[agent, t].copy()
+        kind = self.config.action
+        if kind == "continuous":
+            nxt, v_next = bicycle_step(
+                now,
+                np.float64(kin.speed[agent]),
+                np.asarray(action),
+                sc.size[agent, 0],
+                self.config.limits,
+                self.dt,
+            )
+        else:
+            if kind == "delta":
+                nxt = delta_step(now, np.asarray(action))
+            else:
+                assert self.vocabulary is not None
+                nxt = token_step(now, self.vocabulary.templates[sc.kind[agent]], int(action))  # type: ignore[arg-type]
+            d = nxt[:2] - now[:2]
+            forward = np.cos(now[2]) * d[0] + np.sin(now[2]) * d[1]
+            v_next = np.float64(np.hypot(*d) / self.dt * (1.0 if forward >= 0 else -1.0))
+        yaw = wrap_angle(nxt[2] - now[2]) / self.dt
+        kin.accel[agent] = (v_next - kin.speed[agent]) / self.dt
+        kin.lateral[agent] = v_next * yaw
+        kin.yaw_rate[agent], kin.speed[agent] = yaw, v_next
+        self.driver.supply(agent, nxt, valid=True)
+
+    def finish_step(self) -> tuple[np.ndarray, StepOutcome]:
+        """Outcome of the step just completed for the live external agents (returned with it)."""
+        t, sc = self.t, self.sc
+        live = self.external_index[~self.retired[self.external_index]]
+        rows = self.route_row[live]
+        xyh, valid = self.driver.xyh[:, t], self.driver.valid[:, t]
+        hit = collisions(xyh, valid, sc.size, live)
+        off = offroad(xyh[live], sc.size[live], sc.kind[live], self.edges, self.config.reward.offroad_margin)
+        s_new, _, _ = self.routes.project(rows, xyh[live, :2], self.progress[rows])
+        gained = s_new - self.progress[rows]
+        self.progress[rows] = s_new
+        goal = self.has_goal[rows] & (s_new >= self.routes.length[rows] - self.config.reward.goal_tolerance)
+        # collisions and off-road excursions are penalised once, when they start
+        new_hit, new_off = hit & (self.last_collision[rows] == 0), off & (self.last_offroad[rows] == 0)
+        self.collision_steps[rows] += hit
+        self.offroad_steps[rows] += off
+        self.last_collision[rows], self.last_offroad[rows] = hit, off
+        outcome = step_reward(
+            self.config.reward,
+            gained,
+            self.routes.length[rows],
+            new_hit,
+            new_off,
+            goal,
+            self.kin.accel[live],
+            self.kin.lateral[live],
+        )
+        self.steps += 1
+        return live, replace(outcome, collision=hit, offroad=off)
+
+    def retire(self, agent: int) -> None:
+        """Take a finished external agent out of the scene from the next step on."""
+        self.retired[agent] = True
+
+    @property
+    def horizon_reached(self) -> bool:
+        return self.steps >= self.horizon
+
+    # ------------------------------------------------------------------ observations and introspection
+    def view(self) -> WorldView:
+        """The world as it stands now (mid-step: who has moved so far)."""
+        return WorldView(
+            self.sc, self.driver.xyh, self.driver.valid, self.t, self.driver.moved(), self.external, self.npc
+        )
+
+    def picture(self) -> Picture:
+        state, present, velocity = latest_states(
+            self.driver.xyh, self.driver.valid, self.t, self.driver.moved(), self.dt
+        )
+        return Picture(state, present, velocity, self.driver.moved())
+
+    def ego_state(self, agent: int, pic: Picture) -> EgoState:
+        row = self.route_row[agent]
+        s = self.progress[row]
+        rows = np.array([row])
+        s_now, lateral, route_heading = self.routes.project(rows, pic.state[agent, None, :2], np.array([s]))
+        q = self.config.obs.route_points
+        ahead = s_now[0] + self.config.obs.route_spacing * np.arange(1, q + 1)
+        points, _ = self.routes.at(np.full(q, row), ahead)
+        length = max(float(self.routes.length[row]), 1e-6)
+        return EgoState(
+            agent=agent,
+            speed=float(self.kin.speed[agent]),
+            accel=float(self.kin.accel[agent]),
+            yaw_rate=float(self.kin.yaw_rate[agent]),
+            route_fraction=float(min(s_now[0] / length, 1.0)) if self.has_goal[row] else 1.0,
+            lateral=float(lateral[0]),
+            heading_error=float(wrap_angle(pic.state[agent, 2] - route_heading[0])),
+            route_ahead=points,
+        )
+
+    def observe(self, agent: int) -> np.ndarray:
+        """Observation of external ``agent`` now."""
+        pic = self.picture()
+        return self.observer.observe(self.ego_state(agent, pic), pic)
