@@ -241,17 +241,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = add(
         "nll", cmd_nll, "held-out NLL per token: per class, vs agents-before and context length, vs unigram"
     )
-    p.add_argument("--data", required=True, help="held-out scenes")
+    p.add_argument("--data", nargs="+", required=True, help="held-out scene directories")
     p.add_argument(
         "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
     )
     p.add_argument("--windows", type=int, default=256)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--unigram-data", help="training scenes to fit the unigram baseline on")
+    p.add_argument("--unigram-data", nargs="+", help="training scenes to fit the unigram baseline on")
     p.add_argument("--plots", help="directory for the analysis plots")
 
     p = add("evaluate", cmd_evaluate, "realism of rollouts vs the log and baselines on held-out scenes")
-    p.add_argument("--data", required=True, help="held-out scenes")
+    p.add_argument("--data", nargs="+", required=True, help="held-out scene directories")
     p.add_argument(
         "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
     )

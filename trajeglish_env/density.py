@@ -101,10 +101,10 @@ def summarize(tok: dict[str, np.ndarray], unigram: np.ndarray | None = None) -> 
 
 def evaluate_nll(
     checkpoints: dict[str, Checkpoint],
-    data: str | os.PathLike[str],
+    data: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     windows: int = 256,
     seed: int = 0,
-    unigram_data: str | os.PathLike[str] | None = None,
+    unigram_data: str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | None = None,
     plot_dir: str | os.PathLike[str] | None = None,
 ) -> dict[str, Any]:
     """NLL table for checkpoints (e.g. trajeglish / no-intra / marginal) plus the unigram baseline.

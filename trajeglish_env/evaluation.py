@@ -36,7 +36,7 @@ class EvalConfig:
     """What to evaluate: scenes, rollouts per scene, temperatures, metric configuration and seed."""
 
     rollouts: int = 8
-    scenes: int = 16
+    scenes: int = 16  # evenly spaced over the data (so every source and kind is represented)
     temperatures: tuple[float, ...] = (1.0,)
     top_p: float = 1.0
     metrics: str = "2025"
@@ -184,7 +184,7 @@ def partial_control(
 
 
 def evaluate(
-    data: str | os.PathLike[str],
+    data: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     checkpoints: dict[str, Checkpoint],
     config: EvalConfig = EvalConfig(),
     out_dir: str | os.PathLike[str] = "out/evaluate",
@@ -192,7 +192,8 @@ def evaluate(
     progress: bool = True,
 ) -> dict[str, Any]:
     """The evaluation table (JSON + Markdown + plots) for the log, constant velocity and checkpoints."""
-    scenes = SceneStore(data).scenes[: config.scenes]
+    every = SceneStore(data).scenes
+    scenes = list(every[:: max(1, len(every) // config.scenes)][: config.scenes])  # spread over all sources
     if not scenes:
         raise ValueError(f"{data}: no scenes to evaluate")
     methods: dict[str, Method] = {"log": log_method, "constant_velocity": constant_velocity_method}
