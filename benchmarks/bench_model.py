@@ -67,7 +67,8 @@ def decoding_speed(name: str, probes: int = 32) -> dict[str, float]:
     cache, agents = model.start_decoding(scene)
     for p in range(length):
         carried = torch.full((1, 1), START) if p == 0 else ids[:, p - 1 : p]
-        model.decode(cache, agents, scene.agent_kind[:, [p % a]], carried)
+        own = torch.full((1, 1), -1) if p < a else ids[:, p - a : p - a + 1]
+        model.decode(cache, agents, scene.agent_kind[:, [p % a]], carried, own)
     cached = length / (time.perf_counter() - start)
     positions = torch.linspace(0, length - 1, probes).long().tolist()
     start = time.perf_counter()

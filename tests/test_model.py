@@ -100,13 +100,14 @@ def test_cached_decoding_equals_full_forward(variant: Variant) -> None:
             1,
         )
         kinds = scene.agent_kind[:, [(p + i) % a for i in range(chunk)]]
-        logits = model.decode(cache, agents, kinds, carried)
+        own = torch.stack([ids[:, q - a] if q >= a else torch.full((2,), -1) for q in range(p, p + chunk)], 1)
+        logits = model.decode(cache, agents, kinds, carried, own)
         t = p // a
         want = full[:, t, p % a : p % a + chunk]
         worst = max(worst, (logits - want).abs().max().item())
     assert worst <= 1e-4
     with pytest.raises(RuntimeError, match="cache holds"):
-        model.decode(cache, agents, kinds, carried)
+        model.decode(cache, agents, kinds, carried, own)
 
 
 def test_loss_ignores_unobserved_and_padding() -> None:

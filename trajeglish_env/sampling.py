@@ -80,7 +80,8 @@ def decode_tokens(
         )
         slots = [q % a for q in positions]
         step = p // a
-        logits = model.decode(cache, agents, scene.agent_kind[:, slots], carried)  # [B,chunk,V]
+        own = joint[:, slots, step - 1] if step > 0 else torch.full((b, len(slots)), -1, dtype=torch.long)
+        logits = model.decode(cache, agents, scene.agent_kind[:, slots], carried, own)  # [B,chunk,V]
         todo = sample[:, slots, step]
         if todo.any():
             drawn = sample_logits(logits, temperature, top_p, generator)

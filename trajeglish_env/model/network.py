@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from trajeglish_env.model.config import ModelConfig
+from trajeglish_env.model.config import ModelConfig, Variant
 from trajeglish_env.model.layers import DecoderBlock, DecoderCache, EncoderBlock
 from trajeglish_env.model.masks import decoder_mask, input_shift
 
@@ -168,6 +168,10 @@ class TrajeglishModel(nn.Module):
         self.start = nn.Parameter(torch.randn(c) * 0.02)
         self.time = nn.Embedding(cfg.steps, c)
         self.target_agent = nn.Linear(c, c)
+        # trajeglish inputs carry the previous agent's token; the predicted agent's own previous token
+        # (earlier in the sequence, so allowed) is added through its own projection: it tells the model the
+        # agent's current motion directly instead of through an attention look-up that is slow to learn.
+        self.own_previous = nn.Linear(c, c) if cfg.variant is Variant.TRAJEGLISH else None
         self.blocks = nn.ModuleList(
             DecoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout) for _ in range(cfg.decoder_layers)
         )
@@ -214,6 +218,9 @@ class TrajeglishModel(nn.Module):
         ids = self.global_ids(input_tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, t * a)
         shift = input_shift(self.cfg.variant, a)
         x = torch.cat([self.start.expand(b, shift, -1), self.embed_tokens(ids[:, :-shift])], dim=1)
+        if self.own_previous is not None:  # the same agent's token one step earlier (p - A)
+            own = torch.cat([torch.full_like(ids[:, :a], -1), ids[:, :-a]], dim=1)
+            x = x + self.own_previous(self.embed_tokens(own))
         x = x + self._positions(agents, 0, t * a, a)
         mask = (
             decoder_mask(self.cfg.variant, t, a, x.device)
@@ -263,7 +270,12 @@ class TrajeglishModel(nn.Module):
 
     @torch.no_grad()
     def decode(
-        self, cache: DecoderCache, agents: torch.Tensor, kind: torch.Tensor, carried_ids: torch.Tensor
+        self,
+        cache: DecoderCache,
+        agents: torch.Tensor,
+        kind: torch.Tensor,
+        carried_ids: torch.Tensor,
+        own_ids: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Logits ``[B,n,V]`` for the next ``n`` flattened positions, appending them to the cache.
 
@@ -271,6 +283,7 @@ class TrajeglishModel(nn.Module):
         :func:`~trajeglish_env.model.masks.carried_position`; ``-2`` = the start token, ``-1`` = unobserved).
         ``kind [B,n]``: classes of the agents to predict. Positions that attend to each other within the
         chunk must be decodable together (for trajeglish: one position at a time while sampling).
+        ``own_ids [B,n]`` (trajeglish only): joint ids of the same agents' tokens one step earlier (-1 none).
         """
         p, n = cache.length, carried_ids.shape[1]
         a = agents.shape[1]
@@ -278,6 +291,10 @@ class TrajeglishModel(nn.Module):
             raise RuntimeError(f"decoder cache holds {cache.self_k[0].shape[2]} positions; {p + n} requested")
         is_start = (carried_ids == -2)[..., None]
         x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
+        if self.own_previous is not None:
+            if own_ids is None:
+                raise ValueError("the trajeglish variant needs own_ids (each agent's token one step earlier)")
+            x = x + self.own_previous(self.embed_tokens(own_ids))
         x = x + self._positions(agents, p, n, a)
         mask = self._mask_rows(p, n, a)
         for i, block in enumerate(self.blocks):

@@ -227,6 +227,18 @@ class RolloutEngine:
                 cols.append(self._joint(w, w.start + tau, [slot])[:, 0])
         return torch.stack(cols, 1)
 
+    def _own(self, w: _Window, positions: range) -> torch.Tensor:
+        """Joint ids ``[R, n]`` of each position's own agent token one step earlier (-1 at the first step)."""
+        A = self.cfg.max_agents
+        cols = []
+        for p in positions:
+            tau, slot = divmod(p, A)
+            if tau == 0:
+                cols.append(torch.full((self.R,), -1, dtype=torch.long))
+            else:
+                cols.append(self._joint(w, w.start + tau - 1, [slot])[:, 0])
+        return torch.stack(cols, 1)
+
     def _prime(self, t: int) -> None:
         """Feed every window the known tokens of steps ``s0 .. t-1`` (teacher forcing, one chunk)."""
         A = self.cfg.max_agents
@@ -235,7 +247,9 @@ class RolloutEngine:
             if n:
                 positions = range(0, n)
                 kinds = w.kind[:, [p % A for p in positions]]
-                self.model.decode(w.cache, w.agents, kinds, self._carried(w, positions))
+                self.model.decode(
+                    w.cache, w.agents, kinds, self._carried(w, positions), self._own(w, positions)
+                )
                 w.decoded = n
 
     # ------------------------------------------------------------------ stepping
@@ -269,7 +283,13 @@ class RolloutEngine:
             if waiting is not None:
                 return waiting
             positions = range(tau * A + chunk.start, tau * A + chunk.stop)
-            logits = self.model.decode(w.cache, w.agents, w.kind[:, list(chunk)], self._carried(w, positions))
+            logits = self.model.decode(
+                w.cache,
+                w.agents,
+                w.kind[:, list(chunk)],
+                self._carried(w, positions),
+                self._own(w, positions),
+            )
             w.decoded = positions.stop
             self._sample(w, list(chunk), logits)
             slot = chunk.stop
