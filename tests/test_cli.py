@@ -87,3 +87,21 @@ def test_tokenizer_fit_and_eval_commands(tmp_path, capsys) -> None:
     table = json.dumps(_json(capsys))
     for method in ("k-disks", "k-means", "xyh-grid", "xy-grid"):
         assert method in table
+
+
+def test_rollout_and_nll_commands_with_the_shipped_model(tmp_path, capsys) -> None:
+    from trajeglish_env.sources.highway import generate_scene
+
+    path = save_scenario(tmp_path / "d" / "s.scn.npz", generate_scene("two-way", 11))
+    out = tmp_path / "r.gif"
+    args = ["rollout", "--scenario", str(path), "--horizon", "6", "--out", str(out), "--json"]
+    assert main(args) == 0
+    assert _json(capsys)["horizon"] == 6 and out.stat().st_size > 1000
+    assert main(["nll", "--data", str(tmp_path / "d"), "--windows", "4", "--json", "--quiet"]) == 0
+    result = _json(capsys)
+    model = result["models"]["trajeglish"]
+    assert model["tokens"] > 0 and 0 < model["nll"] < result["unigram_nll"] + 5
+    assert (
+        main(["rollout", "--scenario", str(path), "--out", str(out), "--ckpt", str(tmp_path / "no.pt")]) == 2
+    )
+    assert "no.pt: no such checkpoint file" in capsys.readouterr().err
