@@ -57,18 +57,18 @@ def test_external_acting_last_observes_the_npcs_moves_and_acting_first_observes_
 def _npc_logits(monkeypatch: pytest.MonkeyPatch, order: str, action: list[float]) -> list[torch.Tensor]:
     """Logits of every NPC token sampled while the ego takes ``action`` for two steps."""
     seen: list[torch.Tensor] = []
-    original = engine_module.sample_logits
+    original = engine_module.sample_with_uniform
 
-    def spy(logits: torch.Tensor, *args: object, **kwargs: object) -> torch.Tensor:
+    def spy(logits: torch.Tensor, *args: object, **kwargs: object) -> np.ndarray:
         seen.append(logits.clone())
         return original(logits, *args, **kwargs)
 
-    monkeypatch.setattr(engine_module, "sample_logits", spy)
+    monkeypatch.setattr(engine_module, "sample_with_uniform", spy)
     e = raw_env([bundle_scene(MERGE)], npc=TrajeglishNPC(TINY), order=order, max_cycles=3, reward=KEEP_GOING)
     e.reset(seed=0)
     for _ in range(2):
         e.step(np.array(action, dtype=np.float32))
-    monkeypatch.setattr(engine_module, "sample_logits", original)
+    monkeypatch.setattr(engine_module, "sample_with_uniform", original)
     return seen
 
 

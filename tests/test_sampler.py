@@ -138,7 +138,7 @@ def test_external_agent_is_asked_for_in_order_and_seen_by_later_agents() -> None
     assert eng.advance() is None and eng.t == sc.current_index + 1
     np.testing.assert_allclose(eng.xyh[:, 2, sc.current_index + 1], np.broadcast_to(nxt, (2, 3)))
     assert (eng.tokens[:, 2, sc.current_index] >= 0).all()
-    with pytest.raises(RuntimeError, match="external agent 2 must be supplied"):
+    with pytest.raises(RuntimeError, match=r"external agents \[2, 2\] of rows \[0, 1\] must be supplied"):
         eng.step()
 
 

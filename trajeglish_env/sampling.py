@@ -8,6 +8,7 @@ variants decode a whole timestep at once, which their masks make equivalent.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from trajeglish_env.model.config import Variant
@@ -44,6 +45,51 @@ def sample_logits(
         probs = probs * nucleus_mask(probs, top_p)
     flat = probs.reshape(-1, probs.shape[-1])
     return torch.multinomial(flat, 1, generator=generator).view(probs.shape[:-1])
+
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+
+
+def _splitmix(x: np.ndarray) -> np.ndarray:
+    """SplitMix64 finaliser (a bijective 64-bit mixer), vectorized; uint64 arithmetic wraps."""
+    x = x ^ (x >> np.uint64(30))
+    x = x * _MIX1
+    x = x ^ (x >> np.uint64(27))
+    x = x * _MIX2
+    return x ^ (x >> np.uint64(31))
+
+
+def stream_seed(seed: int | np.ndarray, index: int | np.ndarray) -> np.ndarray:
+    """An independent 64-bit seed for sub-stream ``index`` of ``seed`` (e.g. one per rollout)."""
+    s = np.asarray(seed, dtype=np.uint64)
+    return _splitmix(s * _GOLDEN + _splitmix(np.asarray(index, dtype=np.uint64) + _GOLDEN))
+
+
+def counter_uniform(seed: np.ndarray, step: np.ndarray, agent: np.ndarray) -> np.ndarray:
+    """Uniform numbers in [0, 1) that depend only on ``(seed, step, agent)`` (counter-based, vectorized):
+    a scene's draws are the same whichever other scenes share its batch and in whatever order."""
+    x = _splitmix(np.asarray(seed, dtype=np.uint64) ^ _splitmix(np.asarray(step, dtype=np.uint64) * _MIX1))
+    x = _splitmix(x + _splitmix(np.asarray(agent, dtype=np.uint64) + _GOLDEN))
+    return (x >> np.uint64(11)).astype(np.float64) * 2.0**-53
+
+
+def sample_with_uniform(
+    logits: torch.Tensor, temperature: float, top_p: float, uniform: np.ndarray
+) -> np.ndarray:
+    """Token ids ``[n]`` from logits ``[n, V]`` by inverting each row's CDF at ``uniform [n]`` (float64;
+    ``temperature == 0`` gives the argmax)."""
+    if temperature < 0:
+        raise ValueError(f"temperature must be >= 0, got {temperature}")
+    if temperature == 0:
+        return logits.argmax(-1).numpy()
+    probs = torch.softmax(logits.double() / temperature, dim=-1)
+    if top_p < 1.0:
+        probs = probs * nucleus_mask(probs, top_p)
+    cdf = probs.cumsum(-1)
+    u = torch.from_numpy(np.asarray(uniform, dtype=np.float64))[:, None] * cdf[:, -1:]
+    return torch.searchsorted(cdf, u, right=True).clamp_(max=logits.shape[-1] - 1)[:, 0].numpy()
 
 
 @torch.no_grad()

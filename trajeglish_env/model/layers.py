@@ -1,4 +1,11 @@
-"""Transformer building blocks with an optional key/value cache for incremental decoding."""
+"""Transformer building blocks with an optional key/value cache for incremental decoding.
+
+Inference is *batch-invariant*: a row's outputs do not depend on which other rows share its batch, so a
+scene simulated in a batch of many gives bit-identical tokens to the same scene simulated alone. BLAS
+picks different kernels (and summation orders) for very small matrices, so :class:`Linear` pads inputs
+of fewer than ``MIN_GEMM_ROWS`` rows; cached decoding attends over the whole preallocated cache (fixed
+shapes, masked) rather than over a batch-dependent prefix.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +15,25 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+MIN_GEMM_ROWS = 32  # below this many rows MKL switches kernels and a row's result depends on the batch
+
+
+def invariant_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+    """``F.linear`` whose result per row does not depend on the number of rows (see the module docstring)."""
+    rows = x.numel() // max(x.shape[-1], 1)
+    if rows >= MIN_GEMM_ROWS or torch.is_grad_enabled():
+        return F.linear(x, weight, bias)
+    flat = x.reshape(rows, x.shape[-1])
+    padded = torch.cat([flat, flat.new_zeros(MIN_GEMM_ROWS - rows, flat.shape[1])])
+    return F.linear(padded, weight, bias)[:rows].reshape(*x.shape[:-1], weight.shape[0])
+
+
+class Linear(nn.Linear):
+    """``nn.Linear`` (same parameters) that is batch-invariant at inference."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return invariant_linear(x, self.weight, self.bias)
+
 
 class Attention(nn.Module):
     """Multi-head attention through PyTorch SDPA (flash/efficient kernels on CUDA)."""
@@ -15,9 +41,9 @@ class Attention(nn.Module):
     def __init__(self, d_model: int, num_heads: int, dropout: float = 0.0):
         super().__init__()
         self.num_heads = num_heads
-        self.q = nn.Linear(d_model, d_model)
-        self.kv = nn.Linear(d_model, 2 * d_model)
-        self.out = nn.Linear(d_model, d_model)
+        self.q = Linear(d_model, d_model)
+        self.kv = Linear(d_model, 2 * d_model)
+        self.out = Linear(d_model, d_model)
         self.dropout = dropout
 
     def split(self, x: torch.Tensor) -> torch.Tensor:
@@ -32,9 +58,9 @@ class Attention(nn.Module):
         self, x: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None
     ) -> torch.Tensor:
         """Queries from ``x [B,N,C]`` against split keys/values; ``mask`` broadcastable to [B,H,N,K]."""
-        q = self.split(self.q(x))
+        q = self.split(self.q(x)).to(k.dtype)  # a reduced-precision cache computes in its own dtype
         p = self.dropout if self.training else 0.0
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p).to(x.dtype)
         b, h, n, dh = y.shape
         return self.out(y.transpose(1, 2).reshape(b, n, h * dh))
 
@@ -48,9 +74,9 @@ class Attention(nn.Module):
 class FeedForward(nn.Sequential):
     def __init__(self, d_model: int, mult: int, dropout: float):
         super().__init__(
-            nn.Linear(d_model, mult * d_model),
+            Linear(d_model, mult * d_model),
             nn.GELU(),
-            nn.Linear(mult * d_model, d_model),
+            Linear(mult * d_model, d_model),
             nn.Dropout(dropout),
         )
 
@@ -88,6 +114,20 @@ class DecoderCache:
     memory_mask: torch.Tensor  # [B,1,1,M]
     length: int = 0
 
+    @property
+    def capacity(self) -> int:
+        """Positions the cache holds."""
+        return int(self.self_k[0].shape[2])
+
+    def copy_rows_(self, rows: torch.Tensor, other: DecoderCache) -> None:
+        """Overwrite batch ``rows`` with the rows of ``other`` (same layers, capacity and memory size)."""
+        for mine, theirs in zip(
+            (*self.self_k, *self.self_v, *self.cross_k, *self.cross_v, self.memory_mask),
+            (*other.self_k, *other.self_v, *other.cross_k, *other.cross_v, other.memory_mask),
+            strict=True,
+        ):
+            mine[rows] = theirs.to(mine.dtype)
+
 
 class DecoderBlock(nn.Module):
     """Pre-norm block: masked self-attention (cacheable), cross-attention to the scene, feed-forward."""
@@ -108,17 +148,25 @@ class DecoderBlock(nn.Module):
         cross_k: torch.Tensor,
         cross_v: torch.Tensor,
         memory_mask: torch.Tensor,
-        cache: tuple[torch.Tensor, torch.Tensor, int] | None = None,
+        cache: tuple[torch.Tensor, torch.Tensor, int | torch.Tensor] | None = None,
     ) -> torch.Tensor:
-        """``x [B,N,C]``; with ``cache = (K, V, start)`` the new keys/values are written at ``start``."""
+        """``x [B,N,C]``; with ``cache = (K, V, start)`` the new keys/values are written at ``start`` and
+        the prefix is attended; with ``cache = (K, V, index [B,N])`` they are written at per-row positions
+        and the whole cache is attended (``self_mask`` hides what a row may not see)."""
         h = self.norm_self(x)
         k, v = self.self_attn.keys_values(h)
         if cache is not None:
             ck, cv, start = cache
-            n = x.shape[1]
-            ck[:, :, start : start + n] = k
-            cv[:, :, start : start + n] = v
-            k, v = ck[:, :, : start + n], cv[:, :, : start + n]
+            if isinstance(start, torch.Tensor):
+                rows = torch.arange(x.shape[0], device=x.device)[:, None]
+                ck[rows, :, start] = k.transpose(1, 2).to(ck.dtype)
+                cv[rows, :, start] = v.transpose(1, 2).to(cv.dtype)
+                k, v = ck, cv
+            else:
+                n = x.shape[1]
+                ck[:, :, start : start + n] = k.to(ck.dtype)
+                cv[:, :, start : start + n] = v.to(cv.dtype)
+                k, v = ck[:, :, : start + n], cv[:, :, : start + n]
         x = x + self.self_attn.attend(h, k, v, self_mask)
         x = x + self.cross_attn.attend(self.norm_cross(x), cross_k, cross_v, memory_mask)
         return x + self.ff(self.norm_ff(x))

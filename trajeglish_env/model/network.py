@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from trajeglish_env.model.config import ModelConfig, Variant
-from trajeglish_env.model.layers import DecoderBlock, DecoderCache, EncoderBlock
+from trajeglish_env.model.layers import DecoderBlock, DecoderCache, EncoderBlock, Linear, invariant_linear
 from trajeglish_env.model.masks import decoder_mask, input_shift
 
 POSITION_SCALE = 50.0  # metres -> network units
@@ -67,8 +67,8 @@ class PolylineEncoder(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         c = cfg.d_model
-        self.point = nn.Sequential(nn.Linear(5, c), nn.LayerNorm(c), nn.GELU(), nn.Linear(c, c))
-        self.second = nn.Sequential(nn.Linear(2 * c, c), nn.LayerNorm(c), nn.GELU(), nn.Linear(c, c))
+        self.point = nn.Sequential(Linear(5, c), nn.LayerNorm(c), nn.GELU(), Linear(c, c))
+        self.second = nn.Sequential(Linear(2 * c, c), nn.LayerNorm(c), nn.GELU(), Linear(c, c))
         self.kind = nn.Embedding(cfg.num_map_kinds, c)
 
     def forward(self, points: torch.Tensor, point_mask: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
@@ -90,7 +90,7 @@ class SceneEncoder(nn.Module):
         super().__init__()
         c = cfg.d_model
         self.cfg = cfg
-        self.agent = nn.Sequential(nn.Linear(4 + 2 + cfg.num_kinds, c), nn.GELU(), nn.Linear(c, c))
+        self.agent = nn.Sequential(Linear(4 + 2 + cfg.num_kinds, c), nn.GELU(), Linear(c, c))
         self.slot = nn.Embedding(cfg.max_agents, c)
         self.polylines = PolylineEncoder(cfg) if cfg.variant.uses_map else None
         self.map_layers = nn.ModuleList(
@@ -167,11 +167,11 @@ class TrajeglishModel(nn.Module):
         self.token = nn.Embedding(cfg.num_kinds * cfg.vocab_size, c)
         self.start = nn.Parameter(torch.randn(c) * 0.02)
         self.time = nn.Embedding(cfg.steps, c)
-        self.target_agent = nn.Linear(c, c)
+        self.target_agent = Linear(c, c)
         # trajeglish inputs carry the previous agent's token; the predicted agent's own previous token
         # (earlier in the sequence, so allowed) is added through its own projection: it tells the model the
         # agent's current motion directly instead of through an attention look-up that is slow to learn.
-        self.own_previous = nn.Linear(c, c) if cfg.variant is Variant.TRAJEGLISH else None
+        self.own_previous = Linear(c, c) if cfg.variant is Variant.TRAJEGLISH else None
         self.blocks = nn.ModuleList(
             DecoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout) for _ in range(cfg.decoder_layers)
         )
@@ -190,7 +190,7 @@ class TrajeglishModel(nn.Module):
 
     def class_logits(self, hidden: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
         """Tied head restricted to the class: ``hidden [...,C]``, ``kind [...]`` -> ``[...,V]``."""
-        logits = F.linear(self.norm(hidden), self.token.weight)  # [..., K*V]
+        logits = invariant_linear(self.norm(hidden), self.token.weight)  # [..., K*V]
         logits = logits.view(*logits.shape[:-1], self.cfg.num_kinds, self.cfg.vocab_size)
         index = kind.clamp(0, self.cfg.num_kinds - 1)[..., None, None].expand(
             *kind.shape, 1, self.cfg.vocab_size
@@ -250,23 +250,31 @@ class TrajeglishModel(nn.Module):
     # ---------------------------------------------------------------------------------- decoding
     @torch.no_grad()
     def start_decoding(
-        self, scene: SceneInputs, max_length: int | None = None
+        self, scene: SceneInputs, max_length: int | None = None, dtype: torch.dtype | None = None
     ) -> tuple[DecoderCache, torch.Tensor]:
-        """Encode the scene once and allocate the cache; returns it with the agent embeddings."""
+        """Encode the scene once and allocate the cache (self-attention keys/values in ``dtype``, default
+        the model's); returns it with the agent embeddings."""
         memory, memory_mask, agents = self.encoder(scene)
-        b = memory.shape[0]
         length = max_length or scene.agent_xyh.shape[1] * self.cfg.steps
-        h, dh = self.cfg.num_heads, self.cfg.d_model // self.cfg.num_heads
-        shape = (b, h, length, dh)
-        cross = [blk.cross_attn.keys_values(memory) for blk in self.blocks]
-        cache = DecoderCache(
-            self_k=[memory.new_zeros(shape) for _ in self.blocks],
-            self_v=[memory.new_zeros(shape) for _ in self.blocks],
-            cross_k=[k for k, _ in cross],
-            cross_v=[v for _, v in cross],
-            memory_mask=memory_mask[:, None, None, :],
-        )
+        cache = self.empty_cache(memory.shape[0], length, memory.shape[1], dtype or memory.dtype)
+        for i, blk in enumerate(self.blocks):
+            cache.cross_k[i], cache.cross_v[i] = blk.cross_attn.keys_values(memory)
+        cache.memory_mask = memory_mask[:, None, None, :]
         return cache, agents
+
+    def empty_cache(self, batch: int, length: int, memory: int, dtype: torch.dtype) -> DecoderCache:
+        """A zeroed cache for ``batch`` rows of ``length`` positions over a memory of ``memory`` entries
+        (all of it visible, so that unused rows stay finite)."""
+        h, dh = self.cfg.num_heads, self.cfg.d_model // self.cfg.num_heads
+        dev, f32 = self.start.device, self.start.dtype
+        layers = range(len(self.blocks))
+        return DecoderCache(
+            self_k=[torch.zeros(batch, h, length, dh, dtype=dtype, device=dev) for _ in layers],
+            self_v=[torch.zeros(batch, h, length, dh, dtype=dtype, device=dev) for _ in layers],
+            cross_k=[torch.zeros(batch, h, memory, dh, dtype=f32, device=dev) for _ in layers],
+            cross_v=[torch.zeros(batch, h, memory, dh, dtype=f32, device=dev) for _ in layers],
+            memory_mask=torch.ones(batch, 1, 1, memory, dtype=torch.bool, device=dev),
+        )
 
     @torch.no_grad()
     def decode(
@@ -311,3 +319,38 @@ class TrajeglishModel(nn.Module):
         else:
             full = decoder_mask(self.cfg.variant, steps, agents, self.mask.device)
         return full[start : start + n, : start + n]
+
+    @torch.no_grad()
+    def decode_at(
+        self,
+        cache: DecoderCache,
+        agents: torch.Tensor,
+        kind: torch.Tensor,
+        carried_ids: torch.Tensor,
+        own_ids: torch.Tensor | None,
+        start: torch.Tensor,
+    ) -> torch.Tensor:
+        """Like :meth:`decode`, but row ``b`` decodes positions ``start[b] .. start[b]+n-1`` of its own
+        window (rows of one batch may be at different points of their windows). Every row attends over
+        the whole cache (capacity ``steps x max_agents``) under the variant's mask, so its result does not
+        depend on the other rows. ``cache.length`` is not used."""
+        n, a = carried_ids.shape[1], agents.shape[1]
+        if cache.capacity != self.mask.shape[0] or a != self.cfg.max_agents:
+            raise ValueError(
+                f"decode_at needs a full window cache ({self.mask.shape[0]} positions, {self.cfg.max_agents} "
+                f"agents), got {cache.capacity} positions and {a} agents"
+            )
+        index = start[:, None] + torch.arange(n, device=start.device)  # [B,n]
+        is_start = (carried_ids == -2)[..., None]
+        x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
+        if self.own_previous is not None:
+            if own_ids is None:
+                raise ValueError("the trajeglish variant needs own_ids (each agent's token one step earlier)")
+            x = x + self.own_previous(self.embed_tokens(own_ids))
+        slot_emb = agents.gather(1, (index % a)[..., None].expand(-1, -1, agents.shape[-1]))
+        x = x + self.time(index // a) + self.target_agent(slot_emb)
+        mask = self.mask[index][:, None]  # [B,1,n,L]
+        for i, block in enumerate(self.blocks):
+            kv = (cache.self_k[i], cache.self_v[i], index)
+            x = block(x, mask, cache.cross_k[i], cache.cross_v[i], cache.memory_mask, kv)
+        return self.class_logits(x, kind)

@@ -1,5 +1,12 @@
-"""Closed-loop token simulation of a scene, batched over rollouts, with a spatial and temporal sliding
-window (paper appendix "Extended rollouts").
+"""Closed-loop token simulation of many rows at once, with a spatial and temporal sliding window (paper
+appendix "Extended rollouts").
+
+A *row* is one rollout of one scene. :class:`BatchEngine` steps B rows in lockstep (one timestep per
+call of :meth:`BatchEngine.advance`), each with its own scene, clock, window schedule and random stream,
+and batches every model call across rows: the model is called once per token position of a step for
+all B rows. Rows may (re)start at any step boundary (:meth:`BatchEngine.start_rows`), which is how the
+vectorized environments reset one scene while the others go on. :class:`RolloutEngine` is the special
+case of R rollouts of one scene.
 
 Roles per agent: *controlled* (the model samples its tokens), *replay* (follows given motion known in
 advance, e.g. the log) and *external* (its next state is supplied step by step from outside, e.g. by an
@@ -10,7 +17,11 @@ Windows: at recompute steps the active agents are covered by subsets (:mod:`subs
 model context whose initial states are the agents' states ``prime`` steps earlier (or their first valid
 state after that), and whose caches are primed with the tokens of those steps. Within a timestep the
 subsets act in order; an agent acts (is sampled) in the first subset holding it and is forced in later
-ones. Everything is batched over rollouts: subset ``k`` of every rollout is one model batch.
+ones. Subset ``k`` of every row is one model batch; rows may be at different points of their windows.
+
+Reproducibility: a row's tokens depend only on its scene, settings and seed, never on the other rows of
+the batch: draws are counter-based (:func:`~trajeglish_env.sampling.counter_uniform` of the row seed,
+the step and the agent) and inference is batch-invariant (:mod:`trajeglish_env.model.layers`).
 """
 
 from __future__ import annotations
@@ -24,10 +35,11 @@ from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.geometry import to_global, to_local
 from trajeglish_env.map_chunks import MapChunks, chunk_map, nearest_chunks
 from trajeglish_env.model.config import Variant
-from trajeglish_env.model.masks import carried_position
+from trajeglish_env.model.layers import DecoderCache
+from trajeglish_env.model.masks import input_shift
 from trajeglish_env.model.network import SceneInputs
 from trajeglish_env.sampler.subsets import SubsetPlan, plan_subsets
-from trajeglish_env.sampling import START, sample_logits
+from trajeglish_env.sampling import START, counter_uniform, sample_with_uniform, stream_seed
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.tokenize import tokenize
 
@@ -63,20 +75,485 @@ class SamplingConfig:
         return every
 
 
+@dataclass(frozen=True)
+class RowSpec:
+    """What one row simulates: ``controlled [N]`` agents the model drives, ``external [N]`` agents whose
+    states are supplied from outside (others replay the log), ``horizon`` steps after ``current_index``
+    (default: the scene's), acting ``priority [N]`` (lower first), and ``first``: the agent whose model
+    context goes first (default: the sdc)."""
+
+    scenario: Scenario
+    horizon: int
+    controlled: np.ndarray
+    external: np.ndarray | None = None
+    current_index: int | None = None
+    priority: np.ndarray | None = None
+    first: int | None = None
+
+
 @dataclass
 class _Window:
-    """One subset rank across rollouts: model context, cache and agent slots."""
+    """Subset rank ``k`` of every row: agent slots, window start step, cache and agent embeddings."""
 
-    slots: np.ndarray  # [R, A] agent indices (-1 padding)
-    start: int  # s0: step of the initial states
-    cache: object
-    agents: torch.Tensor  # agent embeddings [R, A, C]
-    kind: torch.Tensor  # [R, A]
-    decoded: int  # positions already in the cache
+    slots: np.ndarray  # [B, A] agent indices (-1 padding)
+    start: np.ndarray  # [B] s0: the step of the initial states
+    cache: DecoderCache
+    agents: torch.Tensor  # [B, A, C]
+    kind: torch.Tensor  # [B, A]
 
 
-class RolloutEngine:
-    """Steps a scene forward one timestep at a time for ``R`` rollouts (see the module docstring)."""
+class BatchEngine:
+    """Steps ``rows`` independent rows in lockstep (see the module docstring).
+
+    Per-row state (padded to the largest scene: ``N`` agents, ``T`` steps): exact states ``xyh [B,N,T,3]``
+    and ``valid [B,N,T]``; the model's tokenized view ``mxyh``; ``tokens [B,N,T-1]`` and ``known`` (the
+    token of a step is decided); ``now [B]`` the step being played and ``end [B]`` the last step.
+    ``cache_dtype``: dtype of the self-attention caches (``torch.bfloat16`` halves their memory traffic).
+    """
+
+    def __init__(
+        self,
+        ckpt: Checkpoint,
+        rows: int,
+        config: SamplingConfig = SamplingConfig(),
+        cache_dtype: torch.dtype = torch.float32,
+    ):
+        if rows < 1:
+            raise ValueError(f"rows must be >= 1, got {rows}")
+        self.model = ckpt.model.eval()
+        self.vocab = ckpt.vocabulary
+        self.cfg = self.model.cfg
+        self.config = config
+        self.cache_dtype = cache_dtype
+        self.every = config.every(self.cfg.steps)
+        self.prime = config.prime(self.cfg.steps)
+        self.B = int(rows)
+        self.N, self.T = 0, 2
+        self._allocate(1, 2)
+        self.live = np.zeros(self.B, dtype=bool)
+        self.now = np.zeros(self.B, dtype=np.int64)
+        self.end = np.zeros(self.B, dtype=np.int64)
+        self.seed = np.zeros(self.B, dtype=np.uint64)
+        self.first = np.zeros(self.B, dtype=np.int64)
+        self.scenes: list[Scenario | None] = [None] * self.B
+        self.chunks: list[MapChunks | None] = [None] * self.B
+        self.plan: list[SubsetPlan | None] = [None] * self.B
+        self.num_subsets = np.zeros(self.B, dtype=np.int64)
+        self.window_step = np.full(self.B, -1, dtype=np.int64)
+        self.windows: list[_Window] = []
+        self._cursor = (0, 0)  # (subset rank, slot) of the next position to act in this step
+        self._chunk_cache: dict[int, tuple[Scenario, MapChunks]] = {}
+
+    # ------------------------------------------------------------------ storage
+    def _allocate(self, n: int, t: int) -> None:
+        """Grow the per-row arrays to ``n`` agents and ``t`` steps (padding: absent, decided)."""
+        n, t = max(n, self.N), max(t, self.T)
+        if n == self.N and t == self.T and hasattr(self, "xyh"):
+            return
+        B = self.B
+
+        def grow(old: np.ndarray | None, shape: tuple[int, ...], fill: object, dtype: object) -> np.ndarray:
+            new = np.full(shape, fill, dtype=dtype)
+            if old is not None:
+                new[tuple(slice(0, s) for s in old.shape)] = old
+            return new
+
+        get = self.__dict__.get
+        self.xyh = grow(get("xyh"), (B, n, t, 3), 0.0, np.float64)
+        self.mxyh = grow(get("mxyh"), (B, n, t, 3), 0.0, np.float64)
+        self.valid = grow(get("valid"), (B, n, t), False, bool)
+        self.tokens = grow(get("tokens"), (B, n, t - 1), -1, np.int64)
+        self.known = grow(get("known"), (B, n, t - 1), True, bool)
+        self.row_controlled = grow(get("row_controlled"), (B, n), False, bool)
+        self.row_external = grow(get("row_external"), (B, n), False, bool)
+        self.row_priority = grow(get("row_priority"), (B, n), 0.0, np.float64)
+        self.size = grow(get("size"), (B, n, 2), 1.0, np.float64)
+        self.kind = grow(get("kind"), (B, n), 0, np.int64)
+        self.N, self.T = n, t
+
+    def _map_chunks(self, sc: Scenario) -> MapChunks:
+        hit = self._chunk_cache.get(id(sc))
+        if hit is None or hit[0] is not sc:
+            if len(self._chunk_cache) > 4 * self.B + 64:
+                self._chunk_cache.clear()
+            hit = (sc, chunk_map(sc, self.cfg.points_per_polyline))
+            self._chunk_cache[id(sc)] = hit
+        return hit[1]
+
+    # ------------------------------------------------------------------ rows
+    def start_rows(self, rows: np.ndarray | list[int], spec: RowSpec, seeds: np.ndarray | list[int]) -> None:
+        """(Re)start ``rows`` on ``spec``, row ``rows[i]`` drawing from ``seeds[i]``; only between steps."""
+        if self._cursor != (0, 0):
+            raise RuntimeError("rows can only be (re)started between steps (the current step is unfinished)")
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)
+        if len(rows) != len(seeds) or ((rows < 0) | (rows >= self.B)).any():
+            raise ValueError(f"start_rows: {len(rows)} rows in 0..{self.B - 1} need as many seeds, got {seeds}")
+        sc = spec.scenario
+        n = sc.num_agents
+        cur = sc.current_index if spec.current_index is None else int(spec.current_index)
+        if not 0 <= cur < sc.num_steps:
+            raise ValueError(f"current_index {cur} out of range for {sc.num_steps} steps")
+        if int(spec.horizon) < 1:
+            raise ValueError(f"horizon must be >= 1, got {spec.horizon}")
+        controlled = _agent_mask(spec.controlled, n, "controlled")
+        external = _agent_mask(spec.external, n, "external") if spec.external is not None else np.zeros(n, bool)
+        if (controlled & external).any():
+            raise ValueError(
+                f"agents {np.flatnonzero(controlled & external).tolist()} are both controlled and external"
+            )
+        missing = np.flatnonzero(controlled & ~sc.valid[:, cur])
+        if len(missing):
+            raise ValueError(
+                f"controlled agents must be valid at the current step {cur}; track ids "
+                f"{sc.track_id[missing].tolist()} are not"
+            )
+        priority = np.zeros(n) if spec.priority is None else np.asarray(spec.priority, dtype=np.float64)
+        if priority.shape != (n,):
+            raise ValueError(f"priority: expected shape ({n},), got {priority.shape}")
+        T = cur + 1 + int(spec.horizon)
+        self._allocate(n, T)
+        # what is fixed before the rollout: everyone's history, replay agents' whole future
+        logged = np.zeros((n, T, 3))
+        lvalid = np.zeros((n, T), dtype=bool)
+        keep = min(T, sc.num_steps)
+        logged[:, :keep] = sc.xyh[:, :keep]
+        lvalid[:, :keep] = sc.valid[:, :keep]
+        replay = ~(controlled | external)
+        fixed = lvalid & ((np.arange(T) <= cur)[None] | replay[:, None])
+        tok = tokenize(self.vocab, logged, fixed, sc.size, sc.kind.astype(np.int64))
+        for arr, fill in ((self.xyh, 0.0), (self.mxyh, 0.0), (self.valid, False), (self.tokens, -1)):
+            arr[rows] = fill
+        self.known[rows] = True
+        self.xyh[rows, :n, :T] = np.where(fixed[..., None], logged, 0.0)
+        self.mxyh[rows, :n, :T] = np.nan_to_num(tok.xyh)
+        self.tokens[rows, :n, : T - 1] = tok.tokens
+        unknown = controlled | external  # their future tokens are decided during the rollout
+        self.known[np.ix_(rows, np.flatnonzero(unknown), np.arange(cur, T - 1))] = False
+        valid = fixed.copy()
+        valid[controlled, cur:] = True  # controlled agents exist for the whole rollout
+        self.valid[rows, :n, :T] = valid
+        self.row_controlled[rows] = False
+        self.row_controlled[rows, :n] = controlled
+        self.row_external[rows] = False
+        self.row_external[rows, :n] = external
+        self.row_priority[rows] = 0.0
+        self.row_priority[rows, :n] = priority
+        self.size[rows] = 1.0
+        self.size[rows, :n] = sc.size
+        self.kind[rows] = 0
+        self.kind[rows, :n] = sc.kind
+        chunks = self._map_chunks(sc)
+        for r in rows:
+            self.scenes[r], self.chunks[r], self.plan[r] = sc, chunks, None
+        self.now[rows], self.end[rows] = cur, T - 1
+        self.seed[rows] = seeds
+        self.first[rows] = sc.sdc if spec.first is None else int(spec.first)
+        self.live[rows] = True
+        self.window_step[rows] = -1
+        self.num_subsets[rows] = 0
+
+    def stop_rows(self, rows: np.ndarray | list[int]) -> None:
+        """Take ``rows`` out of the simulation (they stop stepping until started again)."""
+        if self._cursor != (0, 0):
+            raise RuntimeError("rows can only be stopped between steps (the current step is unfinished)")
+        self.live[np.asarray(rows, dtype=np.int64)] = False
+
+    @property
+    def stepping(self) -> np.ndarray:
+        """``[B]`` rows that take part in the current step."""
+        return self.live & (self.now < self.end)
+
+    # ------------------------------------------------------------------ windows
+    def _needs_windows(self) -> np.ndarray:
+        since = self.now - self.window_step
+        return self.stepping & ((self.window_step < 0) | ((since % self.every == 0) & (since != 0)))
+
+    def _build_windows(self, rows: np.ndarray) -> None:
+        """Plan subsets of ``rows`` at their step and encode + prime each subset rank for them."""
+        A, L = self.cfg.max_agents, self.cfg.max_agents * self.cfg.steps
+        t = self.now[rows]
+        s0 = np.maximum(0, t - self.prime)
+        plans = [
+            plan_subsets(
+                self.mxyh[b, :, self.now[b], :2], self.valid[b, :, self.now[b]], A, self.first[b], self.row_priority[b]
+            )
+            for b in rows
+        ]
+        counts = np.array([p.num_subsets for p in plans], dtype=np.int64)
+        while len(self.windows) < counts.max(initial=0):
+            cache = self.model.empty_cache(self.B, L, A + self.cfg.latent_queries, self.cache_dtype)
+            self.windows.append(
+                _Window(
+                    np.full((self.B, A), -1, dtype=np.int64),
+                    np.zeros(self.B, dtype=np.int64),
+                    cache,
+                    torch.zeros(self.B, A, self.cfg.d_model),
+                    torch.zeros(self.B, A, dtype=torch.long),
+                )
+            )
+        for i, b in enumerate(rows):
+            self.plan[b] = plans[i]
+        self.num_subsets[rows] = counts
+        self.window_step[rows] = t
+        for k, w in enumerate(self.windows):
+            w.start[rows] = s0
+            has = counts > k
+            w.slots[rows[~has]] = -1
+            for n in np.unique(t[has] - s0[has]):  # rows primed with the same number of steps
+                group = has & (t - s0 == n)
+                sub = rows[group]
+                slots = np.stack([plans[i].slots[k] for i in np.flatnonzero(group)])
+                centres = np.array([plans[i].centres[k] for i in np.flatnonzero(group)])
+                w.slots[sub] = slots
+                scene = self._scene_inputs(sub, slots, s0[group], centres)
+                cache, agents = self.model.start_decoding(scene, max_length=L, dtype=self.cache_dtype)
+                if n:
+                    self._prime(cache, agents, scene.agent_kind, sub, slots, s0[group], int(n))
+                index = torch.from_numpy(sub)
+                w.cache.copy_rows_(index, cache)
+                w.agents[index] = agents
+                w.kind[index] = scene.agent_kind
+
+    def _scene_inputs(
+        self, rows: np.ndarray, slots: np.ndarray, s0: np.ndarray, centres: np.ndarray
+    ) -> SceneInputs:
+        """Encoder inputs of one subset per row: initial states at ``s0`` (or the first valid step after
+        it, for agents that appeared later) in the frame of the centre agent, and the nearest map."""
+        c = self.cfg
+        real = slots >= 0
+        idx = np.where(real, slots, 0)
+        r_ix = rows[:, None]
+        steps = np.arange(self.T)
+        window = (steps[None] >= s0[:, None]) & (steps[None] <= self.now[rows][:, None])  # [r, T]
+        seg = self.valid[r_ix, idx] & window[:, None]  # [r, A, T]
+        first = np.where(seg.any(-1), np.argmax(seg, axis=-1), s0[:, None])
+        init = self.mxyh[r_ix, idx, first]
+        cseg = self.valid[rows, centres] & (steps[None] >= s0[:, None])
+        cfirst = np.where(cseg.any(-1), np.argmax(cseg, axis=-1), s0)
+        frames = self.mxyh[rows, centres, cfirst]
+        local = to_local(frames[:, None, :], init)
+        m = len(rows)
+        pts = np.zeros((m, c.max_polylines, c.points_per_polyline, 2), dtype=np.float32)
+        pmask = np.zeros(pts.shape[:3], dtype=bool)
+        mkind = np.zeros((m, c.max_polylines), dtype=np.int64)
+        mmask = np.zeros((m, c.max_polylines), dtype=bool)
+        for i, b in enumerate(rows):
+            pts[i], pmask[i], mkind[i], mmask[i] = nearest_chunks(
+                self.chunks[b], frames[i], c.max_polylines, MAP_RADIUS
+            )
+        return SceneInputs(
+            agent_xyh=torch.from_numpy(np.where(real[..., None], local, 0.0)).float(),
+            agent_size=torch.from_numpy(np.where(real[..., None], self.size[r_ix, idx], 1.0)).float(),
+            agent_kind=torch.from_numpy(np.where(real, self.kind[r_ix, idx], 0)),
+            agent_mask=torch.from_numpy(real),
+            map_points=torch.from_numpy(pts),
+            map_point_mask=torch.from_numpy(pmask),
+            map_kind=torch.from_numpy(mkind),
+            map_mask=torch.from_numpy(mmask),
+        )
+
+    def _joint(self, rows: np.ndarray, agents: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """Joint ids of the tokens of ``agents [r,n]`` (-1 padding) at ``steps [r,n]`` (-1: unknown)."""
+        safe = np.maximum(agents, 0)
+        r_ix = rows[:, None]
+        tok = self.tokens[r_ix, safe, steps]
+        ok = (agents >= 0) & self.known[r_ix, safe, steps] & (tok >= 0)
+        return np.where(ok, tok + self.kind[r_ix, safe] * self.cfg.vocab_size, -1)
+
+    def _inputs(
+        self, rows: np.ndarray, slots: np.ndarray, s0: np.ndarray, positions: np.ndarray
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Carried and own-previous joint ids ``[r,n]`` of window ``positions [r,n]`` (see masks)."""
+        A = self.cfg.max_agents
+        q = positions - input_shift(self.cfg.variant, A)
+        qs = np.maximum(q, 0)
+        carried = self._joint(rows, np.take_along_axis(slots, qs % A, 1), s0[:, None] + qs // A)
+        carried = np.where(q >= 0, carried, START)
+        tau = positions // A
+        own = self._joint(
+            rows, np.take_along_axis(slots, positions % A, 1), s0[:, None] + np.maximum(tau - 1, 0)
+        )
+        own = np.where(tau > 0, own, -1)
+        return torch.from_numpy(carried), torch.from_numpy(own)
+
+    def _prime(
+        self,
+        cache: DecoderCache,
+        agents: torch.Tensor,
+        kind: torch.Tensor,
+        rows: np.ndarray,
+        slots: np.ndarray,
+        s0: np.ndarray,
+        steps: int,
+    ) -> None:
+        """Feed a new window the known tokens of its first ``steps`` steps (teacher forcing, one chunk)."""
+        A = self.cfg.max_agents
+        positions = np.broadcast_to(np.arange(steps * A), (len(rows), steps * A))
+        carried, own = self._inputs(rows, slots, s0, positions)
+        kinds = kind[:, positions[0] % A]
+        self.model.decode(cache, agents, kinds, carried, own)
+
+    # ------------------------------------------------------------------ stepping
+    def advance(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """See :meth:`_advance`."""
+        return self._advance()
+
+    def _advance(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Act the positions of the current step in order, for every stepping row. Returns
+        ``(rows, agents)``: external agents whose next states are needed (supply them, then call again),
+        or None when the step is complete (every stepping row is one step further)."""
+        stepping = self.stepping
+        if not stepping.any():
+            raise RuntimeError("no row has steps left (start rows, or the horizon is reached)")
+        rebuild = self._needs_windows()
+        if rebuild.any():
+            if self._cursor != (0, 0):
+                raise RuntimeError("internal error: windows rebuilt in the middle of a step")
+            self._build_windows(np.flatnonzero(rebuild))
+        A = self.cfg.max_agents
+        trajeglish = self.cfg.variant is Variant.TRAJEGLISH
+        ranks = int(self.num_subsets[stepping].max(initial=0))
+        rows = np.arange(self.B)
+        t_safe = np.minimum(self.now, self.T - 2)
+        while self._cursor[0] < ranks:
+            k, slot = self._cursor
+            w = self.windows[k]
+            chunk = np.arange(slot, slot + 1) if trajeglish else np.arange(A)
+            agents = w.slots[:, chunk]  # [B, n]
+            if trajeglish:
+                waiting = self._waiting(agents, stepping, t_safe)
+                if waiting is not None:
+                    return waiting
+            tau = self.now - w.start
+            ok = stepping & (tau >= 0) & (tau < self.cfg.steps)
+            start = np.where(ok, tau * A + chunk[0], 0)
+            positions = start[:, None] + np.arange(len(chunk))
+            carried, own = self._inputs(rows, w.slots, w.start, positions)
+            logits = self.model.decode_at(
+                w.cache, w.agents, w.kind[:, chunk], carried, own, torch.from_numpy(start)
+            )
+            self._sample(agents, logits, stepping, t_safe)
+            slot += len(chunk)
+            self._cursor = (k + 1, 0) if slot >= A else (k, slot)
+        late = self._pending_external(stepping, t_safe)
+        if late is not None:
+            return late
+        self.known[rows[stepping], :, self.now[stepping]] = True  # undecided tokens are unobserved from now
+        self.now[stepping] += 1
+        self._cursor = (0, 0)
+        return None
+
+    def _waiting(
+        self, agents: np.ndarray, stepping: np.ndarray, t: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """External agents at this position whose state is not supplied yet."""
+        safe = np.maximum(agents, 0)
+        r_ix = np.arange(self.B)[:, None]
+        need = (
+            (agents >= 0)
+            & stepping[:, None]
+            & self.row_external[r_ix, safe]
+            & ~self.known[r_ix, safe, t[:, None]]
+            & self.valid[r_ix, safe, t[:, None]]
+        )
+        if not need.any():
+            return None
+        rr, cc = np.nonzero(need)
+        return rr, agents[rr, cc]
+
+    def _pending_external(self, stepping: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """External agents alive at this step whose next state has not been supplied (acting order)."""
+        r_ix = np.arange(self.B)[:, None]
+        need = self.row_external & ~self.known[r_ix, :, t[:, None]][:, 0] & self.valid[r_ix, :, t[:, None]][:, 0]
+        need &= stepping[:, None]
+        if not need.any():
+            return None
+        rr, aa = np.nonzero(need)
+        order = np.lexsort((aa, self.row_priority[rr, aa], rr))
+        return rr[order], aa[order]
+
+    def _sample(self, agents: np.ndarray, logits: torch.Tensor, stepping: np.ndarray, t: np.ndarray) -> None:
+        safe = np.maximum(agents, 0)
+        r_ix = np.arange(self.B)[:, None]
+        todo = (
+            (agents >= 0)
+            & stepping[:, None]
+            & self.row_controlled[r_ix, safe]
+            & ~self.known[r_ix, safe, t[:, None]]
+        )
+        if not todo.any():
+            return
+        rr, cc = np.nonzero(todo)
+        who = agents[rr, cc]
+        tt = self.now[rr]
+        u = counter_uniform(self.seed[rr], tt, who)
+        tok = sample_with_uniform(logits[rr, cc], self.config.temperature, self.config.top_p, u)
+        self.tokens[rr, who, tt] = tok
+        self.known[rr, who, tt] = True
+        nxt = to_global(self.mxyh[rr, who, tt], self.vocab.templates[self.kind[rr, who], tok])
+        self.mxyh[rr, who, tt + 1] = nxt
+        self.xyh[rr, who, tt + 1] = nxt
+        self.valid[rr, who, tt + 1] = True
+
+    def supply(
+        self,
+        rows: np.ndarray,
+        agents: np.ndarray,
+        next_xyh: np.ndarray,
+        valid: bool | np.ndarray = True,
+    ) -> None:
+        """Set the states at ``t + 1`` of external ``agents [n]`` of ``rows [n]`` (``next_xyh [n,3]``;
+        ``valid=False``: the agent leaves the scene)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        agents = np.asarray(agents, dtype=np.int64).reshape(-1)
+        n = len(rows)
+        next_xyh = np.broadcast_to(np.asarray(next_xyh, dtype=np.float64), (n, 3))
+        bad = ~self.row_external[rows, agents]
+        if bad.any():
+            b, a = int(rows[bad][0]), int(agents[bad][0])
+            sc = self.scenes[b]
+            track = sc.track_id[a] if sc is not None and a < sc.num_agents else "?"
+            raise ValueError(f"agent {a} (track {track}) of row {b} is not external")
+        if not self.stepping[rows].all():
+            raise RuntimeError(f"rows {rows[~self.stepping[rows]].tolist()} are not stepping")
+        t = self.now[rows]
+        ok = np.broadcast_to(np.asarray(valid, dtype=bool), (n,)) & self.valid[rows, agents, t]
+        self.xyh[rows, agents, t + 1] = np.where(ok[:, None], next_xyh, 0.0)
+        self.valid[rows, agents, t + 1] = ok
+        pair = np.stack([self.mxyh[rows, agents, t], next_xyh], 1)[:, None]  # [n,1,2,3]
+        tok = tokenize(
+            self.vocab,
+            pair,
+            np.stack([ok, ok], 1)[:, None],
+            self.size[rows, agents][:, None, :],
+            self.kind[rows, agents][:, None],
+        )
+        self.tokens[rows, agents, t] = np.where(ok, tok.tokens[:, 0, 0], -1)
+        # the model's view of the agent is its tokenized state (re-anchored on the true state after a gap)
+        self.mxyh[rows, agents, t + 1] = np.where(ok[:, None], np.nan_to_num(tok.xyh[:, 0, 1]), 0.0)
+        self.known[rows, agents, t] = True
+
+    def step(self) -> None:
+        """Advance every stepping row by one step (no external agent may be waiting)."""
+        pending = self._advance()
+        if pending is not None:
+            raise RuntimeError(
+                f"external agents {pending[1].tolist()} of rows {pending[0].tolist()} must be supplied "
+                "before the step can finish"
+            )
+
+    def run(self) -> None:
+        """Step until every row reaches its horizon (no external agents)."""
+        while self.stepping.any():
+            self.step()
+
+
+class RolloutEngine(BatchEngine):
+    """``R`` rollouts of one scene (rows ``0..R-1``; rollout ``r`` draws from sub-stream ``r`` of the
+    seed). Keeps the single-scene view: ``t``, ``T`` and ``N`` are ints, ``controlled``/``external``/
+    ``replay`` are ``[N]``, :meth:`advance` returns one external agent and :meth:`supply` takes its
+    states in every rollout."""
 
     def __init__(
         self,
@@ -89,291 +566,41 @@ class RolloutEngine:
         current_index: int | None = None,
         priority: np.ndarray | None = None,
         config: SamplingConfig = SamplingConfig(),
+        cache_dtype: torch.dtype = torch.float32,
     ):
-        self.model = ckpt.model.eval()
-        self.vocab = ckpt.vocabulary
-        self.cfg = self.model.cfg
+        super().__init__(ckpt, rollouts, config, cache_dtype)
         self.sc = scenario
-        self.config = config
-        self.every = config.every(self.cfg.steps)
-        self.prime = config.prime(self.cfg.steps)
-        n = scenario.num_agents
-        self.current = scenario.current_index if current_index is None else int(current_index)
-        if not 0 <= self.current < scenario.num_steps:
-            raise ValueError(f"current_index {self.current} out of range for {scenario.num_steps} steps")
-        self.controlled = _agent_mask(controlled, n, "controlled")
-        self.external = _agent_mask(external, n, "external") if external is not None else np.zeros(n, bool)
-        if (self.controlled & self.external).any():
-            raise ValueError(
-                f"agents {np.flatnonzero(self.controlled & self.external).tolist()} are both controlled "
-                "and external"
-            )
-        missing = np.flatnonzero(self.controlled & ~scenario.valid[:, self.current])
-        if len(missing):
-            raise ValueError(
-                f"controlled agents must be valid at the current step {self.current}; track ids "
-                f"{scenario.track_id[missing].tolist()} are not"
-            )
+        spec = RowSpec(scenario, horizon, controlled, external, current_index, priority)
+        self.start_rows(np.arange(self.R), spec, stream_seed(config.seed, np.arange(self.R)))
+        self.controlled = self.row_controlled[0].copy()
+        self.external = self.row_external[0].copy()
         self.replay = ~(self.controlled | self.external)
-        self.priority = np.zeros(n) if priority is None else np.asarray(priority, dtype=np.float64)
-        self.R, self.N = int(rollouts), n
-        self.T = self.current + 1 + int(horizon)
-        self.generator = torch.Generator().manual_seed(int(config.seed))
-        self.chunks: MapChunks = chunk_map(scenario, self.cfg.points_per_polyline)
-        self._init_state()
-        self.t = self.current
-        self.windows: list[_Window] = []
-        self.plan: list[SubsetPlan] = []
-        self._window_step = -1
-        self._cursor = (0, 0)  # (subset rank, slot) of the next position to act at step t
+        self.priority = self.row_priority[0].copy()
+        self.current = int(self.now[0])
 
-    # ------------------------------------------------------------------ state
-    def _init_state(self) -> None:
-        sc, R, N, T = self.sc, self.R, self.N, self.T
-        logged = np.zeros((N, T, 3))
-        lvalid = np.zeros((N, T), dtype=bool)
-        keep = min(T, sc.num_steps)
-        logged[:, :keep] = sc.xyh[:, :keep]
-        lvalid[:, :keep] = sc.valid[:, :keep]
-        known_steps = np.arange(T) <= self.current
-        # what is fixed before the rollout: everyone's history, replay agents' whole future
-        fixed = lvalid & (known_steps[None] | self.replay[:, None])
-        tok = tokenize(self.vocab, logged, fixed, sc.size, sc.kind.astype(np.int64))
-        self.xyh = np.repeat(np.where(fixed[..., None], logged, 0.0)[None], R, 0)
-        self.valid = np.repeat(fixed[None], R, 0)
-        self.mxyh = np.repeat(np.nan_to_num(tok.xyh)[None], R, 0)  # the model's (tokenized) view
-        self.tokens = np.repeat(tok.tokens[None], R, 0)  # [R,N,T-1]
-        # controlled agents exist for the whole rollout; their future tokens are unknown
-        self.known = np.ones((R, N, T - 1), dtype=bool)  # a token is decided (a value, or -1 unobserved)
-        self.known[:, self.controlled, self.current :] = False
-        self.known[:, self.external, self.current :] = False
-        self.valid[:, self.controlled, self.current :] = True
+    @property
+    def R(self) -> int:
+        """Number of rollouts."""
+        return self.B
 
-    # ------------------------------------------------------------------ windows
-    def _build_windows(self) -> None:
-        """Plan subsets per rollout at step ``t`` and encode each subset rank as one batched context."""
-        t, A = self.t, self.cfg.max_agents
-        s0 = max(0, t - self.prime)
-        active = self.valid[:, :, t]
-        plans = [
-            plan_subsets(self.mxyh[r, :, t, :2], active[r], A, self.sc.sdc, self.priority)
-            for r in range(self.R)
-        ]
-        k_max = max(p.num_subsets for p in plans)
-        self.plan = plans
-        self.windows = []
-        for k in range(k_max):
-            slots = np.full((self.R, A), -1, dtype=np.int64)
-            for r, p in enumerate(plans):
-                if k < p.num_subsets:
-                    slots[r] = p.slots[k]
-            scene = self._scene_inputs(slots, s0, [p.centres[min(k, p.num_subsets - 1)] for p in plans])
-            cache, agents = self.model.start_decoding(scene, max_length=self.cfg.steps * A)
-            self.windows.append(_Window(slots, s0, cache, agents, scene.agent_kind, 0))
-        self._window_step = t
-        self._prime(t)
+    @property
+    def t(self) -> int:
+        """The step being played (the same in every rollout)."""
+        return int(self.now[0])
 
-    def _scene_inputs(self, slots: np.ndarray, s0: int, centres: list[int]) -> SceneInputs:
-        R, c = self.R, self.cfg
-        real = slots >= 0
-        idx = np.where(real, slots, 0)
-        r_ix = np.arange(R)[:, None]
-        # initial state: the model's view at s0, or the first valid step after it (agents that appeared later)
-        seg = self.valid[r_ix, idx, s0 : self.t + 1]  # [R,A,S]
-        first = np.argmax(seg, axis=-1) + s0
-        init = self.mxyh[r_ix, idx, first]
-        frames = np.stack(
-            [self.mxyh[r, centres[r], max(s0, _first_valid(self.valid[r, centres[r]], s0))] for r in range(R)]
-        )
-        local = to_local(frames[:, None, :], init)
-        pts = np.zeros((R, c.max_polylines, c.points_per_polyline, 2), dtype=np.float32)
-        pmask = np.zeros(pts.shape[:3], dtype=bool)
-        mkind = np.zeros((R, c.max_polylines), dtype=np.int64)
-        mmask = np.zeros((R, c.max_polylines), dtype=bool)
-        for r in range(R):
-            pts[r], pmask[r], mkind[r], mmask[r] = nearest_chunks(
-                self.chunks, frames[r], c.max_polylines, MAP_RADIUS
-            )
-        return SceneInputs(
-            agent_xyh=torch.from_numpy(np.where(real[..., None], local, 0.0)).float(),
-            agent_size=torch.from_numpy(np.where(real[..., None], self.sc.size[idx], 1.0)).float(),
-            agent_kind=torch.from_numpy(np.where(real, self.sc.kind[idx], 0).astype(np.int64)),
-            agent_mask=torch.from_numpy(real),
-            map_points=torch.from_numpy(pts),
-            map_point_mask=torch.from_numpy(pmask),
-            map_kind=torch.from_numpy(mkind),
-            map_mask=torch.from_numpy(mmask),
-        )
+    def advance(self) -> int | None:  # type: ignore[override]
+        """The next external agent to supply (for every rollout), or None when the step is complete."""
+        pending = self._advance()
+        return None if pending is None else int(pending[1][0])
 
-    def _joint(self, w: _Window, step: int, slots: list[int]) -> torch.Tensor:
-        """Joint ids ``[R, len(slots)]`` of the tokens at ``step`` of the given slots (-1 unknown/absent)."""
-        idx = w.slots[:, slots]
-        tok = self.tokens[np.arange(self.R)[:, None], np.maximum(idx, 0), step]
-        known = self.known[np.arange(self.R)[:, None], np.maximum(idx, 0), step]
-        tok = np.where((idx >= 0) & known & (step >= w.start), tok, -1)
-        # tokens before the agent's first valid step in the window are unobserved
-        local = torch.from_numpy(tok)
-        return self.model.global_ids(local, w.kind[:, slots])
-
-    def _carried(self, w: _Window, positions: range) -> torch.Tensor:
-        A = self.cfg.max_agents
-        cols = []
-        for p in positions:
-            q = carried_position(self.cfg.variant, p, A)
-            if q < 0:
-                cols.append(torch.full((self.R,), START, dtype=torch.long))
-            else:
-                tau, slot = divmod(q, A)
-                cols.append(self._joint(w, w.start + tau, [slot])[:, 0])
-        return torch.stack(cols, 1)
-
-    def _own(self, w: _Window, positions: range) -> torch.Tensor:
-        """Joint ids ``[R, n]`` of each position's own agent token one step earlier (-1 at the first step)."""
-        A = self.cfg.max_agents
-        cols = []
-        for p in positions:
-            tau, slot = divmod(p, A)
-            if tau == 0:
-                cols.append(torch.full((self.R,), -1, dtype=torch.long))
-            else:
-                cols.append(self._joint(w, w.start + tau - 1, [slot])[:, 0])
-        return torch.stack(cols, 1)
-
-    def _prime(self, t: int) -> None:
-        """Feed every window the known tokens of steps ``s0 .. t-1`` (teacher forcing, one chunk)."""
-        A = self.cfg.max_agents
-        for w in self.windows:
-            n = (t - w.start) * A
-            if n:
-                positions = range(0, n)
-                kinds = w.kind[:, [p % A for p in positions]]
-                self.model.decode(
-                    w.cache, w.agents, kinds, self._carried(w, positions), self._own(w, positions)
-                )
-                w.decoded = n
-
-    # ------------------------------------------------------------------ stepping
-    def needs_windows(self) -> bool:
-        return (
-            not self.windows or (self.t - self._window_step) % self.every == 0 and self.t != self._window_step
-        )
-
-    def step(self) -> None:
-        """Advance all rollouts from ``t`` to ``t + 1`` (no external agents may be waiting)."""
-        pending = self.advance()
-        if pending is not None:
-            raise RuntimeError(f"external agent {pending} must be supplied before the step can finish")
-
-    def advance(self, stop_at: int | None = None) -> int | None:
-        """Act positions of step ``t`` in order; returns an external agent whose next state is needed
-        (supply it with :meth:`supply`, then call again), or None when the step is complete."""
-        if self.t >= self.T - 1:
-            raise RuntimeError(f"rollout horizon reached (step {self.t} of {self.T - 1})")
-        if self.needs_windows():
-            self._build_windows()
-            self._cursor = (0, 0)
-        A = self.cfg.max_agents
-        trajeglish = self.cfg.variant is Variant.TRAJEGLISH
-        while self._cursor[0] < len(self.windows):
-            k, slot = self._cursor
-            w = self.windows[k]
-            tau = self.t - w.start
-            chunk = range(slot, slot + 1) if trajeglish else range(0, A)
-            waiting = self._waiting_external(w, list(chunk))
-            if waiting is not None:
-                return waiting
-            positions = range(tau * A + chunk.start, tau * A + chunk.stop)
-            logits = self.model.decode(
-                w.cache,
-                w.agents,
-                w.kind[:, list(chunk)],
-                self._carried(w, positions),
-                self._own(w, positions),
-            )
-            w.decoded = positions.stop
-            self._sample(w, list(chunk), logits)
-            slot = chunk.stop
-            self._cursor = (k + 1, 0) if slot >= A else (k, slot)
-        late = self._unsupplied_external()
-        if late is not None:
-            return late
-        self._finish_step()
-        return None
-
-    def _unsupplied_external(self) -> int | None:
-        """An external agent alive at ``t`` whose next state has not been supplied yet (acting order)."""
-        need = self.external[None] & ~self.known[:, :, self.t] & self.valid[:, :, self.t]
-        agents = np.flatnonzero(need.any(0))
-        if len(agents) == 0:
-            return None
-        return int(agents[np.argmin(self.priority[agents], kind="stable")])
-
-    def _waiting_external(self, w: _Window, chunk: list[int]) -> int | None:
-        idx = w.slots[:, chunk]
-        r_ix = np.arange(self.R)[:, None]
-        safe = np.maximum(idx, 0)
-        need = (
-            (idx >= 0)
-            & self.external[safe]
-            & ~self.known[r_ix, safe, self.t]
-            & self.valid[r_ix, safe, self.t]
-        )
-        if self.cfg.variant is not Variant.TRAJEGLISH:
-            return None  # other variants never see this step's tokens: externals may act after the model
-        return int(idx[need][0]) if need.any() else None
-
-    def _sample(self, w: _Window, chunk: list[int], logits: torch.Tensor) -> None:
-        idx = w.slots[:, chunk]
-        r_ix = np.arange(self.R)[:, None]
-        safe = np.maximum(idx, 0)
-        todo = (idx >= 0) & self.controlled[safe] & ~self.known[r_ix, safe, self.t]
-        if not todo.any():
-            return
-        drawn = sample_logits(logits, self.config.temperature, self.config.top_p, self.generator).numpy()
-        rr, cc = np.nonzero(todo)
-        agents = idx[rr, cc]
-        tok = drawn[rr, cc]
-        self.tokens[rr, agents, self.t] = tok
-        self.known[rr, agents, self.t] = True
-        base = self.mxyh[rr, agents, self.t]
-        nxt = to_global(base, self.vocab.templates[self.sc.kind[agents], tok])
-        self.mxyh[rr, agents, self.t + 1] = nxt
-        self.xyh[rr, agents, self.t + 1] = nxt
-        self.valid[rr, agents, self.t + 1] = True
-
-    def supply(self, agent: int, next_xyh: np.ndarray, valid: bool | np.ndarray = True) -> None:
-        """Set the state at ``t + 1`` of external ``agent`` for every rollout (``next_xyh [R,3]``)."""
+    def supply(  # type: ignore[override]
+        self, agent: int, next_xyh: np.ndarray, valid: bool | np.ndarray = True
+    ) -> None:
+        """Set the state at ``t + 1`` of external ``agent`` in every rollout (``next_xyh [R,3]``)."""
         if not self.external[agent]:
             raise ValueError(f"agent {agent} (track {self.sc.track_id[agent]}) is not external")
-        next_xyh = np.broadcast_to(np.asarray(next_xyh, dtype=np.float64), (self.R, 3))
-        ok = np.broadcast_to(np.asarray(valid, dtype=bool), (self.R,)) & self.valid[:, agent, self.t]
-        t = self.t
-        self.xyh[:, agent, t + 1] = np.where(ok[:, None], next_xyh, 0.0)
-        self.valid[:, agent, t + 1] = ok
-        pair = np.stack([self.mxyh[:, agent, t], next_xyh], 1)[:, None]  # [R,1,2,3]
-        pv = np.stack([ok, ok], 1)[:, None]
-        tok = tokenize(
-            self.vocab,
-            pair,
-            pv,
-            np.broadcast_to(self.sc.size[agent], (self.R, 1, 2)).copy(),
-            np.full((self.R, 1), self.sc.kind[agent], dtype=np.int64),
-        )
-        self.tokens[:, agent, t] = np.where(ok, tok.tokens[:, 0, 0], -1)
-        # the model's view of the agent is its tokenized state (re-anchored on the true state after a gap)
-        self.mxyh[:, agent, t + 1] = np.where(ok[:, None], np.nan_to_num(tok.xyh[:, 0, 1]), 0.0)
-        self.known[:, agent, t] = True
-
-    def _finish_step(self) -> None:
-        self.known[:, :, self.t] = True  # whatever was not decided is unobserved from now on
-        self.t += 1
-        self._cursor = (0, 0)
-
-    # ------------------------------------------------------------------ whole rollouts
-    def run(self) -> None:
-        """Step until the horizon (no external agents)."""
-        while self.t < self.T - 1:
-            self.step()
+        rows = np.arange(self.R)
+        super().supply(rows, np.full(self.R, agent), next_xyh, np.broadcast_to(valid, (self.R,)))
 
 
 def _agent_mask(mask: np.ndarray, n: int, name: str) -> np.ndarray:
@@ -384,8 +611,3 @@ def _agent_mask(mask: np.ndarray, n: int, name: str) -> np.ndarray:
             f"got {mask.dtype} {mask.shape}"
         )
     return mask
-
-
-def _first_valid(valid: np.ndarray, start: int) -> int:
-    hits = np.flatnonzero(valid[start:])
-    return start + int(hits[0]) if len(hits) else start
