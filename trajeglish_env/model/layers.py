@@ -129,6 +129,24 @@ class DecoderCache:
             mine[rows] = theirs.to(mine.dtype)
 
 
+@dataclass(frozen=True)
+class RowGroup:
+    """Rows of a batch that decode ``count`` positions from the same window ``position`` (``rows`` None:
+    every row), with the mask of those positions over keys ``0 .. position + count - 1`` (None: no
+    masking needed). A group sees keys of exactly that length, so a row's result does not depend on the
+    other rows."""
+
+    rows: torch.Tensor | None
+    position: int
+    count: int
+    mask: torch.Tensor | None
+
+    @property
+    def select(self) -> slice | torch.Tensor:
+        """Index of the group's rows (a slice, i.e. views, when it is every row)."""
+        return slice(None) if self.rows is None else self.rows
+
+
 class DecoderBlock(nn.Module):
     """Pre-norm block: masked self-attention (cacheable), cross-attention to the scene, feed-forward."""
 
@@ -144,29 +162,57 @@ class DecoderBlock(nn.Module):
     def forward(
         self,
         x: torch.Tensor,
-        self_mask: torch.Tensor,
+        self_mask: torch.Tensor | None,
         cross_k: torch.Tensor,
         cross_v: torch.Tensor,
         memory_mask: torch.Tensor,
-        cache: tuple[torch.Tensor, torch.Tensor, int | torch.Tensor] | None = None,
+        cache: tuple[torch.Tensor, torch.Tensor, int | list[RowGroup]] | None = None,
     ) -> torch.Tensor:
         """``x [B,N,C]``; with ``cache = (K, V, start)`` the new keys/values are written at ``start`` and
-        the prefix is attended; with ``cache = (K, V, index [B,N])`` they are written at per-row positions
-        and the whole cache is attended (``self_mask`` hides what a row may not see)."""
+        the prefix is attended; with ``cache = (K, V, groups)`` each :class:`RowGroup` writes at its own
+        position and attends over its own prefix (``self_mask`` is unused; each group has its mask)."""
         h = self.norm_self(x)
         k, v = self.self_attn.keys_values(h)
+        if cache is not None and isinstance(cache[2], list):
+            return self._grouped(x, h, k, v, cache[0], cache[1], cache[2], cross_k, cross_v, memory_mask)
         if cache is not None:
             ck, cv, start = cache
-            if isinstance(start, torch.Tensor):
-                rows = torch.arange(x.shape[0], device=x.device)[:, None]
-                ck[rows, :, start] = k.transpose(1, 2).to(ck.dtype)
-                cv[rows, :, start] = v.transpose(1, 2).to(cv.dtype)
-                k, v = ck, cv
-            else:
-                n = x.shape[1]
-                ck[:, :, start : start + n] = k.to(ck.dtype)
-                cv[:, :, start : start + n] = v.to(cv.dtype)
-                k, v = ck[:, :, : start + n], cv[:, :, : start + n]
+            n = x.shape[1]
+            ck[:, :, start : start + n] = k.to(ck.dtype)  # type: ignore[misc]
+            cv[:, :, start : start + n] = v.to(cv.dtype)  # type: ignore[misc]
+            k, v = ck[:, :, : start + n], cv[:, :, : start + n]  # type: ignore[operator]
         x = x + self.self_attn.attend(h, k, v, self_mask)
         x = x + self.cross_attn.attend(self.norm_cross(x), cross_k, cross_v, memory_mask)
+        return x + self.ff(self.norm_ff(x))
+
+    def _grouped(
+        self,
+        x: torch.Tensor,
+        h: torch.Tensor,
+        k: torch.Tensor,
+        v: torch.Tensor,
+        ck: torch.Tensor,
+        cv: torch.Tensor,
+        groups: list[RowGroup],
+        cross_k: torch.Tensor,
+        cross_v: torch.Tensor,
+        memory_mask: torch.Tensor,
+    ) -> torch.Tensor:
+        """Self- and cross-attention group by group (each with exactly its own queries and keys)."""
+        attended = torch.zeros_like(h)
+        for g in groups:
+            rows, end = g.select, g.position + g.count
+            ck[rows, :, g.position : end] = k[rows, :, : g.count].to(ck.dtype)
+            cv[rows, :, g.position : end] = v[rows, :, : g.count].to(cv.dtype)
+            keys, values = ck[rows, :, :end], cv[rows, :, :end]  # views when the group is every row
+            attended[rows, : g.count] = self.self_attn.attend(h[rows, : g.count], keys, values, g.mask)
+        x = x + attended
+        hc = self.norm_cross(x)
+        crossed = torch.zeros_like(h)
+        for g in groups:
+            rows = g.select
+            crossed[rows, : g.count] = self.cross_attn.attend(
+                hc[rows, : g.count], cross_k[rows], cross_v[rows], memory_mask[rows]
+            )
+        x = x + crossed
         return x + self.ff(self.norm_ff(x))

@@ -16,12 +16,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from trajeglish_env.model.config import ModelConfig, Variant
-from trajeglish_env.model.layers import DecoderBlock, DecoderCache, EncoderBlock, Linear, invariant_linear
+from trajeglish_env.model.layers import (
+    DecoderBlock,
+    DecoderCache,
+    EncoderBlock,
+    Linear,
+    RowGroup,
+    invariant_linear,
+)
 from trajeglish_env.model.masks import decoder_mask, input_shift
 
 POSITION_SCALE = 50.0  # metres -> network units
@@ -258,7 +266,8 @@ class TrajeglishModel(nn.Module):
         length = max_length or scene.agent_xyh.shape[1] * self.cfg.steps
         cache = self.empty_cache(memory.shape[0], length, memory.shape[1], dtype or memory.dtype)
         for i, blk in enumerate(self.blocks):
-            cache.cross_k[i], cache.cross_v[i] = blk.cross_attn.keys_values(memory)
+            k, v = blk.cross_attn.keys_values(memory)
+            cache.cross_k[i], cache.cross_v[i] = k.to(cache.self_k[i].dtype), v.to(cache.self_k[i].dtype)
         cache.memory_mask = memory_mask[:, None, None, :]
         return cache, agents
 
@@ -266,13 +275,13 @@ class TrajeglishModel(nn.Module):
         """A zeroed cache for ``batch`` rows of ``length`` positions over a memory of ``memory`` entries
         (all of it visible, so that unused rows stay finite)."""
         h, dh = self.cfg.num_heads, self.cfg.d_model // self.cfg.num_heads
-        dev, f32 = self.start.device, self.start.dtype
+        dev = self.start.device
         layers = range(len(self.blocks))
         return DecoderCache(
             self_k=[torch.zeros(batch, h, length, dh, dtype=dtype, device=dev) for _ in layers],
             self_v=[torch.zeros(batch, h, length, dh, dtype=dtype, device=dev) for _ in layers],
-            cross_k=[torch.zeros(batch, h, memory, dh, dtype=f32, device=dev) for _ in layers],
-            cross_v=[torch.zeros(batch, h, memory, dh, dtype=f32, device=dev) for _ in layers],
+            cross_k=[torch.zeros(batch, h, memory, dh, dtype=dtype, device=dev) for _ in layers],
+            cross_v=[torch.zeros(batch, h, memory, dh, dtype=dtype, device=dev) for _ in layers],
             memory_mask=torch.ones(batch, 1, 1, memory, dtype=torch.bool, device=dev),
         )
 
@@ -325,22 +334,33 @@ class TrajeglishModel(nn.Module):
         self,
         cache: DecoderCache,
         agents: torch.Tensor,
-        kind: torch.Tensor,
         carried_ids: torch.Tensor,
         own_ids: torch.Tensor | None,
-        start: torch.Tensor,
+        start: np.ndarray,
+        count: np.ndarray,
     ) -> torch.Tensor:
-        """Like :meth:`decode`, but row ``b`` decodes positions ``start[b] .. start[b]+n-1`` of its own
-        window (rows of one batch may be at different points of their windows). Every row attends over
-        the whole cache (capacity ``steps x max_agents``) under the variant's mask, so its result does not
-        depend on the other rows. ``cache.length`` is not used."""
+        """Hidden states ``[B,n,C]`` (logits: :meth:`class_logits`) of a chunk of positions per row: row
+        ``b`` decodes positions ``start[b] .. start[b]+count[b]-1`` of its own window (``count`` 0: the row
+        is idle; entries past ``count[b]`` are padding), appending them to its cache. ``start``/``count``
+        are host arrays (no device sync). Rows with the same (start, count) are attended together, each
+        over exactly its own prefix, so a row's result never depends on the other rows of the batch."""
         n, a = carried_ids.shape[1], agents.shape[1]
-        if cache.capacity != self.mask.shape[0] or a != self.cfg.max_agents:
-            raise ValueError(
-                f"decode_at needs a full window cache ({self.mask.shape[0]} positions, {self.cfg.max_agents} "
-                f"agents), got {cache.capacity} positions and {a} agents"
-            )
-        index = start[:, None] + torch.arange(n, device=start.device)  # [B,n]
+        start, count = np.asarray(start, dtype=np.int64), np.asarray(count, dtype=np.int64)
+        busy = count > 0
+        if (count > n).any() or (busy & ((start < 0) | (start + count > cache.capacity))).any():
+            raise ValueError(f"decode_at: chunks {list(zip(start, count))} exceed {n} inputs or the cache")
+        dev = carried_ids.device
+        keys = start * (cache.capacity + 1) + count
+        values = np.unique(keys[busy])
+        groups = []
+        for key in values.tolist():
+            p, c = divmod(key, cache.capacity + 1)
+            rows = np.flatnonzero(busy & (keys == key))
+            index = None if len(rows) == len(busy) else torch.from_numpy(rows).to(dev)
+            whole = self.cfg.variant is Variant.TRAJEGLISH and c == 1  # one query sees its whole prefix
+            groups.append(RowGroup(index, p, c, None if whole else self._mask_rows(p, c, a)))
+        index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
+        index = index.clamp(max=cache.capacity - 1)
         is_start = (carried_ids == -2)[..., None]
         x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
         if self.own_previous is not None:
@@ -349,8 +369,7 @@ class TrajeglishModel(nn.Module):
             x = x + self.own_previous(self.embed_tokens(own_ids))
         slot_emb = agents.gather(1, (index % a)[..., None].expand(-1, -1, agents.shape[-1]))
         x = x + self.time(index // a) + self.target_agent(slot_emb)
-        mask = self.mask[index][:, None]  # [B,1,n,L]
         for i, block in enumerate(self.blocks):
-            kv = (cache.self_k[i], cache.self_v[i], index)
-            x = block(x, mask, cache.cross_k[i], cache.cross_v[i], cache.memory_mask, kv)
-        return self.class_logits(x, kind)
+            kv = (cache.self_k[i], cache.self_v[i], groups)
+            x = block(x, None, cache.cross_k[i], cache.cross_v[i], cache.memory_mask, kv)
+        return x

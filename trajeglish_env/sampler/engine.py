@@ -38,7 +38,7 @@ from trajeglish_env.model.config import Variant
 from trajeglish_env.model.layers import DecoderCache
 from trajeglish_env.model.masks import input_shift
 from trajeglish_env.model.network import SceneInputs
-from trajeglish_env.sampler.subsets import SubsetPlan, plan_subsets
+from trajeglish_env.sampler.subsets import SUBSET_RULES, SubsetPlan, plan_subsets
 from trajeglish_env.sampling import START, counter_uniform, sample_with_uniform, stream_seed
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.tokenize import tokenize
@@ -57,6 +57,11 @@ class SamplingConfig:
     )
     recompute_every: int | None = None  # default: model steps - prime_steps
     seed: int = 0
+    subsets: str = "overlap"  # how scenes larger than the model's context are split (see subsets.py)
+
+    def __post_init__(self) -> None:
+        if self.subsets not in SUBSET_RULES:
+            raise ValueError(f"SamplingConfig.subsets must be one of {SUBSET_RULES}, got {self.subsets!r}")
 
     def prime(self, model_steps: int) -> int:
         prime = max(1, model_steps // 4) if self.prime_steps is None else self.prime_steps
@@ -141,7 +146,9 @@ class BatchEngine:
         self.num_subsets = np.zeros(self.B, dtype=np.int64)
         self.window_step = np.full(self.B, -1, dtype=np.int64)
         self.windows: list[_Window] = []
-        self._cursor = (0, 0)  # (subset rank, slot) of the next position to act in this step
+        self._in_step = False  # a step has begun (windows planned) and is not finished
+        self._rank = 0  # subset rank being decoded in this step
+        self._slot = np.zeros(self.B, dtype=np.int64)  # per row: next slot of that rank to decode
         self._chunk_cache: dict[int, tuple[Scenario, MapChunks]] = {}
 
     # ------------------------------------------------------------------ storage
@@ -183,7 +190,7 @@ class BatchEngine:
     # ------------------------------------------------------------------ rows
     def start_rows(self, rows: np.ndarray | list[int], spec: RowSpec, seeds: np.ndarray | list[int]) -> None:
         """(Re)start ``rows`` on ``spec``, row ``rows[i]`` drawing from ``seeds[i]``; only between steps."""
-        if self._cursor != (0, 0):
+        if self._in_step:
             raise RuntimeError("rows can only be (re)started between steps (the current step is unfinished)")
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)
@@ -255,7 +262,7 @@ class BatchEngine:
 
     def stop_rows(self, rows: np.ndarray | list[int]) -> None:
         """Take ``rows`` out of the simulation (they stop stepping until started again)."""
-        if self._cursor != (0, 0):
+        if self._in_step:
             raise RuntimeError("rows can only be stopped between steps (the current step is unfinished)")
         self.live[np.asarray(rows, dtype=np.int64)] = False
 
@@ -276,7 +283,12 @@ class BatchEngine:
         s0 = np.maximum(0, t - self.prime)
         plans = [
             plan_subsets(
-                self.mxyh[b, :, self.now[b], :2], self.valid[b, :, self.now[b]], A, self.first[b], self.row_priority[b]
+                self.mxyh[b, :, self.now[b], :2],
+                self.valid[b, :, self.now[b]],
+                A,
+                self.first[b],
+                self.row_priority[b],
+                self.config.subsets,
             )
             for b in rows
         ]
@@ -402,65 +414,87 @@ class BatchEngine:
     def _advance(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Act the positions of the current step in order, for every stepping row. Returns
         ``(rows, agents)``: external agents whose next states are needed (supply them, then call again),
-        or None when the step is complete (every stepping row is one step further)."""
+        or None when the step is complete (every stepping row is one step further).
+
+        Each row runs through the slots of subset rank 0, 1, ... with its own cursor: a model call decodes,
+        per row, the run of positions up to its next *blocker* (an agent to sample, or an external agent
+        not supplied yet) in one chunk, since the inputs of all of them are known. Known agents (forced,
+        padding, supplied externals) therefore cost no extra calls."""
         stepping = self.stepping
         if not stepping.any():
             raise RuntimeError("no row has steps left (start rows, or the horizon is reached)")
-        rebuild = self._needs_windows()
-        if rebuild.any():
-            if self._cursor != (0, 0):
-                raise RuntimeError("internal error: windows rebuilt in the middle of a step")
-            self._build_windows(np.flatnonzero(rebuild))
+        if not self._in_step:
+            rebuild = self._needs_windows()
+            if rebuild.any():
+                self._build_windows(np.flatnonzero(rebuild))
+            self._in_step = True
+            self._rank = 0
+            self._slot = np.where(self.num_subsets > 0, 0, self.cfg.max_agents)
         A = self.cfg.max_agents
-        trajeglish = self.cfg.variant is Variant.TRAJEGLISH
         ranks = int(self.num_subsets[stepping].max(initial=0))
-        rows = np.arange(self.B)
         t_safe = np.minimum(self.now, self.T - 2)
-        while self._cursor[0] < ranks:
-            k, slot = self._cursor
-            w = self.windows[k]
-            chunk = np.arange(slot, slot + 1) if trajeglish else np.arange(A)
-            agents = w.slots[:, chunk]  # [B, n]
-            if trajeglish:
-                waiting = self._waiting(agents, stepping, t_safe)
-                if waiting is not None:
-                    return waiting
-            tau = self.now - w.start
-            ok = stepping & (tau >= 0) & (tau < self.cfg.steps)
-            start = np.where(ok, tau * A + chunk[0], 0)
-            positions = start[:, None] + np.arange(len(chunk))
-            carried, own = self._inputs(rows, w.slots, w.start, positions)
-            logits = self.model.decode_at(
-                w.cache, w.agents, w.kind[:, chunk], carried, own, torch.from_numpy(start)
-            )
-            self._sample(agents, logits, stepping, t_safe)
-            slot += len(chunk)
-            self._cursor = (k + 1, 0) if slot >= A else (k, slot)
+        r_ix = np.arange(self.B)[:, None]
+        while self._rank < ranks:
+            w = self.windows[self._rank]
+            safe = np.maximum(w.slots, 0)
+            undecided = (w.slots >= 0) & ~self.known[r_ix, safe, t_safe[:, None]] & stepping[:, None]
+            sample = undecided & self.row_controlled[r_ix, safe]
+            wait = undecided & self.row_external[r_ix, safe] & self.valid[r_ix, safe, t_safe[:, None]]
+            prev = np.clip(self._slot - 1, 0, A - 1)
+            waiting = (self._slot > 0) & wait[np.arange(self.B), prev]
+            if waiting.any():
+                rows = np.flatnonzero(waiting)
+                return rows, w.slots[rows, prev[rows]]
+            active = stepping & (self._slot < A)
+            if not active.any():
+                self._rank += 1
+                self._slot = np.where(self.num_subsets > self._rank, 0, A)
+                continue
+            blocker = (sample | wait) if self.cfg.variant is Variant.TRAJEGLISH else np.zeros_like(sample)
+            blocker &= np.arange(A)[None] >= self._slot[:, None]
+            stop = np.where(blocker.any(1), np.argmax(blocker, axis=1), A - 1)
+            count = np.where(active, stop - self._slot + 1, 0)
+            self._decode_chunk(w, count, sample, stepping, t_safe)
+            self._slot = self._slot + count
         late = self._pending_external(stepping, t_safe)
         if late is not None:
             return late
-        self.known[rows[stepping], :, self.now[stepping]] = True  # undecided tokens are unobserved from now
-        self.now[stepping] += 1
-        self._cursor = (0, 0)
+        rows = np.flatnonzero(stepping)
+        self.known[rows, :, self.now[rows]] = True  # undecided tokens are unobserved from now on
+        self.now[rows] += 1
+        self._in_step = False
         return None
 
-    def _waiting(
-        self, agents: np.ndarray, stepping: np.ndarray, t: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """External agents at this position whose state is not supplied yet."""
-        safe = np.maximum(agents, 0)
-        r_ix = np.arange(self.B)[:, None]
-        need = (
-            (agents >= 0)
-            & stepping[:, None]
-            & self.row_external[r_ix, safe]
-            & ~self.known[r_ix, safe, t[:, None]]
-            & self.valid[r_ix, safe, t[:, None]]
-        )
-        if not need.any():
-            return None
-        rr, cc = np.nonzero(need)
-        return rr, agents[rr, cc]
+    def _decode_chunk(
+        self, w: _Window, count: np.ndarray, sample: np.ndarray, stepping: np.ndarray, t: np.ndarray
+    ) -> None:
+        """Decode ``count[b]`` positions of window ``w`` from each row's cursor; sample the agents to
+        sample among them."""
+        A = self.cfg.max_agents
+        n = int(count.max())
+        tau = self.now - w.start
+        start = np.where(count > 0, tau * A + self._slot, 0)
+        offsets = np.arange(n)
+        inside = offsets[None] < count[:, None]
+        positions = np.where(inside, start[:, None] + offsets, start[:, None])
+        carried, own = self._inputs(np.arange(self.B), w.slots, w.start, positions)
+        hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, count)
+        slots = positions % A
+        todo = inside & np.take_along_axis(sample, slots, 1)
+        if not todo.any():
+            return
+        rr, cc = np.nonzero(todo)
+        who = w.slots[rr, slots[rr, cc]]
+        logits = self.model.class_logits(hidden[rr, cc], torch.from_numpy(self.kind[rr, who]))
+        tt = self.now[rr]
+        u = counter_uniform(self.seed[rr], tt, who)
+        tok = sample_with_uniform(logits, self.config.temperature, self.config.top_p, u)
+        self.tokens[rr, who, tt] = tok
+        self.known[rr, who, tt] = True
+        nxt = to_global(self.mxyh[rr, who, tt], self.vocab.templates[self.kind[rr, who], tok])
+        self.mxyh[rr, who, tt + 1] = nxt
+        self.xyh[rr, who, tt + 1] = nxt
+        self.valid[rr, who, tt + 1] = True
 
     def _pending_external(self, stepping: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """External agents alive at this step whose next state has not been supplied (acting order)."""
@@ -472,29 +506,6 @@ class BatchEngine:
         rr, aa = np.nonzero(need)
         order = np.lexsort((aa, self.row_priority[rr, aa], rr))
         return rr[order], aa[order]
-
-    def _sample(self, agents: np.ndarray, logits: torch.Tensor, stepping: np.ndarray, t: np.ndarray) -> None:
-        safe = np.maximum(agents, 0)
-        r_ix = np.arange(self.B)[:, None]
-        todo = (
-            (agents >= 0)
-            & stepping[:, None]
-            & self.row_controlled[r_ix, safe]
-            & ~self.known[r_ix, safe, t[:, None]]
-        )
-        if not todo.any():
-            return
-        rr, cc = np.nonzero(todo)
-        who = agents[rr, cc]
-        tt = self.now[rr]
-        u = counter_uniform(self.seed[rr], tt, who)
-        tok = sample_with_uniform(logits[rr, cc], self.config.temperature, self.config.top_p, u)
-        self.tokens[rr, who, tt] = tok
-        self.known[rr, who, tt] = True
-        nxt = to_global(self.mxyh[rr, who, tt], self.vocab.templates[self.kind[rr, who], tok])
-        self.mxyh[rr, who, tt + 1] = nxt
-        self.xyh[rr, who, tt + 1] = nxt
-        self.valid[rr, who, tt + 1] = True
 
     def supply(
         self,

@@ -2,7 +2,11 @@
 
 Every active agent defines a candidate subset: itself and its nearest neighbours, ``size`` agents in all.
 The sdc's subset is chosen first; then, among agents not yet covered, the one whose subset holds the most
-already-covered agents is chosen next, until every active agent is in some subset. Inside a subset the
+already-covered agents is the next centre, until every active agent is in some subset. Rule
+``"overlap"`` (the paper's) takes the centre's nearest neighbours as its subset: most context from earlier
+subsets, but a subset may add only a few new agents. Rule ``"cover"`` fills a subset with the centre's
+nearest *uncovered* agents within ``reach`` metres first and completes it with the nearest covered ones:
+fewest subsets, so fewest model positions per step (the same plan whenever one subset holds everyone). Inside a subset the
 order is: padding first, then the agents that already acted in an earlier subset (in acting order), then
 the rest by (priority, distance to the centre agent) -- so the sdc, as centre of the first subset, acts
 first at every timestep.
@@ -13,6 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+
+SUBSET_RULES = ("overlap", "cover")
 
 
 @dataclass(frozen=True)
@@ -44,12 +51,17 @@ def plan_subsets(
     size: int,
     first: int,
     priority: np.ndarray | None = None,
+    rule: str = "overlap",
+    reach: float = 60.0,
 ) -> SubsetPlan:
     """Cover every active agent with subsets of ``size`` agents; see the module docstring for the rules.
 
     ``positions [N,2]``, ``active [N]`` bool, ``first`` the agent whose subset goes first (the sdc; if it
-    is inactive, the lowest-priority active agent), ``priority [N]`` lower acts earlier (default 0).
+    is inactive, the lowest-priority active agent), ``priority [N]`` lower acts earlier (default 0),
+    ``rule``: ``"overlap"`` or ``"cover"``, ``reach``: metres (see the module docstring).
     """
+    if rule not in SUBSET_RULES:
+        raise ValueError(f"subset rule must be one of {SUBSET_RULES}, got {rule!r}")
     n_agents = positions.shape[0]
     active = np.asarray(active, dtype=bool)
     if size < 1:
@@ -66,8 +78,15 @@ def plan_subsets(
     order: list[int] = []
     slots, centres = [], []
     centre = first
+    act_idx = np.flatnonzero(active)
     while True:
         members = cands[centre]
+        if rule == "cover" and slots:
+            d = np.linalg.norm(positions[act_idx] - positions[centre], axis=-1)
+            near = np.argsort(d, kind="stable")
+            new = act_idx[near[~covered[act_idx[near]] & (d[near] <= reach)]][:size]
+            old = act_idx[near[covered[act_idx[near]]]][: size - len(new)]
+            members = np.concatenate([new, old])
         acted = members[acted_rank[members] >= 0]
         acted = acted[np.argsort(acted_rank[acted], kind="stable")]
         fresh = members[acted_rank[members] < 0]
@@ -86,5 +105,7 @@ def plan_subsets(
         if len(todo) == 0:
             break
         overlap = covered[cands[todo]].sum(axis=1)
+        if rule == "cover":  # most new agents first, then most overlap (m - overlap = new agents)
+            overlap = (cands.shape[1] - overlap) * (cands.shape[1] + 1) + overlap
         centre = int(todo[np.argmax(overlap)])  # ties: the lowest index
     return SubsetPlan(np.stack(slots), np.array(centres, dtype=np.int64), np.array(order, dtype=np.int64))
