@@ -84,6 +84,8 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         ]
         self.agents = []
         self.sim: Simulation | None = None
+        self._shared_row: tuple[Any, int] | None = None  # set by a batched env that owns the engine
+        self._suspended = False
         self._renderer: Any = None  # an EpisodeRenderer, made on the first render (imports matplotlib)
 
     # ------------------------------------------------------------------ spaces
@@ -115,12 +117,15 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
             if not 0 <= index < len(self.scenes):
                 raise ValueError(f"reset options: scene {index} out of range for {len(self.scenes)} scenes")
         self.scenario = self.scenes.get(index)
+        self._suspended = False
         self._start(self.scenario)
 
     def _start(self, scenario: Scenario) -> None:
         rng = np.random.default_rng(int(self.np_random.integers(2**63 - 1)))
         npc = make_npc_policy(self._npc) if isinstance(self._npc, str) else self._npc
-        self.sim = sim = Simulation(scenario, self.config, npc, self.vocabulary, rng, self._sampling)
+        self.sim = sim = Simulation(
+            scenario, self.config, npc, self.vocabulary, rng, self._sampling, self._shared_row
+        )
         self.possible_agents = [sim.names[i] for i in sim.external_index]
         self._index = {sim.names[i]: int(i) for i in sim.external_index}
         self.rewards = dict.fromkeys(self.possible_agents, 0.0)
@@ -152,6 +157,27 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         value = check_action(self.action_space(agent), action, agent)
         self._cumulative_rewards[agent] = 0.0
         sim.apply(self._index[agent], value)
+        if sim.ready_for_batch():  # a batched env decodes every scene's NPCs at once, then resumes us
+            self._suspended = True
+            return
+        self._finish_action()
+
+    @property
+    def suspended(self) -> bool:
+        """The step waits for the batched env that owns the NPC engine (see :meth:`resume`)."""
+        return self._suspended
+
+    def resume(self) -> None:
+        """Finish the step after the owner of the shared engine has decoded this step's NPCs."""
+        if not self._suspended:
+            raise RuntimeError("resume(): the env is not waiting for a batched NPC step")
+        self._suspended = False
+        self._finish_action()
+
+    def _finish_action(self) -> None:
+        """After an external agent's action: let the NPCs up to the next external agent act, or end the
+        timestep."""
+        sim = self._sim()
         nxt = sim.advance()
         if nxt is not None:
             self._clear_rewards()
@@ -279,21 +305,22 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
             self._renderer = None
 
 
-def _resolve_npc(spec: Any) -> tuple[Any, tuple[float, float], Any]:
-    """(NPC policy name/object or checkpoint, (temperature, top_p), checkpoint or None) of EnvConfig.npc."""
+def _resolve_npc(spec: Any) -> tuple[Any, TrajeglishNPC | None, Any]:
+    """(NPC policy name/object or checkpoint, Trajeglish settings or None, checkpoint or None) of
+    EnvConfig.npc."""
     if spec == "trajeglish":
         spec = TrajeglishNPC()
     if isinstance(spec, TrajeglishNPC):
         ckpt = load_npc_checkpoint(spec.checkpoint)
-        return ckpt, (spec.temperature, spec.top_p), ckpt
+        return ckpt, spec, ckpt
     if isinstance(spec, str):
-        return spec, (1.0, 1.0), None
+        return spec, None, None
     if not isinstance(spec, NPCPolicy):
         raise TypeError(
             f"npc: expected a policy name, a TrajeglishNPC or an object with reset() and act() "
             f"(trajeglish_env.env.npc.NPCPolicy), got {type(spec).__name__}"
         )
-    return spec, (1.0, 1.0), None
+    return spec, None, None
 
 
 def load_npc_checkpoint(checkpoint: Any) -> Any:

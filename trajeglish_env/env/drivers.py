@@ -9,7 +9,6 @@ and who has ``moved`` in it.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -141,7 +140,12 @@ class OrderedDriver:
 
 
 class EngineDriver:
-    """Trajeglish NPCs through :class:`~trajeglish_env.sampler.RolloutEngine` (one rollout).
+    """Trajeglish NPCs through one row of a :class:`~trajeglish_env.sampler.engine.BatchEngine`.
+
+    By default the driver owns a one-row engine. With ``shared=(engine, row)`` the row belongs to an
+    engine that a batched environment steps for all its scenes at once (its owner calls
+    ``engine.step()`` after every scene has supplied its external agents; see
+    :mod:`trajeglish_env.env.vector`), and :meth:`advance` then only reports what the owner has done.
 
     With ``externals_first`` every external agent acts before any NPC decodes (supplied up front, in
     priority order), so NPCs of every model context condition on them; otherwise external agents act at
@@ -156,72 +160,101 @@ class EngineDriver:
         horizon: int,
         priority: np.ndarray,
         seed: int,
-        temperature: float = 1.0,
-        top_p: float = 1.0,
+        settings: object = None,
         externals_first: bool = False,
+        shared: tuple[object, int] | None = None,
     ):
+        from trajeglish_env.env.config import TrajeglishNPC
         from trajeglish_env.model.config import Variant
-        from trajeglish_env.sampler.engine import RolloutEngine, SamplingConfig
+        from trajeglish_env.sampler.engine import BatchEngine, RowSpec
 
+        settings = settings if isinstance(settings, TrajeglishNPC) else TrajeglishNPC(ckpt)
         cur = scenario.current_index
         self.scenario = scenario
         self.external = np.asarray(external, dtype=bool)
         self.priority = np.asarray(priority, dtype=np.float64)
         self.externals_first = externals_first
         active = scenario.valid[:, cur]
-        # the first model context is centred on the agent acting first (the engine centres it on the sdc)
-        centred = replace(scenario, sdc=first_agent(self.priority, active))
-        controlled = active & ~self.external
-        self.engine = RolloutEngine(
-            ckpt,  # type: ignore[arg-type]
-            centred,
-            1,
+        if shared is None:
+            self.engine: BatchEngine = BatchEngine(
+                ckpt,  # type: ignore[arg-type]
+                1,
+                settings.sampling(),
+                settings.torch_cache_dtype,
+            )
+            self.row, self.shared = 0, False
+        else:
+            self.engine, self.row = shared  # type: ignore[assignment]
+            self.shared = True
+        spec = RowSpec(
+            scenario,
             int(horizon),
-            controlled,
+            active & ~self.external,
             self.external,
             priority=self.priority,
-            config=SamplingConfig(temperature=temperature, top_p=top_p, seed=int(seed)),
+            first=first_agent(self.priority, active),  # the first model context: the agent acting first
         )
+        self.engine.start_rows([self.row], spec, [seed])
         self.ordered_in_slots = self.engine.cfg.variant is Variant.TRAJEGLISH and not externals_first
-        self.xyh = self.engine.xyh[0]
-        self.valid = self.engine.valid[0]
+        self.n, self.T = scenario.num_agents, cur + 1 + int(horizon)
+        self._t = cur
+
+    @property
+    def xyh(self) -> np.ndarray:
+        """``[N, T, 3]`` exact states (a view of the engine's row)."""
+        return self.engine.xyh[self.row, : self.n, : self.T]
+
+    @property
+    def valid(self) -> np.ndarray:
+        """``[N, T]`` validity (a view of the engine's row)."""
+        return self.engine.valid[self.row, : self.n, : self.T]
 
     @property
     def t(self) -> int:
-        """The current step of the engine."""
-        return self.engine.t
+        """The current step of the row."""
+        return int(self.engine.now[self.row])
 
     def moved(self) -> np.ndarray:
         """``[N]`` agents whose token of this step is decided (log-replayed agents: always)."""
-        t = self.engine.t
-        if t >= self.engine.T - 1:  # the episode is over: nobody moves any more
-            return np.zeros(self.engine.N, dtype=bool)
-        return self.engine.known[0, :, t] & self.valid[:, t]
+        t = self.t
+        if t >= self.T - 1:  # the episode is over: nobody moves any more
+            return np.zeros(self.n, dtype=bool)
+        return self.engine.known[self.row, : self.n, t] & self.valid[:, t]
 
     def _pending(self) -> np.ndarray:
-        t = self.engine.t
-        if t >= self.engine.T - 1:
+        t = self.t
+        if t >= self.T - 1:
             return np.zeros(0, dtype=np.int64)
-        return np.flatnonzero(self.external & ~self.engine.known[0, :, t] & self.valid[:, t])
+        return np.flatnonzero(self.external & ~self.engine.known[self.row, : self.n, t] & self.valid[:, t])
 
     def external_order(self) -> np.ndarray:
         """External agents still to act this step, in the order they will be asked for."""
         pending = self._pending()
         by_priority = pending[np.argsort(self.priority[pending], kind="stable")]
-        if not self.ordered_in_slots or not self.engine.plan:
+        plan = self.engine.plan[self.row]
+        if not self.ordered_in_slots or plan is None:
             return by_priority
-        acting = self.engine.plan[0].acting_order
-        planned = acting[np.isin(acting, pending)]
+        planned = plan.acting_order[np.isin(plan.acting_order, pending)]
         return np.concatenate([planned, by_priority[~np.isin(by_priority, planned)]]).astype(np.int64)
 
     def advance(self) -> int | None:
         """The next external agent to supply, or None when the step is complete (NPCs decoded)."""
+        if self.shared and self.t != self._t:  # the owner has stepped the engine: this step is complete
+            self._t = self.t
+            return None
         if self.externals_first:
             pending = self._pending()
             if len(pending):
                 return int(pending[np.argmin(self.priority[pending])])
-        return self.engine.advance()
+        if self.shared:
+            raise RuntimeError(
+                "this scene's NPCs are decoded by the batched environment that owns the engine "
+                "(call engine.step() once every scene has supplied its external agents)"
+            )
+        waiting = self.engine.advance()
+        self._t = self.t
+        return None if waiting is None else int(waiting[1][0])
 
     def supply(self, agent: int, next_xyh: np.ndarray, valid: bool = True) -> None:
         """Set an external agent's next state; the model sees it tokenized."""
-        self.engine.supply(agent, np.asarray(next_xyh, dtype=np.float64), valid=valid)
+        self.engine.supply([self.row], [agent], np.asarray(next_xyh, dtype=np.float64)[None], [valid])

@@ -31,17 +31,22 @@ class EgoEnv(gymnasium.Env):
         **options: Any,
     ):
         config = (config or EnvConfig()).with_overrides(**options)
-        ext = config.external
-        single = ext == "sdc" or (isinstance(ext, tuple) and len(ext) == 1) or ext == RandomAgents(1)
-        if not single:
-            raise ValueError(
-                "EgoEnv controls exactly one agent: external must be 'sdc', one track id or "
-                f"RandomAgents(1), got {ext!r} (use trajeglish_env.parallel_env for several)"
-            )
-        self.aec = raw_env(scenes, config, render_mode)
-        self.render_mode = render_mode
-        self.observation_space = self.aec.observation_space("ego")
-        self.action_space = self.aec.action_space("ego")
+        _check_single(config)
+        self._attach(raw_env(scenes, config, render_mode))
+
+    @classmethod
+    def around(cls, aec: raw_env) -> EgoEnv:
+        """An EgoEnv driving an existing AEC env (the batched env builds its scenes this way)."""
+        env = cls.__new__(cls)
+        _check_single(aec.config)
+        env._attach(aec)
+        return env
+
+    def _attach(self, aec: raw_env) -> None:
+        self.aec = aec
+        self.render_mode = aec.render_mode
+        self.observation_space = aec.observation_space("ego")
+        self.action_space = aec.action_space("ego")
         self.agent = ""
 
     def reset(
@@ -58,12 +63,25 @@ class EgoEnv(gymnasium.Env):
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """One timestep: the ego's action, every NPC's move, the ego's reward and flags."""
+        self.act(action)
+        return self.outcome()
+
+    def act(self, action: Any) -> None:
+        """First half of :meth:`step`: apply the ego's action (a batched env then decodes the NPCs of all
+        its scenes at once and calls :meth:`outcome`)."""
         aec, agent = self.aec, self.agent
         if not agent:
             raise RuntimeError("call reset() before step()")
         if aec.terminations[agent] or aec.truncations[agent]:
             raise RuntimeError(f"the episode of {agent} is over; call reset()")
         aec.step(action)
+
+    def outcome(self) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Second half of :meth:`step`: finish the timestep and report the ego's observation, reward,
+        flags and info."""
+        aec, agent = self.aec, self.agent
+        if aec.suspended:
+            aec.resume()
         info = dict(aec.infos[agent])
         return (
             aec.observe(agent),
@@ -80,3 +98,14 @@ class EgoEnv(gymnasium.Env):
     def close(self) -> None:
         """Release the renderer."""
         self.aec.close()
+
+
+def _check_single(config: EnvConfig) -> None:
+    """EgoEnv drives exactly one external agent."""
+    ext = config.external
+    single = ext == "sdc" or (isinstance(ext, tuple) and len(ext) == 1) or ext == RandomAgents(1)
+    if not single:
+        raise ValueError(
+            "EgoEnv controls exactly one agent: external must be 'sdc', one track id or "
+            f"RandomAgents(1), got {ext!r} (use trajeglish_env.parallel_env for several)"
+        )

@@ -106,7 +106,8 @@ class Kinematics:
 
 class Simulation:
     """A running episode (see the module docstring). ``npc`` is an NPCPolicy, or a Checkpoint for Trajeglish
-    NPCs (``temperature``/``top_p`` from the config's TrajeglishNPC)."""
+    NPCs sampled with ``settings`` (a TrajeglishNPC), in their own engine or in row ``shared[1]`` of a
+    batched environment's engine ``shared[0]``."""
 
     def __init__(
         self,
@@ -115,7 +116,8 @@ class Simulation:
         npc: object,
         vocabulary: MotionVocabulary | None,
         rng: np.random.Generator,
-        sampling: tuple[float, float] = (1.0, 1.0),
+        settings: object = None,
+        shared: tuple[object, int] | None = None,
     ):
         self.sc, self.config, self.vocabulary = scenario, config, vocabulary
         cur = scenario.current_index
@@ -142,8 +144,9 @@ class Simulation:
                 self.horizon,
                 self.priority,
                 seed,
-                *sampling,
+                settings,
                 externals_first=config.order == "first",
+                shared=shared,
             )
         self.retired = np.zeros(scenario.num_agents, dtype=bool)
         ext = self.external_index
@@ -180,6 +183,17 @@ class Simulation:
             if agent is None or not self.retired[agent]:
                 return agent
             self.driver.supply(agent, np.zeros(3), valid=False)
+
+    def ready_for_batch(self) -> bool:
+        """With a shared engine (a batched env): True once every live external agent of this step has
+        acted (retired ones are taken out now), i.e. the NPCs can be decoded with the other scenes."""
+        if not getattr(self.driver, "shared", False) or self.driver.t >= self.driver.T - 1:
+            return False
+        for agent in self.driver.external_order():
+            if not self.retired[agent]:
+                return False
+            self.driver.supply(int(agent), np.zeros(3), valid=False)
+        return True
 
     def external_order(self) -> list[int]:
         """Live external agents still to act this step, in order."""
