@@ -155,24 +155,35 @@ class BatchedEgoEnv(VectorEnv):
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """One timestep of every scene; finished scenes are reset in the same call."""
-        actions = np.asarray(actions)
+        rewards = np.zeros(self.num_envs)
+        terminated = np.zeros(self.num_envs, dtype=bool)
+        truncated = np.zeros(self.num_envs, dtype=bool)
+        infos: dict[str, Any] = {}
+        for i, (obs, rewards[i], terminated[i], truncated[i], info, final) in enumerate(self.step_each(actions)):
+            if final is not None:
+                infos = self._add_info(infos, {"final_obs": final[0], "final_info": final[1]}, i)
+            self._single_obs[i] = obs
+            infos = self._add_info(infos, info, i)
+        return self._batched_obs(), rewards, terminated, truncated, infos
+
+    def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
+        """Step every scene; per scene ``(obs, reward, terminated, truncated, info, final)`` where a
+        finished scene has been reset (``obs``/``info`` of the new episode) and ``final`` holds the last
+        ``(obs, info)`` of the old one (None otherwise)."""
         if len(actions) != self.num_envs:
             raise ValueError(f"step: expected {self.num_envs} actions (one per scene), got {len(actions)}")
         for env, action in zip(self.envs, actions, strict=True):
             env.act(action)
         self.batch.decode()
-        rewards = np.zeros(self.num_envs)
-        terminated = np.zeros(self.num_envs, dtype=bool)
-        truncated = np.zeros(self.num_envs, dtype=bool)
-        infos: dict[str, Any] = {}
-        for i, env in enumerate(self.envs):
-            obs, rewards[i], terminated[i], truncated[i], info = env.outcome()
-            if terminated[i] or truncated[i]:
-                infos = self._add_info(infos, {"final_obs": obs, "final_info": info}, i)
+        results = []
+        for env in self.envs:
+            obs, reward, terminated, truncated, info = env.outcome()
+            final = None
+            if terminated or truncated:
+                final = (obs, info)
                 obs, info = env.reset()
-            self._single_obs[i] = obs
-            infos = self._add_info(infos, info, i)
-        return self._batched_obs(), rewards, terminated, truncated, infos
+            results.append((obs, reward, terminated, truncated, info, final))
+        return results
 
     def _batched_obs(self) -> Any:
         return concatenate(self.single_observation_space, self._single_obs, self._obs).copy()

@@ -36,6 +36,7 @@ INVALID_DISTANCE = -1e10  # distance reported for invalid object states
 OFFROAD_THRESHOLD = 0.0  # off-road iff distance > this
 _FALLBACK_PAIRS = 1 << 20  # query x segment pairs per chunk of the exhaustive scan
 _QUERY_PAIRS = 1 << 15  # query x candidate pairs per chunk of the grid scan
+_DIRECT_PAIRS = 1 << 16  # below this many query x segment pairs a plain scan beats building a grid
 _GROUP_WIDTH = 8  # queries are grouped by list length rounded up to a multiple of this
 
 
@@ -243,8 +244,11 @@ def signed_distance_to_road_edges(points: np.ndarray, edges: RoadEdges) -> np.nd
     if len(flat) == 0:
         return np.zeros(shape, np.float32)
     planar = edges.is_flat and not flat[:, 2].any()
-    lists = build_cell_lists(edges.start, edges.end, flat[:, :2], margin=0.0 if planar else 1.5)
-    nearest = _nearest_with_grid(edges, flat, lists, planar)
+    if len(flat) * edges.num_segments <= _DIRECT_PAIRS:  # a few points (an env step): scan every segment
+        nearest = _nearest_exhaustive(edges, flat, planar)
+    else:
+        lists = build_cell_lists(edges.start, edges.end, flat[:, :2], margin=0.0 if planar else 1.5)
+        nearest = _nearest_with_grid(edges, flat, lists, planar)
     return _signed_distance_to(edges, flat, nearest).reshape(shape)
 
 

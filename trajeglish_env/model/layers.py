@@ -131,15 +131,15 @@ class DecoderCache:
 
 @dataclass(frozen=True)
 class RowGroup:
-    """Rows of a batch that decode ``count`` positions from the same window ``position`` (``rows`` None:
-    every row), with the mask of those positions over keys ``0 .. position + count - 1`` (None: no
-    masking needed). A group sees keys of exactly that length, so a row's result does not depend on the
-    other rows."""
+    """Rows of a batch (``rows`` None: every row) attending over the cached keys ``0 .. keys - 1`` under
+    ``mask [g,1,n,keys]``; their new positions are ``queries [g,n]``, of which ``written [g,n]`` are real
+    (the others are padding and are not stored)."""
 
     rows: torch.Tensor | None
-    position: int
-    count: int
-    mask: torch.Tensor | None
+    keys: int
+    mask: torch.Tensor
+    queries: torch.Tensor
+    written: torch.Tensor
 
     @property
     def select(self) -> slice | torch.Tensor:
@@ -198,21 +198,18 @@ class DecoderBlock(nn.Module):
         cross_v: torch.Tensor,
         memory_mask: torch.Tensor,
     ) -> torch.Tensor:
-        """Self- and cross-attention group by group (each with exactly its own queries and keys)."""
+        """Self-attention group by group (fixed key length per group, masked), then cross-attention and
+        the feed-forward for every row."""
         attended = torch.zeros_like(h)
         for g in groups:
-            rows, end = g.select, g.position + g.count
-            ck[rows, :, g.position : end] = k[rows, :, : g.count].to(ck.dtype)
-            cv[rows, :, g.position : end] = v[rows, :, : g.count].to(cv.dtype)
-            keys, values = ck[rows, :, :end], cv[rows, :, :end]  # views when the group is every row
-            attended[rows, : g.count] = self.self_attn.attend(h[rows, : g.count], keys, values, g.mask)
-        x = x + attended
-        hc = self.norm_cross(x)
-        crossed = torch.zeros_like(h)
-        for g in groups:
             rows = g.select
-            crossed[rows, : g.count] = self.cross_attn.attend(
-                hc[rows, : g.count], cross_k[rows], cross_v[rows], memory_mask[rows]
-            )
-        x = x + crossed
+            local, slot = torch.nonzero(g.written, as_tuple=True)
+            batch_rows = local if g.rows is None else g.rows[local]
+            pos = g.queries[local, slot]
+            ck[batch_rows, :, pos] = k[batch_rows, :, slot].to(ck.dtype)
+            cv[batch_rows, :, pos] = v[batch_rows, :, slot].to(cv.dtype)
+            keys, values = ck[rows, :, : g.keys], cv[rows, :, : g.keys]  # views when the group is every row
+            attended[rows] = self.self_attn.attend(h[rows], keys, values, g.mask)
+        x = x + attended
+        x = x + self.cross_attn.attend(self.norm_cross(x), cross_k, cross_v, memory_mask)
         return x + self.ff(self.norm_ff(x))

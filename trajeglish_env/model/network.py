@@ -341,24 +341,32 @@ class TrajeglishModel(nn.Module):
     ) -> torch.Tensor:
         """Hidden states ``[B,n,C]`` (logits: :meth:`class_logits`) of a chunk of positions per row: row
         ``b`` decodes positions ``start[b] .. start[b]+count[b]-1`` of its own window (``count`` 0: the row
-        is idle; entries past ``count[b]`` are padding), appending them to its cache. ``start``/``count``
-        are host arrays (no device sync). Rows with the same (start, count) are attended together, each
-        over exactly its own prefix, so a row's result never depends on the other rows of the batch."""
+        is idle; inputs past ``count[b]`` are padding), appending them to its cache.
+        ``start``/``count`` are host arrays (no device sync). Rows whose chunks end in the same model step
+        attend together over the keys up to the end of that step (masked), so every shape a row meets
+        depends on that row alone and its result never depends on the other rows of the batch."""
         n, a = carried_ids.shape[1], agents.shape[1]
         start, count = np.asarray(start, dtype=np.int64), np.asarray(count, dtype=np.int64)
         busy = count > 0
         if (count > n).any() or (busy & ((start < 0) | (start + count > cache.capacity))).any():
-            raise ValueError(f"decode_at: chunks {list(zip(start, count))} exceed {n} inputs or the cache")
+            raise ValueError(
+                f"decode_at: chunks {list(zip(start.tolist(), count.tolist()))} need inputs "
+                f"({n}) >= count and must fit the cache ({cache.capacity})"
+            )
         dev = carried_ids.device
-        keys = start * (cache.capacity + 1) + count
-        values = np.unique(keys[busy])
+        step = (start + count - 1) // a  # the model step of each row's last position
+        if busy.any():  # idle rows ride along with the largest group (nothing written), so it needs no copy
+            values, counts = np.unique(step[busy], return_counts=True)
+            step = np.where(busy, step, values[np.argmax(counts)])
         groups = []
-        for key in values.tolist():
-            p, c = divmod(key, cache.capacity + 1)
-            rows = np.flatnonzero(busy & (keys == key))
-            index = None if len(rows) == len(busy) else torch.from_numpy(rows).to(dev)
-            whole = self.cfg.variant is Variant.TRAJEGLISH and c == 1  # one query sees its whole prefix
-            groups.append(RowGroup(index, p, c, None if whole else self._mask_rows(p, c, a)))
+        for s in np.unique(step[busy]).tolist():
+            rows = np.flatnonzero(step == s)
+            index = None if len(rows) == len(step) else torch.from_numpy(rows).to(dev)
+            queries = torch.from_numpy(start[rows]).to(dev)[:, None] + torch.arange(n, device=dev)
+            keys = (s + 1) * a
+            mask = self.mask[queries.clamp(max=cache.capacity - 1)][:, None, :, :keys]  # [g,1,n,keys]
+            written = torch.from_numpy(count[rows]).to(dev)[:, None] > torch.arange(n, device=dev)
+            groups.append(RowGroup(index, keys, mask, queries, written))
         index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
         index = index.clamp(max=cache.capacity - 1)
         is_start = (carried_ids == -2)[..., None]

@@ -130,6 +130,9 @@ class BatchEngine:
         self.cfg = self.model.cfg
         self.config = config
         self.cache_dtype = cache_dtype
+        # the float32 single-query attention kernel rounds differently from the multi-query one: pad to 2
+        # queries so that a row's result never depends on the chunk lengths of the other rows
+        self._min_queries = 1 if cache_dtype == torch.bfloat16 else 2
         self.every = config.every(self.cfg.steps)
         self.prime = config.prime(self.cfg.steps)
         self.B = int(rows)
@@ -149,6 +152,7 @@ class BatchEngine:
         self._in_step = False  # a step has begun (windows planned) and is not finished
         self._rank = 0  # subset rank being decoded in this step
         self._slot = np.zeros(self.B, dtype=np.int64)  # per row: next slot of that rank to decode
+        self._supplied: list[tuple[np.ndarray, ...]] = []  # supplies whose tokens are not computed yet
         self._chunk_cache: dict[int, tuple[Scenario, MapChunks]] = {}
 
     # ------------------------------------------------------------------ storage
@@ -192,6 +196,7 @@ class BatchEngine:
         """(Re)start ``rows`` on ``spec``, row ``rows[i]`` drawing from ``seeds[i]``; only between steps."""
         if self._in_step:
             raise RuntimeError("rows can only be (re)started between steps (the current step is unfinished)")
+        self._tokenize_supplied()
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)
         if len(rows) != len(seeds) or ((rows < 0) | (rows >= self.B)).any():
@@ -423,6 +428,7 @@ class BatchEngine:
         stepping = self.stepping
         if not stepping.any():
             raise RuntimeError("no row has steps left (start rows, or the horizon is reached)")
+        self._tokenize_supplied()
         if not self._in_step:
             rebuild = self._needs_windows()
             if rebuild.any():
@@ -471,7 +477,7 @@ class BatchEngine:
         """Decode ``count[b]`` positions of window ``w`` from each row's cursor; sample the agents to
         sample among them."""
         A = self.cfg.max_agents
-        n = int(count.max())
+        n = max(self._min_queries, int(count.max()))
         tau = self.now - w.start
         start = np.where(count > 0, tau * A + self._slot, 0)
         offsets = np.arange(n)
@@ -532,7 +538,19 @@ class BatchEngine:
         ok = np.broadcast_to(np.asarray(valid, dtype=bool), (n,)) & self.valid[rows, agents, t]
         self.xyh[rows, agents, t + 1] = np.where(ok[:, None], next_xyh, 0.0)
         self.valid[rows, agents, t + 1] = ok
-        pair = np.stack([self.mxyh[rows, agents, t], next_xyh], 1)[:, None]  # [n,1,2,3]
+        self.known[rows, agents, t] = True
+        # the model's view (tokens) of all supplies is computed at once before the next model call
+        self._supplied.append((rows, agents, t, next_xyh.copy(), ok))
+
+    def _tokenize_supplied(self) -> None:
+        """Tokenize every supplied state since the last call in one batch: the token from the model's view
+        at ``t`` to the true state at ``t + 1``, and the model's view at ``t + 1`` (its tokenized state,
+        re-anchored on the true state after a gap)."""
+        if not self._supplied:
+            return
+        rows, agents, t, nxt, ok = (np.concatenate(parts) for parts in zip(*self._supplied, strict=True))
+        self._supplied = []
+        pair = np.stack([self.mxyh[rows, agents, t], nxt], 1)[:, None]  # [n,1,2,3]
         tok = tokenize(
             self.vocab,
             pair,
@@ -541,9 +559,7 @@ class BatchEngine:
             self.kind[rows, agents][:, None],
         )
         self.tokens[rows, agents, t] = np.where(ok, tok.tokens[:, 0, 0], -1)
-        # the model's view of the agent is its tokenized state (re-anchored on the true state after a gap)
         self.mxyh[rows, agents, t + 1] = np.where(ok[:, None], np.nan_to_num(tok.xyh[:, 0, 1]), 0.0)
-        self.known[rows, agents, t] = True
 
     def step(self) -> None:
         """Advance every stepping row by one step (no external agent may be waiting)."""

@@ -1,0 +1,314 @@
+"""The measurements of ``trajeglish bench`` and of the scripts in ``benchmarks/``: each returns a dict of
+figures (wall-clock rates; best of repeats where the machine may be shared)."""
+
+from __future__ import annotations
+
+import os
+import resource
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from trajeglish_env.benchmark.workloads import (
+    benchmark_scenes,
+    noisy_rollouts,
+    random_inputs,
+    ring_scene,
+)
+from trajeglish_env.model import TrajeglishModel, preset
+from trajeglish_env.sampling import START
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def machine() -> dict[str, Any]:
+    """Cores and load: context for every figure."""
+    return {"cpu_count": os.cpu_count(), "load_average_1min": round(os.getloadavg()[0], 2)}
+
+
+def tokenizer_speed(
+    agents: int = 20000,
+    steps: int = 51,
+    threads: Sequence[int] = (1, 2),
+    repeats: int = 3,
+    noise_agents: int = 2000,
+    data: str | None = None,
+) -> dict[str, Any]:
+    """Tokenization agent-steps/s (exact argmin over the shipped 384 templates), per thread count, and
+    of noisy tokenization; synthetic smooth trajectories of all classes unless ``data`` is given."""
+    from trajeglish_env.scenario import AgentKind
+    from trajeglish_env.tokenizer import NoiseConfig, load_default_tokenizer, tokenize
+    from trajeglish_env.tokenizer.synthetic import synthetic_trajectories
+
+    vocab = load_default_tokenizer()
+    if data:
+        from trajeglish_env.tokenizer.data import load_trajectories
+
+        rows = load_trajectories(data)
+        reps, take = -(-agents // rows.num_rows), slice(0, agents)
+        xyh = np.tile(rows.xyh, (reps, 1, 1))[take]
+        valid = np.tile(rows.valid, (reps, 1))[take]
+        size = np.tile(rows.size, (reps, 1))[take]
+        kind = np.tile(rows.kind, reps)[take]
+    else:
+        rng = np.random.default_rng(0)
+        xyh, valid, size, kind = synthetic_trajectories(agents, steps, rng, kinds=tuple(AgentKind), max_speed=20.0)
+    transitions = int((valid[:, 1:] & valid[:, :-1]).sum())
+    result: dict[str, Any] = {
+        "vocab_size": vocab.size,
+        "agents": int(len(xyh)),
+        "agent_steps": transitions,
+        "threads": {},
+    }
+    for n in threads:
+        walls, cpus = [], []
+        for _ in range(repeats):
+            wall0, cpu0 = time.perf_counter(), time.process_time()
+            tokenize(vocab, xyh, valid, size, kind, threads=n)
+            walls.append(time.perf_counter() - wall0)
+            cpus.append(time.process_time() - cpu0)
+        best = int(np.argmin(walls))
+        result["threads"][str(n)] = {
+            "seconds": round(walls[best], 3),
+            "agent_steps_per_s": round(transitions / walls[best]),
+            "agent_steps_per_cpu_s": round(transitions / cpus[best]),
+        }
+    k = min(noise_agents, len(xyh))
+    wall0 = time.perf_counter()
+    tokenize(vocab, xyh[:k], valid[:k], size[:k], kind[:k], noise=NoiseConfig(), rng=np.random.default_rng(0))
+    noisy = int((valid[:k, 1:] & valid[:k, :-1]).sum())
+    result["noisy_agent_steps_per_s"] = round(noisy / (time.perf_counter() - wall0))
+    result["agent_steps_per_s"] = max(r["agent_steps_per_s"] for r in result["threads"].values())
+    return result
+
+
+def dataset_speed(data: Path, windows: int = 2000, batch: int = 32, workers: int = 2) -> dict[str, Any]:
+    """Training windows per second of WindowDataset: one process, and through a DataLoader."""
+    from torch.utils.data import DataLoader
+
+    from trajeglish_env.dataset import WindowConfig, WindowDataset, collate_windows
+
+    ds = WindowDataset(data, WindowConfig(), seed=0)
+    n_scenes = len(ds)
+    for i in range(n_scenes):  # warm the per-scene map-chunk cache, as an epoch of training does
+        ds[i]
+    start = time.perf_counter()
+    for i in range(windows):
+        ds.set_epoch(1 + i // n_scenes)
+        ds[i % n_scenes]
+    single = windows / (time.perf_counter() - start)
+    result: dict[str, Any] = {"scenes": n_scenes, "windows_per_s_single_process": round(single, 1)}
+    if workers > 0:
+        loader = DataLoader(
+            ds,
+            batch_size=batch,
+            num_workers=workers,
+            collate_fn=collate_windows,
+            persistent_workers=True,
+            shuffle=True,
+        )
+        next(iter(loader))  # start the workers
+        start, count = time.perf_counter(), 0
+        for _ in range(max(1, windows // n_scenes)):
+            for item in loader:
+                count += item["agent_xyh"].shape[0]
+        result[f"windows_per_s_dataloader_{workers}_workers"] = round(count / (time.perf_counter() - start), 1)
+    return result
+
+
+def training_speed(name: str = "small", batch: int = 8, steps: int = 5) -> float:
+    """Training tokens per second (forward, backward, AdamW step) of a preset on random full windows."""
+    cfg = preset(name)
+    model = TrajeglishModel(cfg)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    scene, tokens = random_inputs(cfg, batch)
+    loss, _ = model.loss(scene, tokens, tokens)  # warm-up
+    loss.backward()
+    start = time.perf_counter()
+    for _ in range(steps):
+        loss, n = model.loss(scene, tokens, tokens)
+        loss.backward()
+        opt.step()
+        opt.zero_grad()
+    return steps * n / (time.perf_counter() - start)
+
+
+@torch.no_grad()
+def decoding_speed(name: str = "small", probes: int = 32) -> dict[str, float]:
+    """Decoding tokens/s of a 24-agent x 32-step sequence with the key/value cache, and without it (a
+    full forward pass per token, timed at ``probes`` evenly spaced positions)."""
+    cfg = preset(name, max_agents=24, steps=32)
+    model = TrajeglishModel(cfg).eval()
+    scene, tokens = random_inputs(cfg, 1)
+    a, length = cfg.max_agents, cfg.max_agents * cfg.steps
+    ids = model.global_ids(tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(1, -1)
+    start = time.perf_counter()
+    cache, agents = model.start_decoding(scene)
+    for p in range(length):
+        carried = torch.full((1, 1), START) if p == 0 else ids[:, p - 1 : p]
+        own = torch.full((1, 1), -1) if p < a else ids[:, p - a : p - a + 1]
+        model.decode(cache, agents, scene.agent_kind[:, [p % a]], carried, own)
+    cached = length / (time.perf_counter() - start)
+    positions = torch.linspace(0, length - 1, probes).long().tolist()
+    start = time.perf_counter()
+    for p in positions:
+        model(scene, tokens[:, :, : p // a + 1])  # the sequence up to the timestep of position p
+    uncached = len(positions) / (time.perf_counter() - start)
+    return {
+        "decode_tokens_per_s_cached": round(cached, 1),
+        "decode_tokens_per_s_uncached": round(uncached, 2),
+        "cache_speedup": round(cached / uncached, 1),
+    }
+
+
+def metrics_time(
+    agents: int = 128,
+    rollouts: int = 32,
+    evaluated: Sequence[int] = (8, 0),
+    repeats: int = 3,
+    config: str = "2025",
+) -> dict[str, Any]:
+    """Seconds to score ``rollouts`` rollouts of a synthetic ring-road scene with the realism metrics,
+    for each number of scored agents (0: all)."""
+    from trajeglish_env.metrics import score_rollouts
+
+    scenario = ring_scene(agents)
+    samples = noisy_rollouts(scenario, rollouts)
+    result: dict[str, Any] = {"agents": agents, "rollouts": rollouts, "future_steps": int(samples.shape[2])}
+    for n in evaluated:
+        chosen = replace(scenario, tracks_to_predict=np.arange(1, n, dtype=np.int64))
+        walls, cpus = [], []
+        for _ in range(repeats):
+            wall0, cpu0 = time.perf_counter(), time.process_time()
+            scores = score_rollouts(chosen, samples, chosen.track_id, config)
+            walls.append(time.perf_counter() - wall0)
+            cpus.append(time.process_time() - cpu0)
+        best = int(np.argmin(walls))
+        result[f"{n}_evaluated" if n else "all_evaluated"] = {
+            "evaluated_agents": scores.num_evaluated,
+            "seconds": round(walls[best], 3),
+            "cpu_seconds": round(cpus[best], 3),
+            "metametric": round(scores.metametric, 6),
+            "collision_rate": round(scores.collision_rate, 4),
+            "offroad_rate": round(scores.offroad_rate, 4),
+        }
+    return result
+
+
+def rollout_speed(ckpt: Any, scene: Any, rollouts: int, horizon: int) -> dict[str, float]:
+    """Simulated agent-steps/s of ``rollouts`` closed-loop rollouts of a scene (full control)."""
+    from trajeglish_env.sampler import SamplingConfig, rollout
+
+    agents = int(scene.valid[:, scene.current_index].sum())
+    start = time.perf_counter()
+    rollout(ckpt, scene, rollouts, horizon, config=SamplingConfig(seed=0))
+    seconds = time.perf_counter() - start
+    return {
+        "agents": agents,
+        "seconds": round(seconds, 2),
+        "agent_steps_per_s": round(agents * horizon * rollouts / seconds, 1),
+    }
+
+
+def env_speed(
+    num_envs: int,
+    npc: str = "trajeglish",
+    steps: int = 20,
+    agents: int = 24,
+    warmup: int = 3,
+    torch_threads: int | str | None = "auto",
+    cache_dtype: str = "bfloat16",
+    subsets: str = "overlap",
+) -> dict[str, Any]:
+    """Stepping speed of the batched ego env: ``num_envs`` scenes of ``agents`` agents (the bundled
+    SUMO scenes cut to the sdc and its nearest neighbours), one ego each replaying its log through
+    continuous actions, episodes that never end early. Times ``env.step`` only (the actions are
+    computed outside the timed region) and reports peak memory of the process."""
+    from trajeglish_env.env import RewardConfig, TrajeglishNPC
+    from trajeglish_env.env.vector import BatchedEgoEnv
+
+    rss0 = peak_rss_mb()
+    never_end = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
+    npc_spec: Any = TrajeglishNPC(cache_dtype=cache_dtype, subsets=subsets) if npc == "trajeglish" else npc
+    scenes = benchmark_scenes(agents)
+    build0 = time.perf_counter()
+    venv = BatchedEgoEnv(
+        num_envs,
+        scenes,
+        npc=npc_spec,
+        reward=never_end,
+        max_cycles=steps + warmup + 1,
+        torch_threads=torch_threads,
+    )
+    venv.reset(seed=0)
+    build = time.perf_counter() - build0
+    elapsed = 0.0
+    for k in range(steps + warmup):
+        actions = np.stack([_log_action(env) for env in venv.envs])
+        start = time.perf_counter()
+        venv.step(actions)
+        if k >= warmup:
+            elapsed += time.perf_counter() - start
+    rate = steps / elapsed
+    return {
+        "num_envs": num_envs,
+        "npc": npc,
+        "agents_per_scene": agents,
+        "torch_threads": torch.get_num_threads(),
+        "cache_dtype": cache_dtype if npc == "trajeglish" else None,
+        "subsets": subsets if npc == "trajeglish" else None,
+        "env_steps_per_s": round(rate, 3),
+        "scene_steps_per_s": round(rate * num_envs, 2),
+        "agent_steps_per_s": round(rate * num_envs * agents, 1),
+        "setup_seconds": round(build, 2),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
+        "rss_growth_mb": round(peak_rss_mb() - rss0, 1),
+    }
+
+
+def _log_action(env: Any) -> np.ndarray:
+    """The continuous action bringing an EgoEnv's ego closest to its logged next state."""
+    aec = env.aec
+    i = aec.agent_index(env.agent)
+    sc = aec.scenario
+    return np.asarray(aec.action_towards(env.agent, sc.xyh[i, min(aec.sim.t + 1, sc.num_steps - 1)]))
+
+
+def highway_env_speed(vehicles: int = 40, steps: int = 300) -> dict[str, float]:
+    """highway-env's own intersection env at 10 Hz (one IDM step per env step, no rendering): steps/s,
+    mean vehicles on the road and simulated agent-steps/s (it removes arrived vehicles, so it starts
+    with ``vehicles`` to keep about half of them on the road)."""
+    from highway_env.envs.intersection_env import IntersectionEnv
+
+    config = {
+        "simulation_frequency": 10,
+        "policy_frequency": 10,
+        "initial_vehicle_count": vehicles,
+        "spawn_probability": 0.6,
+        "duration": 10_000,
+        "offroad_terminal": False,
+    }
+    env = IntersectionEnv(config=config)
+    env.reset(seed=0)
+    counts, start, episodes = [], time.perf_counter(), 0
+    for _ in range(steps):
+        _, _, terminated, truncated, _ = env.step(1)  # IDLE: the ego keeps its lane and speed
+        counts.append(len(env.road.vehicles))
+        if terminated or truncated:
+            episodes += 1
+            env.reset(seed=episodes)
+    rate = steps / (time.perf_counter() - start)
+    mean = float(np.mean(counts))
+    return {
+        "steps_per_s": round(rate, 2),
+        "mean_vehicles": round(mean, 1),
+        "agent_steps_per_s": round(rate * mean, 1),
+    }
