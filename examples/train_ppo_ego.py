@@ -1,11 +1,13 @@
 """Train an ego with PPO (Stable-Baselines3) in ``trajeglish_env/Ego-v0`` against Trajeglish NPCs, log the
 learning curve, and compare the trained ego with a random and a constant-velocity ego.
 
-    python examples/train_ppo_ego.py --timesteps 100000 --workers 4      # the CPU-sized run
+    python examples/train_ppo_ego.py --timesteps 100000 --envs 16        # the CPU-sized run
     python examples/train_ppo_ego.py --npc idm --smoke                   # a minute-long check
 
-Scenes: the bundled held-out scenes (training episodes draw a scene per reset; evaluation plays every
-scene with fixed seeds). Outputs in ``--out``: ``ppo_ego.zip``, ``learning_curve.csv`` / ``.png``
+Training steps ``--envs`` scenes in one batched env (:class:`~trajeglish_env.env.sb3.SB3VecEnv`: the
+NPCs of all scenes are decoded together, in one process); ``--workers N`` uses N SubprocVecEnv workers
+of unbatched ``EgoEnv`` instead. Scenes: the bundled held-out scenes (training episodes draw a scene per
+reset; evaluation plays every scene with fixed seeds, all evaluation episodes of an ego in one batch). Outputs in ``--out``: ``ppo_ego.zip``, ``learning_curve.csv`` / ``.png``
 (episode return vs timesteps, from the Monitor logs) and ``comparison.json``.
 """
 
@@ -21,6 +23,7 @@ import numpy as np
 
 from policies import ConstantVelocityPolicy, RandomPolicy
 from trajeglish_env.env import EgoEnv, TrajeglishNPC
+from trajeglish_env.env.vector import BatchedEgoEnv
 from trajeglish_env.env.scenes import load_bundle
 
 
@@ -29,28 +32,31 @@ def make_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     return {"npc": npc, "max_cycles": args.max_cycles}
 
 
-def evaluate_ego(env: EgoEnv, choose: Any, episodes: int, seed: int) -> dict[str, float]:
-    """Mean return, collision / off-road / goal rates and progress of an ego over ``episodes`` episodes
-    (scene ``k % scenes``, seed ``seed + k``)."""
-    returns, collided, offroad, goal, progress = [], [], [], [], []
-    for k in range(episodes):
-        obs, _ = env.reset(seed=seed + k, options={"scene": k % len(env.aec.scenes)})
-        done, total, info = False, 0.0, {}
-        while not done:
-            obs, reward, terminated, truncated, info = env.step(choose(env, obs))
-            total += reward
-            done = terminated or truncated
-        returns.append(total)
-        collided.append(info["collision"])
-        offroad.append(info["offroad"])
-        goal.append(info["goal"])
-        progress.append(info["route_fraction"])
+def evaluate_ego(venv: BatchedEgoEnv, choose: Any, seed: int) -> dict[str, float]:
+    """Mean return, collision / off-road / goal rates and progress of an ego over one episode per scene
+    of the batched env (env ``k`` plays scene ``k % scenes`` with seed ``seed + k``), all at once."""
+    n = venv.num_envs
+    obs = np.stack(
+        [
+            env.reset(seed=seed + k, options={"scene": k % len(env.aec.scenes)})[0]
+            for k, env in enumerate(venv.envs)
+        ]
+    )
+    returns, final = np.zeros(n), [None] * n
+    while any(f is None for f in final):
+        actions = np.stack([choose(env, o) for env, o in zip(venv.envs, obs, strict=True)])
+        results = venv.step_each(actions)
+        for k, (o, reward, _, _, _, end) in enumerate(results):
+            if final[k] is None:
+                returns[k] += reward
+                final[k] = end[1] if end is not None else None
+        obs = np.stack([r[0] for r in results])
     return {
         "mean_return": float(np.mean(returns)),
-        "collision_rate": float(np.mean(collided)),
-        "offroad_rate": float(np.mean(offroad)),
-        "goal_rate": float(np.mean(goal)),
-        "mean_route_fraction": float(np.mean(progress)),
+        "collision_rate": float(np.mean([f["collision"] for f in final])),
+        "offroad_rate": float(np.mean([f["offroad"] for f in final])),
+        "goal_rate": float(np.mean([f["goal"] for f in final])),
+        "mean_route_fraction": float(np.mean([f["route_fraction"] for f in final])),
     }
 
 
@@ -92,8 +98,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--timesteps", type=int, default=100_000)
+    parser.add_argument("--envs", type=int, default=16, help="scenes of the batched training env")
     parser.add_argument(
-        "--workers", type=int, default=4, help="SubprocVecEnv workers (0: one in-process env)"
+        "--workers", type=int, default=0, help="SubprocVecEnv workers of unbatched envs instead (0: batched)"
     )
     parser.add_argument(
         "--npc", default="trajeglish", choices=("trajeglish", "idm", "replay", "constant_velocity")
@@ -106,12 +113,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--smoke", action="store_true", help="a few hundred steps, one env, 2 eval episodes")
     args = parser.parse_args(argv)
     if args.smoke:
-        args.timesteps, args.workers, args.eval_episodes, args.max_cycles = 256, 0, 2, args.max_cycles or 12
+        args.timesteps, args.envs, args.eval_episodes, args.max_cycles = 256, 2, 2, args.max_cycles or 12
 
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.env_util import make_vec_env
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+    from stable_baselines3.common.vec_env import SubprocVecEnv, VecMonitor
+
+    from trajeglish_env.env.sb3 import SB3VecEnv
 
     torch.set_num_threads(1)
     out = Path(args.out)
@@ -120,16 +129,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for stale in monitor_dir.glob("*.monitor.csv"):
         stale.unlink()
     env_kwargs = make_env_kwargs(args)
-    vec = make_vec_env(
-        EgoEnv,
-        n_envs=max(args.workers, 1),
-        seed=args.seed,
-        env_kwargs=env_kwargs,
-        monitor_dir=str(monitor_dir),
-        vec_env_cls=SubprocVecEnv if args.workers > 1 else DummyVecEnv,
-        vec_env_kwargs={"start_method": "spawn"} if args.workers > 1 else None,
-    )
-    n_steps = 64 if args.smoke else 512
+    if args.workers > 0:
+        vec = make_vec_env(
+            EgoEnv,
+            n_envs=args.workers,
+            seed=args.seed,
+            env_kwargs=env_kwargs,
+            monitor_dir=str(monitor_dir),
+            vec_env_cls=SubprocVecEnv,
+            vec_env_kwargs={"start_method": "spawn"},
+        )
+    else:
+        vec = VecMonitor(SB3VecEnv(args.envs, **env_kwargs), filename=str(monitor_dir / "batched"))
+        vec.seed(args.seed)
+    n_steps = 64 if args.smoke else max(64, 8192 // max(args.workers, args.envs, 1))
     model = PPO(
         "MlpPolicy",
         vec,
@@ -147,7 +160,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     model.save(out / "ppo_ego.zip")
     curve = learning_curve(monitor_dir, out, f"PPO ego in Ego-v0, {args.npc} NPCs")
 
-    env = EgoEnv(**env_kwargs)
+    venv = BatchedEgoEnv(args.eval_episodes, **env_kwargs)
     random_policy, cv_policy = RandomPolicy(args.seed), ConstantVelocityPolicy()
     egos = {
         "ppo": lambda e, obs: model.predict(obs, deterministic=True)[0],
@@ -155,7 +168,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "constant_velocity": lambda e, obs: cv_policy.act(e.aec, e.agent, obs),
     }
     seed = 10_000  # evaluation seeds differ from the training ones
-    comparison = {name: evaluate_ego(env, choose, args.eval_episodes, seed) for name, choose in egos.items()}
+    comparison = {name: evaluate_ego(venv, choose, seed) for name, choose in egos.items()}
     result = {
         "timesteps": args.timesteps,
         "npc": args.npc,

@@ -162,7 +162,34 @@ def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
     )
 
 
+def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.benchmark.suite import BenchConfig, run_suite, summary_lines
+    from trajeglish_env.scenario_io import atomic_path
+
+    threads = args.threads if args.threads == "auto" else int(args.threads)
+    config = BenchConfig(
+        batches=tuple(args.batches),
+        agents=args.agents,
+        env_steps=args.env_steps,
+        torch_threads=threads,
+        cache_dtype=args.cache_dtype,
+        sections=tuple(args.sections),
+        quick=args.quick,
+    )
+    result = run_suite(config, progress=not args.quiet)
+    if args.out:
+        with atomic_path(args.out) as tmp:
+            tmp.write_text(json.dumps(result, indent=2))
+    if args.json:
+        return result
+    print("\n".join(summary_lines(result)))
+    return {"written": args.out} if args.out else {}
+
+
 # ---------------------------------------------------------------------------------------- parser
+SECTIONS = ("tokenizer", "dataset", "training", "decoding", "metrics", "env")  # see benchmark.suite
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="trajeglish", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -288,6 +315,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ego", choices=("idm", "replay", "constant_velocity"), default="idm")
     p.add_argument("--order", choices=("first", "last", "random"), default="first")
     p.add_argument("--format", choices=("gif", "mp4"), default="gif")
+
+    p = add("bench", cmd_bench, "the benchmark suite: speed of every stage, batched env vs highway-env")
+    p.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32, 128], help="scenes per batched env")
+    p.add_argument("--agents", type=int, default=24, help="agents per scene")
+    p.add_argument("--env-steps", type=int, default=12, help="timed steps per batched-env run")
+    p.add_argument("--threads", default="auto", help="torch threads of the batched env (or 'auto')")
+    p.add_argument("--cache-dtype", choices=("bfloat16", "float32"), default="bfloat16")
+    p.add_argument(
+        "--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure"
+    )
+    p.add_argument("--quick", action="store_true", help="tiny workloads (a smoke run)")
+    p.add_argument("--out", help="also write the JSON document here (atomically)")
     return parser
 
 

@@ -25,7 +25,14 @@ from trajeglish_env.sampling import START
 
 
 def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (MB)."""
+    """Peak resident memory of this process image so far (MB): VmHWM, which, unlike ``ru_maxrss``, does
+    not inherit the parent's peak across fork + exec."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
@@ -60,7 +67,9 @@ def tokenizer_speed(
         kind = np.tile(rows.kind, reps)[take]
     else:
         rng = np.random.default_rng(0)
-        xyh, valid, size, kind = synthetic_trajectories(agents, steps, rng, kinds=tuple(AgentKind), max_speed=20.0)
+        xyh, valid, size, kind = synthetic_trajectories(
+            agents, steps, rng, kinds=tuple(AgentKind), max_speed=20.0
+        )
     transitions = int((valid[:, 1:] & valid[:, :-1]).sum())
     result: dict[str, Any] = {
         "vocab_size": vocab.size,
@@ -120,7 +129,9 @@ def dataset_speed(data: Path, windows: int = 2000, batch: int = 32, workers: int
         for _ in range(max(1, windows // n_scenes)):
             for item in loader:
                 count += item["agent_xyh"].shape[0]
-        result[f"windows_per_s_dataloader_{workers}_workers"] = round(count / (time.perf_counter() - start), 1)
+        result[f"windows_per_s_dataloader_{workers}_workers"] = round(
+            count / (time.perf_counter() - start), 1
+        )
     return result
 
 
@@ -236,7 +247,9 @@ def env_speed(
     from trajeglish_env.env.vector import BatchedEgoEnv
 
     rss0 = peak_rss_mb()
-    never_end = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
+    never_end = RewardConfig(
+        terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False
+    )
     npc_spec: Any = TrajeglishNPC(cache_dtype=cache_dtype, subsets=subsets) if npc == "trajeglish" else npc
     scenes = benchmark_scenes(agents)
     build0 = time.perf_counter()

@@ -151,5 +151,3 @@ def grid_scene(n: int = 200, steps: int = 91) -> Scenario:
         scenario_id=f"grid-{n}",
         source="bench",
     )
-
-

@@ -281,6 +281,7 @@ class BatchEngine:
         since = self.now - self.window_step
         return self.stepping & ((self.window_step < 0) | ((since % self.every == 0) & (since != 0)))
 
+    @torch.no_grad()
     def _build_windows(self, rows: np.ndarray) -> None:
         """Plan subsets of ``rows`` at their step and encode + prime each subset rank for them."""
         A, L = self.cfg.max_agents, self.cfg.max_agents * self.cfg.steps
@@ -416,6 +417,7 @@ class BatchEngine:
         """See :meth:`_advance`."""
         return self._advance()
 
+    @torch.no_grad()
     def _advance(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Act the positions of the current step in order, for every stepping row. Returns
         ``(rows, agents)``: external agents whose next states are needed (supply them, then call again),

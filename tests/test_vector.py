@@ -1,0 +1,222 @@
+"""Batched simulation: a scene simulated among many gives exactly what it gives alone (engine rows, the
+Gymnasium vector env, the batched parallel env and the SB3 VecEnv), and chunked decoding is exact."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import DummyVecEnv
+from test_env import TINY, bundle_scene
+
+from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
+from trajeglish_env.env.sb3 import SB3VecEnv
+from trajeglish_env.env.scenes import load_bundle
+from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv, auto_threads
+from trajeglish_env.model.layers import MIN_GEMM_ROWS, invariant_linear
+from trajeglish_env.sampler.engine import BatchEngine, RowSpec, SamplingConfig
+from trajeglish_env.sampling import START, counter_uniform
+
+SCENES = ["highway-merge-999000", "sumo-random-999000-0-0", "highway-exit-999001", "highway-roundabout-999001"]
+KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
+
+
+def full_control(name: str, horizon: int = 12) -> RowSpec:
+    sc = bundle_scene(name)
+    return RowSpec(sc, horizon, sc.valid[:, sc.current_index].copy())
+
+
+def run_rows(specs: list[RowSpec], seeds: list[int], dtype: torch.dtype, restart: tuple | None = None) -> BatchEngine:
+    """Run one engine with a row per spec; ``restart = (step, row, spec, seed)`` restarts a row mid-run."""
+    engine = BatchEngine(TINY, len(specs), SamplingConfig(temperature=1.0), cache_dtype=dtype)
+    for row, (spec, seed) in enumerate(zip(specs, seeds, strict=True)):
+        engine.start_rows([row], spec, [seed])
+    k = 0
+    while engine.stepping.any():
+        if restart is not None and k == restart[0]:
+            engine.start_rows([restart[1]], restart[2], [restart[3]])
+        engine.step()
+        k += 1
+    return engine
+
+
+def row_view(engine: BatchEngine, row: int, spec: RowSpec) -> tuple[np.ndarray, np.ndarray]:
+    n, T = spec.scenario.num_agents, spec.scenario.current_index + 1 + spec.horizon
+    return engine.tokens[row, :n, : T - 1].copy(), engine.xyh[row, :n, :T].copy()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_engine_rows_of_different_scenes_equal_their_solo_runs(dtype: torch.dtype) -> None:
+    specs = [full_control(name) for name in SCENES]
+    seeds = [11, 12, 13, 14]
+    solo = [row_view(run_rows([spec], [seed], dtype), 0, spec) for spec, seed in zip(specs, seeds, strict=True)]
+    # the same rows in another order, beside a duplicate of scene 0 with another seed
+    order = [2, 0, 3, 1]
+    batch = run_rows([specs[i] for i in order] + [specs[0]], [seeds[i] for i in order] + [99], dtype)
+    for row, i in enumerate(order):
+        tokens, xyh = row_view(batch, row, specs[i])
+        assert np.array_equal(tokens, solo[i][0]), f"{SCENES[i]}: tokens differ in the batch"
+        assert np.array_equal(xyh, solo[i][1])
+    assert (solo[1][0][:, 10:] >= 0).sum() > 100  # the 29-agent scene really sampled (several contexts)
+    other, _ = row_view(batch, 4, specs[0])
+    assert not np.array_equal(other, solo[0][0])  # another seed, another rollout
+
+
+def test_engine_row_restarted_mid_run_equals_a_fresh_run() -> None:
+    specs = [full_control(SCENES[0], 20), full_control(SCENES[1], 20)]
+    late = full_control(SCENES[2], 6)
+    engine = run_rows(specs, [1, 2], torch.float32, restart=(5, 0, late, 7))
+    fresh = run_rows([late], [7], torch.float32)
+    assert np.array_equal(row_view(engine, 0, late)[0], row_view(fresh, 0, late)[0])
+    untouched = run_rows([specs[1]], [2], torch.float32)
+    assert np.array_equal(row_view(engine, 1, specs[1])[0], row_view(untouched, 0, specs[1])[0])
+
+
+def test_chunked_decoding_equals_the_full_forward_pass() -> None:
+    """decode_at with per-row positions and chunk lengths gives the teacher-forced logits."""
+    model = TINY.model
+    cfg = model.cfg
+    a, t, b = cfg.max_agents, cfg.steps, 3
+    g = torch.Generator().manual_seed(0)
+    from trajeglish_env.model.network import SceneInputs
+
+    scene = SceneInputs(
+        agent_xyh=torch.randn(b, a, 3, generator=g) * 10,
+        agent_size=torch.rand(b, a, 2, generator=g) + 1,
+        agent_kind=torch.randint(0, 3, (b, a), generator=g),
+        agent_mask=torch.ones(b, a, dtype=torch.bool),
+        map_points=torch.randn(b, cfg.max_polylines, cfg.points_per_polyline, 2, generator=g) * 20,
+        map_point_mask=torch.ones(b, cfg.max_polylines, cfg.points_per_polyline, dtype=torch.bool),
+        map_kind=torch.randint(0, 20, (b, cfg.max_polylines), generator=g),
+        map_mask=torch.ones(b, cfg.max_polylines, dtype=torch.bool),
+    )
+    tokens = torch.randint(0, cfg.vocab_size, (b, a, t), generator=g)
+    with torch.no_grad():
+        full = model(scene, tokens).reshape(b, t * a, -1)  # [B, positions, V]
+    ids = model.global_ids(tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, -1)
+    carried = torch.cat([torch.full((b, 1), START), ids[:, :-1]], 1)
+    own = torch.cat([torch.full((b, a), -1), ids[:, :-a]], 1)
+    cache, agents = model.start_decoding(scene)
+    rng = np.random.default_rng(0)
+    done = np.zeros(b, dtype=np.int64)
+    while (done < t * a).any():
+        count = np.minimum(rng.integers(0, 5, b), t * a - done)  # rows advance by 0-4 positions per call
+        n = max(1, int(count.max()))
+        pos = np.minimum(done[:, None] + np.arange(n), t * a - 1)
+        idx = torch.from_numpy(pos)
+        hidden = model.decode_at(cache, agents, carried.gather(1, idx), own.gather(1, idx), done, count)
+        for row in range(b):
+            if count[row]:
+                kind = scene.agent_kind[row, pos[row, : count[row]] % a]
+                with torch.no_grad():
+                    got = model.class_logits(hidden[row, : count[row]], kind)
+                np.testing.assert_allclose(got, full[row, done[row] : done[row] + count[row]], atol=2e-5)
+        done += count
+
+
+def test_invariant_linear_and_counter_uniform() -> None:
+    w, bias = torch.randn(64, 48), torch.randn(64)
+    x = torch.randn(200, 48)
+    with torch.no_grad():
+        together = invariant_linear(x, w, bias)
+        alone = torch.cat([invariant_linear(x[i : i + 1], w, bias) for i in range(7)])
+    assert torch.equal(together[:7], alone) and MIN_GEMM_ROWS >= 16
+    u = counter_uniform(np.full(4, 3, np.uint64), np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]))
+    assert len(np.unique(u)) == 4 and ((u >= 0) & (u < 1)).all()
+    assert np.array_equal(u[2:], counter_uniform(np.full(2, 3, np.uint64), np.array([1, 1]), np.array([0, 1])))
+
+
+def ego_actions(steps: int, n: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(0)
+    return [rng.uniform(-1, 1, (n, 2)).astype(np.float32) for _ in range(steps)]
+
+
+@pytest.mark.parametrize("npc", ["tiny", "idm"])
+def test_batched_ego_env_equals_separate_envs_with_autoreset(npc: str) -> None:
+    spec = TrajeglishNPC(TINY) if npc == "tiny" else "idm"
+    kw = {"npc": spec, "max_cycles": 7}
+    venv = BatchedEgoEnv(3, **kw)
+    obs, info = venv.reset(seed=5)
+    assert obs.shape == (3, *venv.single_observation_space.shape) and venv.observation_space.contains(obs)
+    actions = ego_actions(16, 3)
+    batched = [venv.step(a) for a in actions]
+    assert sum(int((r[2] | r[3]).sum()) for r in batched) >= 6  # every scene ended and restarted
+    for i in range(3):
+        env = EgoEnv(**kw)
+        o, inf = env.reset(seed=5 + i)
+        assert np.array_equal(o, obs[i]) and inf["scenario_id"] == info["scenario_id"][i]
+        for a, (b_obs, b_rew, b_term, b_trunc, b_info) in zip(actions, batched, strict=True):
+            o, r, term, trunc, inf = env.step(a[i])
+            assert (r, term, trunc) == (b_rew[i], b_term[i], b_trunc[i])
+            if term or trunc:
+                assert np.array_equal(o, b_info["final_obs"][i]) and b_info["_final_obs"][i]
+                o, _ = env.reset()
+            assert np.array_equal(o, b_obs[i])
+
+
+def test_batched_parallel_env_equals_separate_parallel_envs() -> None:
+    kw = {"npc": TrajeglishNPC(TINY), "external": "all", "max_cycles": 5}
+    penv = BatchedParallelEnv(2, **kw)
+    obs, _ = penv.reset(seed=[3, 4], options={"scene": SCENES[0]})
+    refs = [parallel_env(**kw) for _ in range(2)]
+    ref_obs = [r.reset(seed=s, options={"scene": SCENES[0]})[0] for r, s in zip(refs, [3, 4], strict=True)]
+    for got, want in zip(obs, ref_obs, strict=True):
+        assert got.keys() == want.keys() and all(np.array_equal(got[a], want[a]) for a in got)
+    for step in range(7):
+        actions = [{a: penv.action_space(a).sample() for a in agents} for agents in penv.agents]
+        out = penv.step(actions)
+        for i, ref in enumerate(refs):
+            if not ref.agents:
+                assert out[0][i] == {}  # a finished scene stays empty until it is reset
+                continue
+            want = ref.step(actions[i])
+            for k in range(4):
+                assert out[k][i].keys() == want[k].keys()
+            assert all(np.array_equal(out[0][i][a], want[0][a]) for a in want[0])
+            assert out[1][i] == pytest.approx(dict(want[1]))
+        if step == 5:
+            assert penv.agents == [[], []]
+            obs, _ = penv.reset_scenes([1], seed=8)
+            ref_obs = refs[1].reset(seed=8)[0]
+            assert obs[0].keys() == ref_obs.keys() and penv.agents[1]
+
+
+def test_sb3_vec_env_equals_dummy_vec_env_and_trains() -> None:
+    kw = {"npc": TrajeglishNPC(TINY), "max_cycles": 6}
+    vec = SB3VecEnv(3, **kw)
+    ref = DummyVecEnv([lambda: EgoEnv(**kw) for _ in range(3)])
+    vec.seed(21)
+    ref.seed(21)
+    assert np.array_equal(vec.reset(), ref.reset())
+    for a in ego_actions(10, 3):
+        got, want = vec.step(a), ref.step(a)
+        assert np.array_equal(got[0], want[0]) and np.allclose(got[1], want[1]) and np.array_equal(got[2], want[2])
+        for i in np.flatnonzero(got[2]):
+            assert np.array_equal(got[3][i]["terminal_observation"], want[3][i]["terminal_observation"])
+            assert got[3][i]["TimeLimit.truncated"] == want[3][i]["TimeLimit.truncated"]
+    assert vec.get_attr("agent") == ref.get_attr("agent")
+    model = PPO("MlpPolicy", vec, n_steps=16, batch_size=24, n_epochs=1, seed=0, device="cpu")
+    model.learn(48)
+    assert model.num_timesteps >= 48
+
+
+def test_batched_envs_refuse_bad_inputs() -> None:
+    with pytest.raises(ValueError, match="order='first'"):
+        BatchedEgoEnv(2, npc=TrajeglishNPC(TINY), order="last")
+    with pytest.raises(ValueError, match="positive integer"):
+        BatchedEgoEnv(0, npc="idm")
+    venv = BatchedEgoEnv(2, npc="idm", max_cycles=3)
+    with pytest.raises(ValueError, match="expected 2 seeds"):
+        venv.reset(seed=[1, 2, 3])
+    venv.reset(seed=0)
+    with pytest.raises(ValueError, match="expected 2 actions"):
+        venv.step(np.zeros((3, 2), np.float32))
+    penv = BatchedParallelEnv(2, npc="idm", external="all")
+    penv.reset(seed=0)
+    with pytest.raises(KeyError, match="scene 0 has no action"):
+        penv.step([{}, {}])
+    with pytest.raises(ValueError, match="out of range"):
+        penv.reset_scenes([2])
+    assert auto_threads(1) == 1 and auto_threads(128) >= 1
+    assert len(load_bundle()) == 20

@@ -1,0 +1,196 @@
+"""``trajeglish bench``: the whole benchmark suite in one run, as one JSON document.
+
+Sections: tokenization agent-steps/s, dataset windows/s, training tokens/s, decoding tokens/s with and
+without the key/value cache, realism-metric scoring time, the batched ego env (Trajeglish and replay
+NPCs) for each batch size, each in a fresh process so that its peak memory is its own, and highway-env's
+own stepping speed measured in the same run. Ratios to highway-env make the figures comparable across
+noisy runs. JSON layout: see the README ("Benchmarks").
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from typing import Any
+
+SCHEMA_VERSION = 1
+SECTIONS = ("tokenizer", "dataset", "training", "decoding", "metrics", "env")
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What the suite measures and how long: ``batches`` scene counts of the batched env, ``agents`` per
+    scene, timed env steps per run (after ``warmup``), highway-env steps, torch threads for the batched
+    env (``"auto"``: see :func:`trajeglish_env.env.vector.auto_threads`), the NPC cache dtype and the
+    sections to run (``quick`` shrinks every workload for a smoke run)."""
+
+    batches: tuple[int, ...] = (1, 8, 32, 128)
+    agents: int = 24
+    env_steps: int = 12
+    replay_steps: int = 40
+    highway_steps: int = 300
+    torch_threads: str | int = "auto"
+    cache_dtype: str = "bfloat16"
+    sections: tuple[str, ...] = SECTIONS
+    quick: bool = False
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.sections) - set(SECTIONS))
+        if unknown:
+            raise ValueError(f"bench: unknown section(s) {unknown}; expected some of {list(SECTIONS)}")
+        if not self.batches or min(self.batches) < 1:
+            raise ValueError(f"bench: batch sizes must be positive, got {list(self.batches)}")
+        if self.env_steps < 1 or self.replay_steps < 1 or self.highway_steps < 1:
+            raise ValueError("bench: step counts must be >= 1")
+
+
+def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
+    """Run the configured sections (with a progress bar on stderr) and return the JSON document."""
+    from tqdm import tqdm
+
+    from trajeglish_env.benchmark import measure
+
+    q = config.quick
+    cores = measure.machine()["cpu_count"] or 1
+    jobs: list[tuple[str, Callable[[], Any]]] = []
+    if "tokenizer" in config.sections:
+        jobs.append(
+            ("tokenizer", lambda: measure.tokenizer_speed(2000 if q else 20000, repeats=1 if q else 2))
+        )
+    if "dataset" in config.sections:
+        jobs.append(("dataset", lambda: _dataset(200 if q else 1000)))
+    if "training" in config.sections:
+        jobs.append(("training", lambda: _threads(cores, _training, 1 if q else 3)))
+    if "decoding" in config.sections:  # single token calls: one thread is fastest
+        jobs.append(("decoding", lambda: _threads(1, measure.decoding_speed, "small", 4 if q else 16)))
+    if "metrics" in config.sections:
+        jobs.append(("metrics", lambda: measure.metrics_time(32 if q else 128, 8 if q else 32, (8,), 1)))
+    if "env" in config.sections:
+        jobs.append(("highway_env", lambda: measure.highway_env_speed(40, 60 if q else config.highway_steps)))
+        for npc in ("trajeglish", "replay"):
+            for b in config.batches:
+                jobs.append((f"env/{npc}/{b}", _env_job(config, npc, b)))
+    result: dict[str, Any] = {
+        "schema_version": SCHEMA_VERSION,
+        "machine": measure.machine(),
+        "config": asdict(config),
+    }
+    start = time.perf_counter()
+    for name, job in tqdm(jobs, desc="bench", unit="run", disable=not progress, file=sys.stderr):
+        value = job()
+        if name.startswith("env/"):
+            _, npc, b = name.split("/")
+            result.setdefault("env", {}).setdefault(npc, {})[b] = value
+        else:
+            result[name] = value
+    result["ratios"] = ratios(result)
+    result["seconds"] = round(time.perf_counter() - start, 1)
+    return result
+
+
+def _threads(n: int, fn: Callable[..., Any], *args: Any) -> Any:
+    """Run ``fn`` with ``n`` torch threads (restored afterwards)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        return fn(*args)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _training(steps: int) -> dict[str, Any]:
+    import torch
+
+    from trajeglish_env.benchmark.measure import training_speed
+
+    return {
+        "preset": "small",
+        "batch": 8,
+        "torch_threads": torch.get_num_threads(),
+        "tokens_per_s": round(training_speed("small", 8, steps), 1),
+    }
+
+
+def _dataset(windows: int) -> dict[str, Any]:
+    from trajeglish_env.benchmark.measure import dataset_speed
+    from trajeglish_env.env.scenes import load_bundle
+
+    bundle = load_bundle()
+    return dataset_speed([bundle.get(i) for i in range(len(bundle))], windows, workers=0)  # type: ignore[arg-type]
+
+
+def _env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str, Any]]:
+    """Run one batched-env measurement in a fresh Python process (its own peak memory)."""
+
+    def job() -> dict[str, Any]:
+        steps = config.env_steps if npc == "trajeglish" else config.replay_steps
+        if config.quick:
+            steps = min(steps, 3)
+        spec = {
+            "num_envs": batch,
+            "npc": npc,
+            "steps": steps,
+            "agents": config.agents,
+            "torch_threads": config.torch_threads,
+            "cache_dtype": config.cache_dtype,
+        }
+        cmd = [sys.executable, "-m", "trajeglish_env.benchmark.worker", json.dumps(spec)]
+        done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        if done.returncode != 0:
+            raise RuntimeError(f"bench: the env run {spec} failed:\n{done.stderr[-2000:]}")
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    return job
+
+
+def ratios(result: dict[str, Any]) -> dict[str, Any]:
+    """Simulated agent-steps/s of each batched-env run divided by highway-env's (same run)."""
+    base = result.get("highway_env", {}).get("agent_steps_per_s")
+    out: dict[str, Any] = {}
+    if not base:
+        return out
+    for npc, runs in result.get("env", {}).items():
+        for b, run in runs.items():
+            out[f"{npc}_B{b}_to_highway_env"] = round(run["agent_steps_per_s"] / base, 3)
+    return out
+
+
+def summary_lines(result: dict[str, Any]) -> list[str]:
+    """A human-readable digest of a suite result."""
+    lines = [f"machine: {result['machine']}"]
+    if "tokenizer" in result:
+        lines.append(f"tokenizer: {result['tokenizer']['agent_steps_per_s']:,} agent-steps/s")
+    if "dataset" in result:
+        lines.append(f"dataset: {result['dataset']['windows_per_s_single_process']} windows/s")
+    if "training" in result:
+        lines.append(f"training (small preset): {result['training']['tokens_per_s']} tokens/s")
+    if "decoding" in result:
+        d = result["decoding"]
+        lines.append(
+            f"decoding: {d['decode_tokens_per_s_cached']} tokens/s cached, "
+            f"{d['decode_tokens_per_s_uncached']} uncached ({d['cache_speedup']}x)"
+        )
+    if "metrics" in result:
+        lines.append(f"metrics: {result['metrics']['8_evaluated']['seconds']} s per scene of 32 rollouts")
+    if "highway_env" in result:
+        h = result["highway_env"]
+        lines.append(
+            f"highway-env: {h['steps_per_s']} steps/s x {h['mean_vehicles']} vehicles = "
+            f"{h['agent_steps_per_s']} agent-steps/s"
+        )
+    for npc, runs in result.get("env", {}).items():
+        for b, run in runs.items():
+            ratio = result["ratios"].get(f"{npc}_B{b}_to_highway_env")
+            lines.append(
+                f"env {npc:>10} B={b:>4}: {run['scene_steps_per_s']:>8} scene-steps/s "
+                f"{run['agent_steps_per_s']:>10} agent-steps/s ({ratio}x highway-env), "
+                f"peak {run['peak_rss_mb']} MB"
+            )
+    lines.append(f"total {result['seconds']} s")
+    return lines

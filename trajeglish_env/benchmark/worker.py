@@ -1,0 +1,18 @@
+"""One batched-env measurement in its own process (``python -m trajeglish_env.benchmark.worker SPEC``,
+SPEC a JSON object of :func:`trajeglish_env.benchmark.measure.env_speed` arguments); prints one JSON line."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def main() -> None:
+    from trajeglish_env.benchmark.measure import env_speed
+
+    spec = json.loads(sys.argv[1])
+    print(json.dumps(env_speed(**spec)))
+
+
+if __name__ == "__main__":
+    main()
