@@ -30,7 +30,7 @@ test: lint
 	$(PY) -m pytest -n 2 --durations=15 tests
 
 bench: $(STAMP)
-	$(PY) benchmarks/run_all.py
+	$(VENV)/bin/trajeglish bench --out out/bench.json
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -21,45 +20,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import report  # noqa: E402
 
+from trajeglish_env.benchmark.measure import rollout_speed  # noqa: E402
+from trajeglish_env.benchmark.workloads import grid_scene  # noqa: E402
 from trajeglish_env.checkpoint import load_pretrained  # noqa: E402
-from trajeglish_env.sampler import SamplingConfig, rollout  # noqa: E402
-from trajeglish_env.scenario import AgentKind, Scenario  # noqa: E402
-from trajeglish_env.scenario_io import load_scenarios  # noqa: E402
-
-
-def grid_scene(n: int = 200, steps: int = 91) -> Scenario:
-    """``n`` vehicles on parallel lanes 8 m apart, driving +x at 5-10 m/s."""
-    rng = np.random.default_rng(0)
-    cols = 20
-    start = np.stack([np.arange(n) % cols * 12.0, np.arange(n) // cols * 4.0], -1)
-    speed = rng.uniform(5, 10, n)
-    xyh = np.zeros((n, steps, 3))
-    xyh[..., 0] = start[:, :1] + speed[:, None] * np.arange(steps) * 0.1
-    xyh[..., 1] = start[:, 1:]
-    lanes = [np.stack([np.arange(-50, 400.0), np.full(450, y)], -1) for y in np.unique(start[:, 1])]
-    return Scenario.from_arrays(
-        xyh,
-        np.ones((n, steps), bool),
-        np.tile([4.5, 1.9], (n, 1)),
-        np.full(n, AgentKind.VEHICLE),
-        sdc=0,
-        polylines=lanes,
-        polyline_kinds=[2] * len(lanes),
-        scenario_id=f"grid-{n}",
-        source="bench",
-    )
-
-
-def measure(ckpt, scene: Scenario, rollouts: int, horizon: int) -> dict[str, float]:
-    agents = int(scene.valid[:, scene.current_index].sum())
-    start = time.perf_counter()
-    rollout(ckpt, scene, rollouts, horizon, config=SamplingConfig(seed=0))
-    seconds = time.perf_counter() - start
-    return {
-        "agents": agents,
-        "seconds": round(seconds, 2),
-        "agent_steps_per_s": round(agents * horizon * rollouts / seconds, 1),
-    }
+from trajeglish_env.env.scenes import load_bundle  # noqa: E402
 
 
 def main() -> None:
@@ -71,19 +35,18 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     ckpt = load_pretrained()
-    bundle = load_scenarios(
-        Path(sys.modules["trajeglish_env"].__file__).parent / "assets" / "scenes_bundle.scn.npz"
-    )
-    count = [int(s.valid[:, s.current_index].sum()) for s in bundle]
-    small = bundle[int(np.argmin(np.abs(np.array(count) - 24)))]
+    bundle = load_bundle()
+    scenes = [bundle.get(i) for i in range(len(bundle))]
+    count = [int(s.valid[:, s.current_index].sum()) for s in scenes]
+    small = scenes[int(np.argmin(np.abs(np.array(count) - 24)))]
     result = {
         "model": "shipped small",
         "rollouts": args.rollouts,
         "horizon": args.horizon,
         "threads": args.threads,
     }
-    result["scene_small"] = measure(ckpt, small, args.rollouts, args.horizon)
-    result["scene_200"] = measure(ckpt, grid_scene(200), args.rollouts, args.horizon)
+    result["scene_small"] = rollout_speed(ckpt, small, args.rollouts, args.horizon)
+    result["scene_200"] = rollout_speed(ckpt, grid_scene(200), args.rollouts, args.horizon)
     report(result, args.json)
 
 

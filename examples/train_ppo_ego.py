@@ -7,8 +7,9 @@ learning curve, and compare the trained ego with a random and a constant-velocit
 Training steps ``--envs`` scenes in one batched env (:class:`~trajeglish_env.env.sb3.SB3VecEnv`: the
 NPCs of all scenes are decoded together, in one process); ``--workers N`` uses N SubprocVecEnv workers
 of unbatched ``EgoEnv`` instead. Scenes: the bundled held-out scenes (training episodes draw a scene per
-reset; evaluation plays every scene with fixed seeds, all evaluation episodes of an ego in one batch). Outputs in ``--out``: ``ppo_ego.zip``, ``learning_curve.csv`` / ``.png``
-(episode return vs timesteps, from the Monitor logs) and ``comparison.json``.
+reset; evaluation plays every scene with fixed seeds, all evaluation episodes of an ego in one batch).
+Outputs in ``--out``: ``ppo_ego.zip``, ``learning_curve.csv`` / ``.png`` (episode return vs timesteps,
+from the Monitor logs) and ``comparison.json``.
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ import numpy as np
 
 from policies import ConstantVelocityPolicy, RandomPolicy
 from trajeglish_env.env import EgoEnv, TrajeglishNPC
-from trajeglish_env.env.vector import BatchedEgoEnv
 from trajeglish_env.env.scenes import load_bundle
+from trajeglish_env.env.vector import BatchedEgoEnv
 
 
 def make_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -46,7 +47,7 @@ def evaluate_ego(venv: BatchedEgoEnv, choose: Any, seed: int) -> dict[str, float
     while any(f is None for f in final):
         actions = np.stack([choose(env, o) for env, o in zip(venv.envs, obs, strict=True)])
         results = venv.step_each(actions)
-        for k, (o, reward, _, _, _, end) in enumerate(results):
+        for k, (_, reward, _, _, _, end) in enumerate(results):
             if final[k] is None:
                 returns[k] += reward
                 final[k] = end[1] if end is not None else None

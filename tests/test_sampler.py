@@ -152,3 +152,17 @@ def test_rollout_on_the_womd_sample() -> None:
     assert live.sum() == 50
     assert out.valid[:, live, sc.current_index :].all()
     assert np.isfinite(out.xyh[out.valid]).all()
+
+
+def test_cover_rule_needs_no_more_subsets_and_covers_everyone() -> None:
+    sc = crowd_scene()
+    pos = sc.xyh[:, 10, :2]
+    active = np.ones(sc.num_agents, bool)
+    paper = plan_subsets(pos, active, 24, first=sc.sdc)
+    cover = plan_subsets(pos, active, 24, first=sc.sdc, rule="cover")
+    assert set(np.unique(cover.slots[cover.slots >= 0]).tolist()) == set(range(sc.num_agents))
+    assert cover.num_subsets < paper.num_subsets  # 210 agents: far fewer contexts than the paper's rule
+    assert np.array_equal(cover.slots[0], paper.slots[0])  # the sdc's subset is the same
+    assert len(np.unique(cover.acting_order)) == sc.num_agents
+    with pytest.raises(ValueError, match="subset rule"):
+        plan_subsets(pos, active, 24, first=sc.sdc, rule="nearest")

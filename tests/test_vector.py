@@ -18,7 +18,12 @@ from trajeglish_env.model.layers import MIN_GEMM_ROWS, invariant_linear
 from trajeglish_env.sampler.engine import BatchEngine, RowSpec, SamplingConfig
 from trajeglish_env.sampling import START, counter_uniform
 
-SCENES = ["highway-merge-999000", "sumo-random-999000-0-0", "highway-exit-999001", "highway-roundabout-999001"]
+SCENES = [
+    "highway-merge-999000",
+    "sumo-random-999000-0-0",
+    "highway-exit-999001",
+    "highway-roundabout-999001",
+]
 KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
 
 
@@ -27,7 +32,9 @@ def full_control(name: str, horizon: int = 12) -> RowSpec:
     return RowSpec(sc, horizon, sc.valid[:, sc.current_index].copy())
 
 
-def run_rows(specs: list[RowSpec], seeds: list[int], dtype: torch.dtype, restart: tuple | None = None) -> BatchEngine:
+def run_rows(
+    specs: list[RowSpec], seeds: list[int], dtype: torch.dtype, restart: tuple | None = None
+) -> BatchEngine:
     """Run one engine with a row per spec; ``restart = (step, row, spec, seed)`` restarts a row mid-run."""
     engine = BatchEngine(TINY, len(specs), SamplingConfig(temperature=1.0), cache_dtype=dtype)
     for row, (spec, seed) in enumerate(zip(specs, seeds, strict=True)):
@@ -50,7 +57,9 @@ def row_view(engine: BatchEngine, row: int, spec: RowSpec) -> tuple[np.ndarray, 
 def test_engine_rows_of_different_scenes_equal_their_solo_runs(dtype: torch.dtype) -> None:
     specs = [full_control(name) for name in SCENES]
     seeds = [11, 12, 13, 14]
-    solo = [row_view(run_rows([spec], [seed], dtype), 0, spec) for spec, seed in zip(specs, seeds, strict=True)]
+    solo = [
+        row_view(run_rows([spec], [seed], dtype), 0, spec) for spec, seed in zip(specs, seeds, strict=True)
+    ]
     # the same rows in another order, beside a duplicate of scene 0 with another seed
     order = [2, 0, 3, 1]
     batch = run_rows([specs[i] for i in order] + [specs[0]], [seeds[i] for i in order] + [99], dtype)
@@ -124,7 +133,9 @@ def test_invariant_linear_and_counter_uniform() -> None:
     assert torch.equal(together[:7], alone) and MIN_GEMM_ROWS >= 16
     u = counter_uniform(np.full(4, 3, np.uint64), np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]))
     assert len(np.unique(u)) == 4 and ((u >= 0) & (u < 1)).all()
-    assert np.array_equal(u[2:], counter_uniform(np.full(2, 3, np.uint64), np.array([1, 1]), np.array([0, 1])))
+    assert np.array_equal(
+        u[2:], counter_uniform(np.full(2, 3, np.uint64), np.array([1, 1]), np.array([0, 1]))
+    )
 
 
 def ego_actions(steps: int, n: int) -> list[np.ndarray]:
@@ -191,7 +202,11 @@ def test_sb3_vec_env_equals_dummy_vec_env_and_trains() -> None:
     assert np.array_equal(vec.reset(), ref.reset())
     for a in ego_actions(10, 3):
         got, want = vec.step(a), ref.step(a)
-        assert np.array_equal(got[0], want[0]) and np.allclose(got[1], want[1]) and np.array_equal(got[2], want[2])
+        assert (
+            np.array_equal(got[0], want[0])
+            and np.allclose(got[1], want[1])
+            and np.array_equal(got[2], want[2])
+        )
         for i in np.flatnonzero(got[2]):
             assert np.array_equal(got[3][i]["terminal_observation"], want[3][i]["terminal_observation"])
             assert got[3][i]["TimeLimit.truncated"] == want[3][i]["TimeLimit.truncated"]

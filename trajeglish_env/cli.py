@@ -322,9 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--env-steps", type=int, default=12, help="timed steps per batched-env run")
     p.add_argument("--threads", default="auto", help="torch threads of the batched env (or 'auto')")
     p.add_argument("--cache-dtype", choices=("bfloat16", "float32"), default="bfloat16")
-    p.add_argument(
-        "--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure"
-    )
+    p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure")
     p.add_argument("--quick", action="store_true", help="tiny workloads (a smoke run)")
     p.add_argument("--out", help="also write the JSON document here (atomically)")
     return parser

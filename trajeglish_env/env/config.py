@@ -34,8 +34,8 @@ class TrajeglishNPC:
     shipped model's most realistic setting measured (WOSAC meta-metric 0.61 vs 0.47 at 1.0).
     ``cache_dtype``: ``"bfloat16"`` (default) or ``"float32"`` decoder key/value caches; bfloat16 halves
     their memory traffic (batched stepping ~1.2x faster on CPU) and moves the shipped model's held-out
-    NLL by 1e-5 nats (1.99320 vs 1.99319 on 13,220 tokens). ``subsets``: how scenes larger than the model's context are split,
-    ``"overlap"`` (the paper's rule) or ``"cover"`` (fewest contexts; see
+    NLL by 1e-5 nats (1.99320 vs 1.99319 on 13,220 tokens). ``subsets``: how scenes larger than the
+    model's context are split, ``"overlap"`` (the paper's rule) or ``"cover"`` (fewest contexts; see
     :mod:`trajeglish_env.sampler.subsets`)."""
 
     checkpoint: Any = None
@@ -46,7 +46,9 @@ class TrajeglishNPC:
 
     def __post_init__(self) -> None:
         if self.cache_dtype not in CACHE_DTYPES:
-            raise ValueError(f"TrajeglishNPC.cache_dtype must be one of {CACHE_DTYPES}, got {self.cache_dtype!r}")
+            raise ValueError(
+                f"TrajeglishNPC.cache_dtype must be one of {CACHE_DTYPES}, got {self.cache_dtype!r}"
+            )
         if self.subsets not in ("overlap", "cover"):
             raise ValueError(f"TrajeglishNPC.subsets must be 'overlap' or 'cover', got {self.subsets!r}")
         if not (self.temperature >= 0):
@@ -59,7 +61,6 @@ class TrajeglishNPC:
                 "TrajeglishNPC.checkpoint must be None (the shipped model), a path or a Checkpoint, "
                 f"got {type(self.checkpoint).__name__}"
             )
-
 
     def sampling(self) -> Any:
         """The engine's :class:`~trajeglish_env.sampler.engine.SamplingConfig` for these settings."""

@@ -52,7 +52,12 @@ class SB3VecEnv(VecEnv):
             raise RuntimeError("step_wait() called without step_async()")
         results = self.venv.step_each(self._actions)
         self._actions = None
-        obs, rewards, dones, infos = [], np.zeros(self.num_envs, dtype=np.float32), np.zeros(self.num_envs, bool), []
+        obs, rewards, dones, infos = (
+            [],
+            np.zeros(self.num_envs, dtype=np.float32),
+            np.zeros(self.num_envs, bool),
+            [],
+        )
         for i, (o, reward, terminated, truncated, info, final) in enumerate(results):
             info = dict(info)
             rewards[i], dones[i] = reward, terminated or truncated
@@ -84,7 +89,9 @@ class SB3VecEnv(VecEnv):
         for env in self._targets(indices):
             setattr(env, attr_name, value)
 
-    def env_method(self, method_name: str, *args: Any, indices: VecEnvIndices = None, **kwargs: Any) -> list[Any]:
+    def env_method(
+        self, method_name: str, *args: Any, indices: VecEnvIndices = None, **kwargs: Any
+    ) -> list[Any]:
         """Call a method of each (or the given) scene env."""
         return [getattr(env, method_name)(*args, **kwargs) for env in self._targets(indices)]
 

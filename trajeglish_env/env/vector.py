@@ -159,7 +159,9 @@ class BatchedEgoEnv(VectorEnv):
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = np.zeros(self.num_envs, dtype=bool)
         infos: dict[str, Any] = {}
-        for i, (obs, rewards[i], terminated[i], truncated[i], info, final) in enumerate(self.step_each(actions)):
+        for i, (obs, rewards[i], terminated[i], truncated[i], info, final) in enumerate(
+            self.step_each(actions)
+        ):
             if final is not None:
                 infos = self._add_info(infos, {"final_obs": final[0], "final_info": final[1]}, i)
             self._single_obs[i] = obs
@@ -269,7 +271,9 @@ class BatchedParallelEnv:
         """One timestep of every scene that has agents: ``actions[i]`` maps scene i's agents to actions.
         Returns per-scene lists of observations, rewards, terminations, truncations and infos."""
         if len(actions) != self.num_envs:
-            raise ValueError(f"step: expected {self.num_envs} action dicts (one per scene), got {len(actions)}")
+            raise ValueError(
+                f"step: expected {self.num_envs} action dicts (one per scene), got {len(actions)}"
+            )
         rewards: list[dict[str, float]] = [{} for _ in range(self.num_envs)]
         busy = [i for i in range(self.num_envs) if self.envs[i].agents]
         for i in busy:
@@ -293,7 +297,9 @@ class BatchedParallelEnv:
             out[2][i].update(env.terminations)
             out[3][i].update(env.truncations)
             out[4][i].update(env.infos)
-            while env.agents and (env.terminations[env.agent_selection] or env.truncations[env.agent_selection]):
+            while env.agents and (
+                env.terminations[env.agent_selection] or env.truncations[env.agent_selection]
+            ):
                 env.step(None)
             self.agents[i] = env.agents[:]
             if not env.agents:

@@ -350,7 +350,7 @@ class TrajeglishModel(nn.Module):
         busy = count > 0
         if (count > n).any() or (busy & ((start < 0) | (start + count > cache.capacity))).any():
             raise ValueError(
-                f"decode_at: chunks {list(zip(start.tolist(), count.tolist()))} need inputs "
+                f"decode_at: chunks {list(zip(start.tolist(), count.tolist(), strict=True))} need inputs "
                 f"({n}) >= count and must fit the cache ({cache.capacity})"
             )
         dev = carried_ids.device

@@ -200,7 +200,9 @@ class BatchEngine:
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)
         if len(rows) != len(seeds) or ((rows < 0) | (rows >= self.B)).any():
-            raise ValueError(f"start_rows: {len(rows)} rows in 0..{self.B - 1} need as many seeds, got {seeds}")
+            raise ValueError(
+                f"start_rows: {len(rows)} rows in 0..{self.B - 1} need as many seeds, got {seeds}"
+            )
         sc = spec.scenario
         n = sc.num_agents
         cur = sc.current_index if spec.current_index is None else int(spec.current_index)
@@ -209,7 +211,9 @@ class BatchEngine:
         if int(spec.horizon) < 1:
             raise ValueError(f"horizon must be >= 1, got {spec.horizon}")
         controlled = _agent_mask(spec.controlled, n, "controlled")
-        external = _agent_mask(spec.external, n, "external") if spec.external is not None else np.zeros(n, bool)
+        external = (
+            _agent_mask(spec.external, n, "external") if spec.external is not None else np.zeros(n, bool)
+        )
         if (controlled & external).any():
             raise ValueError(
                 f"agents {np.flatnonzero(controlled & external).tolist()} are both controlled and external"
@@ -507,7 +511,9 @@ class BatchEngine:
     def _pending_external(self, stepping: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """External agents alive at this step whose next state has not been supplied (acting order)."""
         r_ix = np.arange(self.B)[:, None]
-        need = self.row_external & ~self.known[r_ix, :, t[:, None]][:, 0] & self.valid[r_ix, :, t[:, None]][:, 0]
+        need = (
+            self.row_external & ~self.known[r_ix, :, t[:, None]][:, 0] & self.valid[r_ix, :, t[:, None]][:, 0]
+        )
         need &= stepping[:, None]
         if not need.any():
             return None

@@ -6,10 +6,10 @@ already-covered agents is the next centre, until every active agent is in some s
 ``"overlap"`` (the paper's) takes the centre's nearest neighbours as its subset: most context from earlier
 subsets, but a subset may add only a few new agents. Rule ``"cover"`` fills a subset with the centre's
 nearest *uncovered* agents within ``reach`` metres first and completes it with the nearest covered ones:
-fewest subsets, so fewest model positions per step (the same plan whenever one subset holds everyone). Inside a subset the
-order is: padding first, then the agents that already acted in an earlier subset (in acting order), then
-the rest by (priority, distance to the centre agent) -- so the sdc, as centre of the first subset, acts
-first at every timestep.
+fewest subsets, so fewest model positions per step (the same plan whenever one subset holds everyone).
+Inside a subset the order is: padding first, then the agents that already acted in an earlier subset
+(in acting order), then the rest by (priority, distance to the centre agent) -- so the sdc, as centre of
+the first subset, acts first at every timestep.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 
 SUBSET_RULES = ("overlap", "cover")
 

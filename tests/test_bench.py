@@ -1,0 +1,53 @@
+"""The benchmark suite's plumbing (the speed figures themselves come from `trajeglish bench`, never tests)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from trajeglish_env.benchmark.measure import env_speed
+from trajeglish_env.benchmark.suite import BenchConfig, ratios, summary_lines
+from trajeglish_env.benchmark.workloads import benchmark_scenes
+from trajeglish_env.cli import main
+
+
+def test_benchmark_scenes_have_exactly_the_requested_agents() -> None:
+    scenes = benchmark_scenes(24)
+    assert len(scenes) == 4 and all(s.num_agents == 24 for s in scenes)
+    assert all(s.valid[s.sdc, s.current_index] for s in scenes)
+    with pytest.raises(ValueError, match="no bundled scene has 500 agents"):
+        benchmark_scenes(500)
+
+
+def test_env_speed_reports_rates_and_memory() -> None:
+    run = env_speed(2, npc="replay", steps=2, warmup=1)
+    assert run["num_envs"] == 2 and run["agents_per_scene"] == 24
+    assert run["agent_steps_per_s"] == pytest.approx(run["env_steps_per_s"] * 48, rel=1e-2)
+    assert run["peak_rss_mb"] > 50
+
+
+def test_ratios_and_summary_of_a_result() -> None:
+    result = {
+        "machine": {"cpu_count": 2},
+        "highway_env": {"steps_per_s": 50.0, "mean_vehicles": 20.0, "agent_steps_per_s": 1000.0},
+        "env": {"trajeglish": {"8": {"agent_steps_per_s": 2500.0, "scene_steps_per_s": 104.2, "peak_rss_mb": 9}}},
+        "seconds": 1.0,
+    }
+    result["ratios"] = ratios(result)
+    assert result["ratios"] == {"trajeglish_B8_to_highway_env": 2.5}
+    assert any("2.5x highway-env" in line for line in summary_lines(result))
+
+
+def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(ValueError, match="unknown section"):
+        BenchConfig(sections=("gpu",))
+    with pytest.raises(ValueError, match="batch sizes"):
+        BenchConfig(batches=(0,))
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    written = json.loads(out.read_text())
+    assert printed["schema_version"] == written["schema_version"] == 1
+    assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
