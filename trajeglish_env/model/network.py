@@ -205,10 +205,24 @@ class TrajeglishModel(nn.Module):
         )
         return logits.gather(-2, index).squeeze(-2)
 
-    def _positions(self, agents: torch.Tensor, start: int, length: int, a: int) -> torch.Tensor:
-        """Time + target-agent embeddings for flattened positions ``start .. start+length-1``."""
-        p = torch.arange(start, start + length, device=agents.device)
-        return self.time(p // a)[None] + self.target_agent(agents[:, p % a])
+    def _positions(self, agents: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """Time + target-agent embeddings of flattened positions ``index`` (``[n]``, or ``[B,n]`` per row)."""
+        a = agents.shape[1]
+        if index.dim() == 1:
+            return self.time(index // a)[None] + self.target_agent(agents[:, index % a])
+        slot = agents.gather(1, (index % a)[..., None].expand(-1, -1, agents.shape[-1]))
+        return self.time(index // a) + self.target_agent(slot)
+
+    def _decoder_inputs(self, carried_ids: torch.Tensor, own_ids: torch.Tensor | None) -> torch.Tensor:
+        """Embeddings of the tokens decoded positions carry (the start token where ``-2``), plus, for the
+        trajeglish variant, the projected previous token of each position's own agent."""
+        is_start = (carried_ids == -2)[..., None]
+        x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
+        if self.own_previous is not None:
+            if own_ids is None:
+                raise ValueError("the trajeglish variant needs own_ids (each agent's token one step earlier)")
+            x = x + self.own_previous(self.embed_tokens(own_ids))
+        return x
 
     # ---------------------------------------------------------------------------------- training
     def forward(self, scene: SceneInputs, input_tokens: torch.Tensor) -> torch.Tensor:
@@ -229,7 +243,7 @@ class TrajeglishModel(nn.Module):
         if self.own_previous is not None:  # the same agent's token one step earlier (p - A)
             own = torch.cat([torch.full_like(ids[:, :a], -1), ids[:, :-a]], dim=1)
             x = x + self.own_previous(self.embed_tokens(own))
-        x = x + self._positions(agents, 0, t * a, a)
+        x = x + self._positions(agents, torch.arange(t * a, device=x.device))
         mask = (
             decoder_mask(self.cfg.variant, t, a, x.device)
             if a != self.cfg.max_agents
@@ -306,13 +320,8 @@ class TrajeglishModel(nn.Module):
         a = agents.shape[1]
         if p + n > cache.self_k[0].shape[2]:
             raise RuntimeError(f"decoder cache holds {cache.self_k[0].shape[2]} positions; {p + n} requested")
-        is_start = (carried_ids == -2)[..., None]
-        x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
-        if self.own_previous is not None:
-            if own_ids is None:
-                raise ValueError("the trajeglish variant needs own_ids (each agent's token one step earlier)")
-            x = x + self.own_previous(self.embed_tokens(own_ids))
-        x = x + self._positions(agents, p, n, a)
+        x = self._decoder_inputs(carried_ids, own_ids)
+        x = x + self._positions(agents, torch.arange(p, p + n, device=x.device))
         mask = self._mask_rows(p, n, a)
         for i, block in enumerate(self.blocks):
             kv = (cache.self_k[i], cache.self_v[i], p)
@@ -369,14 +378,7 @@ class TrajeglishModel(nn.Module):
             groups.append(RowGroup(index, keys, mask, queries, written))
         index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
         index = index.clamp(max=cache.capacity - 1)
-        is_start = (carried_ids == -2)[..., None]
-        x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
-        if self.own_previous is not None:
-            if own_ids is None:
-                raise ValueError("the trajeglish variant needs own_ids (each agent's token one step earlier)")
-            x = x + self.own_previous(self.embed_tokens(own_ids))
-        slot_emb = agents.gather(1, (index % a)[..., None].expand(-1, -1, agents.shape[-1]))
-        x = x + self.time(index // a) + self.target_agent(slot_emb)
+        x = self._decoder_inputs(carried_ids, own_ids) + self._positions(agents, index)
         for i, block in enumerate(self.blocks):
             kv = (cache.self_k[i], cache.self_v[i], groups)
             x = block(x, None, cache.cross_k[i], cache.cross_v[i], cache.memory_mask, kv)
