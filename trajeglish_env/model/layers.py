@@ -132,14 +132,14 @@ class DecoderCache:
 @dataclass(frozen=True)
 class RowGroup:
     """Rows of a batch (``rows`` None: every row) attending over the cached keys ``0 .. keys - 1`` under
-    ``mask [g,1,n,keys]``; their new positions are ``queries [g,n]``, of which ``written [g,n]`` are real
-    (the others are padding and are not stored)."""
+    ``mask [g,1,n,keys]``; ``positions [w]`` are the cache positions of the new keys/values to store,
+    taken from batch row ``writes[0]`` and input slot ``writes[1]`` (padding inputs are not stored)."""
 
     rows: torch.Tensor | None
     keys: int
     mask: torch.Tensor
-    queries: torch.Tensor
-    written: torch.Tensor
+    positions: torch.Tensor
+    writes: tuple[torch.Tensor, torch.Tensor]
 
     @property
     def select(self) -> slice | torch.Tensor:
@@ -202,12 +202,9 @@ class DecoderBlock(nn.Module):
         the feed-forward for every row."""
         attended = torch.zeros_like(h)
         for g in groups:
-            rows = g.select
-            local, slot = torch.nonzero(g.written, as_tuple=True)
-            batch_rows = local if g.rows is None else g.rows[local]
-            pos = g.queries[local, slot]
-            ck[batch_rows, :, pos] = k[batch_rows, :, slot].to(ck.dtype)
-            cv[batch_rows, :, pos] = v[batch_rows, :, slot].to(cv.dtype)
+            rows, (batch_rows, slot) = g.select, g.writes
+            ck[batch_rows, :, g.positions] = k[batch_rows, :, slot].to(ck.dtype)
+            cv[batch_rows, :, g.positions] = v[batch_rows, :, slot].to(cv.dtype)
             keys, values = ck[rows, :, : g.keys], cv[rows, :, : g.keys]  # views when the group is every row
             attended[rows] = self.self_attn.attend(h[rows], keys, values, g.mask)
         x = x + attended

@@ -374,8 +374,11 @@ class TrajeglishModel(nn.Module):
             queries = torch.from_numpy(start[rows]).to(dev)[:, None] + torch.arange(n, device=dev)
             keys = (s + 1) * a
             mask = self.mask[queries.clamp(max=cache.capacity - 1)][:, None, :, :keys]  # [g,1,n,keys]
-            written = torch.from_numpy(count[rows]).to(dev)[:, None] > torch.arange(n, device=dev)
-            groups.append(RowGroup(index, keys, mask, queries, written))
+            local, slot = np.nonzero(count[rows][:, None] > np.arange(n))  # host side: no device sync
+            writes = (torch.from_numpy(rows[local]).to(dev), torch.from_numpy(slot).to(dev))
+            groups.append(
+                RowGroup(index, keys, mask, queries[torch.from_numpy(local).to(dev), writes[1]], writes)
+            )
         index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
         index = index.clamp(max=cache.capacity - 1)
         x = self._decoder_inputs(carried_ids, own_ids) + self._positions(agents, index)
