@@ -32,7 +32,9 @@ def test_ratios_and_summary_of_a_result() -> None:
     result = {
         "machine": {"cpu_count": 2},
         "highway_env": {"steps_per_s": 50.0, "mean_vehicles": 20.0, "agent_steps_per_s": 1000.0},
-        "env": {"trajeglish": {"8": {"agent_steps_per_s": 2500.0, "scene_steps_per_s": 104.2, "peak_rss_mb": 9}}},
+        "env": {
+            "trajeglish": {"8": {"agent_steps_per_s": 2500.0, "scene_steps_per_s": 104.2, "peak_rss_mb": 9}}
+        },
         "seconds": 1.0,
     }
     result["ratios"] = ratios(result)

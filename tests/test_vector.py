@@ -235,3 +235,16 @@ def test_batched_envs_refuse_bad_inputs() -> None:
         penv.reset_scenes([2])
     assert auto_threads(1) == 1 and auto_threads(128) >= 1
     assert len(load_bundle()) == 20
+
+
+def test_batched_render_follows_the_engine_when_a_bigger_scene_grows_its_arrays() -> None:
+    scenes = [bundle_scene(SCENES[0]), bundle_scene(SCENES[1])]  # the second has more agents: the arrays grow
+    venv = BatchedEgoEnv(2, scenes, render_mode="rgb_array", npc=TrajeglishNPC(TINY), max_cycles=4)
+    venv.envs[0].reset(seed=0, options={"scene": 0})
+    venv.envs[1].reset(seed=0, options={"scene": 0})
+    before = venv.render()
+    venv.envs[1].reset(seed=1, options={"scene": 1})
+    venv.step(np.zeros((2, 2), np.float32))
+    after = venv.render()
+    assert all(f.dtype == np.uint8 and f.ndim == 3 for f in before + after)
+    assert venv.batch.engine.N == scenes[1].num_agents and not np.array_equal(before[0], after[0])

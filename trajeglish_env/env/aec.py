@@ -278,10 +278,14 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         return None
 
     def _episode_renderer(self) -> Any:
+        sim = self._sim()
+        if self._renderer is not None and not np.may_share_memory(self._renderer_xyh, sim.driver.xyh):
+            self._renderer.close()  # a batched env's engine grew its arrays: draw from the new ones
+            self._renderer = None
         if self._renderer is None:
             from trajeglish_env.env.rendering import EpisodeRenderer
 
-            sim = self._sim()
+            self._renderer_xyh = sim.driver.xyh
             self._renderer = EpisodeRenderer(
                 self.scenario,
                 sim.driver.xyh,
