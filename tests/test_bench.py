@@ -39,7 +39,7 @@ def test_ratios_and_summary_of_a_result() -> None:
     }
     result["ratios"] = ratios(result)
     assert result["ratios"] == {"trajeglish_B8_to_highway_env": 2.5}
-    assert any("2.5x highway-env" in line for line in summary_lines(result))
+    assert any("2.5x intersection" in line for line in summary_lines(result))
 
 
 def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -295,21 +295,23 @@ def _log_action(env: Any) -> np.ndarray:
     return np.asarray(aec.action_towards(env.agent, sc.xyh[i, min(aec.sim.t + 1, sc.num_steps - 1)]))
 
 
-def highway_env_speed(vehicles: int = 40, steps: int = 300) -> dict[str, float]:
-    """highway-env's own intersection env at 10 Hz (one IDM step per env step, no rendering): steps/s,
-    mean vehicles on the road and simulated agent-steps/s (it removes arrived vehicles, so it starts
-    with ``vehicles`` to keep about half of them on the road)."""
+def highway_env_speed(vehicles: int = 40, steps: int = 300, kind: str = "intersection") -> dict[str, Any]:
+    """highway-env's own env at 10 Hz (one IDM step per env step, no rendering, the ego idling): steps/s,
+    mean vehicles on the road and simulated agent-steps/s. ``kind="intersection"``: it removes arrived
+    vehicles, so it starts with ``vehicles`` to keep about half of them on the road; ``kind="highway"``:
+    ``highway-v0`` with exactly ``vehicles`` vehicles (the ego included) on 4 lanes."""
+    from highway_env.envs.highway_env import HighwayEnv
     from highway_env.envs.intersection_env import IntersectionEnv
 
-    config = {
-        "simulation_frequency": 10,
-        "policy_frequency": 10,
-        "initial_vehicle_count": vehicles,
-        "spawn_probability": 0.6,
-        "duration": 10_000,
-        "offroad_terminal": False,
-    }
-    env = IntersectionEnv(config=config)
+    config: dict[str, Any] = {"simulation_frequency": 10, "policy_frequency": 10, "duration": 10_000}
+    if kind == "intersection":
+        config |= {"initial_vehicle_count": vehicles, "spawn_probability": 0.6, "offroad_terminal": False}
+        env: Any = IntersectionEnv(config=config)
+    elif kind == "highway":
+        config |= {"vehicles_count": vehicles - 1, "lanes_count": 4, "vehicles_density": 1.0}
+        env = HighwayEnv(config=config)
+    else:
+        raise ValueError(f"highway_env_speed: kind must be 'intersection' or 'highway', got {kind!r}")
     env.reset(seed=0)
     counts, start, episodes = [], time.perf_counter(), 0
     for _ in range(steps):
@@ -321,6 +323,7 @@ def highway_env_speed(vehicles: int = 40, steps: int = 300) -> dict[str, float]:
     rate = steps / (time.perf_counter() - start)
     mean = float(np.mean(counts))
     return {
+        "env": f"{kind}-v0",
         "steps_per_s": round(rate, 2),
         "mean_vehicles": round(mean, 1),
         "agent_steps_per_s": round(rate * mean, 1),

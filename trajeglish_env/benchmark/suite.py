@@ -70,7 +70,11 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
     if "metrics" in config.sections:
         jobs.append(("metrics", lambda: measure.metrics_time(32 if q else 128, 8 if q else 32, (8,), 1)))
     if "env" in config.sections:
-        jobs.append(("highway_env", lambda: measure.highway_env_speed(40, 60 if q else config.highway_steps)))
+        hw_steps = 60 if q else config.highway_steps
+        jobs.append(("highway_env", lambda: measure.highway_env_speed(40, hw_steps)))
+        jobs.append(
+            ("highway_env_highway", lambda: measure.highway_env_speed(config.agents, hw_steps, "highway"))
+        )
         for npc in ("trajeglish", "replay"):
             for b in config.batches:
                 jobs.append((f"env/{npc}/{b}", _env_job(config, npc, b)))
@@ -150,14 +154,17 @@ def _env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str
 
 
 def ratios(result: dict[str, Any]) -> dict[str, Any]:
-    """Simulated agent-steps/s of each batched-env run divided by highway-env's (same run)."""
-    base = result.get("highway_env", {}).get("agent_steps_per_s")
+    """Simulated agent-steps/s of each batched-env run divided by highway-env's (same run): the
+    intersection env (``..._to_highway_env``) and highway-v0 at the same agent count
+    (``..._to_highway_env_highway``)."""
     out: dict[str, Any] = {}
-    if not base:
-        return out
-    for npc, runs in result.get("env", {}).items():
-        for b, run in runs.items():
-            out[f"{npc}_B{b}_to_highway_env"] = round(run["agent_steps_per_s"] / base, 3)
+    for key in ("highway_env", "highway_env_highway"):
+        base = result.get(key, {}).get("agent_steps_per_s")
+        if not base:
+            continue
+        for npc, runs in result.get("env", {}).items():
+            for b, run in runs.items():
+                out[f"{npc}_B{b}_to_{key}"] = round(run["agent_steps_per_s"] / base, 3)
     return out
 
 
@@ -178,18 +185,20 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
         )
     if "metrics" in result:
         lines.append(f"metrics: {result['metrics']['8_evaluated']['seconds']} s per scene of 32 rollouts")
-    if "highway_env" in result:
-        h = result["highway_env"]
-        lines.append(
-            f"highway-env: {h['steps_per_s']} steps/s x {h['mean_vehicles']} vehicles = "
-            f"{h['agent_steps_per_s']} agent-steps/s"
-        )
+    for key in ("highway_env", "highway_env_highway"):
+        if key in result:
+            h = result[key]
+            lines.append(
+                f"highway-env {h.get('env', '')}: {h['steps_per_s']} steps/s x {h['mean_vehicles']} "
+                f"vehicles = {h['agent_steps_per_s']} agent-steps/s"
+            )
     for npc, runs in result.get("env", {}).items():
         for b, run in runs.items():
             ratio = result["ratios"].get(f"{npc}_B{b}_to_highway_env")
+            ratio_hw = result["ratios"].get(f"{npc}_B{b}_to_highway_env_highway")
             lines.append(
                 f"env {npc:>10} B={b:>4}: {run['scene_steps_per_s']:>8} scene-steps/s "
-                f"{run['agent_steps_per_s']:>10} agent-steps/s ({ratio}x highway-env), "
+                f"{run['agent_steps_per_s']:>10} agent-steps/s ({ratio}x intersection, {ratio_hw}x highway), "
                 f"peak {run['peak_rss_mb']} MB"
             )
     lines.append(f"total {result['seconds']} s")
