@@ -126,6 +126,7 @@ class BatchEngine:
         if rows < 1:
             raise ValueError(f"rows must be >= 1, got {rows}")
         self.model = ckpt.model.eval()
+        self.device = self.model.start.device  # the engine's state stays on the host; the model's here
         self.vocab = ckpt.vocabulary
         self.cfg = self.model.cfg
         self.config = config
@@ -310,8 +311,8 @@ class BatchEngine:
                     np.full((self.B, A), -1, dtype=np.int64),
                     np.zeros(self.B, dtype=np.int64),
                     cache,
-                    torch.zeros(self.B, A, self.cfg.d_model),
-                    torch.zeros(self.B, A, dtype=torch.long),
+                    torch.zeros(self.B, A, self.cfg.d_model, device=self.device),
+                    torch.zeros(self.B, A, dtype=torch.long, device=self.device),
                 )
             )
         for i, b in enumerate(rows):
@@ -332,7 +333,7 @@ class BatchEngine:
                 cache, agents = self.model.start_decoding(scene, max_length=L, dtype=self.cache_dtype)
                 if n:
                     self._prime(cache, agents, scene.agent_kind, sub, slots, s0[group], int(n))
-                index = torch.from_numpy(sub)
+                index = torch.from_numpy(sub).to(self.device)
                 w.cache.copy_rows_(index, cache)
                 w.agents[index] = agents
                 w.kind[index] = scene.agent_kind
@@ -364,15 +365,16 @@ class BatchEngine:
             pts[i], pmask[i], mkind[i], mmask[i] = nearest_chunks(
                 self.chunks[b], frames[i], c.max_polylines, MAP_RADIUS
             )
+        dev = self.device
         return SceneInputs(
-            agent_xyh=torch.from_numpy(np.where(real[..., None], local, 0.0)).float(),
-            agent_size=torch.from_numpy(np.where(real[..., None], self.size[r_ix, idx], 1.0)).float(),
-            agent_kind=torch.from_numpy(np.where(real, self.kind[r_ix, idx], 0)),
-            agent_mask=torch.from_numpy(real),
-            map_points=torch.from_numpy(pts),
-            map_point_mask=torch.from_numpy(pmask),
-            map_kind=torch.from_numpy(mkind),
-            map_mask=torch.from_numpy(mmask),
+            agent_xyh=torch.from_numpy(np.where(real[..., None], local, 0.0)).float().to(dev),
+            agent_size=torch.from_numpy(np.where(real[..., None], self.size[r_ix, idx], 1.0)).float().to(dev),
+            agent_kind=torch.from_numpy(np.where(real, self.kind[r_ix, idx], 0)).to(dev),
+            agent_mask=torch.from_numpy(real).to(dev),
+            map_points=torch.from_numpy(pts).to(dev),
+            map_point_mask=torch.from_numpy(pmask).to(dev),
+            map_kind=torch.from_numpy(mkind).to(dev),
+            map_mask=torch.from_numpy(mmask).to(dev),
         )
 
     def _joint(self, rows: np.ndarray, agents: np.ndarray, steps: np.ndarray) -> np.ndarray:
@@ -397,7 +399,7 @@ class BatchEngine:
             rows, np.take_along_axis(slots, positions % A, 1), s0[:, None] + np.maximum(tau - 1, 0)
         )
         own = np.where(tau > 0, own, -1)
-        return torch.from_numpy(carried), torch.from_numpy(own)
+        return torch.from_numpy(carried).to(self.device), torch.from_numpy(own).to(self.device)
 
     def _prime(
         self,
@@ -497,7 +499,10 @@ class BatchEngine:
             return
         rr, cc = np.nonzero(todo)
         who = w.slots[rr, slots[rr, cc]]
-        logits = self.model.class_logits(hidden[rr, cc], torch.from_numpy(self.kind[rr, who]))
+        rows_t = torch.from_numpy(rr).to(self.device)
+        cols_t = torch.from_numpy(cc).to(self.device)
+        kinds = torch.from_numpy(self.kind[rr, who]).to(self.device)
+        logits = self.model.class_logits(hidden[rows_t, cols_t], kinds).cpu()  # one transfer per call
         tt = self.now[rr]
         u = counter_uniform(self.seed[rr], tt, who)
         tok = sample_with_uniform(logits, self.config.temperature, self.config.top_p, u)
