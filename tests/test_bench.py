@@ -47,6 +47,8 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         BenchConfig(sections=("gpu",))
     with pytest.raises(ValueError, match="batch sizes"):
         BenchConfig(batches=(0,))
+    assert main(["bench", "--threads", "lots", "--quiet"]) == 2
+    assert "--threads must be 'auto' or a positive integer" in capsys.readouterr().err
     out = tmp_path / "bench.json"
     assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)

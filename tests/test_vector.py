@@ -221,6 +221,8 @@ def test_batched_envs_refuse_bad_inputs() -> None:
         BatchedEgoEnv(2, npc=TrajeglishNPC(TINY), order="last")
     with pytest.raises(ValueError, match="positive integer"):
         BatchedEgoEnv(0, npc="idm")
+    with pytest.raises(ValueError, match="torch_threads"):
+        BatchedEgoEnv(2, npc="idm", torch_threads="many")
     venv = BatchedEgoEnv(2, npc="idm", max_cycles=3)
     with pytest.raises(ValueError, match="expected 2 seeds"):
         venv.reset(seed=[1, 2, 3])

@@ -166,6 +166,8 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.benchmark.suite import BenchConfig, run_suite, summary_lines
     from trajeglish_env.scenario_io import atomic_path
 
+    if args.threads != "auto" and not (args.threads.isdigit() and int(args.threads) >= 1):
+        raise ValueError(f"--threads must be 'auto' or a positive integer, got {args.threads!r}")
     threads = args.threads if args.threads == "auto" else int(args.threads)
     config = BenchConfig(
         batches=tuple(args.batches),

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import gymnasium
@@ -66,6 +67,10 @@ class SceneBatch:
     ):
         if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if not (torch_threads in ("auto", None) or (isinstance(torch_threads, int) and torch_threads >= 1)):
+            raise ValueError(
+                f"torch_threads must be 'auto', None or a positive integer, got {torch_threads!r}"
+            )
         first = raw_env(scenes, config, render_mode)
         if first.checkpoint is not None:
             if config.order != "first":
@@ -75,7 +80,7 @@ class SceneBatch:
                     "for other intra-timestep orders"
                 )
             settings = first._sampling if isinstance(first._sampling, TrajeglishNPC) else TrajeglishNPC()
-            config = config.with_overrides(npc=TrajeglishNPC(first.checkpoint, *_fields(settings)))
+            config = config.with_overrides(npc=replace(settings, checkpoint=first.checkpoint))  # load once
         shared_scenes = first.scenes
         self.envs = [first] + [raw_env(shared_scenes, config, render_mode) for _ in range(num_envs - 1)]
         self.engine = None
@@ -105,11 +110,6 @@ class SceneBatch:
         """Scene ``index`` has no agents left: its engine row stops decoding until the scene is reset."""
         if self.engine is not None:
             self.engine.stop_rows([index])
-
-
-def _fields(settings: TrajeglishNPC) -> tuple[Any, ...]:
-    """TrajeglishNPC fields after the checkpoint, in order."""
-    return (settings.temperature, settings.top_p, settings.cache_dtype, settings.subsets)
 
 
 class BatchedEgoEnv(VectorEnv):
