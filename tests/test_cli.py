@@ -97,10 +97,14 @@ def test_rollout_and_nll_commands_with_the_shipped_model(tmp_path, capsys) -> No
     args = ["rollout", "--scenario", str(path), "--horizon", "6", "--out", str(out), "--json"]
     assert main(args) == 0
     assert _json(capsys)["horizon"] == 6 and out.stat().st_size > 1000
-    assert main(["nll", "--data", str(tmp_path / "d"), "--windows", "4", "--json", "--quiet"]) == 0
+    nll_args = ["nll", "--data", str(tmp_path / "d"), "--windows", "4", "--cache-dtype", "bfloat16"]
+    assert main([*nll_args, "--json", "--quiet"]) == 0
     result = _json(capsys)
     model = result["models"]["trajeglish"]
     assert model["tokens"] > 0 and 0 < model["nll"] < result["unigram_nll"] + 5
+    bf16 = model["through_cache"]["bfloat16"]
+    assert bf16["tokens"] == model["tokens"] and abs(bf16["reference_nll"] - model["nll"]) < 1e-5
+    assert abs(bf16["nll"] - model["nll"]) < 0.01
     assert (
         main(["rollout", "--scenario", str(path), "--out", str(out), "--ckpt", str(tmp_path / "no.pt")]) == 2
     )

@@ -151,3 +151,31 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path) -> None:
         save_checkpoint(tmp_path / "bad.pt", model, small)
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         load_checkpoint(tmp_path / "missing.pt")
+
+
+def test_curves_command_overlays_runs_and_rejects_bad_files(tmp_path, capsys) -> None:
+    import json
+
+    from trajeglish_env.cli import main
+
+    for name, vals in (("a", (3.5, 3.0, 2.6)), ("b", (3.4, 3.2, 3.1))):
+        run = tmp_path / name
+        run.mkdir()
+        rows = ["step,loss,val_nll,lr,grad_norm,tokens_per_s"]
+        rows += [f"{100 * (i + 1)},{v + 0.1},{v},0.0005,1.0,3000" for i, v in enumerate(vals)]
+        rows.insert(2, "150,3.3,,0.0005,1.0,3000")  # a logging row without validation
+        (run / "metrics.csv").write_text("\n".join(rows) + "\n")
+    out = tmp_path / "curves.png"
+    assert (
+        main(["curves", f"trajeglish={tmp_path / 'a'}", str(tmp_path / "b"), "--out", str(out), "--json"])
+        == 0
+    )
+    result = json.loads(capsys.readouterr().out)
+    assert result["last_val_nll"] == {"trajeglish": 2.6, "b": 3.1}
+    assert out.stat().st_size > 5000
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "metrics.csv").write_text("epoch,acc\n1,0.5\n")
+    assert main(["curves", str(tmp_path / "c"), "--out", str(out)]) == 2
+    assert "not a training metrics file" in capsys.readouterr().err
+    assert main(["curves", str(tmp_path / "missing"), "--out", str(out)]) == 2
+    assert "no metrics.csv" in capsys.readouterr().err

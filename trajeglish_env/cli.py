@@ -98,11 +98,27 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     )
 
 
+def cmd_curves(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.train import plot_runs
+
+    runs = {}
+    for item in args.runs:
+        name, _, path = item.rpartition("=")
+        runs[name or Path(path).name] = path
+    return plot_runs(runs, args.out)
+
+
 def cmd_nll(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.density import evaluate_nll
 
     return evaluate_nll(
-        _checkpoints(args.ckpt), args.data, args.windows, args.seed, args.unigram_data, args.plots
+        _checkpoints(args.ckpt),
+        args.data,
+        args.windows,
+        args.seed,
+        args.unigram_data,
+        args.plots,
+        cache_dtypes=tuple(args.cache_dtype or ()),
     )
 
 
@@ -267,6 +283,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-noise", action="store_true", help="argmin input tokens (no noisy tokenization)")
     p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
 
+    p = add("curves", cmd_curves, "validation NLL curves of several training runs in one picture")
+    p.add_argument("runs", nargs="+", help="[NAME=]run directory (its metrics.csv)")
+    p.add_argument("--out", required=True, help="PNG file to write")
+
     p = add(
         "nll", cmd_nll, "held-out NLL per token: per class, vs agents-before and context length, vs unigram"
     )
@@ -278,6 +298,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--unigram-data", nargs="+", help="training scenes to fit the unigram baseline on")
     p.add_argument("--plots", help="directory for the analysis plots")
+    p.add_argument(
+        "--cache-dtype",
+        nargs="+",
+        choices=("float32", "bfloat16"),
+        help="also compute the NLL through the decoding cache in these dtypes (what bfloat16 NPCs cost)",
+    )
 
     p = add("evaluate", cmd_evaluate, "realism of rollouts vs the log and baselines on held-out scenes")
     p.add_argument("--data", nargs="+", required=True, help="held-out scene directories")

@@ -17,7 +17,9 @@ import torch.nn.functional as F
 
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.dataset import SceneStore, collate_windows
+from trajeglish_env.model.masks import input_shift
 from trajeglish_env.model.network import SceneInputs
+from trajeglish_env.sampling import START
 from trajeglish_env.scenario import AgentKind, Scenario
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.train import window_config
@@ -54,6 +56,65 @@ def token_nll(
         out["step"].append(torch.arange(t)[None, :, None].expand(b, t, a)[ok].numpy())
         out["token"].append(tgt[ok].numpy())
     return {k: np.concatenate(v) for k, v in out.items()}
+
+
+@torch.no_grad()
+def cached_nll(
+    ckpt: Checkpoint,
+    scenes: Sequence[Scenario],
+    windows: int,
+    cache_dtype: torch.dtype,
+    seed: int = 0,
+    batch_size: int = 16,
+) -> dict[str, float]:
+    """Teacher-forced NLL of the held-out windows of :func:`token_nll`, computed through the decoding
+    path (key/value cache in ``cache_dtype``, one timestep per call) instead of the full forward pass.
+
+    It measures what a reduced-precision cache costs in model quality. Returns ``nll`` (the cache path),
+    ``reference_nll`` (the float32 full forward pass), ``max_logit_diff`` and ``tokens``.
+    """
+    model = ckpt.model.eval()
+    ds = TokenizedWindows(scenes, window_config(model.cfg), ckpt.vocabulary, None, seed + 1_000_003)
+    sums = {"nll": 0.0, "reference_nll": 0.0, "max_logit_diff": 0.0, "tokens": 0.0}
+    for first in range(0, windows, batch_size):
+        batch = collate_windows([ds[g] for g in range(first, min(windows, first + batch_size))])
+        scene = SceneInputs.from_batch(batch)
+        inputs = batch["input_tokens"]
+        b, a, t = inputs.shape
+        full = model(scene, inputs)  # [B,T,A,V]
+        ids = model.global_ids(inputs, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, t * a)
+        shift = input_shift(model.cfg.variant, a)
+        carried = torch.cat([torch.full((b, shift), START, dtype=ids.dtype), ids[:, :-shift]], dim=1)
+        own = torch.cat([torch.full((b, a), -1, dtype=ids.dtype), ids[:, :-a]], dim=1)
+        cache, agents = model.start_decoding(scene, dtype=cache_dtype)
+        # one timestep per call: for the trajeglish variant the chunk is causal inside (its mask rows)
+        cached = torch.stack(
+            [
+                model.decode(
+                    cache,
+                    agents,
+                    scene.agent_kind,
+                    carried[:, s * a : (s + 1) * a],
+                    own[:, s * a : (s + 1) * a],
+                )
+                for s in range(t)
+            ],
+            dim=1,
+        )  # [B,T,A,V]
+        tgt = batch["tokens"].transpose(1, 2)
+        ok = (tgt >= 0) & scene.agent_mask[:, None, :]
+        sums["nll"] += F.cross_entropy(cached[ok].float(), tgt[ok], reduction="sum").item()
+        sums["reference_nll"] += F.cross_entropy(full[ok], tgt[ok], reduction="sum").item()
+        diff = (cached[ok].float() - full[ok]).abs().max().item() if ok.any() else 0.0
+        sums["max_logit_diff"] = max(sums["max_logit_diff"], diff)
+        sums["tokens"] += float(ok.sum())
+    n = max(sums["tokens"], 1.0)
+    return {
+        "nll": sums["nll"] / n,
+        "reference_nll": sums["reference_nll"] / n,
+        "max_logit_diff": sums["max_logit_diff"],
+        "tokens": int(sums["tokens"]),
+    }
 
 
 def unigram_nll(
@@ -106,12 +167,17 @@ def evaluate_nll(
     seed: int = 0,
     unigram_data: str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | None = None,
     plot_dir: str | os.PathLike[str] | None = None,
+    cache_dtypes: Sequence[str] = (),
 ) -> dict[str, Any]:
     """NLL table for checkpoints (e.g. trajeglish / no-intra / marginal) plus the unigram baseline.
 
     The unigram is fitted on ``unigram_data`` (training scenes) when given, else on the held-out tokens
-    themselves (an optimistic baseline; reported as such).
+    themselves (an optimistic baseline; reported as such). ``cache_dtypes`` (``"float32"``,
+    ``"bfloat16"``): also each model's NLL through the decoding cache in that dtype (:func:`cached_nll`).
     """
+    unknown = sorted(set(cache_dtypes) - {"float32", "bfloat16"})
+    if unknown:
+        raise ValueError(f"cache_dtypes: {unknown} not supported; expected 'float32' and/or 'bfloat16'")
     scenes = SceneStore(data).scenes
     result: dict[str, Any] = {"data": str(data), "windows": windows, "models": {}}
     first = next(iter(checkpoints.values()))
@@ -126,6 +192,10 @@ def evaluate_nll(
         uni = unigram_nll(fit["token"], fit["kind"], tok["token"], tok["kind"], ckpt.config.vocab_size)
         summary = summarize(tok, uni)
         summary["variant"] = ckpt.config.variant.value
+        if cache_dtypes:
+            summary["through_cache"] = {
+                d: cached_nll(ckpt, scenes, windows, getattr(torch, d), seed) for d in cache_dtypes
+            }
         result["models"][name] = summary
     any_model = next(iter(result["models"].values()))
     result["unigram_nll"] = any_model["unigram_nll"]

@@ -200,13 +200,18 @@ class DecoderBlock(nn.Module):
     ) -> torch.Tensor:
         """Self-attention group by group (fixed key length per group, masked), then cross-attention and
         the feed-forward for every row."""
-        attended = torch.zeros_like(h)
+        whole = len(groups) == 1 and groups[0].rows is None  # the lockstep case: no scatter needed
+        attended = h if whole else torch.zeros_like(h)
         for g in groups:
             rows, (batch_rows, slot) = g.select, g.writes
             ck[batch_rows, :, g.positions] = k[batch_rows, :, slot].to(ck.dtype)
             cv[batch_rows, :, g.positions] = v[batch_rows, :, slot].to(cv.dtype)
             keys, values = ck[rows, :, : g.keys], cv[rows, :, : g.keys]  # views when the group is every row
-            attended[rows] = self.self_attn.attend(h[rows], keys, values, g.mask)
+            out = self.self_attn.attend(h[rows], keys, values, g.mask)
+            if whole:
+                attended = out
+            else:
+                attended[rows] = out
         x = x + attended
         x = x + self.cross_attn.attend(self.norm_cross(x), cross_k, cross_v, memory_mask)
         return x + self.ff(self.norm_ff(x))
