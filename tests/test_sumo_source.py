@@ -178,6 +178,46 @@ def test_vehicle_boxes_are_centred_on_lanes(run: sumo_sim.SumoRun) -> None:
     assert np.median(distance) < 0.3 and np.percentile(distance, 75) < 0.75 and distance.max() < 1.7
 
 
+@pytest.fixture(scope="module")
+def random_run() -> sumo_sim.SumoRun:
+    try:
+        return sumo.simulate_shard(("random",), 2, 2, COUNT)  # a network with turn pockets and one-ways
+    except sumo.SumoNotAvailableError as error:
+        pytest.skip(str(error))
+
+
+@pytest.mark.parametrize("network", ["grid", "random"])
+def test_logged_vehicles_are_on_the_road_side_of_every_edge(
+    network: str, run: sumo_sim.SumoRun, random_run: sumo_sim.SumoRun
+) -> None:
+    """Road edges keep the road on their left (the off-road metric's convention), also medians (closed
+    islands) and the left curbs of one-way roads, and each scene's map covers every valid agent: logged
+    vehicles are on-road in the scenes cut from a run, and 8 m to their right mostly off-road."""
+    from trajeglish_env.env.rewards import road_edges
+    from trajeglish_env.metrics.road_edges import distance_to_road_edge, signed_distance_to_road_edges
+
+    simulated = run if network == "grid" else random_run
+    on, inside, beyond = 0, [], []
+    seed, shard = (SEED, SHARD) if network == "grid" else (2, 2)
+    for scene in sumo.cut_scenes(simulated, seed, shard, COUNT):
+        veh = np.flatnonzero(scene.kind == AgentKind.VEHICLE)
+        valid = scene.valid[veh]
+        xyz = np.concatenate([scene.xyh[veh, :, :2], np.zeros((*valid.shape, 1))], axis=-1)
+        box = np.concatenate([scene.size[veh], np.full((len(veh), 1), 1.5)], axis=-1)[:, None]
+        edges = road_edges(scene)
+        corners = distance_to_road_edge(xyz, scene.xyh[veh, :, 2], box, valid, edges)[valid]
+        on += valid.sum()
+        inside.append(corners)
+        heading = scene.xyh[veh][valid][:, 2]
+        right = scene.xyh[veh][valid][:, :2] + 8.0 * np.stack([np.sin(heading), -np.cos(heading)], axis=1)
+        beyond.append(signed_distance_to_road_edges(right, edges))
+    inside_all, beyond_all = np.concatenate(inside), np.concatenate(beyond)
+    assert on > 1000
+    # box corners stay on the road (SUMO's junction turns may cut a corner by a few cm)
+    assert np.mean(inside_all > 0.05) < 0.005 and inside_all.max() < 1.0, np.mean(inside_all > 0.05)
+    assert np.mean(beyond_all > 0.0) > 0.5, np.mean(beyond_all > 0.0)
+
+
 def test_vehicles_overlap_only_where_sumo_reports_a_collision(run: sumo_sim.SumoRun) -> None:
     rows = np.flatnonzero(np.isin(run.kind, [AgentKind.VEHICLE, AgentKind.CYCLIST]))
     overlaps = _overlaps(run.xyh[rows], run.size[rows], run.valid[rows], shrink=0.2)
@@ -205,9 +245,13 @@ def test_map_has_lanes_lines_edges_and_closed_crosswalks(scenes: list[Scenario])
                 assert len(line) == 5 and np.allclose(line[0], line[-1])
             else:
                 assert np.linalg.norm(np.diff(line, axis=0), axis=1).max() <= 1.0 + 1e-9
-        centre = scene.xyh[scene.sdc, scene.current_index, :2]
+        # the map holds what lies within 100 m of the sdc's path (its position every second)
+        path = scene.xyh[scene.sdc, ::10, :2]
         nearest = np.array(
-            [np.linalg.norm(scene.polyline(k) - centre, axis=1).min() for k in range(scene.num_polylines)]
+            [
+                np.linalg.norm(scene.polyline(k)[:, None, :2] - path[None], axis=-1).min()
+                for k in range(scene.num_polylines)
+            ]
         )
         assert nearest.max() <= 100.0
 

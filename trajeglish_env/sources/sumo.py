@@ -6,7 +6,8 @@ warmed up and then cut into ``count`` WOMD-like scenes of 91 steps at 10 Hz (``c
 up to ``scenes_per_window`` per window. Each scene is centred on its self-driving car, a vehicle valid
 over the whole window chosen near the centre of activity; like WOMD's perception, an agent is valid
 while it exists within ``agent_radius_m`` of the sdc, and the map keeps the polylines within
-``map_radius_m``. The traffic-light state of every signalized movement is kept at every step.
+``map_radius_m`` of the sdc's path (so it covers every valid agent, like a WOMD map). The
+traffic-light state of every signalized movement is kept at every step.
 SUMO itself is required: ``pip install 'trajeglish_env[sumo]'`` (binaries ship in the eclipse-sumo
 wheel; nothing is downloaded).
 """
@@ -49,7 +50,7 @@ class SumoSceneConfig:
     sdc_separation_m: float = 100.0  # preferred distance between the sdcs of one window
     spare_windows: int = 2  # extra windows simulated in case some have too few suitable sdcs
     agent_radius_m: float = 80.0  # agents are valid (perceived) while this close to the sdc
-    map_radius_m: float = 100.0  # keep polylines with a point this close to the sdc at current_index
+    map_radius_m: float = 100.0  # keep polylines with a point this close to the sdc's path in the window
     max_agents: int = 128  # WOMD's scenes hold up to ~128 agents: keep the nearest
     max_tracks_to_predict: int = 8
     sdc_min_travel_m: float = 10.0  # prefer an sdc that drives at least this far during the scene
@@ -111,9 +112,10 @@ def _choose_sdc(
     return int(rng.choice(nearest))
 
 
-def _crop_map(net_map: NetworkMap, centre: np.ndarray, radius: float) -> dict[str, np.ndarray]:
-    """Scenario map fields for the polylines with a point within ``radius`` of ``centre``."""
-    keep = np.flatnonzero(net_map.polyline_min_distance(centre) <= radius)
+def _crop_map(net_map: NetworkMap, centres: np.ndarray, radius: float) -> dict[str, np.ndarray]:
+    """Scenario map fields for the polylines with a point within ``radius`` of any of ``centres [k,2]``."""
+    nearest = np.min([net_map.polyline_min_distance(c) for c in centres], axis=0)
+    keep = np.flatnonzero(nearest <= radius)
     lengths = np.diff(net_map.offsets)[keep]
     offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
     point_index = np.repeat(net_map.offsets[keep] - offsets[:-1], lengths) + np.arange(offsets[-1])
@@ -154,10 +156,12 @@ def _scene(run: SumoRun, start: int, sdc: int, scenario_id: str, config: SumoSce
     near = np.flatnonzero(closest <= config.agent_radius_m)
     agents = np.sort(near[np.argsort(closest[near], kind="stable")[: config.max_agents]])
     sdc_index = int(np.flatnonzero(agents == sdc)[0])
-    centre = xyh[sdc, CURRENT_INDEX, :2]
     full = np.flatnonzero(valid[agents].all(axis=1) & (agents != sdc))
     by_gap = full[np.argsort(gap[agents[full], CURRENT_INDEX], kind="stable")][: config.max_tracks_to_predict]
-    map_fields = _crop_map(run.net_map, centre, config.map_radius_m)
+    # Agents are valid within agent_radius_m of the sdc at each step, so a map around the sdc's path (every
+    # 10th step; a car moves at most ~25 m in between) covers all of them, not just the first seconds.
+    path = xyh[sdc, np.r_[CURRENT_INDEX, 0:NUM_STEPS:10, NUM_STEPS - 1], :2]
+    map_fields = _crop_map(run.net_map, path, config.map_radius_m)
     scene = Scenario(
         xyh=xyh[agents],
         valid=valid[agents],

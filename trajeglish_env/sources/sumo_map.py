@@ -13,8 +13,9 @@ What the map holds (all polylines resampled at ``spacing`` metres, crosswalks as
   the left side of one-way roads, and, inside junctions, the curb around each corner: the right
   boundary of the rightmost movement (right turn, else straight on) leaving each incoming edge's
   rightmost lane, so intersections are bounded corner to corner and open where roads continue;
-  ``ROAD_EDGE_MEDIAN`` for both sides of the gap SUMO leaves between the two directions of a road
-  whose lanes are not adjacent (beside turn pockets).
+  ``ROAD_EDGE_MEDIAN`` around the gap SUMO leaves between the two directions of a road whose lanes
+  are not adjacent (beside turn pockets): both sides joined at the tips into a closed island. Every
+  edge keeps the road on its left (the WOSAC off-road convention).
 - crosswalks (``CROSSWALK``): the rectangle of every SUMO pedestrian crossing.
 
 Signals: one per signalized vehicle movement, keyed by the ``map_id`` of the movement's lane polyline,
@@ -33,6 +34,7 @@ from trajeglish_env.sources.sumo_net import Connection, Lane, SumoNet
 
 _MIN_SEGMENT = 1e-6
 _MEDIAN_WIDTH = 4.5  # opposite lanes at most this far apart (m) are separated by a median, not the roadside
+_MIN_MEDIAN_WIDTH = 0.5  # facing median sides closer than this (m) touch: the directions simply meet
 
 # SUMO link-state characters -> WOMD lane signal states.
 SIGNAL_CHARS = {
@@ -179,12 +181,22 @@ def _add_edges(net: SumoNet, builder: _MapBuilder) -> None:
         )
     if not left_sides:
         return
-    points = np.concatenate(left_sides)
-    owner = np.repeat(np.arange(len(left_sides)), [len(side) for side in left_sides])
-    tangent = np.concatenate([np.gradient(side, axis=0) for side in left_sides])
+    # Junction movements count as opposite traffic too (not emitted): where a road's lanes end at a
+    # junction, the other direction continues through it on internal lanes, and no curb lies between.
+    internal = [
+        resample_polyline(offset_polyline(lane.shape, 0.5 * lane.width), builder.spacing)
+        for lane in net.lanes.values()
+        if lane.lane_id.startswith(":") and lane.role in ("drive", "bike") and len(lane.shape) >= 2
+    ]
+    sides = left_sides + [side for side in internal if len(side) >= 2]
+    points = np.concatenate(sides)
+    owner = np.repeat(np.arange(len(sides)), [len(side) for side in sides])
+    tangent = np.concatenate([np.gradient(side, axis=0) for side in sides])
     tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), _MIN_SEGMENT)
-    partner = opposite_partner(points, owner, tangent, radius=0.75 * builder.spacing)
-    across = opposite_partner(points, owner, tangent, radius=_MEDIAN_WIDTH)
+    normal = owner < len(left_sides)
+    partner = opposite_partner(points[normal], owner[normal], tangent[normal], 0.75 * builder.spacing)
+    across = opposite_partner(points, owner, tangent, radius=_MEDIAN_WIDTH)[normal]
+    owner = owner[normal]
     # Per point: the shared centre line, emitted by the lower-numbered edge of the pair (1) or by its
     # partner (0); the edge of a median (opposite lanes further apart, e.g. beside SUMO's turn pockets,
     # 2); or the outer boundary of a one-way road (3).
@@ -194,12 +206,56 @@ def _add_edges(net: SumoNet, builder: _MapBuilder) -> None:
         2: MapKind.ROAD_EDGE_MEDIAN,
         3: MapKind.ROAD_EDGE_BOUNDARY,
     }
+    medians: dict[tuple[int, int], list[np.ndarray]] = {}
     start = 0
-    for side in left_sides:
+    for k, side in enumerate(left_sides):
         for value, a, b in _runs(label[start : start + len(side)]):
-            if value != 0 and b - a >= 2:
-                builder.add(side[a:b], kinds[value], resample=False)
+            if value == 0 or b - a < 2:
+                continue
+            # A left side runs with its lanes on its right; road edges keep the road on their left
+            # (the off-road metric's convention), so medians and left curbs are reversed.
+            run = side[a:b] if value == 1 else side[a:b][::-1]
+            if value == 2:
+                if np.linalg.norm(np.diff(run, axis=0), axis=1).sum() < _MIN_MEDIAN_WIDTH:
+                    continue  # a sliver of a point or two where two roads meet: no island
+                partner = across[start + a : start + b]
+                medians.setdefault((k, int(np.bincount(partner[partner >= 0]).argmax())), []).append(run)
+            else:
+                builder.add(run, kinds[value], resample=False)
         start += len(side)
+    for island in _median_islands(medians):
+        builder.add(island, MapKind.ROAD_EDGE_MEDIAN)
+
+
+def _median_islands(medians: dict[tuple[int, int], list[np.ndarray]]) -> list[np.ndarray]:
+    """Close each median into an island: the reversed left sides of two opposite edges facing each other
+    (each ``(edge, partner)`` run matched with the nearest ``(partner, edge)`` run) joined at both tips,
+    clockwise, so the road lies outside it also beyond its ends, where traffic waits at a junction. A run
+    without a facing run (its opposite edge is split elsewhere) becomes a thin island of its own."""
+    islands = []
+    for (edge, partner), runs in medians.items():
+        if edge > partner and (partner, edge) in medians:
+            continue  # joined when its partner's runs were visited
+        facing = list(medians.get((partner, edge), [])) if edge < partner else []
+        for run in runs:
+            if not facing:
+                islands.append(_sliver(run))
+                continue
+            # this run goes from tip p to tip q; the facing run (opposite traffic) from q to p
+            gap = [
+                np.linalg.norm(other[0] - run[-1]) + np.linalg.norm(other[-1] - run[0]) for other in facing
+            ]
+            other = facing.pop(int(np.argmin(gap)))
+            apart = np.linalg.norm(run[:, None] - other[None], axis=-1).min(axis=1)
+            if np.median(apart) >= _MIN_MEDIAN_WIDTH:  # else the two sides touch: no island between them
+                islands.append(np.concatenate([run, other, run[:1]]))
+        islands.extend(_sliver(run) for run in facing)
+    return islands
+
+
+def _sliver(run: np.ndarray, width: float = 0.2) -> np.ndarray:
+    """A closed island ``width`` m wide on the right of ``run`` (which keeps the road on its left)."""
+    return np.concatenate([run, offset_polyline(run, -width)[::-1], run[:1]])
 
 
 _CURB_PREFERENCE = {"R": 0, "r": 0, "s": 1}
