@@ -121,3 +121,25 @@ def test_loss_ignores_unobserved_and_padding() -> None:
     )  # near uniform at init
     with pytest.raises(ValueError, match="at most 6 agents x 8 steps"):
         model(scene, torch.zeros(2, 6, 9, dtype=torch.long))
+
+
+def test_padding_polylines_never_make_gradients_non_finite() -> None:
+    """A polyline with no points (padding of a sparse map) pools to the fill value; with grown weights
+    that overflowed the next layer and sent NaN gradients back through the discarded output (a small
+    training run blew up at step 2,167). Its pool is now zeroed before it is used."""
+    torch.manual_seed(0)
+    cfg = preset("tiny")
+    model = TrajeglishModel(cfg)
+    with torch.no_grad():
+        for p in model.encoder.polylines.second.parameters():
+            p.mul_(50.0)  # weights a long run can reach
+    scene, tokens = random_scene(cfg)
+    scene.map_point_mask[:, -3:] = False  # three padding polylines
+    loss, _ = model.loss(scene, tokens, tokens)
+    loss.backward()
+    bad = [
+        name
+        for name, p in model.named_parameters()
+        if p.grad is not None and not torch.isfinite(p.grad).all()
+    ]
+    assert torch.isfinite(loss) and not bad, bad

@@ -179,3 +179,42 @@ def test_curves_command_overlays_runs_and_rejects_bad_files(tmp_path, capsys) ->
     assert "not a training metrics file" in capsys.readouterr().err
     assert main(["curves", str(tmp_path / "missing"), "--out", str(out)]) == 2
     assert "no metrics.csv" in capsys.readouterr().err
+
+
+def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
+    scenes_dir, tmp_path, monkeypatch, capsys
+) -> None:
+    import trajeglish_env.train as train_module
+
+    original = train_module._LossModule.forward
+
+    def poison(steps) -> None:
+        """The loss of the given 1-based steps (a predicate) becomes NaN."""
+        calls = {"n": 0}
+
+        def forward(self, batch):
+            calls["n"] += 1
+            loss_sum, n = original(self, batch)
+            return (loss_sum * float("nan"), n) if steps(calls["n"]) else (loss_sum, n)
+
+        monkeypatch.setattr(train_module._LossModule, "forward", forward)
+
+    poison(lambda step: step == 2)
+    result = train(scenes_dir, tmp_path / "a", CFG, _quick(), vocabulary=VOCAB, progress=False)
+    assert result["steps"] == 6 and np.isfinite(result["train_loss"])
+    assert "non-finite gradients at step 2; update skipped" in capsys.readouterr().err
+    assert all(torch.isfinite(w).all() for w in _weights(tmp_path / "a" / "model.pt").values())
+
+    # gradients that stay non-finite stop the run; the checkpoint keeps the last finite weights
+    poison(lambda step: step >= 4)
+    with pytest.raises(RuntimeError, match="in a row up to step 14 had non-finite gradients"):
+        train(scenes_dir, tmp_path / "b", CFG, _quick(steps=20), vocabulary=VOCAB, progress=False)
+    assert load_checkpoint(tmp_path / "b" / "last.pt").trainer["step"] == 12
+
+    model = TrajeglishModel(CFG)
+    with torch.no_grad():
+        next(model.parameters())[0] = float("nan")
+    optimizer = torch.optim.AdamW(model.parameters())
+    with pytest.raises(RuntimeError, match="not finite at step 7"):
+        train_module._save(tmp_path / "c.pt", model, VOCAB, optimizer, _quick(), 7, [], [], [], 1)
+    assert not (tmp_path / "c.pt").exists()

@@ -38,6 +38,8 @@ from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
 from trajeglish_env.training_data import StepBatchSampler, TokenizedWindows
 
+MAX_UNSTABLE_STEPS = 10  # consecutive non-finite-gradient steps skipped before training stops
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -232,6 +234,7 @@ def train(
     )
     model.train()
     step, t0, tokens_seen, last_log = start_step, time.perf_counter(), 0, time.perf_counter()
+    unstable = 0  # consecutive steps whose gradients were not finite
     window_tokens, window_loss = 0.0, 0.0
     for batch in loader:
         batch = _batch_to(batch, device)
@@ -245,14 +248,27 @@ def train(
         # DDP averages gradients over W processes, hence the factor W: the update equals one process's.
         (loss_sum * dd.world / global_n.clamp(min=1)).backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-        optimizer.step()
+        finite = bool(torch.isfinite(grad_norm))  # the norm of the reduced gradients: same on every rank
+        if finite:
+            optimizer.step()
+            unstable = 0
+        else:  # skip the update rather than poison the weights (and the next checkpoint) with NaN
+            unstable += 1
+            if dd.main:
+                bar.write(f"train: non-finite gradients at step {step + 1}; update skipped", file=sys.stderr)
+            if unstable > MAX_UNSTABLE_STEPS:
+                raise RuntimeError(
+                    f"train: {unstable} steps in a row up to step {step + 1} had non-finite gradients; "
+                    f"stopped ({last} keeps the weights of its last checkpoint; lower --lr and --resume)"
+                )
         optimizer.zero_grad(set_to_none=True)
         step += 1
         batch_loss = torch.stack([loss_sum.detach().float(), n.float()])
         if dd.world > 1:
             dist.all_reduce(batch_loss)
-        window_loss += float(batch_loss[0])
-        window_tokens += float(batch_loss[1])
+        if finite:
+            window_loss += float(batch_loss[0])
+            window_tokens += float(batch_loss[1])
         tokens_seen += int(batch_loss[1])
         if dd.main:
             row: dict[str, Any] = {}
@@ -349,6 +365,9 @@ def _save(
     val: Sequence[Scenario],
     world: int,
 ) -> None:
+    bad = [name for name, p in model.named_parameters() if not torch.isfinite(p).all()]
+    if bad:
+        raise RuntimeError(f"train: weights {bad[:3]} are not finite at step {step}; {path} not overwritten")
     trainer = {"train_config": dataclasses.asdict(config), "step": step, "history": history}
     info = _training_info(config, step, history, train, val, world)
     save_checkpoint(path, model, vocabulary, training=info, optimizer=optimizer.state_dict(), trainer=trainer)

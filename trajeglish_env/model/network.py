@@ -84,10 +84,14 @@ class PolylineEncoder(nn.Module):
         feats = torch.cat([points / POSITION_SCALE, nxt - points, point_mask[..., None].float()], dim=-1)
         h = self.point(feats)
         neg = torch.finfo(h.dtype).min
+        present = point_mask.any(-1, keepdim=True)  # [B,M,1]: padding polylines have no points
         pooled = h.masked_fill(~point_mask[..., None], neg).amax(dim=2, keepdim=True)
+        # A padding polyline's pool is the fill value; fed on, it overflows the next layer to inf once the
+        # weights grow, and the discarded output still sends NaN gradients back. Zero it first.
+        pooled = torch.where(present[..., None], pooled, torch.zeros_like(pooled))
         h = self.second(torch.cat([h, pooled.expand_as(h)], dim=-1))
         out = h.masked_fill(~point_mask[..., None], neg).amax(dim=2)
-        out = torch.where(point_mask.any(-1, keepdim=True), out, torch.zeros_like(out))
+        out = torch.where(present, out, torch.zeros_like(out))
         return out + self.kind(kind.clamp(0, self.kind.num_embeddings - 1))
 
 
