@@ -218,8 +218,8 @@ def _add_edges(net: SumoNet, builder: _MapBuilder) -> None:
             if value == 2:
                 if np.linalg.norm(np.diff(run, axis=0), axis=1).sum() < _MIN_MEDIAN_WIDTH:
                     continue  # a sliver of a point or two where two roads meet: no island
-                partner = across[start + a : start + b]
-                medians.setdefault((k, int(np.bincount(partner[partner >= 0]).argmax())), []).append(run)
+                opposite = across[start + a : start + b]  # the edge (or junction lane) across the median
+                medians.setdefault((k, int(np.bincount(opposite[opposite >= 0]).argmax())), []).append(run)
             else:
                 builder.add(run, kinds[value], resample=False)
         start += len(side)
