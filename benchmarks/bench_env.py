@@ -2,7 +2,7 @@
 Trajeglish and replay NPCs, each run in its own process (peak memory), beside highway-env's own
 intersection env with a similar number of IDM vehicles measured in the same run; prints the ratios.
 
-Usage: python benchmarks/bench_env.py [--batches 1 8 32 128] [--steps 12] [--threads auto] [--json]
+Usage: python benchmarks/bench_env.py [--batches 1 8 32 128] [--steps N] [--threads auto] [--json]
 
 This is ``trajeglish bench --sections env`` (see trajeglish_env/benchmark/measure.py:env_speed for the
 exact workload: the bundled SUMO scenes cut to the sdc and its 23 nearest agents, the ego replaying its
@@ -27,7 +27,9 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32, 128])
-    parser.add_argument("--steps", type=int, default=12, help="timed steps per Trajeglish run")
+    parser.add_argument(
+        "--steps", type=int, default=None, help="timed steps per Trajeglish run (default: one window cycle)"
+    )
     parser.add_argument("--threads", default="auto")
     parser.add_argument("--cache-dtype", choices=("bfloat16", "float32"), default="bfloat16")
     parser.add_argument("--json", action="store_true")

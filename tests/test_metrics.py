@@ -87,6 +87,21 @@ def test_overlapping_boxes_collide_and_touching_ones_do_not():
     assert rounded == pytest.approx(1.4 * np.sqrt(2) - 1.4, abs=1e-9)
 
 
+def test_sharp_box_collisions_are_exactly_negative_signed_distances():
+    # the separating-axis shortcut of sharp boxes must flag exactly the pairs whose distance is negative,
+    # including touching and nearly touching pairs
+    rng = np.random.default_rng(11)
+    n = 20_000
+    xyh_a = np.column_stack([rng.uniform(-1, 1, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
+    xyh_b = np.column_stack([rng.uniform(-6, 6, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
+    size_a, size_b = rng.uniform(0.5, 5.0, (n, 2)), rng.uniform(0.5, 5.0, (n, 2))
+    xyh_a[:100], xyh_b[:100] = [0.0, 0.0, 0.0], [4.0, 0.0, 0.0]  # touching end to end (distance 0)
+    size_a[:100] = size_b[:100] = [4.0, 2.0]
+    hit = box_collisions(xyh_a, size_a, xyh_b, size_b)
+    assert np.array_equal(hit, box_signed_distance(xyh_a, size_a, xyh_b, size_b) < 0)
+    assert 0.1 < hit.mean() < 0.9 and not hit[:100].any()
+
+
 def test_box_signed_distance_known_values():
     box = np.array([4.0, 2.0])
     a = np.array([0.0, 0.0, 0.0])

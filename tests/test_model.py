@@ -143,3 +143,23 @@ def test_padding_polylines_never_make_gradients_non_finite() -> None:
         if p.grad is not None and not torch.isfinite(p.grad).all()
     ]
     assert torch.isfinite(loss) and not bad, bad
+
+
+def test_inference_encodes_polylines_block_by_block_exactly(monkeypatch: pytest.MonkeyPatch) -> None:
+    """At inference the polylines with points are encoded in small blocks (activations stay in the CPU
+    cache); the result is the whole-batch (training) computation, padding polylines included."""
+    from trajeglish_env.model.network import PolylineEncoder
+
+    torch.manual_seed(0)
+    cfg = preset("tiny")
+    encoder = TrajeglishModel(cfg).encoder.polylines
+    scene, _ = random_scene(cfg, b=3)
+    scene.map_point_mask[1, :5] = False  # five polylines without points
+    args = (scene.map_points, scene.map_point_mask, scene.map_kind)
+    with torch.enable_grad():
+        whole = encoder(*args).detach()
+    monkeypatch.setattr(PolylineEncoder, "INFERENCE_BLOCK", 7)  # 48 polylines: 7 blocks, the last short
+    with torch.no_grad():
+        blocks = encoder(*args)
+    torch.testing.assert_close(blocks, whole, rtol=0, atol=1e-6)
+    torch.testing.assert_close(blocks[1, :5], encoder.kind(scene.map_kind[1, :5]).detach(), rtol=0, atol=0)

@@ -15,7 +15,8 @@ from trajeglish_env.env.sb3 import SB3VecEnv
 from trajeglish_env.env.scenes import load_bundle
 from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv, auto_threads
 from trajeglish_env.model.layers import MIN_GEMM_ROWS, invariant_linear
-from trajeglish_env.sampler.engine import BatchEngine, RowSpec, SamplingConfig
+from trajeglish_env.sampler import engine as engine_module
+from trajeglish_env.sampler.engine import BatchEngine, RowSpec, SamplingConfig, _row_blocks
 from trajeglish_env.sampling import START, counter_uniform
 
 SCENES = [
@@ -54,7 +55,10 @@ def row_view(engine: BatchEngine, row: int, spec: RowSpec) -> tuple[np.ndarray, 
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
-def test_engine_rows_of_different_scenes_equal_their_solo_runs(dtype: torch.dtype) -> None:
+def test_engine_rows_of_different_scenes_equal_their_solo_runs(
+    dtype: torch.dtype, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(engine_module, "ROW_BLOCK", 2)  # windows of the batch built in blocks of 2 rows
     specs = [full_control(name) for name in SCENES]
     seeds = [11, 12, 13, 14]
     solo = [
@@ -70,6 +74,12 @@ def test_engine_rows_of_different_scenes_equal_their_solo_runs(dtype: torch.dtyp
     assert (solo[1][0][:, 10:] >= 0).sum() > 100  # the 29-agent scene really sampled (several contexts)
     other, _ = row_view(batch, 4, specs[0])
     assert not np.array_equal(other, solo[0][0])  # another seed, another rollout
+
+
+def test_row_blocks_split_runs_of_consecutive_rows() -> None:
+    blocks = _row_blocks(np.array([0, 1, 2, 3, 4, 7, 9, 10]), 2)
+    assert blocks == [slice(0, 2), slice(2, 4), slice(4, 5), slice(5, 6), slice(6, 8)]
+    assert _row_blocks(np.array([5]), 8) == [slice(0, 1)]
 
 
 def test_engine_row_restarted_mid_run_equals_a_fresh_run() -> None:

@@ -347,7 +347,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("bench", cmd_bench, "the benchmark suite: speed of every stage, batched env vs highway-env")
     p.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32, 128], help="scenes per batched env")
     p.add_argument("--agents", type=int, default=24, help="agents per scene")
-    p.add_argument("--env-steps", type=int, default=12, help="timed steps per batched-env run")
+    p.add_argument(
+        "--env-steps",
+        type=int,
+        default=None,
+        help="timed steps per batched-env run with Trajeglish NPCs (default: one window cycle of the model, "
+        "re-priming included)",
+    )
     p.add_argument("--threads", default="auto", help="torch threads of the batched env (or 'auto')")
     p.add_argument("--cache-dtype", choices=("bfloat16", "float32"), default="bfloat16")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure")

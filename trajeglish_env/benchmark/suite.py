@@ -30,7 +30,7 @@ class BenchConfig:
 
     batches: tuple[int, ...] = (1, 8, 32, 128)
     agents: int = 24
-    env_steps: int = 12
+    env_steps: int | None = None  # None: one window cycle of the model (see measure.env_speed)
     replay_steps: int = 40
     highway_steps: int = 300
     torch_threads: str | int = "auto"
@@ -44,7 +44,9 @@ class BenchConfig:
             raise ValueError(f"bench: unknown section(s) {unknown}; expected some of {list(SECTIONS)}")
         if not self.batches or min(self.batches) < 1:
             raise ValueError(f"bench: batch sizes must be positive, got {list(self.batches)}")
-        if self.env_steps < 1 or self.replay_steps < 1 or self.highway_steps < 1:
+        if (self.env_steps is not None and self.env_steps < 1) or min(
+            self.replay_steps, self.highway_steps
+        ) < 1:
             raise ValueError("bench: step counts must be >= 1")
 
 
@@ -135,7 +137,7 @@ def _env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str
     def job() -> dict[str, Any]:
         steps = config.env_steps if npc == "trajeglish" else config.replay_steps
         if config.quick:
-            steps = min(steps, 3)
+            steps = 3
         spec = {
             "num_envs": batch,
             "npc": npc,

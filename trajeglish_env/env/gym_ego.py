@@ -76,15 +76,17 @@ class EgoEnv(gymnasium.Env):
             raise RuntimeError(f"the episode of {agent} is over; call reset()")
         aec.step(action)
 
-    def outcome(self) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Second half of :meth:`step`: finish the timestep and report the ego's observation, reward,
-        flags and info."""
+    def outcome(
+        self, observation: np.ndarray | None = None
+    ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Second half of :meth:`step`: finish the timestep and report the ego's observation (``observation``
+        when the batched env has computed it with the other scenes'), reward, flags and info."""
         aec, agent = self.aec, self.agent
         if aec.suspended:
             aec.resume()
         info = dict(aec.infos[agent])
         return (
-            aec.observe(agent),
+            aec.observe(agent) if observation is None else observation,
             float(aec._cumulative_rewards[agent]),
             bool(aec.terminations[agent]),
             bool(aec.truncations[agent]),

@@ -28,15 +28,15 @@ from dataclasses import dataclass
 import numpy as np
 from gymnasium import spaces
 
+from trajeglish_env.env.batch_geometry import EDGE, LANE, LINE, OTHER
 from trajeglish_env.env.config import ObservationConfig
-from trajeglish_env.geometry import to_local, transform_points
+from trajeglish_env.geometry import transform_points
 from trajeglish_env.scenario import LANE_KINDS, ROAD_EDGE_KINDS, ROAD_LINE_KINDS, Scenario
 
 EGO_FEATURES = 8
 NEIGHBOUR_FEATURES = 10
 MAP_FEATURES = 6
 BEV_CHANNELS = 5
-LANE, LINE, EDGE, OTHER = 0, 1, 2, 3
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,9 @@ def sample_map_points(scenario: Scenario, spacing: float) -> tuple[np.ndarray, n
 
 
 class VectorObserver:
-    """The ``vector`` observation (layout in the module docstring)."""
+    """The ``vector`` observation (layout in the module docstring): this scene's map points and the space;
+    the observations themselves are computed for many agents and scenes at once by
+    :func:`~trajeglish_env.env.batch_geometry.vector_observations`."""
 
     def __init__(self, scenario: Scenario, config: ObservationConfig):
         self.sc, self.cfg = scenario, config
@@ -96,63 +98,6 @@ class VectorObserver:
         size = EGO_FEATURES + NEIGHBOUR_FEATURES * config.neighbours + MAP_FEATURES * config.map_points
         self.size = size + 2 * config.route_points
         self.space = spaces.Box(-1.0, 1.0, shape=(self.size,), dtype=np.float32)
-
-    def observe(self, ego: EgoState, pic: Picture) -> np.ndarray:
-        cfg, sc, radius = self.cfg, self.sc, self.cfg.radius
-        origin = pic.state[ego.agent]
-        head = [
-            ego.speed / 30.0,
-            ego.accel / 10.0,
-            ego.yaw_rate,
-            sc.size[ego.agent, 0] / 10.0,
-            sc.size[ego.agent, 1] / 5.0,
-            ego.route_fraction,
-            ego.lateral / 5.0,
-            ego.heading_error / np.pi,
-        ]
-        # neighbours: nearest present agents within the radius
-        rel = to_local(origin, pic.state)
-        dist = np.hypot(rel[:, 0], rel[:, 1])
-        cand = np.flatnonzero(pic.present & (dist <= radius) & (np.arange(sc.num_agents) != ego.agent))
-        near = cand[np.argsort(dist[cand], kind="stable")[: cfg.neighbours]]
-        c, s = np.cos(origin[2]), np.sin(origin[2])
-        v = pic.velocity[near]
-        feats = np.stack(
-            [
-                np.ones(len(near)),
-                rel[near, 0] / radius,
-                rel[near, 1] / radius,
-                np.cos(rel[near, 2]),
-                np.sin(rel[near, 2]),
-                (c * v[:, 0] + s * v[:, 1]) / 30.0,
-                (-s * v[:, 0] + c * v[:, 1]) / 30.0,
-                sc.size[near, 0] / 10.0,
-                sc.size[near, 1] / 5.0,
-                pic.moved[near].astype(np.float64),
-            ],
-            axis=-1,
-        )
-        neighbours = np.zeros((cfg.neighbours, NEIGHBOUR_FEATURES))
-        neighbours[: len(near)] = feats
-        # map points: nearest within the radius
-        mp = np.zeros((cfg.map_points, MAP_FEATURES))
-        if len(self.points):
-            local = transform_points(self.points, origin)
-            d2 = (local**2).sum(-1)
-            inside = np.flatnonzero(d2 <= radius * radius)
-            if len(inside) > cfg.map_points:
-                inside = inside[np.argpartition(d2[inside], cfg.map_points - 1)[: cfg.map_points]]
-            inside = inside[np.argsort(d2[inside], kind="stable")]
-            cat = self.category[inside]
-            m = len(inside)
-            mp[:m, 0] = 1.0
-            mp[:m, 1:3] = local[inside] / radius
-            mp[:m, 3] = cat == LANE
-            mp[:m, 4] = cat == LINE
-            mp[:m, 5] = cat == EDGE
-        route = transform_points(ego.route_ahead, origin) / radius
-        out = np.concatenate([np.asarray(head), neighbours.ravel(), mp.ravel(), route.ravel()])
-        return np.clip(out, -1.0, 1.0).astype(np.float32)
 
 
 class BevObserver:

@@ -3,6 +3,7 @@ routes (progress reward, route observation) and the paths the IDM NPCs drive alo
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,3 +107,28 @@ def logged_paths(
     pts = np.where(ahead[..., None], end_p[:, None, :] + beyond[..., None] * direction, pts)
     hd = np.where(ahead, end_h[:, None], hd)
     return Paths(points=pts, heading=hd, count=count, length=grid_length, spacing=spacing)
+
+
+def stack_paths(sets: Sequence[Paths]) -> tuple[Paths, np.ndarray]:
+    """Several sets of paths as one (rows in order, shorter paths padded with their last point, which no
+    query reads) and the first row of each set."""
+    spacings = {p.spacing for p in sets}
+    if len(spacings) != 1:
+        raise ValueError(f"stack_paths: every set must have the same spacing, got {sorted(spacings)}")
+    longest = max(p.points.shape[1] for p in sets)
+
+    def grow(a: np.ndarray) -> np.ndarray:
+        extra = longest - a.shape[1]
+        return np.pad(a, [(0, 0), (0, extra)] + [(0, 0)] * (a.ndim - 2), mode="edge") if extra else a
+
+    first = np.cumsum([0] + [len(p) for p in sets[:-1]])
+    return (
+        Paths(
+            points=np.concatenate([grow(p.points) for p in sets]),
+            heading=np.concatenate([grow(p.heading) for p in sets]),
+            count=np.concatenate([p.count for p in sets]),
+            length=np.concatenate([p.length for p in sets]),
+            spacing=spacings.pop(),
+        ),
+        first,
+    )

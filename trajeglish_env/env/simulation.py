@@ -9,13 +9,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from trajeglish_env.env.actions import bicycle_step, delta_step, token_step
+from trajeglish_env.env.batch_geometry import edge_rows
+from trajeglish_env.env.batch_outcomes import BatchGeometry
 from trajeglish_env.env.config import EnvConfig, RandomAgents
 from trajeglish_env.env.drivers import EngineDriver, OrderedDriver, StepDriver
 from trajeglish_env.env.npc import NPCPolicy
 from trajeglish_env.env.observations import EgoState, Picture, make_observer
-from trajeglish_env.env.rewards import StepOutcome, collisions, offroad, road_edges, step_reward
+from trajeglish_env.env.rewards import StepOutcome, road_edges, step_reward
 from trajeglish_env.env.routes import logged_paths
-from trajeglish_env.env.world import WorldView, latest_states
+from trajeglish_env.env.world import WorldView
 from trajeglish_env.geometry import wrap_angle
 from trajeglish_env.scenario import AgentKind, Scenario
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
@@ -168,6 +170,9 @@ class Simulation:
         self.has_goal = self.routes.length >= config.reward.min_route_length
         self.observer = make_observer(config.observation, scenario, config.obs)
         self.edges = road_edges(scenario)
+        self.edge_columns, self.edge_links = edge_rows(self.edges)
+        self.geometry = BatchGeometry()  # this scene's own; a batched env computes all its scenes at once
+        self.prepared: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self.steps = 0
 
     # ------------------------------------------------------------------ the step protocol
@@ -228,15 +233,16 @@ class Simulation:
         kin.yaw_rate[agent], kin.speed[agent] = yaw, v_next
         self.driver.supply(agent, nxt, valid=True)
 
-    def finish_step(self) -> tuple[np.ndarray, StepOutcome]:
-        """Outcome of the step just completed for the live external agents (returned with it)."""
-        t, sc = self.t, self.sc
-        live = self.external_index[~self.retired[self.external_index]]
+    def finish_step(
+        self, computed: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, StepOutcome]:
+        """Outcome of the step just completed for the live external agents (returned with it).
+        ``computed`` (or :attr:`prepared`, used once): this scene's entry of
+        :meth:`BatchGeometry.outcomes` when a batched env has computed every scene's at once."""
+        if computed is None:
+            computed, self.prepared = self.prepared, None
+        live, hit, off, s_new = computed if computed is not None else self.geometry.outcomes([self])[0]
         rows = self.route_row[live]
-        xyh, valid = self.driver.xyh[:, t], self.driver.valid[:, t]
-        hit = collisions(xyh, valid, sc.size, live)
-        off = offroad(xyh[live], sc.size[live], sc.kind[live], self.edges, self.config.reward.offroad_margin)
-        s_new, _, _ = self.routes.project(rows, xyh[live, :2], self.progress[rows])
         gained = s_new - self.progress[rows]
         self.progress[rows] = s_new
         goal = self.has_goal[rows] & (s_new >= self.routes.length[rows] - self.config.reward.goal_tolerance)
@@ -273,33 +279,24 @@ class Simulation:
             self.sc, self.driver.xyh, self.driver.valid, self.t, self.driver.moved(), self.external, self.npc
         )
 
-    def picture(self) -> Picture:
-        state, present, velocity = latest_states(
-            self.driver.xyh, self.driver.valid, self.t, self.driver.moved(), self.dt
-        )
-        return Picture(state, present, velocity, self.driver.moved())
-
-    def ego_state(self, agent: int, pic: Picture) -> EgoState:
-        row = self.route_row[agent]
-        s = self.progress[row]
-        rows = np.array([row])
-        s_now, lateral, route_heading = self.routes.project(rows, pic.state[agent, None, :2], np.array([s]))
-        q = self.config.obs.route_points
-        ahead = s_now[0] + self.config.obs.route_spacing * np.arange(1, q + 1)
-        points, _ = self.routes.at(np.full(q, row), ahead)
-        length = max(float(self.routes.length[row]), 1e-6)
-        return EgoState(
-            agent=agent,
-            speed=float(self.kin.speed[agent]),
-            accel=float(self.kin.accel[agent]),
-            yaw_rate=float(self.kin.yaw_rate[agent]),
-            route_fraction=float(min(s_now[0] / length, 1.0)) if self.has_goal[row] else 1.0,
-            lateral=float(lateral[0]),
-            heading_error=float(wrap_angle(pic.state[agent, 2] - route_heading[0])),
-            route_ahead=points,
-        )
-
     def observe(self, agent: int) -> np.ndarray:
         """Observation of external ``agent`` now."""
-        pic = self.picture()
-        return self.observer.observe(self.ego_state(agent, pic), pic)
+        if self.config.observation == "vector":
+            return self.geometry.observations([self], [agent])[0]
+        pictures = self.geometry.pictures([self])
+        ego = self.geometry.ego_features([self], np.zeros(1, np.int64), np.array([agent]), pictures)
+        state = EgoState(
+            agent=agent,
+            speed=float(ego.speed[0]),
+            accel=float(ego.accel[0]),
+            yaw_rate=float(ego.yaw_rate[0]),
+            route_fraction=float(ego.route_fraction[0]),
+            lateral=float(ego.lateral[0]),
+            heading_error=float(ego.heading_error[0]),
+            route_ahead=ego.route_ahead[0],
+        )
+        n = self.sc.num_agents
+        picture = Picture(
+            pictures.state[0, :n], pictures.present[0, :n], pictures.velocity[0, :n], pictures.moved[0, :n]
+        )
+        return self.observer.observe(state, picture)  # type: ignore[union-attr]

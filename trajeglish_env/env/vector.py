@@ -29,6 +29,7 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 from gymnasium.vector.vector_env import AutoresetMode
 
 from trajeglish_env.env.aec import raw_env
+from trajeglish_env.env.batch_outcomes import BatchGeometry
 from trajeglish_env.env.config import EnvConfig, TrajeglishNPC
 from trajeglish_env.env.gym_ego import EgoEnv
 
@@ -83,6 +84,7 @@ class SceneBatch:
             config = config.with_overrides(npc=replace(settings, checkpoint=first.checkpoint))  # load once
         shared_scenes = first.scenes
         self.envs = [first] + [raw_env(shared_scenes, config, render_mode) for _ in range(num_envs - 1)]
+        self.geometry = BatchGeometry()
         self.engine = None
         if first.checkpoint is not None:
             import torch
@@ -99,12 +101,28 @@ class SceneBatch:
                 env._shared_row = (self.engine, i)
 
     def decode(self) -> None:
-        """Decode this step's NPCs of every suspended scene, then resume those scenes."""
+        """Decode this step's NPCs of every suspended scene, then resume those scenes (their step outcomes
+        computed for all of them at once)."""
         waiting = [env for env in self.envs if env.suspended]
         if self.engine is not None and waiting:
             self.engine.step()
+        if waiting:
+            sims = [env._sim() for env in waiting]
+            for sim, outcome in zip(sims, self.geometry.outcomes(sims), strict=True):
+                sim.prepared = outcome
         for env in waiting:
             env.resume()
+
+    def observe(self, envs: Sequence[raw_env], agents: Sequence[str]) -> list[np.ndarray]:
+        """Observations of agent ``agents[i]`` of ``envs[i]`` now, computed together for ``vector``
+        observations (see :mod:`~trajeglish_env.env.batch_geometry`)."""
+        if not envs:
+            return []
+        if self.envs[0].config.observation != "vector":
+            return [env.observe(agent) for env, agent in zip(envs, agents, strict=True)]
+        sims = [env._sim() for env in envs]
+        index = [env.agent_index(agent) for env, agent in zip(envs, agents, strict=True)]
+        return list(self.geometry.observations(sims, index))
 
     def stop(self, index: int) -> None:
         """Scene ``index`` has no agents left: its engine row stops decoding until the scene is reset."""
@@ -177,9 +195,10 @@ class BatchedEgoEnv(VectorEnv):
         for env, action in zip(self.envs, actions, strict=True):
             env.act(action)
         self.batch.decode()
+        observations = self.batch.observe([env.aec for env in self.envs], [env.agent for env in self.envs])
         results = []
-        for env in self.envs:
-            obs, reward, terminated, truncated, info = env.outcome()
+        for env, observation in zip(self.envs, observations, strict=True):
+            obs, reward, terminated, truncated, info = env.outcome(observation)
             final = None
             if terminated or truncated:
                 final = (obs, info)

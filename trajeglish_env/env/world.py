@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from trajeglish_env.env.batch_geometry import latest_states as batch_latest_states
 from trajeglish_env.scenario import Scenario
 
 
@@ -40,14 +41,16 @@ class WorldView:
 def latest_states(
     xyh: np.ndarray, valid: np.ndarray, t: int, moved: np.ndarray, dt: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """See :meth:`WorldView.latest` (vectorized over agents)."""
-    nxt = moved & valid[:, t + 1] if t + 1 < valid.shape[1] else np.zeros_like(moved)
-    cur = valid[:, t] & ~moved
-    t1 = min(t + 1, valid.shape[1] - 1)
-    tp = max(t - 1, 0)
-    state = np.where(nxt[:, None], xyh[:, t1], xyh[:, t])
-    prev = np.where(nxt[:, None], xyh[:, t], xyh[:, tp])
-    prev_ok = np.where(nxt, valid[:, t], valid[:, tp] & (t > 0))
-    present = nxt | cur
-    velocity = np.where((present & prev_ok)[:, None], (state[:, :2] - prev[:, :2]) / dt, 0.0)
-    return state, present, velocity
+    """See :meth:`WorldView.latest` (vectorized over agents; the formula of
+    :func:`~trajeglish_env.env.batch_geometry.latest_states`)."""
+    last = valid.shape[1] - 1
+    return batch_latest_states(
+        xyh[:, t],
+        xyh[:, min(t + 1, last)],
+        xyh[:, max(t - 1, 0)],
+        valid[:, t],
+        valid[:, t + 1] if t < last else np.zeros_like(moved),
+        valid[:, max(t - 1, 0)] & (t > 0),
+        moved,
+        np.asarray(dt),
+    )

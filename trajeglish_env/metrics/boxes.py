@@ -21,6 +21,37 @@ def _outside_distance(px: np.ndarray, py: np.ndarray, half_l: np.ndarray, half_w
     return np.sqrt(ex * ex + ey * ey)
 
 
+def _relative(
+    dx: np.ndarray, dy: np.ndarray, cos_a: np.ndarray, sin_a: np.ndarray, cos_b: np.ndarray, sin_b: np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """cos/sin of the heading of B relative to A, and the offset of B in A's frame and of A in B's frame."""
+    c = cos_a * cos_b + sin_a * sin_b  # cos(heading_b - heading_a)
+    s = cos_a * sin_b - sin_a * cos_b  # sin(heading_b - heading_a)
+    ax, ay = cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx
+    bx, by = -(cos_b * dx + sin_b * dy), -(cos_b * dy - sin_b * dx)
+    return c, s, ax, ay, bx, by
+
+
+def _separation(
+    c: np.ndarray,
+    s: np.ndarray,
+    ax: np.ndarray,
+    ay: np.ndarray,
+    bx: np.ndarray,
+    by: np.ndarray,
+    half_a: tuple[np.ndarray, np.ndarray],
+    half_b: tuple[np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """Largest gap along the four separating axes (> 0: disjoint; < 0: minus the penetration depth)."""
+    la, wa = half_a
+    lb, wb = half_b
+    ac, as_ = np.abs(c), np.abs(s)
+    return np.maximum(
+        np.maximum(np.abs(ax) - la - (lb * ac + wb * as_), np.abs(ay) - wa - (lb * as_ + wb * ac)),
+        np.maximum(np.abs(bx) - lb - (la * ac + wa * as_), np.abs(by) - wb - (la * as_ + wa * ac)),
+    )
+
+
 def rectangle_signed_distance(
     dx: np.ndarray,
     dy: np.ndarray,
@@ -38,16 +69,8 @@ def rectangle_signed_distance(
     """
     la, wa = half_a
     lb, wb = half_b
-    c = cos_a * cos_b + sin_a * sin_b  # cos(heading_b - heading_a)
-    s = cos_a * sin_b - sin_a * cos_b  # sin(heading_b - heading_a)
-    ac, as_ = np.abs(c), np.abs(s)
-    # Offset of B in A's frame, and of A in B's frame.
-    ax, ay = cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx
-    bx, by = -(cos_b * dx + sin_b * dy), -(cos_b * dy - sin_b * dx)
-    separation = np.maximum(
-        np.maximum(np.abs(ax) - la - (lb * ac + wb * as_), np.abs(ay) - wa - (lb * as_ + wb * ac)),
-        np.maximum(np.abs(bx) - lb - (la * ac + wa * as_), np.abs(by) - wb - (la * as_ + wa * ac)),
-    )
+    c, s, ax, ay, bx, by = _relative(dx, dy, cos_a, sin_a, cos_b, sin_b)
+    separation = _separation(c, s, ax, ay, bx, by, half_a, half_b)
     # Disjoint rectangles: the closest pair of points always involves a vertex of one of them.
     nearest = None
     for sl in (-1, 1):
@@ -107,5 +130,21 @@ def box_collisions(
     size_b: np.ndarray,
     corner_rounding: float = 0.0,
 ) -> np.ndarray:
-    """True where the two boxes overlap (signed distance < 0; touching boxes do not collide)."""
-    return box_signed_distance(xyh_a, size_a, xyh_b, size_b, corner_rounding) < 0
+    """True where the two boxes overlap (signed distance < 0; touching boxes do not collide).
+
+    Sharp boxes (``corner_rounding`` 0, the environment's) only need the separating-axis gap: the signed
+    distance is negative exactly where that gap is (it is a non-negative vertex distance elsewhere)."""
+    if corner_rounding != 0.0:
+        return box_signed_distance(xyh_a, size_a, xyh_b, size_b, corner_rounding) < 0
+    xyh_a, xyh_b = np.asarray(xyh_a, np.float64), np.asarray(xyh_b, np.float64)
+    size_a, size_b = np.asarray(size_a, np.float64), np.asarray(size_b, np.float64)
+    relative = _relative(
+        xyh_b[..., 0] - xyh_a[..., 0],
+        xyh_b[..., 1] - xyh_a[..., 1],
+        np.cos(xyh_a[..., 2]),
+        np.sin(xyh_a[..., 2]),
+        np.cos(xyh_b[..., 2]),
+        np.sin(xyh_b[..., 2]),
+    )
+    half_a, half_b = (size_a[..., 0] / 2, size_a[..., 1] / 2), (size_b[..., 0] / 2, size_b[..., 1] / 2)
+    return _separation(*relative, half_a, half_b) < 0

@@ -74,10 +74,15 @@ class RoadEdges:
         turn = _cross(before[:, 0], before[:, 1], direction[:, 0], direction[:, 1])
         return (turn > 0) & (self.previous >= 0)
 
-    @property
+    @cached_property
     def is_flat(self) -> bool:
         """True when every edge point has z = 0 (generated 2-D maps)."""
         return not (self.start[:, 2].any() or self.end[:, 2].any())
+
+    @cached_property
+    def planar_columns(self) -> np.ndarray:
+        """The rows of :attr:`columns` that planar queries need (start x, y, direction x, y, inverse)."""
+        return np.ascontiguousarray(self.columns[_FLAT_ROWS])
 
     @classmethod
     def from_polylines(cls, polylines: Sequence[np.ndarray]) -> RoadEdges:
@@ -150,7 +155,7 @@ def _nearest_exhaustive(edges: RoadEdges, points: np.ndarray, flat: bool) -> np.
     """Index of the nearest segment (3-D, z stretched; first on ties) for each point, scanning all."""
     out = np.empty(len(points), dtype=np.int64)
     step = max(1, _FALLBACK_PAIRS // edges.num_segments)
-    columns = edges.columns[_FLAT_ROWS if flat else slice(None), None, :]
+    columns = (edges.planar_columns if flat else edges.columns)[:, None, :]
     for s in range(0, len(points), step):
         q = points[s : s + step, :, None]
         d2 = _selection_distance(q[:, 0], q[:, 1], None if flat else q[:, 2], columns)
@@ -164,7 +169,7 @@ def _nearest_with_grid(edges: RoadEdges, points: np.ndarray, lists: CellLists, f
     Queries are processed in groups of similar list length, so a few long lists (cells far from the
     map) do not widen every query's scan.
     """
-    table = edges.columns[_FLAT_ROWS if flat else slice(None)]  # [C, S], small enough to stay in cache
+    table = edges.planar_columns if flat else edges.columns  # [C, S], small enough to stay in cache
     out = np.empty(len(points), dtype=np.int64)
     length = lists.lengths[lists.query_cell]
     group = (length + _GROUP_WIDTH - 1) // _GROUP_WIDTH

@@ -119,21 +119,23 @@ class DecoderCache:
         """Positions the cache holds."""
         return int(self.self_k[0].shape[2])
 
-    def copy_rows_(self, rows: torch.Tensor, other: DecoderCache) -> None:
-        """Overwrite batch ``rows`` with the rows of ``other`` (same layers, capacity and memory size)."""
-        for mine, theirs in zip(
-            (*self.self_k, *self.self_v, *self.cross_k, *self.cross_v, self.memory_mask),
-            (*other.self_k, *other.self_v, *other.cross_k, *other.cross_v, other.memory_mask),
-            strict=True,
-        ):
-            mine[rows] = theirs.to(mine.dtype)
+    def rows(self, index: slice) -> DecoderCache:
+        """Batch rows ``index`` as views (what is written to them lands in this cache), length 0."""
+        return DecoderCache(
+            [k[index] for k in self.self_k],
+            [v[index] for v in self.self_v],
+            [k[index] for k in self.cross_k],
+            [v[index] for v in self.cross_v],
+            self.memory_mask[index],
+        )
 
 
 @dataclass(frozen=True)
 class RowGroup:
     """Rows of a batch (``rows`` None: every row) attending over the cached keys ``0 .. keys - 1`` under
-    ``mask [g,1,n,keys]``; ``positions [w]`` are the cache positions of the new keys/values to store,
-    taken from batch row ``writes[0]`` and input slot ``writes[1]`` (padding inputs are not stored)."""
+    ``mask [g,1,n,keys]`` (boolean, or additive in the cache dtype); ``positions [w]`` are the cache
+    positions of the new keys/values to store, taken from batch row ``writes[0]`` and input slot
+    ``writes[1]`` (padding inputs are not stored)."""
 
     rows: torch.Tensor | None
     keys: int
@@ -184,6 +186,14 @@ class DecoderBlock(nn.Module):
         x = x + self.self_attn.attend(h, k, v, self_mask)
         x = x + self.cross_attn.attend(self.norm_cross(x), cross_k, cross_v, memory_mask)
         return x + self.ff(self.norm_ff(x))
+
+    def store_keys(self, x: torch.Tensor, cache: tuple[torch.Tensor, torch.Tensor, int]) -> None:
+        """Only the cache part of :meth:`forward`: write the keys/values of ``x [B,N,C]`` at ``cache[2]``."""
+        ck, cv, start = cache
+        k, v = self.self_attn.keys_values(self.norm_self(x))
+        n = x.shape[1]
+        ck[:, :, start : start + n] = k.to(ck.dtype)
+        cv[:, :, start : start + n] = v.to(cv.dtype)
 
     def _grouped(
         self,

@@ -14,7 +14,7 @@ Shapes: B batch, A agent slots, T future steps, M polylines, P points, C width, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -54,6 +54,10 @@ class SceneInputs:
     map_kind: torch.Tensor
     map_mask: torch.Tensor
 
+    def rows(self, index: slice | torch.Tensor) -> SceneInputs:
+        """The inputs of batch rows ``index``."""
+        return SceneInputs(*(getattr(self, f.name)[index] for f in fields(self)))
+
     @classmethod
     def from_batch(cls, batch: dict[str, torch.Tensor]) -> SceneInputs:
         """From a collated training batch (``agent_xyh [B,A,S,3]``: the first state is the initial one)."""
@@ -70,7 +74,13 @@ class SceneInputs:
 
 
 class PolylineEncoder(nn.Module):
-    """VectorNet-style: per-point MLP, max-pool, second MLP on [point, pooled], max-pool again."""
+    """VectorNet-style: per-point MLP, max-pool, second MLP on [point, pooled], max-pool again.
+
+    At inference the polylines are encoded in blocks of ``INFERENCE_BLOCK`` (only those with points): the
+    per-point activations of a whole batch are hundreds of MB, a block's stay in the CPU cache, which
+    makes re-encoding the windows of a batched env several times faster (same per-polyline results)."""
+
+    INFERENCE_BLOCK = 128
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
@@ -80,19 +90,47 @@ class PolylineEncoder(nn.Module):
         self.kind = nn.Embedding(cfg.num_map_kinds, c)
 
     def forward(self, points: torch.Tensor, point_mask: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
-        nxt = torch.cat([points[:, :, 1:], points[:, :, -1:]], dim=2)
+        """``points [B,M,P,2]``, ``point_mask [B,M,P]``, ``kind [B,M]`` -> ``[B,M,C]`` (padding polylines:
+        their kind embedding only)."""
+        embedding = self.kind(kind.clamp(0, self.kind.num_embeddings - 1))
+        if torch.is_grad_enabled():
+            return self._encode(points, point_mask) + embedding
+        b, m, p, _ = points.shape
+        present = torch.nonzero(point_mask.reshape(b * m, p).any(-1)).squeeze(1)
+        flat_points, flat_mask = points.reshape(b * m, p, 2), point_mask.reshape(b * m, p)
+        out = embedding.new_zeros(b * m, embedding.shape[-1])
+        for chunk in present.split(self.INFERENCE_BLOCK):
+            out[chunk] = self._encode_present(flat_points[chunk], flat_mask[chunk])
+        return out.view(b, m, -1) + embedding
+
+    def _encode_present(self, points: torch.Tensor, point_mask: torch.Tensor) -> torch.Tensor:
+        """:meth:`_encode` of polylines ``[m, P, 2]`` that all have points, with the MLPs evaluated on their
+        points only (the others are pooled out anyway)."""
+        nxt = torch.cat([points[:, 1:], points[:, -1:]], dim=1)
+        feats = torch.cat([points / POSITION_SCALE, nxt - points, point_mask[..., None].float()], dim=-1)
+        first = self.point(feats[point_mask])  # [points, C]
+        neg = torch.finfo(first.dtype).min
+        h = first.new_full((*point_mask.shape, first.shape[-1]), neg)
+        h[point_mask] = first
+        pooled = h.amax(dim=1, keepdim=True).expand_as(h)[point_mask]
+        out = torch.full_like(h, neg)
+        out[point_mask] = self.second(torch.cat([first, pooled], dim=-1))
+        return out.amax(dim=1)
+
+    def _encode(self, points: torch.Tensor, point_mask: torch.Tensor) -> torch.Tensor:
+        """Features ``[..., C]`` of polylines ``points [..., P, 2]`` (zeros for those without points)."""
+        nxt = torch.cat([points[..., 1:, :], points[..., -1:, :]], dim=-2)
         feats = torch.cat([points / POSITION_SCALE, nxt - points, point_mask[..., None].float()], dim=-1)
         h = self.point(feats)
         neg = torch.finfo(h.dtype).min
-        present = point_mask.any(-1, keepdim=True)  # [B,M,1]: padding polylines have no points
-        pooled = h.masked_fill(~point_mask[..., None], neg).amax(dim=2, keepdim=True)
+        present = point_mask.any(-1, keepdim=True)  # [...,1]: padding polylines have no points
+        pooled = h.masked_fill(~point_mask[..., None], neg).amax(dim=-2, keepdim=True)
         # A padding polyline's pool is the fill value; fed on, it overflows the next layer to inf once the
         # weights grow, and the discarded output still sends NaN gradients back. Zero it first.
         pooled = torch.where(present[..., None], pooled, torch.zeros_like(pooled))
         h = self.second(torch.cat([h, pooled.expand_as(h)], dim=-1))
-        out = h.masked_fill(~point_mask[..., None], neg).amax(dim=2)
-        out = torch.where(present, out, torch.zeros_like(out))
-        return out + self.kind(kind.clamp(0, self.kind.num_embeddings - 1))
+        out = h.masked_fill(~point_mask[..., None], neg).amax(dim=-2)
+        return torch.where(present, out, torch.zeros_like(out))
 
 
 class SceneEncoder(nn.Module):
@@ -155,6 +193,14 @@ class SceneEncoder(nn.Module):
         for layer in self.layers:
             memory = layer(memory, mask=memory_mask[:, None, None, :])
         return self.norm(memory), memory_mask, agents
+
+
+def additive_mask(allowed: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """A boolean attention mask as the additive one SDPA derives from it (0 / -inf in ``dtype``): built
+    once per call and shared by every layer instead of converted by each attention (same results)."""
+    return torch.zeros(allowed.shape, dtype=dtype, device=allowed.device).masked_fill_(
+        ~allowed, float("-inf")
+    )
 
 
 def _eye_like(mask: torch.Tensor) -> torch.Tensor:
@@ -280,14 +326,29 @@ class TrajeglishModel(nn.Module):
     ) -> tuple[DecoderCache, torch.Tensor]:
         """Encode the scene once and allocate the cache (self-attention keys/values in ``dtype``, default
         the model's); returns it with the agent embeddings."""
-        memory, memory_mask, agents = self.encoder(scene)
         length = max_length or scene.agent_xyh.shape[1] * self.cfg.steps
-        cache = self.empty_cache(memory.shape[0], length, memory.shape[1], dtype or memory.dtype)
+        memory = scene.agent_xyh.shape[1] + self.cfg.latent_queries
+        cache = self.empty_cache(scene.agent_xyh.shape[0], length, memory, dtype or self.start.dtype)
+        return cache, self.encode_into(cache, scene)
+
+    @torch.no_grad()
+    def encode_into(self, cache: DecoderCache, scene: SceneInputs) -> torch.Tensor:
+        """Encode the scene into an existing cache (e.g. :meth:`DecoderCache.rows` views of a bigger one):
+        its cross-attention keys/values and memory mask are overwritten and its length reset to 0.
+        Returns the agent embeddings ``[B,A,C]``."""
+        memory, memory_mask, agents = self.encoder(scene)
+        if tuple(memory.shape[:2]) != (cache.cross_k[0].shape[0], cache.cross_k[0].shape[2]):
+            raise ValueError(
+                f"encode_into: a scene memory of {tuple(memory.shape[:2])} (rows, entries) does not fit a "
+                f"cache of {cache.cross_k[0].shape[0]} rows and {cache.cross_k[0].shape[2]} memory entries"
+            )
         for i, blk in enumerate(self.blocks):
             k, v = blk.cross_attn.keys_values(memory)
-            cache.cross_k[i], cache.cross_v[i] = k.to(cache.self_k[i].dtype), v.to(cache.self_k[i].dtype)
-        cache.memory_mask = memory_mask[:, None, None, :]
-        return cache, agents
+            cache.cross_k[i].copy_(k)
+            cache.cross_v[i].copy_(v)
+        cache.memory_mask.copy_(memory_mask[:, None, None, :])
+        cache.length = 0
+        return agents
 
     def empty_cache(self, batch: int, length: int, memory: int, dtype: torch.dtype) -> DecoderCache:
         """A zeroed cache for ``batch`` rows of ``length`` positions over a memory of ``memory`` entries
@@ -320,6 +381,41 @@ class TrajeglishModel(nn.Module):
         chunk must be decodable together (for trajeglish: one position at a time while sampling).
         ``own_ids [B,n]`` (trajeglish only): joint ids of the same agents' tokens one step earlier (-1 none).
         """
+        return self.class_logits(self.decode_hidden(cache, agents, carried_ids, own_ids), kind)
+
+    @torch.no_grad()
+    def decode_hidden(
+        self,
+        cache: DecoderCache,
+        agents: torch.Tensor,
+        carried_ids: torch.Tensor,
+        own_ids: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """:meth:`decode` without the head: hidden states ``[B,n,C]``."""
+        out = self._extend(cache, agents, carried_ids, own_ids, outputs=True)
+        assert out is not None
+        return out
+
+    @torch.no_grad()
+    def prime(
+        self,
+        cache: DecoderCache,
+        agents: torch.Tensor,
+        carried_ids: torch.Tensor,
+        own_ids: torch.Tensor | None = None,
+    ) -> None:
+        """Append the next ``n`` positions to the cache without computing their outputs (teacher forcing
+        a window's known steps): the last layer stops once its keys and values are stored."""
+        self._extend(cache, agents, carried_ids, own_ids, outputs=False)
+
+    def _extend(
+        self,
+        cache: DecoderCache,
+        agents: torch.Tensor,
+        carried_ids: torch.Tensor,
+        own_ids: torch.Tensor | None,
+        outputs: bool,
+    ) -> torch.Tensor | None:
         p, n = cache.length, carried_ids.shape[1]
         a = agents.shape[1]
         if p + n > cache.self_k[0].shape[2]:
@@ -327,11 +423,15 @@ class TrajeglishModel(nn.Module):
         x = self._decoder_inputs(carried_ids, own_ids)
         x = x + self._positions(agents, torch.arange(p, p + n, device=x.device))
         mask = self._mask_rows(p, n, a)
+        last = len(self.blocks) - 1
         for i, block in enumerate(self.blocks):
             kv = (cache.self_k[i], cache.self_v[i], p)
+            if i == last and not outputs:
+                block.store_keys(x, kv)
+                break
             x = block(x, mask, cache.cross_k[i], cache.cross_v[i], cache.memory_mask, kv)
         cache.length = p + n
-        return self.class_logits(x, kind)
+        return x if outputs else None
 
     def _mask_rows(self, start: int, n: int, agents: int) -> torch.Tensor:
         """Rows ``start..start+n-1`` of the decoder mask over keys ``0..start+n-1``."""
@@ -377,7 +477,8 @@ class TrajeglishModel(nn.Module):
             index = None if len(rows) == len(step) else torch.from_numpy(rows).to(dev)
             queries = torch.from_numpy(start[rows]).to(dev)[:, None] + torch.arange(n, device=dev)
             keys = (s + 1) * a
-            mask = self.mask[queries.clamp(max=cache.capacity - 1)][:, None, :, :keys]  # [g,1,n,keys]
+            allowed = self.mask[queries.clamp(max=cache.capacity - 1)][:, None, :, :keys]  # [g,1,n,keys]
+            mask = additive_mask(allowed, cache.self_k[0].dtype)
             local, slot = np.nonzero(count[rows][:, None] > np.arange(n))  # host side: no device sync
             writes = (torch.from_numpy(rows[local]).to(dev), torch.from_numpy(slot).to(dev))
             groups.append(
@@ -386,7 +487,8 @@ class TrajeglishModel(nn.Module):
         index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
         index = index.clamp(max=cache.capacity - 1)
         x = self._decoder_inputs(carried_ids, own_ids) + self._positions(agents, index)
+        memory_mask = additive_mask(cache.memory_mask, cache.cross_k[0].dtype)
         for i, block in enumerate(self.blocks):
             kv = (cache.self_k[i], cache.self_v[i], groups)
-            x = block(x, None, cache.cross_k[i], cache.cross_v[i], cache.memory_mask, kv)
+            x = block(x, None, cache.cross_k[i], cache.cross_v[i], memory_mask, kv)
         return x

@@ -44,6 +44,7 @@ from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.tokenize import tokenize
 
 MAP_RADIUS = 100.0  # metres around a window's centre agent, as in training windows
+ROW_BLOCK = 8  # rows encoded and primed per model call when windows are (re)built: activations stay in cache
 
 
 @dataclass(frozen=True)
@@ -330,13 +331,14 @@ class BatchEngine:
                 centres = np.array([plans[i].centres[k] for i in np.flatnonzero(group)])
                 w.slots[sub] = slots
                 scene = self._scene_inputs(sub, slots, s0[group], centres)
-                cache, agents = self.model.start_decoding(scene, max_length=L, dtype=self.cache_dtype)
-                if n:
-                    self._prime(cache, agents, scene.agent_kind, sub, slots, s0[group], int(n))
-                index = torch.from_numpy(sub).to(self.device)
-                w.cache.copy_rows_(index, cache)
-                w.agents[index] = agents
-                w.kind[index] = scene.agent_kind
+                for part in _row_blocks(sub, ROW_BLOCK):  # encoded and primed in place, block by block
+                    rows_part = slice(int(sub[part.start]), int(sub[part.stop - 1]) + 1)
+                    cache, part_scene = w.cache.rows(rows_part), scene.rows(part)
+                    agents = self.model.encode_into(cache, part_scene)
+                    if n:
+                        self._prime(cache, agents, sub[part], slots[part], s0[group][part], int(n))
+                    w.agents[rows_part] = agents
+                    w.kind[rows_part] = part_scene.agent_kind
 
     def _scene_inputs(
         self, rows: np.ndarray, slots: np.ndarray, s0: np.ndarray, centres: np.ndarray
@@ -405,7 +407,6 @@ class BatchEngine:
         self,
         cache: DecoderCache,
         agents: torch.Tensor,
-        kind: torch.Tensor,
         rows: np.ndarray,
         slots: np.ndarray,
         s0: np.ndarray,
@@ -415,8 +416,7 @@ class BatchEngine:
         A = self.cfg.max_agents
         positions = np.broadcast_to(np.arange(steps * A), (len(rows), steps * A))
         carried, own = self._inputs(rows, slots, s0, positions)
-        kinds = kind[:, positions[0] % A]
-        self.model.decode(cache, agents, kinds, carried, own)
+        self.model.prime(cache, agents, carried, own)
 
     # ------------------------------------------------------------------ stepping
     def advance(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -641,6 +641,17 @@ class RolloutEngine(BatchEngine):
             raise ValueError(f"agent {agent} (track {self.sc.track_id[agent]}) is not external")
         rows = np.arange(self.R)
         super().supply(rows, np.full(self.R, agent), next_xyh, np.broadcast_to(valid, (self.R,)))
+
+
+def _row_blocks(rows: np.ndarray, size: int) -> list[slice]:
+    """Slices of ``rows`` (sorted) into blocks of at most ``size`` consecutive row numbers."""
+    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
+    blocks = []
+    for run in np.split(np.arange(len(rows)), breaks):
+        blocks += [
+            slice(int(run[i]), int(run[min(i + size, len(run)) - 1]) + 1) for i in range(0, len(run), size)
+        ]
+    return blocks
 
 
 def _agent_mask(mask: np.ndarray, n: int, name: str) -> np.ndarray:

@@ -1,0 +1,111 @@
+"""The per-step geometry of many scenes at once equals the scene-by-scene rules it replaces: road-edge
+distances number for number, canonical nearest-first selection, and observations of several different
+scenes computed together equal to each scene's own."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from trajeglish_env.env import EgoEnv
+from trajeglish_env.env.batch_geometry import (
+    PaddedRows,
+    edge_rows,
+    nearest_first,
+    pad_stack,
+    road_edge_distances,
+)
+from trajeglish_env.env.batch_outcomes import BatchGeometry
+from trajeglish_env.env.rewards import road_edges
+from trajeglish_env.env.routes import logged_paths, stack_paths
+from trajeglish_env.env.scenes import load_bundle
+from trajeglish_env.geometry import box_corners
+from trajeglish_env.metrics.road_edges import signed_distance_to_road_edges
+
+
+def test_road_edge_distances_of_many_scenes_equal_the_reference_rule() -> None:
+    bundle = load_bundle()
+    scenes = [bundle.get(i) for i in range(len(bundle))]
+    edges = [road_edges(s) for s in scenes]
+    keep = [i for i, e in enumerate(edges) if e is not None]
+    assert len(keep) >= 15
+    rows = [edge_rows(edges[i]) for i in keep]
+    columns, links = (
+        pad_stack([r[0] for r in rows], 0.0, last=True),
+        pad_stack([r[1] for r in rows], -1, last=True),
+    )
+    count = np.array([r[0].shape[1] for r in rows])
+    rng = np.random.default_rng(0)
+    scene = rng.integers(len(keep), size=400)  # several queries per scene, in any order
+    points = []
+    for q in scene:
+        sc = scenes[keep[q]]
+        a, t = rng.integers(sc.num_agents), rng.integers(sc.num_steps)
+        xyh = sc.xyh[a, t] + np.r_[rng.normal(0, 4, 2), 0.0]  # on and off the road
+        points.append(box_corners(xyh, sc.size[a]))
+    points = np.stack(points)
+    got = road_edge_distances(columns, links, count, scene, points)
+    want = np.stack(
+        [signed_distance_to_road_edges(p, edges[keep[q]]) for p, q in zip(points, scene, strict=True)]
+    )
+    assert got.dtype == np.float32 and np.array_equal(got, want)
+    assert (want > 0).mean() > 0.05 and (want < 0).mean() > 0.3  # both sides were queried
+
+
+def test_nearest_first_is_ordered_by_key_then_index() -> None:
+    key = np.array([[3.0, 1.0, 1.0, np.inf, 0.5, 1.0], [np.inf, 2.0, np.inf, np.inf, np.inf, np.inf]])
+    idx, found = nearest_first(key, 3)
+    assert idx[0].tolist() == [4, 1, 2] and found[0].all()  # the tie at 1.0 keeps the lowest indices
+    assert idx[1, 0] == 1 and found[1].tolist() == [True, False, False]
+    idx, found = nearest_first(key[:, :2], 4)  # fewer candidates than asked for
+    assert idx[0, :2].tolist() == [1, 0] and found[0].tolist() == [True, True, False, False]
+
+
+def test_padded_rows_refresh_only_changed_rows_and_grow() -> None:
+    a, b, c = object(), object(), object()
+    values = {a: np.array([1, 2]), b: np.array([3]), c: np.array([4, 5, 6])}
+    calls = []
+
+    def get(source: object) -> np.ndarray:
+        calls.append(source)
+        return values[source]
+
+    rows = PaddedRows(fill=-1)
+    assert rows.sync([a, b], get).tolist() == [[1, 2], [3, -1]]
+    assert rows.sync([a, b], get).tolist() == [[1, 2], [3, -1]] and calls == [a, b]
+    assert rows.sync([a, c], get).tolist() == [[1, 2, -1], [4, 5, 6]] and calls == [a, b, c]
+    assert rows.sync([b, c], get).tolist() == [[3, -1, -1], [4, 5, 6]]
+
+
+def test_stacked_paths_project_like_each_set() -> None:
+    rng = np.random.default_rng(1)
+    sets = []
+    for n in (2, 1, 3):
+        xy = np.cumsum(rng.normal(1.0, 0.3, (n, 30, 2)), axis=1) * rng.uniform(1, 3)
+        heading = np.arctan2(np.gradient(xy[..., 1], axis=1), np.gradient(xy[..., 0], axis=1))
+        sets.append(logged_paths(np.concatenate([xy, heading[..., None]], -1), np.ones((n, 30), bool)))
+    paths, first = stack_paths(sets)
+    assert first.tolist() == [0, 2, 3] and len(paths) == 6
+    for k, p in enumerate(sets):
+        rows = np.arange(len(p))
+        xy = p.points[rows, p.count // 2] + 0.3
+        s_prev = p.count // 2 * p.spacing - 2.0
+        for mine, theirs in zip(
+            paths.project(first[k] + rows, xy, s_prev), p.project(rows, xy, s_prev), strict=True
+        ):
+            assert np.array_equal(mine, theirs)
+
+
+def test_observations_of_different_scenes_together_equal_each_alone() -> None:
+    names = ["highway-merge-999000", "sumo-random-999000-0-0", "highway-roundabout-999001"]
+    envs = [EgoEnv(npc="replay", max_cycles=6) for _ in names]
+    for env, name in zip(envs, names, strict=True):
+        env.reset(seed=0, options={"scene": name})
+        for _ in range(3):
+            env.step(np.array([0.5, 0.1], dtype=np.float32))
+    sims = [env.aec.sim for env in envs]
+    agents = [env.aec.agent_index(env.agent) for env in envs]
+    together = BatchGeometry().observations(sims + sims[:1], agents + agents[:1])  # a scene twice
+    for i, env in enumerate(envs):
+        assert np.array_equal(together[i], env.aec.observe(env.agent))
+    assert np.array_equal(together[3], together[0])
+    assert len({s.sc.num_agents for s in sims}) > 1 and len({len(s.observer.points) for s in sims}) == 3

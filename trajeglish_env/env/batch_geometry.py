@@ -1,0 +1,283 @@
+"""The per-step geometry of many scenes in one NumPy pass: collisions, off-road, the pictures the
+observations show, and the ``vector`` observation itself, for the external agents of B scenes.
+
+Scene by scene, these cost a few dozen small NumPy calls each, which dominated a batched env's stepping
+time besides the model. Here the scenes' arrays are padded to common shapes and every formula runs once
+for all of them. Each number is computed elementwise or along its own scene's row, and padding never wins
+a minimum or a sort, so a scene gets the same results alone (the unbatched env calls these functions with
+one scene) as in any batch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from trajeglish_env.geometry import box_corners, to_local, wrap_angle
+from trajeglish_env.metrics.boxes import box_collisions
+from trajeglish_env.metrics.road_edges import Z_STRETCH, RoadEdges
+from trajeglish_env.scenario import AgentKind
+
+LANE, LINE, EDGE, OTHER = 0, 1, 2, 3  # categories of the observation's map points
+
+
+def pad_stack(arrays: Sequence[np.ndarray], fill: float | bool = 0, last: bool = False) -> np.ndarray:
+    """``[len(arrays), ...]``: arrays ragged along their first axis (``last``: their last axis), stacked
+    and padded with ``fill``."""
+    longest = max(a.shape[-1 if last else 0] for a in arrays)
+    shape = (*arrays[0].shape[:-1], longest) if last else (longest, *arrays[0].shape[1:])
+    out = np.full((len(arrays), *shape), fill, dtype=arrays[0].dtype)
+    for i, a in enumerate(arrays):
+        out[(i, ..., slice(0, a.shape[-1])) if last else (i, slice(0, len(a)))] = a
+    return out
+
+
+class PaddedRows:
+    """One per-row array of a batch, ragged along the first axis of its rows (``last``: the last axis) and
+    kept padded with ``fill``: a row is rewritten only when its source object changes (a scene reset), and
+    the padding grows when needed."""
+
+    def __init__(self, fill: float | bool = 0, last: bool = False):
+        self.fill, self.last = fill, last
+        self.data: np.ndarray | None = None
+        self.sources: list[object] = []
+
+    def sync(self, sources: Sequence[object], get: Callable[[object], np.ndarray]) -> np.ndarray:
+        """The padded array of ``sources``: row i is ``get(sources[i])``, computed only for the rows whose
+        source is not the one of the previous call."""
+        if self.data is None or len(sources) != len(self.sources):
+            self.data = pad_stack([get(s) for s in sources], self.fill, self.last)
+        else:
+            fresh = {i: get(s) for i, s in enumerate(sources) if self.sources[i] is not s}
+            if fresh:
+                longest = max(v.shape[-1 if self.last else 0] for v in fresh.values())
+                width = self.data.shape[-1 if self.last else 1]
+                if longest > width:
+                    shape = list(self.data.shape)
+                    shape[-1 if self.last else 1] = longest
+                    bigger = np.full(shape, self.fill, self.data.dtype)
+                    bigger[(..., slice(0, width)) if self.last else (slice(None), slice(0, width))] = (
+                        self.data
+                    )
+                    self.data = bigger
+                for i, v in fresh.items():
+                    self.data[i] = self.fill
+                    self.data[(i, ..., slice(0, v.shape[-1])) if self.last else (i, slice(0, len(v)))] = v
+        self.sources = list(sources)
+        return self.data
+
+
+# ---------------------------------------------------------------------------------------------- collisions
+def collision_flags(
+    xyh: np.ndarray, valid: np.ndarray, size: np.ndarray, scene: np.ndarray, agent: np.ndarray
+) -> np.ndarray:
+    """``[Q]`` True where agent ``agent[q]`` of scene ``scene[q]`` overlaps any other valid agent of its
+    scene (states ``xyh [B,N,3]``, ``valid [B,N]``, ``size [B,N,2]``; padding agents are not valid)."""
+    hit = box_collisions(xyh[scene, agent][:, None], size[scene, agent][:, None], xyh[scene], size[scene])
+    hit &= valid[scene] & (np.arange(xyh.shape[1])[None] != agent[:, None])
+    return hit.any(axis=1) & valid[scene, agent]
+
+
+# ------------------------------------------------------------------------------------------------ off-road
+def edge_rows(edges: RoadEdges | None) -> tuple[np.ndarray, np.ndarray]:
+    """The road-edge segments as ``[7, S]`` float32 :attr:`RoadEdges.columns` (start x, y, z, direction x,
+    y, z, inverse squared 2-D length) and ``[3, S]`` int64 links (previous and following segment or -1,
+    and 1 where the segment starts at a convex vertex); ``S`` = 0 without edges."""
+    if edges is None:
+        return np.zeros((7, 0), np.float32), np.zeros((3, 0), np.int64)
+    links = np.stack([edges.previous, edges.following, edges.convex_start]).astype(np.int64)
+    return edges.columns, links
+
+
+def _rows(a: np.ndarray, scene: np.ndarray) -> np.ndarray:
+    """``a[scene]``, without a copy when ``scene`` is every row in order (one query per scene)."""
+    if len(scene) == len(a) and (scene == np.arange(len(a))).all():
+        return a
+    return a[scene]
+
+
+def road_edge_distances(
+    columns: np.ndarray, links: np.ndarray, count: np.ndarray, scene: np.ndarray, points: np.ndarray
+) -> np.ndarray:
+    """Signed distances ``[Q, C]`` (float32) from 2-D ``points [Q, C, 2]`` to the road edges of their scenes
+    ``scene [Q]`` (``columns [B, 7, S]``, ``links [B, 3, S]``: :func:`edge_rows` of each scene, padded;
+    ``count [B]`` real segments, > 0 for every queried scene): the rule of
+    :func:`~trajeglish_env.metrics.road_edges.signed_distance_to_road_edges`, number for number."""
+    f32 = np.float32
+    pts = points.astype(f32)
+    x, y = pts[..., 0], pts[..., 1]  # [Q,C]
+    cols = _rows(columns, scene)[:, :, None, :]  # [Q,7,1,S]
+    ax, ay, az, dx, dy, dz, inverse = (cols[:, k] for k in range(7))
+    # nearest segment in 3-D with z stretched (queries at z = 0; exactly the planar value on flat maps)
+    ux, uy = x[..., None] - ax, y[..., None] - ay
+    t = np.clip((ux * dx + uy * dy) * inverse, 0, 1)
+    rx, ry = ux - t * dx, uy - t * dy
+    rz = Z_STRETCH * (f32(0) - az - t * dz)
+    d2 = rx * rx + ry * ry + rz * rz
+    real = np.arange(columns.shape[2])[None, None] < count[scene][:, None, None]
+    nearest = np.argmin(np.where(real, d2, np.inf), axis=-1)  # [Q,C], first on ties
+    own = scene[:, None]
+    sx, sy, sdx, sdy = (columns[own, k, nearest] for k in (0, 1, 3, 4))
+    ux, uy = x - sx, y - sy
+    length2 = sdx * sdx + sdy * sdy
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tt = np.where(length2 > 0, (ux * sdx + uy * sdy) / length2, f32(0))
+    tc = np.clip(tt, 0, 1)
+    rx, ry = ux - tc * sdx, uy - tc * sdy
+    magnitude = np.sqrt(rx * rx + ry * ry)
+    sign = np.sign(ux * sdy - uy * sdx)  # -1 left (road), +1 right
+    previous, following = links[own, 0, nearest], links[own, 1, nearest]
+    before = (tt < 0) & (previous >= 0)
+    beyond = before | ((tt > 1) & (following >= 0))
+    if beyond.any():  # the sign comes from the vertex shared with the neighbour (see road_edges)
+        qq, cc = np.nonzero(beyond)
+        sc = scene[qq]
+        first = before[qq, cc]
+        other = np.where(first, previous[qq, cc], following[qq, cc])
+        convex = np.where(first, links[sc, 2, nearest[qq, cc]], links[sc, 2, other]) > 0
+        ox, oy = x[qq, cc] - columns[sc, 0, other], y[qq, cc] - columns[sc, 1, other]
+        other_side = np.sign(ox * columns[sc, 4, other] - oy * columns[sc, 3, other])
+        own_side = sign[qq, cc]
+        sign[qq, cc] = np.where(convex, np.maximum(own_side, other_side), np.minimum(own_side, other_side))
+    return sign * magnitude
+
+
+def offroad_flags(
+    xyh: np.ndarray,
+    size: np.ndarray,
+    kind: np.ndarray,
+    columns: np.ndarray,
+    links: np.ndarray,
+    count: np.ndarray,
+    scene: np.ndarray,
+    margin: np.ndarray,
+) -> np.ndarray:
+    """``[Q]`` True where a vehicle's box (``xyh [Q,3]``, ``size [Q,2]``, ``kind [Q]``) has a corner more
+    than ``margin [Q]`` m beyond a road edge of its scene ``scene [Q]`` (scenes without edges: never)."""
+    out = np.zeros(len(xyh), dtype=bool)
+    check = np.flatnonzero((kind == AgentKind.VEHICLE) & (count[scene] > 0))
+    if len(check):
+        corners = box_corners(xyh[check], size[check])
+        distance = road_edge_distances(columns, links, count, scene[check], corners)
+        out[check] = distance.max(axis=-1) > margin[check]
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ pictures
+def latest_states(
+    now: np.ndarray,
+    after: np.ndarray,
+    before: np.ndarray,
+    valid_now: np.ndarray,
+    valid_after: np.ndarray,
+    valid_before: np.ndarray,
+    moved: np.ndarray,
+    dt: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each agent's latest decided state ``[...,3]`` (the next one if it moved this step), presence and
+    velocity ``[...,2]`` (m/s over the step that led there), from its states at ``t`` (``now``), ``t + 1``
+    (``after``, ``valid_after`` False past the end) and ``t - 1`` (``before``, ``valid_before`` False at
+    the first step); ``dt`` broadcasts against ``[...]``."""
+    nxt = moved & valid_after
+    cur = valid_now & ~moved
+    state = np.where(nxt[..., None], after, now)
+    prev = np.where(nxt[..., None], now, before)
+    prev_ok = np.where(nxt, valid_now, valid_before)
+    present = nxt | cur
+    velocity = np.where((present & prev_ok)[..., None], (state[..., :2] - prev[..., :2]) / dt[..., None], 0.0)
+    return state, present, velocity
+
+
+# ------------------------------------------------------------------------------------------- observations
+def nearest_first(key: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of ``key [Q, M]`` (``inf``: not a candidate), the indices ``[Q, k]`` of the ``k`` smallest
+    keys ordered by (key, index), and which of them are candidates."""
+    q, m = key.shape
+    if m <= k:
+        idx = np.broadcast_to(np.arange(m), (q, m))
+    else:
+        part = np.argpartition(key, k - 1, axis=1)[:, :k]
+        kth = np.take_along_axis(key, part, 1).max(axis=1, keepdims=True)  # the k-th smallest key
+        less, tie = key < kth, key == kth
+        need = k - less.sum(axis=1, keepdims=True)
+        chosen = less | (tie & (np.cumsum(tie, axis=1) <= need))  # ties: the lowest indices
+        idx = np.nonzero(chosen)[1].reshape(q, k)
+    order = np.argsort(np.take_along_axis(key, idx, 1), axis=1, kind="stable")
+    idx = np.take_along_axis(idx, order, 1)
+    if m < k:
+        idx = np.concatenate([idx, np.zeros((q, k - m), dtype=idx.dtype)], axis=1)
+    found = np.isfinite(np.take_along_axis(key, idx, 1)) if m else np.zeros((q, k), bool)
+    if m < k:
+        found[:, m:] = False
+    return idx, found
+
+
+def vector_observations(
+    head: np.ndarray,
+    origin: np.ndarray,
+    state: np.ndarray,
+    present: np.ndarray,
+    velocity: np.ndarray,
+    moved: np.ndarray,
+    size: np.ndarray,
+    agent: np.ndarray,
+    map_points: np.ndarray,
+    map_category: np.ndarray,
+    map_count: np.ndarray,
+    route_ahead: np.ndarray,
+    neighbours: int,
+    map_points_out: int,
+    radius: float,
+) -> np.ndarray:
+    """``vector`` observations ``[Q, F]`` (layout: :mod:`~trajeglish_env.env.observations`) of agents
+    ``agent [Q]`` at ``origin [Q,3]`` with ego features ``head [Q,8]``, each against the picture of its
+    own scene, gathered per query: ``state [Q,N,3]``, ``present``/``moved [Q,N]``, ``velocity [Q,N,2]``,
+    ``size [Q,N,2]``; map points ``[Q,M,2]`` (``map_count [Q]`` real ones) of ``map_category [Q,M]``;
+    ``route_ahead [Q,R,2]`` global route points."""
+    q, n = present.shape
+    rel = to_local(origin[:, None, :], state)
+    dist = np.hypot(rel[..., 0], rel[..., 1])
+    cand = present & (dist <= radius) & (np.arange(n)[None] != agent[:, None])
+    near, found = nearest_first(np.where(cand, dist, np.inf), neighbours)
+    take = lambda a: np.take_along_axis(a, near.reshape(q, -1, *([1] * (a.ndim - 2))), 1)  # noqa: E731
+    r, v, sz = take(rel), take(velocity), take(size)
+    c, s = np.cos(origin[:, 2])[:, None], np.sin(origin[:, 2])[:, None]
+    feats = np.stack(
+        [
+            np.ones(near.shape),
+            r[..., 0] / radius,
+            r[..., 1] / radius,
+            np.cos(r[..., 2]),
+            np.sin(r[..., 2]),
+            (c * v[..., 0] + s * v[..., 1]) / 30.0,
+            (-s * v[..., 0] + c * v[..., 1]) / 30.0,
+            sz[..., 0] / 10.0,
+            sz[..., 1] / 5.0,
+            np.take_along_axis(moved, near, 1).astype(np.float64),
+        ],
+        axis=-1,
+    )
+    feats = np.where(found[..., None], feats, 0.0)
+    # map points: nearest within the radius, in the agent's frame
+    mp = np.zeros((q, map_points_out, 6))
+    if map_points.shape[1]:
+        d = map_points - origin[:, None, :2]
+        local = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
+        d2 = (local**2).sum(-1)
+        real = np.arange(map_points.shape[1])[None] < map_count[:, None]
+        pick, inside = nearest_first(np.where(real & (d2 <= radius * radius), d2, np.inf), map_points_out)
+        cat = np.take_along_axis(map_category, pick, 1)
+        mp[..., 0] = 1.0
+        mp[..., 1:3] = np.take_along_axis(local, pick[..., None], 1) / radius
+        mp[..., 3], mp[..., 4], mp[..., 5] = cat == LANE, cat == LINE, cat == EDGE
+        mp = np.where(inside[..., None], mp, 0.0)
+    d = route_ahead - origin[:, None, :2]
+    route = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1) / radius
+    out = np.concatenate([head, feats.reshape(q, -1), mp.reshape(q, -1), route.reshape(q, -1)], axis=1)
+    return np.clip(out, -1.0, 1.0).astype(np.float32)
+
+
+def heading_error(state_heading: np.ndarray, route_heading: np.ndarray) -> np.ndarray:
+    """Heading of the agent relative to its route, wrapped to [-pi, pi)."""
+    return wrap_angle(state_heading - route_heading)

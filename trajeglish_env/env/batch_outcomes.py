@@ -1,0 +1,219 @@
+"""Step outcomes and observations of many simulations at once (the arrays of :mod:`batch_geometry`).
+
+A :class:`BatchGeometry` serves one scene (an unbatched env) or every scene of a batched env; it keeps the
+padded static arrays of the scenes it saw last (sizes, road edges, observation map points, routes) and
+refreshes only the rows whose simulation changed (a reset)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from trajeglish_env.env.batch_geometry import (
+    OTHER,
+    PaddedRows,
+    collision_flags,
+    latest_states,
+    offroad_flags,
+    pad_stack,
+    vector_observations,
+)
+from trajeglish_env.env.routes import Paths, stack_paths
+from trajeglish_env.geometry import wrap_angle
+
+if TYPE_CHECKING:
+    from trajeglish_env.env.simulation import Simulation
+
+
+@dataclass(frozen=True)
+class Pictures:
+    """Per scene (padded ``[B,N]``): every agent's latest decided state, presence, velocity, moved flag."""
+
+    state: np.ndarray
+    present: np.ndarray
+    velocity: np.ndarray
+    moved: np.ndarray
+
+
+@dataclass(frozen=True)
+class EgoFeatures:
+    """Per query: what an observation needs about the observing agent (arrays over the queries)."""
+
+    speed: np.ndarray
+    accel: np.ndarray
+    yaw_rate: np.ndarray
+    route_fraction: np.ndarray
+    lateral: np.ndarray
+    heading_error: np.ndarray
+    route_ahead: np.ndarray  # [Q,R,2] global points of the route ahead
+
+
+class BatchGeometry:
+    """Outcomes (:meth:`outcomes`) and observations (:meth:`observations`) of a list of simulations."""
+
+    def __init__(self) -> None:
+        self._size = PaddedRows(1.0)
+        self._kind = PaddedRows(0)
+        self._edge_columns = PaddedRows(0.0, last=True)
+        self._edge_links = PaddedRows(-1, last=True)
+        self._map_points = PaddedRows(0.0)
+        self._map_category = PaddedRows(OTHER)
+        self._paths: tuple[list[object], Paths, np.ndarray] | None = None
+
+    # ------------------------------------------------------------------ static arrays
+    def _edges(self, sims: Sequence[Simulation]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Road-edge columns ``[B,7,S]``, links ``[B,3,S]`` and segment counts ``[B]``."""
+        columns = self._edge_columns.sync(sims, lambda s: s.edge_columns)
+        links = self._edge_links.sync(sims, lambda s: s.edge_links)
+        return columns, links, np.array([s.edge_columns.shape[1] for s in sims])
+
+    def _routes(self, sims: Sequence[Simulation]) -> tuple[Paths, np.ndarray]:
+        """Every simulation's routes stacked, and the first route row of each."""
+        if (
+            self._paths is None
+            or len(self._paths[0]) != len(sims)
+            or any(a is not b for a, b in zip(self._paths[0], sims, strict=True))
+        ):
+            paths, first = stack_paths([s.routes for s in sims])
+            self._paths = (list(sims), paths, first)
+        return self._paths[1], self._paths[2]
+
+    # ------------------------------------------------------------------ outcomes
+    def outcomes(
+        self, sims: Sequence[Simulation]
+    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """Per simulation, at its current step: its live external agents, whether each collides, is off
+        the road, and its new arc length along its route (see :meth:`Simulation.finish_step`)."""
+        lives = [s.external_index[~s.retired[s.external_index]] for s in sims]
+        counts = [len(live) for live in lives]
+        scene = np.repeat(np.arange(len(sims)), counts)
+        agent = np.concatenate(lives).astype(np.int64)
+        if not len(agent):
+            empty = np.zeros(0, dtype=bool)
+            return [(live, empty, empty, np.zeros(0)) for live in lives]
+        xyh = pad_stack([s.driver.xyh[:, s.t] for s in sims])
+        valid = pad_stack([s.driver.valid[:, s.t] for s in sims], False)
+        size = self._size.sync(sims, lambda s: s.sc.size)[:, : xyh.shape[1]]
+        kind = self._kind.sync(sims, lambda s: s.sc.kind)
+        hit = collision_flags(xyh, valid, size, scene, agent)
+        cols, links, count = self._edges(sims)
+        margin = np.array([s.config.reward.offroad_margin for s in sims])[scene]
+        off = offroad_flags(
+            xyh[scene, agent], size[scene, agent], kind[scene, agent], cols, links, count, scene, margin
+        )
+        paths, first = self._routes(sims)
+        rows = first[scene] + np.concatenate([s.route_row[live] for s, live in zip(sims, lives, strict=True)])
+        progress = np.concatenate(
+            [s.progress[s.route_row[live]] for s, live in zip(sims, lives, strict=True)]
+        )
+        s_new, _, _ = paths.project(rows, xyh[scene, agent, :2], progress)
+        bounds = np.cumsum([0, *counts])
+        return [
+            (live, hit[a:b], off[a:b], s_new[a:b])
+            for live, a, b in zip(lives, bounds[:-1], bounds[1:], strict=True)
+        ]
+
+    # ------------------------------------------------------------------ observations
+    def pictures(self, sims: Sequence[Simulation]) -> Pictures:
+        """Every scene as it stands now (mid-step: who has moved so far), padded to ``[B,N]``."""
+        now, after, before, valid_now, valid_after, valid_before, moved = [], [], [], [], [], [], []
+        for s in sims:
+            xyh, valid, t, m = s.driver.xyh, s.driver.valid, s.t, s.driver.moved()
+            last = valid.shape[1] - 1
+            now.append(xyh[:, t])
+            after.append(xyh[:, min(t + 1, last)])
+            before.append(xyh[:, max(t - 1, 0)])
+            valid_now.append(valid[:, t])
+            valid_after.append(valid[:, t + 1] if t < last else np.zeros_like(m))
+            valid_before.append(valid[:, max(t - 1, 0)] & (t > 0))
+            moved.append(m)
+        dt = np.array([s.dt for s in sims])[:, None]
+        flags = [pad_stack(v, False) for v in (valid_now, valid_after, valid_before, moved)]
+        state, present, velocity = latest_states(
+            pad_stack(now), pad_stack(after), pad_stack(before), *flags, dt
+        )
+        return Pictures(state, present, velocity, flags[3])
+
+    def ego_features(
+        self, sims: Sequence[Simulation], scene: np.ndarray, agent: np.ndarray, pictures: Pictures
+    ) -> EgoFeatures:
+        """The observing agents' own features: kinematics, and their place on their routes."""
+        obs = sims[0].config.obs
+        paths, first = self._routes(sims)
+        rows = first[scene] + np.array([sims[b].route_row[a] for b, a in zip(scene, agent, strict=True)])
+        own = pictures.state[scene, agent]
+        s_prev = np.array([sims[b].progress[sims[b].route_row[a]] for b, a in zip(scene, agent, strict=True)])
+        s_now, lateral, route_heading = paths.project(rows, own[:, :2], s_prev)
+        ahead = s_now[:, None] + obs.route_spacing * np.arange(1, obs.route_points + 1)
+        points, _ = paths.at(np.broadcast_to(rows[:, None], ahead.shape), ahead)
+        length = np.maximum(paths.length[rows], 1e-6)
+        goal = np.array([sims[b].has_goal[sims[b].route_row[a]] for b, a in zip(scene, agent, strict=True)])
+        kin = [(sims[b].kin, a) for b, a in zip(scene, agent, strict=True)]
+        return EgoFeatures(
+            speed=np.array([k.speed[a] for k, a in kin]),
+            accel=np.array([k.accel[a] for k, a in kin]),
+            yaw_rate=np.array([k.yaw_rate[a] for k, a in kin]),
+            route_fraction=np.where(goal, np.minimum(s_now / length, 1.0), 1.0),
+            lateral=lateral,
+            heading_error=wrap_angle(own[:, 2] - route_heading),
+            route_ahead=points,
+        )
+
+    def observations(self, sims: Sequence[Simulation], agents: Sequence[int]) -> np.ndarray:
+        """``vector`` observations ``[Q, F]`` of external agent ``agents[i]`` of ``sims[i]`` (a simulation
+        may appear several times), as they stand now."""
+        unique: list[Simulation] = []
+        position: dict[int, int] = {}
+        for s in sims:
+            if id(s) not in position:
+                position[id(s)] = len(unique)
+                unique.append(s)
+        configs = {s.config.obs for s in unique}
+        if len(configs) != 1:
+            raise ValueError(
+                f"observations: the scenes of one call must share the observation settings, got {configs}"
+            )
+        obs = next(iter(configs))
+        scene = np.array([position[id(s)] for s in sims], dtype=np.int64)
+        agent = np.asarray(agents, dtype=np.int64)
+        pictures = self.pictures(unique)
+        ego = self.ego_features(unique, scene, agent, pictures)
+        size = self._size.sync(unique, lambda s: s.sc.size)
+        points = self._map_points.sync(unique, lambda s: s.observer.points)
+        category = self._map_category.sync(unique, lambda s: s.observer.category)
+        map_count = np.array([len(s.observer.points) for s in unique])
+        own_size = size[scene, agent]
+        head = np.stack(
+            [
+                ego.speed / 30.0,
+                ego.accel / 10.0,
+                ego.yaw_rate,
+                own_size[:, 0] / 10.0,
+                own_size[:, 1] / 5.0,
+                ego.route_fraction,
+                ego.lateral / 5.0,
+                ego.heading_error / np.pi,
+            ],
+            axis=-1,
+        )
+        size_n = size[:, : pictures.state.shape[1]]
+        return vector_observations(
+            head,
+            pictures.state[scene, agent],
+            pictures.state[scene],
+            pictures.present[scene],
+            pictures.velocity[scene],
+            pictures.moved[scene],
+            size_n[scene],
+            agent,
+            points[scene],
+            category[scene],
+            map_count[scene],
+            ego.route_ahead,
+            obs.neighbours,
+            obs.map_points,
+            obs.radius,
+        )
