@@ -113,6 +113,7 @@ class DecoderCache:
     cross_v: list[torch.Tensor]
     memory_mask: torch.Tensor  # [B,1,1,M]
     length: int = 0
+    memory_full: bool = False  # the owner knows (host side) that memory_mask is all True
 
     @property
     def capacity(self) -> int:
@@ -142,6 +143,15 @@ class RowGroup:
     mask: torch.Tensor
     positions: torch.Tensor
     writes: tuple[torch.Tensor, torch.Tensor]
+    position: int | None = None  # set when every batch row stores its first input, all at this position
+
+    def store(self, cache: torch.Tensor, new: torch.Tensor) -> None:
+        """Write the group's new keys (or values) ``new [B,H,n,Dh]`` into ``cache [B,H,L,Dh]``."""
+        if self.position is not None:  # lockstep: a strided copy instead of gather + scatter
+            cache[:, :, self.position] = new[:, :, 0].to(cache.dtype)
+        else:
+            batch_rows, slot = self.writes
+            cache[batch_rows, :, self.positions] = new[batch_rows, :, slot].to(cache.dtype)
 
     @property
     def select(self) -> slice | torch.Tensor:
@@ -167,7 +177,7 @@ class DecoderBlock(nn.Module):
         self_mask: torch.Tensor | None,
         cross_k: torch.Tensor,
         cross_v: torch.Tensor,
-        memory_mask: torch.Tensor,
+        memory_mask: torch.Tensor | None,
         cache: tuple[torch.Tensor, torch.Tensor, int | list[RowGroup]] | None = None,
     ) -> torch.Tensor:
         """``x [B,N,C]``; with ``cache = (K, V, start)`` the new keys/values are written at ``start`` and
@@ -206,16 +216,16 @@ class DecoderBlock(nn.Module):
         groups: list[RowGroup],
         cross_k: torch.Tensor,
         cross_v: torch.Tensor,
-        memory_mask: torch.Tensor,
+        memory_mask: torch.Tensor | None,
     ) -> torch.Tensor:
         """Self-attention group by group (fixed key length per group, masked), then cross-attention and
         the feed-forward for every row."""
         whole = len(groups) == 1 and groups[0].rows is None  # the lockstep case: no scatter needed
         attended = h if whole else torch.zeros_like(h)
         for g in groups:
-            rows, (batch_rows, slot) = g.select, g.writes
-            ck[batch_rows, :, g.positions] = k[batch_rows, :, slot].to(ck.dtype)
-            cv[batch_rows, :, g.positions] = v[batch_rows, :, slot].to(cv.dtype)
+            rows = g.select
+            g.store(ck, k)
+            g.store(cv, v)
             keys, values = ck[rows, :, : g.keys], cv[rows, :, : g.keys]  # views when the group is every row
             out = self.self_attn.attend(h[rows], keys, values, g.mask)
             if whole:

@@ -481,13 +481,23 @@ class TrajeglishModel(nn.Module):
             mask = additive_mask(allowed, cache.self_k[0].dtype)
             local, slot = np.nonzero(count[rows][:, None] > np.arange(n))  # host side: no device sync
             writes = (torch.from_numpy(rows[local]).to(dev), torch.from_numpy(slot).to(dev))
+            stored = start[rows][local] + slot
+            lockstep = len(local) == len(step) and not slot.any() and (stored == stored[0]).all()
             groups.append(
-                RowGroup(index, keys, mask, queries[torch.from_numpy(local).to(dev), writes[1]], writes)
+                RowGroup(
+                    index,
+                    keys,
+                    mask,
+                    queries[torch.from_numpy(local).to(dev), writes[1]],
+                    writes,
+                    int(stored[0]) if lockstep else None,
+                )
             )
         index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
         index = index.clamp(max=cache.capacity - 1)
         x = self._decoder_inputs(carried_ids, own_ids) + self._positions(agents, index)
-        memory_mask = additive_mask(cache.memory_mask, cache.cross_k[0].dtype)
+        # a memory with nothing masked needs no mask (the same numbers: SDPA adds zeros otherwise)
+        memory_mask = None if cache.memory_full else additive_mask(cache.memory_mask, cache.cross_k[0].dtype)
         for i, block in enumerate(self.blocks):
             kv = (cache.self_k[i], cache.self_v[i], groups)
             x = block(x, None, cache.cross_k[i], cache.cross_v[i], memory_mask, kv)

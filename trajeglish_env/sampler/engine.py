@@ -339,6 +339,8 @@ class BatchEngine:
                         self._prime(cache, agents, sub[part], slots[part], s0[group][part], int(n))
                     w.agents[rows_part] = agents
                     w.kind[rows_part] = part_scene.agent_kind
+        for w in self.windows:  # every slot of every row real: the memory masks are all True
+            w.cache.memory_full = bool((w.slots >= 0).all())
 
     def _scene_inputs(
         self, rows: np.ndarray, slots: np.ndarray, s0: np.ndarray, centres: np.ndarray
