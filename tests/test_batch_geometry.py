@@ -8,10 +8,14 @@ import numpy as np
 
 from trajeglish_env.env import EgoEnv
 from trajeglish_env.env.batch_geometry import (
+    NearbyItems,
     PaddedRows,
     edge_rows,
     nearest_first,
+    nearest_segments,
+    nearest_segments_near,
     pad_stack,
+    point_segment_distances,
     road_edge_distances,
 )
 from trajeglish_env.env.batch_outcomes import BatchGeometry
@@ -49,6 +53,20 @@ def test_road_edge_distances_of_many_scenes_equal_the_reference_rule() -> None:
     )
     assert got.dtype == np.float32 and np.array_equal(got, want)
     assert (want > 0).mean() > 0.05 and (want < 0).mean() > 0.3  # both sides were queried
+    # the same nearest segments when only those near an anchor (up to the drift away) are scanned
+    near = NearbyItems(reach=15.0, drift=5.0)
+    centres = points.mean(axis=1) + rng.uniform(-3.5, 3.5, (len(points), 2))
+    keys = [(scenes[keep[q]], 0) for q in scene]
+    candidates = near.update(
+        keys, centres, lambda sc, p: point_segment_distances(edge_rows(road_edges(sc))[0], p)
+    )
+    assert 0 < candidates.shape[1] < columns.shape[2]
+    full = nearest_segments(columns, count, scene, points)
+    restricted = nearest_segments_near(columns, count, scene, points, candidates, near.anchor, near.reach)
+    assert np.array_equal(restricted, full)
+    far = points + 300.0  # far from every anchor's candidates: answered by the full scan
+    restricted = nearest_segments_near(columns, count, scene, far, candidates, near.anchor, near.reach)
+    assert np.array_equal(restricted, nearest_segments(columns, count, scene, far))
 
 
 def test_nearest_first_is_ordered_by_key_then_index() -> None:

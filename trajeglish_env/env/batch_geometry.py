@@ -97,26 +97,38 @@ def _rows(a: np.ndarray, scene: np.ndarray) -> np.ndarray:
     return a[scene]
 
 
-def road_edge_distances(
-    columns: np.ndarray, links: np.ndarray, count: np.ndarray, scene: np.ndarray, points: np.ndarray
-) -> np.ndarray:
-    """Signed distances ``[Q, C]`` (float32) from 2-D ``points [Q, C, 2]`` to the road edges of their scenes
-    ``scene [Q]`` (``columns [B, 7, S]``, ``links [B, 3, S]``: :func:`edge_rows` of each scene, padded;
-    ``count [B]`` real segments, > 0 for every queried scene): the rule of
-    :func:`~trajeglish_env.metrics.road_edges.signed_distance_to_road_edges`, number for number."""
+def _selection_d2(cols: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Squared 3-D distances (z stretched, queries at z = 0: exactly the planar value on flat maps) from
+    points ``x, y [Q,C]`` to segments ``cols [Q,7,K]`` -> ``[Q,C,K]`` (float32, the reference's formula)."""
     f32 = np.float32
-    pts = points.astype(f32)
-    x, y = pts[..., 0], pts[..., 1]  # [Q,C]
-    cols = _rows(columns, scene)[:, :, None, :]  # [Q,7,1,S]
+    cols = cols[:, :, None, :]
     ax, ay, az, dx, dy, dz, inverse = (cols[:, k] for k in range(7))
-    # nearest segment in 3-D with z stretched (queries at z = 0; exactly the planar value on flat maps)
     ux, uy = x[..., None] - ax, y[..., None] - ay
     t = np.clip((ux * dx + uy * dy) * inverse, 0, 1)
     rx, ry = ux - t * dx, uy - t * dy
     rz = Z_STRETCH * (f32(0) - az - t * dz)
-    d2 = rx * rx + ry * ry + rz * rz
+    return rx * rx + ry * ry + rz * rz
+
+
+def nearest_segments(
+    columns: np.ndarray, count: np.ndarray, scene: np.ndarray, points: np.ndarray
+) -> np.ndarray:
+    """Index ``[Q,C]`` of the road-edge segment nearest (as the reference chooses it: 3-D, z stretched,
+    first on ties) to each of ``points [Q,C,2]`` among every segment of its scene ``scene [Q]``."""
+    pts = points.astype(np.float32)
+    d2 = _selection_d2(_rows(columns, scene), pts[..., 0], pts[..., 1])
     real = np.arange(columns.shape[2])[None, None] < count[scene][:, None, None]
-    nearest = np.argmin(np.where(real, d2, np.inf), axis=-1)  # [Q,C], first on ties
+    return np.argmin(np.where(real, d2, np.inf), axis=-1)
+
+
+def signed_distances_to(
+    columns: np.ndarray, links: np.ndarray, scene: np.ndarray, points: np.ndarray, nearest: np.ndarray
+) -> np.ndarray:
+    """Signed distances ``[Q,C]`` (float32) from ``points [Q,C,2]`` to their ``nearest`` segments, the sign
+    beyond a segment's end taken from the vertex it shares with its neighbour (see ``road_edges``)."""
+    f32 = np.float32
+    pts = points.astype(f32)
+    x, y = pts[..., 0], pts[..., 1]
     own = scene[:, None]
     sx, sy, sdx, sdy = (columns[own, k, nearest] for k in (0, 1, 3, 4))
     ux, uy = x - sx, y - sy
@@ -130,7 +142,7 @@ def road_edge_distances(
     previous, following = links[own, 0, nearest], links[own, 1, nearest]
     before = (tt < 0) & (previous >= 0)
     beyond = before | ((tt > 1) & (following >= 0))
-    if beyond.any():  # the sign comes from the vertex shared with the neighbour (see road_edges)
+    if beyond.any():
         qq, cc = np.nonzero(beyond)
         sc = scene[qq]
         first = before[qq, cc]
@@ -143,6 +155,95 @@ def road_edge_distances(
     return sign * magnitude
 
 
+def road_edge_distances(
+    columns: np.ndarray, links: np.ndarray, count: np.ndarray, scene: np.ndarray, points: np.ndarray
+) -> np.ndarray:
+    """Signed distances ``[Q, C]`` (float32) from 2-D ``points [Q, C, 2]`` to the road edges of their scenes
+    ``scene [Q]`` (``columns [B, 7, S]``, ``links [B, 3, S]``: :func:`edge_rows` of each scene, padded;
+    ``count [B]`` real segments, > 0 for every queried scene): the rule of
+    :func:`~trajeglish_env.metrics.road_edges.signed_distance_to_road_edges`, number for number."""
+    return signed_distances_to(columns, links, scene, points, nearest_segments(columns, count, scene, points))
+
+
+def nearest_segments_near(
+    columns: np.ndarray,
+    count: np.ndarray,
+    scene: np.ndarray,
+    points: np.ndarray,
+    candidates: np.ndarray,
+    anchor: np.ndarray,
+    reach: float,
+) -> np.ndarray:
+    """:func:`nearest_segments`, scanning per query only ``candidates [Q,K]`` (-1 padding): the segments
+    within ``reach`` m (2-D) of ``anchor [Q,2]``. A segment left out is farther than ``reach`` minus the
+    point's distance to the anchor, in 2-D and so in 3-D; when the best candidate is nearer than that (1 m
+    to spare for float32 rounding) it is the reference's choice, ties included (candidates ascend), else
+    the point's query is answered by a full scan."""
+    pts = points.astype(np.float32)
+    safe = np.maximum(candidates, 0)
+    cols = columns[scene[:, None, None], np.arange(7)[None, :, None], safe[:, None, :]]  # [Q,7,K]
+    d2 = np.where((candidates >= 0)[:, None, :], _selection_d2(cols, pts[..., 0], pts[..., 1]), np.inf)
+    best = np.argmin(d2, axis=-1)  # [Q,C]
+    nearest = np.take_along_axis(candidates, best, 1)
+    margin = reach - np.hypot(points[..., 0] - anchor[:, None, 0], points[..., 1] - anchor[:, None, 1]) - 1.0
+    sure = (margin > 0) & (np.take_along_axis(d2, best[..., None], -1)[..., 0] <= margin * margin)
+    unsure = np.flatnonzero(~sure.all(axis=1))
+    if len(unsure):
+        nearest[unsure] = nearest_segments(columns, count, scene[unsure], points[unsure])
+    return nearest
+
+
+class NearbyItems:
+    """Per query row of a batch (a scene's agent), the items of its scene (map points, road-edge segments)
+    within ``reach`` m of an anchor, re-chosen when the agent is more than ``drift`` m from its anchor or
+    the row's key changes: a query near the anchor scans only them (callers say why that is exact)."""
+
+    def __init__(self, reach: float, drift: float):
+        if not reach > drift > 0:
+            raise ValueError(f"NearbyItems: need reach > drift > 0, got reach={reach}, drift={drift}")
+        self.reach, self.drift = float(reach), float(drift)
+        self.keys: list[tuple[object, int]] = []
+        self.anchor = np.zeros((0, 2))
+        self.lists: list[np.ndarray] = []
+        self.index = np.zeros((0, 0), np.int64)
+        self.version = 0
+
+    def update(
+        self,
+        keys: Sequence[tuple[object, int]],
+        centres: np.ndarray,
+        distances: Callable[[object, np.ndarray], np.ndarray],
+    ) -> np.ndarray:
+        """Candidates ``[Q,K]`` (ascending, -1 padding) of rows keyed ``(scene object, agent)`` whose agents
+        are at ``centres [Q,2]``; ``distances(scene, point)`` gives every item's distance to a point."""
+        q = len(keys)
+        if len(self.keys) != q:
+            self.keys, self.anchor = [(None, -1)] * q, np.full((q, 2), np.inf)
+            self.lists = [np.zeros(0, np.int64)] * q
+        away = ~(np.hypot(centres[:, 0] - self.anchor[:, 0], centres[:, 1] - self.anchor[:, 1]) <= self.drift)
+        stale = [
+            i for i, k in enumerate(keys) if away[i] or self.keys[i][0] is not k[0] or self.keys[i][1] != k[1]
+        ]
+        for i in stale:
+            self.lists[i] = np.flatnonzero(distances(keys[i][0], centres[i]) <= self.reach)
+            self.anchor[i], self.keys[i] = centres[i], keys[i]
+        if stale or self.index.shape[0] != q:
+            self.index = pad_stack(self.lists, -1) if q else np.zeros((0, 0), np.int64)
+            self.version += 1
+        return self.index
+
+
+def point_segment_distances(columns: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """2-D distances (float64) from ``point [2]`` to the segments ``columns [7,S]`` of :func:`edge_rows`."""
+    ax, ay, dx, dy = (columns[k].astype(np.float64) for k in (0, 1, 3, 4))
+    ux, uy = point[0] - ax, point[1] - ay
+    length2 = dx * dx + dy * dy
+    t = np.clip(
+        np.where(length2 > 0, (ux * dx + uy * dy) / np.where(length2 > 0, length2, 1.0), 0.0), 0.0, 1.0
+    )
+    return np.hypot(ux - t * dx, uy - t * dy)
+
+
 def offroad_flags(
     xyh: np.ndarray,
     size: np.ndarray,
@@ -152,14 +253,25 @@ def offroad_flags(
     count: np.ndarray,
     scene: np.ndarray,
     margin: np.ndarray,
+    nearby: tuple[np.ndarray, np.ndarray, float] | None = None,
 ) -> np.ndarray:
     """``[Q]`` True where a vehicle's box (``xyh [Q,3]``, ``size [Q,2]``, ``kind [Q]``) has a corner more
-    than ``margin [Q]`` m beyond a road edge of its scene ``scene [Q]`` (scenes without edges: never)."""
+    than ``margin [Q]`` m beyond a road edge of its scene ``scene [Q]`` (scenes without edges: never).
+    ``nearby = (candidates [Q,K], anchor [Q,2], reach)`` restricts the scan (see
+    :func:`nearest_segments_near`; the same answer)."""
     out = np.zeros(len(xyh), dtype=bool)
     check = np.flatnonzero((kind == AgentKind.VEHICLE) & (count[scene] > 0))
     if len(check):
         corners = box_corners(xyh[check], size[check])
-        distance = road_edge_distances(columns, links, count, scene[check], corners)
+        rows = scene[check]
+        if nearby is None:
+            nearest = nearest_segments(columns, count, rows, corners)
+        else:
+            candidates, anchor, reach = nearby
+            nearest = nearest_segments_near(
+                columns, count, rows, corners, candidates[check], anchor[check], reach
+            )
+        distance = signed_distances_to(columns, links, rows, corners, nearest)
         out[check] = distance.max(axis=-1) > margin[check]
     return out
 
@@ -224,7 +336,7 @@ def vector_observations(
     agent: np.ndarray,
     map_points: np.ndarray,
     map_category: np.ndarray,
-    map_count: np.ndarray,
+    map_real: np.ndarray,
     route_ahead: np.ndarray,
     neighbours: int,
     map_points_out: int,
@@ -233,7 +345,8 @@ def vector_observations(
     """``vector`` observations ``[Q, F]`` (layout: :mod:`~trajeglish_env.env.observations`) of agents
     ``agent [Q]`` at ``origin [Q,3]`` with ego features ``head [Q,8]``, each against the picture of its
     own scene, gathered per query: ``state [Q,N,3]``, ``present``/``moved [Q,N]``, ``velocity [Q,N,2]``,
-    ``size [Q,N,2]``; map points ``[Q,M,2]`` (``map_count [Q]`` real ones) of ``map_category [Q,M]``;
+    ``size [Q,N,2]``; map points ``[Q,M,2]`` of ``map_category [Q,M]`` in ascending order of the scene's
+    points (``map_real [Q,M]``: not padding), every point within ``radius`` among them;
     ``route_ahead [Q,R,2]`` global route points."""
     q, n = present.shape
     rel = to_local(origin[:, None, :], state)
@@ -262,14 +375,14 @@ def vector_observations(
     # map points: nearest within the radius, in the agent's frame
     mp = np.zeros((q, map_points_out, 6))
     if map_points.shape[1]:
-        d = map_points - origin[:, None, :2]
-        local = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1)
-        d2 = (local**2).sum(-1)
-        real = np.arange(map_points.shape[1])[None] < map_count[:, None]
-        pick, inside = nearest_first(np.where(real & (d2 <= radius * radius), d2, np.inf), map_points_out)
+        dx, dy = map_points[..., 0] - origin[:, None, 0], map_points[..., 1] - origin[:, None, 1]
+        lx, ly = c * dx + s * dy, -s * dx + c * dy
+        d2 = lx * lx + ly * ly
+        pick, inside = nearest_first(np.where(map_real & (d2 <= radius * radius), d2, np.inf), map_points_out)
         cat = np.take_along_axis(map_category, pick, 1)
         mp[..., 0] = 1.0
-        mp[..., 1:3] = np.take_along_axis(local, pick[..., None], 1) / radius
+        mp[..., 1] = np.take_along_axis(lx, pick, 1) / radius
+        mp[..., 2] = np.take_along_axis(ly, pick, 1) / radius
         mp[..., 3], mp[..., 4], mp[..., 5] = cat == LANE, cat == LINE, cat == EDGE
         mp = np.where(inside[..., None], mp, 0.0)
     d = route_ahead - origin[:, None, :2]

@@ -14,11 +14,13 @@ import numpy as np
 
 from trajeglish_env.env.batch_geometry import (
     OTHER,
+    NearbyItems,
     PaddedRows,
     collision_flags,
     latest_states,
     offroad_flags,
     pad_stack,
+    point_segment_distances,
     vector_observations,
 )
 from trajeglish_env.env.routes import Paths, stack_paths
@@ -26,6 +28,9 @@ from trajeglish_env.geometry import wrap_angle
 
 if TYPE_CHECKING:
     from trajeglish_env.env.simulation import Simulation
+
+EDGE_REACH, EDGE_DRIFT = 40.0, 10.0  # m: road edges kept around an agent, and how far it may move off
+MAP_DRIFT = 15.0  # m an agent may move before the map points kept around it are chosen again
 
 
 @dataclass(frozen=True)
@@ -59,9 +64,10 @@ class BatchGeometry:
         self._kind = PaddedRows(0)
         self._edge_columns = PaddedRows(0.0, last=True)
         self._edge_links = PaddedRows(-1, last=True)
-        self._map_points = PaddedRows(0.0)
-        self._map_category = PaddedRows(OTHER)
         self._paths: tuple[list[object], Paths, np.ndarray] | None = None
+        self._near_edges = NearbyItems(EDGE_REACH, EDGE_DRIFT)
+        self._near_points: NearbyItems | None = None  # made with the observation radius
+        self._map_gathered: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ static arrays
     def _edges(self, sims: Sequence[Simulation]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -101,8 +107,22 @@ class BatchGeometry:
         hit = collision_flags(xyh, valid, size, scene, agent)
         cols, links, count = self._edges(sims)
         margin = np.array([s.config.reward.offroad_margin for s in sims])[scene]
+        centres = xyh[scene, agent, :2]
+        keys = [(sims[b], a) for b, a in zip(scene.tolist(), agent.tolist(), strict=True)]
+        candidates = self._near_edges.update(
+            keys, centres, lambda s, p: point_segment_distances(s.edge_columns, p)
+        )
+        nearby = (candidates, self._near_edges.anchor, self._near_edges.reach)
         off = offroad_flags(
-            xyh[scene, agent], size[scene, agent], kind[scene, agent], cols, links, count, scene, margin
+            xyh[scene, agent],
+            size[scene, agent],
+            kind[scene, agent],
+            cols,
+            links,
+            count,
+            scene,
+            margin,
+            nearby,
         )
         paths, first = self._routes(sims)
         rows = first[scene] + np.concatenate([s.route_row[live] for s, live in zip(sims, lives, strict=True)])
@@ -162,6 +182,37 @@ class BatchGeometry:
             route_ahead=points,
         )
 
+    def _nearby_map(
+        self,
+        sims: Sequence[Simulation],
+        scene: np.ndarray,
+        agent: np.ndarray,
+        centres: np.ndarray,
+        radius: float,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per query, its scene's observation map points near it ``[Q,K,2]`` (ascending), their categories
+        and which are real: every point within ``radius`` of the agent is among them, since the agent is
+        within the drift of the anchor they were chosen around (1 m spare for rounding)."""
+        near = self._near_points
+        if near is None or near.reach != radius + MAP_DRIFT + 1.0:
+            near = self._near_points = NearbyItems(radius + MAP_DRIFT + 1.0, MAP_DRIFT)
+            self._map_gathered = None
+        keys = [(sims[b], a) for b, a in zip(scene.tolist(), agent.tolist(), strict=True)]
+        index = near.update(
+            keys,
+            centres,
+            lambda s, p: np.hypot(s.observer.points[:, 0] - p[0], s.observer.points[:, 1] - p[1]),
+        )
+        if self._map_gathered is None or self._map_gathered[0] != near.version:
+            safe = np.maximum(index, 0)
+            points = np.zeros((*index.shape, 2))
+            category = np.full(index.shape, OTHER, dtype=np.int8)
+            for q, (sim, _) in enumerate(near.keys):
+                points[q] = sim.observer.points[safe[q]] if len(sim.observer.points) else 0.0
+                category[q] = sim.observer.category[safe[q]] if len(sim.observer.points) else OTHER
+            self._map_gathered = (near.version, points, category, index >= 0)
+        return self._map_gathered[1:]
+
     def observations(self, sims: Sequence[Simulation], agents: Sequence[int]) -> np.ndarray:
         """``vector`` observations ``[Q, F]`` of external agent ``agents[i]`` of ``sims[i]`` (a simulation
         may appear several times), as they stand now."""
@@ -182,9 +233,9 @@ class BatchGeometry:
         pictures = self.pictures(unique)
         ego = self.ego_features(unique, scene, agent, pictures)
         size = self._size.sync(unique, lambda s: s.sc.size)
-        points = self._map_points.sync(unique, lambda s: s.observer.points)
-        category = self._map_category.sync(unique, lambda s: s.observer.category)
-        map_count = np.array([len(s.observer.points) for s in unique])
+        points, category, real = self._nearby_map(
+            unique, scene, agent, pictures.state[scene, agent, :2], obs.radius
+        )
         own_size = size[scene, agent]
         head = np.stack(
             [
@@ -209,9 +260,9 @@ class BatchGeometry:
             pictures.moved[scene],
             size_n[scene],
             agent,
-            points[scene],
-            category[scene],
-            map_count[scene],
+            points,
+            category,
+            real,
             ego.route_ahead,
             obs.neighbours,
             obs.map_points,
