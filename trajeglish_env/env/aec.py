@@ -149,15 +149,27 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
     def step(self, action: Any) -> None:
         """Apply the selected agent's action, let the NPCs up to the next external agent act; at the end
         of a timestep compute rewards, terminations and truncations."""
+        prepared = self.prepare_action(action)
+        if prepared is None:
+            return
+        sim, index, value = prepared
+        sim.apply(index, value)
+        self.after_action()
+
+    def prepare_action(self, action: Any) -> tuple[Simulation, int, Any] | None:
+        """First part of :meth:`step`: a finished agent's step (returns None), else the selected agent's
+        validated action, with its simulation and index, to apply (a batched env applies them together)."""
         agent = self.agent_selection
         if self.terminations[agent] or self.truncations[agent]:
             self._was_dead_step(action)
-            return
-        sim = self._sim()
+            return None
         value = check_action(self.action_space(agent), action, agent)
         self._cumulative_rewards[agent] = 0.0
-        sim.apply(self._index[agent], value)
-        if sim.ready_for_batch():  # a batched env decodes every scene's NPCs at once, then resumes us
+        return self._sim(), self._index[agent], value
+
+    def after_action(self) -> None:
+        """Last part of :meth:`step`, once the action is applied."""
+        if self._sim().ready_for_batch():  # a batched env decodes every scene's NPCs at once, then resumes us
             self._suspended = True
             return
         self._finish_action()

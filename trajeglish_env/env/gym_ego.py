@@ -69,12 +69,20 @@ class EgoEnv(gymnasium.Env):
     def act(self, action: Any) -> None:
         """First half of :meth:`step`: apply the ego's action (a batched env then decodes the NPCs of all
         its scenes at once and calls :meth:`outcome`)."""
+        sim, index, value = self.prepare(action)
+        sim.apply(index, value)
+        self.aec.after_action()
+
+    def prepare(self, action: Any) -> tuple[Any, int, Any]:
+        """The ego's validated action with its simulation and index (:meth:`act` without applying it)."""
         aec, agent = self.aec, self.agent
         if not agent:
             raise RuntimeError("call reset() before step()")
         if aec.terminations[agent] or aec.truncations[agent]:
             raise RuntimeError(f"the episode of {agent} is over; call reset()")
-        aec.step(action)
+        prepared = aec.prepare_action(action)
+        assert prepared is not None
+        return prepared
 
     def outcome(
         self, observation: np.ndarray | None = None

@@ -4,6 +4,7 @@ external agents' kinematics and routes, observations and per-step outcomes. The 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -206,32 +207,19 @@ class Simulation:
 
     def apply(self, agent: int, action: np.ndarray | int) -> None:
         """Turn an (already validated) action of external ``agent`` into its next state."""
-        t, sc, kin = self.t, self.sc, self.kin
-        now = self.driver.xyh[agent, t].copy()
-        kind = self.config.action
-        if kind == "continuous":
-            nxt, v_next = bicycle_step(
-                now,
-                np.float64(kin.speed[agent]),
-                np.asarray(action),
-                sc.size[agent, 0],
-                self.config.limits,
-                self.dt,
-            )
+        apply_actions([self], [agent], [action])
+
+    def next_state(self, agent: int, action: np.ndarray | int) -> tuple[np.ndarray, np.float64]:
+        """Next state and speed of external ``agent`` under a ``delta`` or ``token`` action."""
+        now = self.driver.xyh[agent, self.t]
+        if self.config.action == "delta":
+            nxt = delta_step(now, np.asarray(action))
         else:
-            if kind == "delta":
-                nxt = delta_step(now, np.asarray(action))
-            else:
-                assert self.vocabulary is not None
-                nxt = token_step(now, self.vocabulary.templates[sc.kind[agent]], int(action))  # type: ignore[arg-type]
-            d = nxt[:2] - now[:2]
-            forward = np.cos(now[2]) * d[0] + np.sin(now[2]) * d[1]
-            v_next = np.float64(np.hypot(*d) / self.dt * (1.0 if forward >= 0 else -1.0))
-        yaw = wrap_angle(nxt[2] - now[2]) / self.dt
-        kin.accel[agent] = (v_next - kin.speed[agent]) / self.dt
-        kin.lateral[agent] = v_next * yaw
-        kin.yaw_rate[agent], kin.speed[agent] = yaw, v_next
-        self.driver.supply(agent, nxt, valid=True)
+            assert self.vocabulary is not None
+            nxt = token_step(now, self.vocabulary.templates[self.sc.kind[agent]], int(action))  # type: ignore[arg-type]
+        d = nxt[:2] - now[:2]
+        forward = np.cos(now[2]) * d[0] + np.sin(now[2]) * d[1]
+        return nxt, np.float64(np.hypot(*d) / self.dt * (1.0 if forward >= 0 else -1.0))
 
     def finish_step(
         self, computed: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -300,3 +288,46 @@ class Simulation:
             pictures.state[0, :n], pictures.present[0, :n], pictures.velocity[0, :n], pictures.moved[0, :n]
         )
         return self.observer.observe(state, picture)  # type: ignore[union-attr]
+
+
+def apply_actions(
+    sims: Sequence[Simulation], agents: Sequence[int], actions: Sequence[np.ndarray | int]
+) -> None:
+    """:meth:`Simulation.apply` of action ``actions[i]`` to external agent ``agents[i]`` of ``sims[i]``,
+    for all at once: continuous actions sharing vehicle limits go through one bicycle step, and the states
+    for a shared engine (a batched env's) reach it in one supply."""
+    n = len(sims)
+    now = np.stack([s.driver.xyh[a, s.t] for s, a in zip(sims, agents, strict=True)])
+    speed = np.array([s.kin.speed[a] for s, a in zip(sims, agents, strict=True)], dtype=np.float64)
+    dt = np.array([s.dt for s in sims])
+    nxt, v_next = np.zeros((n, 3)), np.zeros(n)
+    groups: dict[object, list[int]] = {}
+    for i, s in enumerate(sims):
+        if s.config.action == "continuous":
+            groups.setdefault(s.config.limits, []).append(i)
+        else:
+            nxt[i], v_next[i] = s.next_state(agents[i], actions[i])
+    for limits, rows in groups.items():
+        length = np.array([sims[i].sc.size[agents[i], 0] for i in rows])
+        moved = np.stack([np.asarray(actions[i]) for i in rows])
+        nxt[rows], v_next[rows] = bicycle_step(now[rows], speed[rows], moved, length, limits, dt[rows])  # type: ignore[arg-type]
+    yaw = wrap_angle(nxt[:, 2] - now[:, 2]) / dt
+    accel = (v_next - speed) / dt
+    engines: dict[int, list[int]] = {}
+    for i, (s, a) in enumerate(zip(sims, agents, strict=True)):
+        kin = s.kin
+        kin.accel[a], kin.lateral[a], kin.yaw_rate[a], kin.speed[a] = (
+            accel[i],
+            v_next[i] * yaw[i],
+            yaw[i],
+            v_next[i],
+        )
+        if getattr(s.driver, "shared", False):
+            engines.setdefault(id(s.driver.engine), []).append(i)
+        else:
+            s.driver.supply(a, nxt[i], valid=True)
+    for rows in engines.values():
+        engine = sims[rows[0]].driver.engine
+        engine.supply(
+            np.array([sims[i].driver.row for i in rows]), np.array([agents[i] for i in rows]), nxt[rows]
+        )

@@ -32,6 +32,7 @@ from trajeglish_env.env.aec import raw_env
 from trajeglish_env.env.batch_outcomes import BatchGeometry
 from trajeglish_env.env.config import EnvConfig, TrajeglishNPC
 from trajeglish_env.env.gym_ego import EgoEnv
+from trajeglish_env.env.simulation import apply_actions
 
 
 def auto_threads(num_envs: int) -> int:
@@ -192,8 +193,10 @@ class BatchedEgoEnv(VectorEnv):
         ``(obs, info)`` of the old one (None otherwise)."""
         if len(actions) != self.num_envs:
             raise ValueError(f"step: expected {self.num_envs} actions (one per scene), got {len(actions)}")
-        for env, action in zip(self.envs, actions, strict=True):
-            env.act(action)
+        prepared = [env.prepare(action) for env, action in zip(self.envs, actions, strict=True)]
+        apply_actions(*zip(*prepared, strict=True))  # every action is valid before any is applied
+        for env in self.envs:
+            env.aec.after_action()
         self.batch.decode()
         observations = self.batch.observe([env.aec for env in self.envs], [env.agent for env in self.envs])
         results = []
