@@ -239,6 +239,16 @@ def test_batched_envs_refuse_bad_inputs() -> None:
     venv.reset(seed=0)
     with pytest.raises(ValueError, match="expected 2 actions"):
         venv.step(np.zeros((3, 2), np.float32))
+    # a bad action of the second scene: refused before the first scene's action is applied
+    before = [env.aec.sim.driver.xyh.copy() for env in venv.envs]
+    with pytest.raises(ValueError, match=f"agent {venv.envs[1].agent}: action .* outside the action space"):
+        venv.step(np.array([[0.5, 0.0], [3.0, 0.0]], np.float32))
+    assert all(np.array_equal(b, env.aec.sim.driver.xyh) for b, env in zip(before, venv.envs, strict=True))
+    assert not any(env.aec.suspended for env in venv.envs)
+    obs, *_ = venv.step(np.zeros((2, 2), np.float32))  # and it steps on normally
+    alone = EgoEnv(npc="idm", max_cycles=3)
+    alone.reset(seed=1)
+    assert np.array_equal(alone.step(np.zeros(2, np.float32))[0], obs[1])
     penv = BatchedParallelEnv(2, npc="idm", external="all")
     penv.reset(seed=0)
     with pytest.raises(KeyError, match="scene 0 has no action"):
