@@ -163,3 +163,15 @@ def test_inference_encodes_polylines_block_by_block_exactly(monkeypatch: pytest.
         blocks = encoder(*args)
     torch.testing.assert_close(blocks, whole, rtol=0, atol=1e-6)
     torch.testing.assert_close(blocks[1, :5], encoder.kind(scene.map_kind[1, :5]).detach(), rtol=0, atol=0)
+
+
+def test_logits_of_known_classes_equal_the_full_head() -> None:
+    """The engine multiplies only each class's slice of the tied head: the same numbers as the full head."""
+    torch.manual_seed(1)
+    model = TrajeglishModel(preset("tiny")).eval()
+    for n in (1, 5, 40):
+        hidden = torch.randn(n, model.cfg.d_model)
+        for kind in (torch.randint(0, 3, (n,)), torch.zeros(n, dtype=torch.long)):
+            with torch.no_grad():
+                want = model.class_logits(hidden, kind)
+                assert torch.equal(model.class_logits_by_kind(hidden, kind.numpy()), want)

@@ -255,6 +255,22 @@ class TrajeglishModel(nn.Module):
         )
         return logits.gather(-2, index).squeeze(-2)
 
+    def class_logits_by_kind(self, hidden: torch.Tensor, kind: np.ndarray) -> torch.Tensor:
+        """:meth:`class_logits` of ``hidden [n,C]`` with the classes ``kind [n]`` known on the host: only
+        each class's slice of the head is multiplied (the same numbers, a third of the work)."""
+        x = self.norm(hidden)
+        v = self.cfg.vocab_size
+        kind = np.clip(kind, 0, self.cfg.num_kinds - 1)
+        present = np.unique(kind)
+        if len(present) == 1:
+            k = int(present[0])
+            return invariant_linear(x, self.token.weight[k * v : (k + 1) * v])
+        out = x.new_empty(len(kind), v)
+        for k in present.tolist():
+            rows = torch.from_numpy(np.flatnonzero(kind == k)).to(x.device)
+            out[rows] = invariant_linear(x[rows], self.token.weight[k * v : (k + 1) * v])
+        return out
+
     def _positions(self, agents: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Time + target-agent embeddings of flattened positions ``index`` (``[n]``, or ``[B,n]`` per row)."""
         a = agents.shape[1]

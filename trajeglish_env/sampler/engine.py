@@ -503,8 +503,7 @@ class BatchEngine:
         who = w.slots[rr, slots[rr, cc]]
         rows_t = torch.from_numpy(rr).to(self.device)
         cols_t = torch.from_numpy(cc).to(self.device)
-        kinds = torch.from_numpy(self.kind[rr, who]).to(self.device)
-        logits = self.model.class_logits(hidden[rows_t, cols_t], kinds).cpu()  # one transfer per call
+        logits = self.model.class_logits_by_kind(hidden[rows_t, cols_t], self.kind[rr, who]).cpu()
         tt = self.now[rr]
         u = counter_uniform(self.seed[rr], tt, who)
         tok = sample_with_uniform(logits, self.config.temperature, self.config.top_p, u)
