@@ -1,8 +1,9 @@
-"""Batched environment speed: B = 1, 8, 32, 128 scenes of 24 agents (1 external ego + 23 NPCs each),
+"""Batched environment speed: B = 1, 8, 32, 128, 256 scenes of 24 agents (1 external ego + 23 NPCs each),
 Trajeglish and replay NPCs, each run in its own process (peak memory), beside highway-env's own
-intersection env with a similar number of IDM vehicles measured in the same run; prints the ratios.
+intersection env with a similar number of IDM vehicles measured in the same run (before and after); prints
+the ratios.
 
-Usage: python benchmarks/bench_env.py [--batches 1 8 32 128] [--steps N] [--threads auto] [--json]
+Usage: python benchmarks/bench_env.py [--batches 1 8 32 128 256] [--steps N] [--threads auto] [--json]
 
 This is ``trajeglish bench --sections env`` (see trajeglish_env/benchmark/measure.py:env_speed for the
 exact workload: the bundled SUMO scenes cut to the sdc and its 23 nearest agents, the ego replaying its
@@ -26,7 +27,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32, 128])
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32, 128, 256])
     parser.add_argument(
         "--steps", type=int, default=None, help="timed steps per Trajeglish run (default: one window cycle)"
     )

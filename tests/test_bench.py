@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from trajeglish_env.benchmark.measure import env_speed
-from trajeglish_env.benchmark.suite import BenchConfig, ratios, summary_lines
+from trajeglish_env.benchmark.suite import BenchConfig, ratios, run_suite, summary_lines
 from trajeglish_env.benchmark.workloads import benchmark_scenes
 from trajeglish_env.cli import main
 
@@ -53,5 +53,20 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == 1
+    assert printed["schema_version"] == written["schema_version"] == 2
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
+
+
+def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> None:
+    result = run_suite(BenchConfig(sections=("env",), batches=(2,), quick=True), progress=False)
+    assert result["schema_version"] == 2
+    for key in ("highway_env", "highway_env_highway"):
+        runs = result[key]["runs"]
+        assert len(runs) == 2 and all(r["agent_steps_per_s"] > 0 for r in runs)
+        mean = (runs[0]["agent_steps_per_s"] + runs[1]["agent_steps_per_s"]) / 2
+        assert result[key]["agent_steps_per_s"] == pytest.approx(mean, abs=0.01)
+    learned = result["env"]["trajeglish"]["2"]
+    assert learned["timed_steps"] == 3 and learned["window_rebuild_steps"] in (0, 1)
+    assert result["env"]["replay"]["2"]["window_rebuild_steps"] is None
+    ratio = learned["agent_steps_per_s"] / result["highway_env"]["agent_steps_per_s"]
+    assert result["ratios"]["trajeglish_B2_to_highway_env"] == pytest.approx(ratio, rel=1e-2)

@@ -345,7 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=("gif", "mp4"), default="gif")
 
     p = add("bench", cmd_bench, "the benchmark suite: speed of every stage, batched env vs highway-env")
-    p.add_argument("--batches", type=int, nargs="+", default=[1, 8, 32, 128], help="scenes per batched env")
+    p.add_argument(
+        "--batches", type=int, nargs="+", default=[1, 8, 32, 128, 256], help="scenes per batched env"
+    )
     p.add_argument("--agents", type=int, default=24, help="agents per scene")
     p.add_argument(
         "--env-steps",

@@ -3,8 +3,9 @@
 Sections: tokenization agent-steps/s, dataset windows/s, training tokens/s, decoding tokens/s with and
 without the key/value cache, realism-metric scoring time, the batched ego env (Trajeglish and replay
 NPCs) for each batch size, each in a fresh process so that its peak memory is its own, and highway-env's
-own stepping speed measured in the same run. Ratios to highway-env make the figures comparable across
-noisy runs. JSON layout: see the README ("Benchmarks").
+own stepping speed measured in the same run, before and after the batched envs (their mean is the
+baseline). Ratios to highway-env make the figures comparable across noisy runs. JSON layout: see the
+README ("Benchmarks").
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: env figures over a whole window cycle; highway-env measured before and after
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "metrics", "env")
 
 
@@ -28,7 +29,7 @@ class BenchConfig:
     env (``"auto"``: see :func:`trajeglish_env.env.vector.auto_threads`), the NPC cache dtype and the
     sections to run (``quick`` shrinks every workload for a smoke run)."""
 
-    batches: tuple[int, ...] = (1, 8, 32, 128)
+    batches: tuple[int, ...] = (1, 8, 32, 128, 256)
     agents: int = 24
     env_steps: int | None = None  # None: one window cycle of the model (see measure.env_speed)
     replay_steps: int = 40
@@ -73,13 +74,15 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
         jobs.append(("metrics", lambda: measure.metrics_time(32 if q else 128, 8 if q else 32, (8,), 1)))
     if "env" in config.sections:
         hw_steps = 60 if q else config.highway_steps
-        jobs.append(("highway_env", lambda: measure.highway_env_speed(40, hw_steps)))
-        jobs.append(
-            ("highway_env_highway", lambda: measure.highway_env_speed(config.agents, hw_steps, "highway"))
-        )
+        baselines = [
+            ("highway_env", lambda: measure.highway_env_speed(40, hw_steps)),
+            ("highway_env_highway", lambda: measure.highway_env_speed(config.agents, hw_steps, "highway")),
+        ]
+        jobs += [(f"{name}/before", job) for name, job in baselines]
         for npc in ("trajeglish", "replay"):
             for b in config.batches:
                 jobs.append((f"env/{npc}/{b}", _env_job(config, npc, b)))
+        jobs += [(f"{name}/after", job) for name, job in baselines]  # the machine's load drifts
     result: dict[str, Any] = {
         "schema_version": SCHEMA_VERSION,
         "machine": measure.machine(),
@@ -91,11 +94,25 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
         if name.startswith("env/"):
             _, npc, b = name.split("/")
             result.setdefault("env", {}).setdefault(npc, {})[b] = value
+        elif name.endswith(("/before", "/after")):
+            result.setdefault(name.split("/")[0], {"runs": []})["runs"].append(value)
         else:
             result[name] = value
+    for key in ("highway_env", "highway_env_highway"):
+        if key in result:
+            result[key] = _mean_run(result[key]["runs"])
     result["ratios"] = ratios(result)
     result["seconds"] = round(time.perf_counter() - start, 1)
     return result
+
+
+def _mean_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """highway-env's figures averaged over its runs (before and after the batched-env runs), with them."""
+    mean = {
+        key: round(sum(r[key] for r in runs) / len(runs), 2)
+        for key in ("steps_per_s", "mean_vehicles", "agent_steps_per_s")
+    }
+    return {"env": runs[0]["env"], **mean, "runs": runs}
 
 
 def _threads(n: int, fn: Callable[..., Any], *args: Any) -> Any:
