@@ -87,14 +87,18 @@ def test_overlapping_boxes_collide_and_touching_ones_do_not():
     assert rounded == pytest.approx(1.4 * np.sqrt(2) - 1.4, abs=1e-9)
 
 
+def _random_box_pairs(seed: int, n: int, spread: float) -> tuple[np.ndarray, ...]:
+    """``n`` pairs of boxes: A near the origin, B within ``spread`` m, random headings and sizes."""
+    rng = np.random.default_rng(seed)
+    xyh_a = np.column_stack([rng.uniform(-1, 1, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
+    xyh_b = np.column_stack([rng.uniform(-spread, spread, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
+    return xyh_a, rng.uniform(0.5, 5.0, (n, 2)), xyh_b, rng.uniform(0.5, 5.0, (n, 2))
+
+
 def test_sharp_box_collisions_are_exactly_negative_signed_distances():
     # the separating-axis shortcut of sharp boxes must flag exactly the pairs whose distance is negative,
     # including touching and nearly touching pairs
-    rng = np.random.default_rng(11)
-    n = 20_000
-    xyh_a = np.column_stack([rng.uniform(-1, 1, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
-    xyh_b = np.column_stack([rng.uniform(-6, 6, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
-    size_a, size_b = rng.uniform(0.5, 5.0, (n, 2)), rng.uniform(0.5, 5.0, (n, 2))
+    xyh_a, size_a, xyh_b, size_b = _random_box_pairs(11, 20_000, 6.0)
     xyh_a[:100], xyh_b[:100] = [0.0, 0.0, 0.0], [4.0, 0.0, 0.0]  # touching end to end (distance 0)
     size_a[:100] = size_b[:100] = [4.0, 2.0]
     hit = box_collisions(xyh_a, size_a, xyh_b, size_b)
@@ -115,11 +119,7 @@ def test_box_signed_distance_known_values():
 
 
 def test_box_distance_matches_dense_boundary_sampling():
-    rng = np.random.default_rng(3)
-    n = 100
-    xyh_a = np.column_stack([rng.uniform(-1, 1, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
-    xyh_b = np.column_stack([rng.uniform(-8, 8, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
-    size_a, size_b = rng.uniform(0.5, 5.0, (n, 2)), rng.uniform(0.5, 5.0, (n, 2))
+    xyh_a, size_a, xyh_b, size_b = _random_box_pairs(3, 100, 8.0)
     got = box_signed_distance(xyh_a, size_a, xyh_b, size_b)
     u = np.linspace(-0.5, 0.5, 101)
     unit = np.concatenate([np.stack([u, np.full_like(u, s)], -1) for s in (-0.5, 0.5)])
@@ -137,7 +137,7 @@ def test_box_distance_matches_dense_boundary_sampling():
             np.linalg.norm(
                 boundary(xyh_a[i], size_a[i])[:, None] - boundary(xyh_b[i], size_b[i])[None], axis=-1
             ).min()
-            for i in range(n)
+            for i in range(len(xyh_a))
         ]
     )
     apart = got > 0

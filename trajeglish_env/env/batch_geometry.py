@@ -306,22 +306,21 @@ def nearest_first(key: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Per row of ``key [Q, M]`` (``inf``: not a candidate), the indices ``[Q, k]`` of the ``k`` smallest
     keys ordered by (key, index), and which of them are candidates."""
     q, m = key.shape
+    rows = np.arange(q)[:, None]
     if m <= k:
         idx = np.broadcast_to(np.arange(m), (q, m))
     else:
         part = np.argpartition(key, k - 1, axis=1)[:, :k]
-        kth = np.take_along_axis(key, part, 1).max(axis=1, keepdims=True)  # the k-th smallest key
+        kth = key[rows, part].max(axis=1, keepdims=True)  # the k-th smallest key
         less, tie = key < kth, key == kth
         need = k - less.sum(axis=1, keepdims=True)
         chosen = less | (tie & (np.cumsum(tie, axis=1) <= need))  # ties: the lowest indices
         idx = np.nonzero(chosen)[1].reshape(q, k)
-    order = np.argsort(np.take_along_axis(key, idx, 1), axis=1, kind="stable")
-    idx = np.take_along_axis(idx, order, 1)
+    idx = idx[rows, np.argsort(key[rows, idx], axis=1, kind="stable")]
+    found = np.isfinite(key[rows, idx])
     if m < k:
         idx = np.concatenate([idx, np.zeros((q, k - m), dtype=idx.dtype)], axis=1)
-    found = np.isfinite(np.take_along_axis(key, idx, 1)) if m else np.zeros((q, k), bool)
-    if m < k:
-        found[:, m:] = False
+        found = np.concatenate([found, np.zeros((q, k - m), dtype=bool)], axis=1)
     return idx, found
 
 
@@ -353,8 +352,8 @@ def vector_observations(
     dist = np.hypot(rel[..., 0], rel[..., 1])
     cand = present & (dist <= radius) & (np.arange(n)[None] != agent[:, None])
     near, found = nearest_first(np.where(cand, dist, np.inf), neighbours)
-    take = lambda a: np.take_along_axis(a, near.reshape(q, -1, *([1] * (a.ndim - 2))), 1)  # noqa: E731
-    r, v, sz = take(rel), take(velocity), take(size)
+    rows = np.arange(q)[:, None]
+    r, v, sz = rel[rows, near], velocity[rows, near], size[rows, near]
     c, s = np.cos(origin[:, 2])[:, None], np.sin(origin[:, 2])[:, None]
     feats = np.stack(
         [
@@ -367,7 +366,7 @@ def vector_observations(
             (-s * v[..., 0] + c * v[..., 1]) / 30.0,
             sz[..., 0] / 10.0,
             sz[..., 1] / 5.0,
-            np.take_along_axis(moved, near, 1).astype(np.float64),
+            moved[rows, near].astype(np.float64),
         ],
         axis=-1,
     )
@@ -379,10 +378,10 @@ def vector_observations(
         lx, ly = c * dx + s * dy, -s * dx + c * dy
         d2 = lx * lx + ly * ly
         pick, inside = nearest_first(np.where(map_real & (d2 <= radius * radius), d2, np.inf), map_points_out)
-        cat = np.take_along_axis(map_category, pick, 1)
+        cat = map_category[rows, pick]
         mp[..., 0] = 1.0
-        mp[..., 1] = np.take_along_axis(lx, pick, 1) / radius
-        mp[..., 2] = np.take_along_axis(ly, pick, 1) / radius
+        mp[..., 1] = lx[rows, pick] / radius
+        mp[..., 2] = ly[rows, pick] / radius
         mp[..., 3], mp[..., 4], mp[..., 5] = cat == LANE, cat == LINE, cat == EDGE
         mp = np.where(inside[..., None], mp, 0.0)
     d = route_ahead - origin[:, None, :2]

@@ -10,8 +10,8 @@ agent that acted before it). Fixed size, finite bounds, everything in the agent'
 | | heading error to the route (/pi) |
 | neighbours [8 : 8+10K] | per agent, nearest first: present, x, y (/R), cos and sin of the relative |
 | | heading, vx, vy (/30 m/s), length (/10), width (/5), moved-this-step flag |
-| map [.. : ..+6M] | per point, nearest first (polylines resampled every ``map_spacing`` m): present, |
-| | x, y (/R), is lane centre, is road line, is road edge |
+| map [.. : ..+6M] | per point, nearest first (ties: in the scene's point order; polylines resampled |
+| | every ``map_spacing`` m): present, x, y (/R), is lane centre, is road line, is road edge |
 | route [.. : ..+2Q] | the logged route ``route_spacing``, 2 x ``route_spacing``, ... m ahead of the agent's |
 | | progress: x, y (/R) |
 
