@@ -173,7 +173,7 @@ class Simulation:
         self.edges = road_edges(scenario)
         self.edge_columns, self.edge_links = edge_rows(self.edges)
         self.geometry = BatchGeometry()  # this scene's own; a batched env computes all its scenes at once
-        self.prepared: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.prepared: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] | None = None
         self.steps = 0
 
     # ------------------------------------------------------------------ the step protocol
@@ -225,10 +225,11 @@ class Simulation:
         self, computed: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
     ) -> tuple[np.ndarray, StepOutcome]:
         """Outcome of the step just completed for the live external agents (returned with it).
-        ``computed`` (or :attr:`prepared`, used once): this scene's entry of
-        :meth:`BatchGeometry.outcomes` when a batched env has computed every scene's at once."""
-        if computed is None:
-            computed, self.prepared = self.prepared, None
+        ``computed`` (or :attr:`prepared` ``(step, computed)`` of this step, used once): this scene's entry
+        of :meth:`BatchGeometry.outcomes` when a batched env has computed every scene's at once."""
+        if computed is None and self.prepared is not None and self.prepared[0] == self.t:
+            computed = self.prepared[1]  # computed by the batched env for this very step
+        self.prepared = None
         live, hit, off, s_new = computed if computed is not None else self.geometry.outcomes([self])[0]
         rows = self.route_row[live]
         gained = s_new - self.progress[rows]

@@ -110,7 +110,7 @@ class SceneBatch:
         if waiting:
             sims = [env._sim() for env in waiting]
             for sim, outcome in zip(sims, self.geometry.outcomes(sims), strict=True):
-                sim.prepared = outcome
+                sim.prepared = (sim.t, outcome)
         for env in waiting:
             env.resume()
 
