@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from trajeglish_env.env import EgoEnv
+from trajeglish_env.env import EgoEnv, RewardConfig
 from trajeglish_env.env.batch_geometry import (
     NearbyItems,
     PaddedRows,
@@ -24,6 +24,7 @@ from trajeglish_env.env.routes import logged_paths, stack_paths
 from trajeglish_env.env.scenes import load_bundle
 from trajeglish_env.geometry import box_corners
 from trajeglish_env.metrics.road_edges import signed_distance_to_road_edges
+from trajeglish_env.scenario import ROAD_EDGE_KINDS, MapKind, Scenario
 
 
 def test_road_edge_distances_of_many_scenes_equal_the_reference_rule() -> None:
@@ -127,3 +128,52 @@ def test_observations_of_different_scenes_together_equal_each_alone() -> None:
         assert np.array_equal(together[i], env.aec.observe(env.agent))
     assert np.array_equal(together[3], together[0])
     assert len({s.sc.num_agents for s in sims}) > 1 and len({len(s.observer.points) for s in sims}) == 3
+
+
+def _without_map(scene_name: str, keep_lanes: bool) -> Scenario:
+    """A bundled scene with its road edges removed (``keep_lanes``) or with no map at all."""
+    sc = load_bundle().get(load_bundle().index_of(scene_name))
+    keep = [
+        k
+        for k in range(sc.num_polylines)
+        if keep_lanes and MapKind(int(sc.map_kind[k])) not in ROAD_EDGE_KINDS
+    ]
+    return Scenario.from_arrays(
+        sc.xyh,
+        sc.valid,
+        sc.size,
+        sc.kind,
+        track_id=sc.track_id,
+        sdc=sc.sdc,
+        polylines=[sc.polyline(k) for k in keep],
+        polyline_kinds=sc.map_kind[keep],
+        scenario_id=f"{sc.scenario_id}-bare",
+        dt=sc.dt,
+        current_index=sc.current_index,
+    )
+
+
+def test_scenes_without_road_edges_or_map_mix_with_others() -> None:
+    scenes = [
+        _without_map("highway-merge-999000", keep_lanes=True),
+        load_bundle().get(load_bundle().index_of("highway-exit-999000")),
+        _without_map("highway-two-way-999000", keep_lanes=False),
+    ]
+    far_off = np.array([0.0, 1.0], dtype=np.float32)  # full steer: leaves the road within a few steps
+    keep_going = RewardConfig(
+        terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False
+    )
+    envs = [EgoEnv(scenes=[sc], npc="replay", max_cycles=30, reward=keep_going) for sc in scenes]
+    for env in envs:
+        env.reset(seed=0)
+    offroad = np.zeros(3, bool)
+    for _ in range(25):
+        for i, env in enumerate(envs):
+            _, _, _, _, info = env.step(far_off)
+            offroad[i] |= info["offroad"]
+        sims = [env.aec.sim for env in envs]
+        together = BatchGeometry().observations(sims, [env.aec.agent_index(env.agent) for env in envs])
+        for i, env in enumerate(envs):
+            assert np.array_equal(together[i], env.aec.observe(env.agent))
+    assert offroad.tolist() == [False, True, False]  # without road edges nothing is off-road
+    assert not together[2][88:280].any()  # no map points without a map
