@@ -5,6 +5,7 @@ scenes computed together equal to each scene's own."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from trajeglish_env.env import EgoEnv, RewardConfig
 from trajeglish_env.env.batch_geometry import (
@@ -177,3 +178,30 @@ def test_scenes_without_road_edges_or_map_mix_with_others() -> None:
             assert np.array_equal(together[i], env.aec.observe(env.agent))
     assert offroad.tolist() == [False, True, False]  # without road edges nothing is off-road
     assert not together[2][88:280].any()  # no map points without a map
+
+
+def test_scanning_only_nearby_items_gives_the_full_scan(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Many scenes scan only the road edges and map points near each agent (anchored, re-chosen as the
+    agents move): outcomes and observations equal those of a full scan, step after step."""
+    from trajeglish_env.env import batch_outcomes
+
+    names = ["highway-merge-999000", "sumo-random-999000-0-1", "highway-roundabout-999001"]
+    envs = [EgoEnv(npc="replay", max_cycles=40) for _ in names]
+    for env, name in zip(envs, names, strict=True):
+        env.reset(seed=0, options={"scene": name})
+    near, full = BatchGeometry(), BatchGeometry()
+    rng = np.random.default_rng(2)
+    for _ in range(30):  # long enough for the agents to leave their first anchors
+        for env in envs:
+            if not (env.aec.terminations[env.agent] or env.aec.truncations[env.agent]):
+                env.step(rng.uniform(-1, 1, 2).astype(np.float32))
+        sims = [env.aec.sim for env in envs]
+        agents = [env.aec.agent_index(env.agent) for env in envs]
+        monkeypatch.setattr(batch_outcomes, "NEARBY_MIN_PAIRS", 0)
+        got = near.outcomes(sims), near.observations(sims, agents)
+        monkeypatch.setattr(batch_outcomes, "NEARBY_MIN_PAIRS", 10**12)
+        want = full.outcomes(sims), full.observations(sims, agents)
+        for a, b in zip(got[0], want[0], strict=True):
+            assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+        assert np.array_equal(got[1], want[1])
+    assert near._near_edges.version > 1 and near._near_points is not None and near._near_points.version > 1

@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 
 EDGE_REACH, EDGE_DRIFT = 40.0, 10.0  # m: road edges kept around an agent, and how far it may move off
 MAP_DRIFT = 15.0  # m an agent may move before the map points kept around it are chosen again
+NEARBY_MIN_PAIRS = 20_000  # query x item pairs from which scanning only the nearby items pays off
 
 
 @dataclass(frozen=True)
@@ -107,12 +108,13 @@ class BatchGeometry:
         hit = collision_flags(xyh, valid, size, scene, agent)
         cols, links, count = self._edges(sims)
         margin = np.array([s.config.reward.offroad_margin for s in sims])[scene]
-        centres = xyh[scene, agent, :2]
-        keys = [(sims[b], a) for b, a in zip(scene.tolist(), agent.tolist(), strict=True)]
-        candidates = self._near_edges.update(
-            keys, centres, lambda s, p: point_segment_distances(s.edge_columns, p)
-        )
-        nearby = (candidates, self._near_edges.anchor, self._near_edges.reach)
+        nearby = None
+        if len(scene) * cols.shape[2] >= NEARBY_MIN_PAIRS:  # a few scenes: a full scan is cheaper
+            keys = [(sims[b], a) for b, a in zip(scene.tolist(), agent.tolist(), strict=True)]
+            candidates = self._near_edges.update(
+                keys, xyh[scene, agent, :2], lambda s, p: point_segment_distances(s.edge_columns, p)
+            )
+            nearby = (candidates, self._near_edges.anchor, self._near_edges.reach)
         off = offroad_flags(
             xyh[scene, agent],
             size[scene, agent],
@@ -192,7 +194,16 @@ class BatchGeometry:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per query, its scene's observation map points near it ``[Q,K,2]`` (ascending), their categories
         and which are real: every point within ``radius`` of the agent is among them, since the agent is
-        within the drift of the anchor they were chosen around (1 m spare for rounding)."""
+        within the drift of the anchor they were chosen around (1 m spare for rounding); for a few queries,
+        simply all of them."""
+        if len(scene) * max(len(s.observer.points) for s in sims) < NEARBY_MIN_PAIRS:  # scan them all
+            points = pad_stack([sims[b].observer.points for b in scene])
+            category = pad_stack([sims[b].observer.category for b in scene], OTHER)
+            real = (
+                np.arange(points.shape[1])[None]
+                < np.array([len(sims[b].observer.points) for b in scene])[:, None]
+            )
+            return points, category, real
         near = self._near_points
         if near is None or near.reach != radius + MAP_DRIFT + 1.0:
             near = self._near_points = NearbyItems(radius + MAP_DRIFT + 1.0, MAP_DRIFT)
