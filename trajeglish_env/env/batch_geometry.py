@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from trajeglish_env.geometry import box_corners, to_local, wrap_angle
+from trajeglish_env.geometry import box_corners, to_local
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.metrics.road_edges import Z_STRETCH, RoadEdges
 from trajeglish_env.scenario import AgentKind
@@ -388,8 +388,3 @@ def vector_observations(
     route = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], -1) / radius
     out = np.concatenate([head, feats.reshape(q, -1), mp.reshape(q, -1), route.reshape(q, -1)], axis=1)
     return np.clip(out, -1.0, 1.0).astype(np.float32)
-
-
-def heading_error(state_heading: np.ndarray, route_heading: np.ndarray) -> np.ndarray:
-    """Heading of the agent relative to its route, wrapped to [-pi, pi)."""
-    return wrap_angle(state_heading - route_heading)

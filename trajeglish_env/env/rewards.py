@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from trajeglish_env.env.batch_geometry import collision_flags
 from trajeglish_env.env.config import RewardConfig
 from trajeglish_env.geometry import box_corners
-from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road_edges
 from trajeglish_env.scenario import ROAD_EDGE_KINDS, AgentKind, Scenario
 
@@ -36,9 +36,8 @@ def road_edges(scenario: Scenario) -> RoadEdges | None:
 
 def collisions(xyh: np.ndarray, valid: np.ndarray, size: np.ndarray, agents: np.ndarray) -> np.ndarray:
     """``[k]`` True where agent ``agents[i]`` overlaps any other valid agent (states ``xyh [N,3]``)."""
-    hit = box_collisions(xyh[agents, None], size[agents, None], xyh[None], size[None])  # [k,N]
-    hit &= valid[None] & (np.arange(len(valid))[None] != agents[:, None])
-    return hit.any(axis=1) & valid[agents]
+    agents = np.asarray(agents, dtype=np.int64)
+    return collision_flags(xyh[None], valid[None], size[None], np.zeros(len(agents), np.int64), agents)
 
 
 def offroad(
