@@ -148,7 +148,7 @@ def test_padding_polylines_never_make_gradients_non_finite() -> None:
 def test_inference_encodes_polylines_block_by_block_exactly(monkeypatch: pytest.MonkeyPatch) -> None:
     """At inference the polylines with points are encoded in small blocks (activations stay in the CPU
     cache); the result is the whole-batch (training) computation, padding polylines included."""
-    from trajeglish_env.model.network import PolylineEncoder
+    from trajeglish_env.model.encoder import PolylineEncoder
 
     torch.manual_seed(0)
     cfg = preset("tiny")

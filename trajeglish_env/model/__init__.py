@@ -1,4 +1,4 @@
-"""The Trajeglish model: configuration, masks, layers and the encoder-decoder network."""
+"""The Trajeglish model: configuration, masks, layers, the scene encoder and the encoder-decoder network."""
 
 from trajeglish_env.model.config import PRESETS, ModelConfig, Variant, preset
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
