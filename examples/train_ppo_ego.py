@@ -39,7 +39,7 @@ def evaluate_ego(venv: BatchedEgoEnv, choose: Any, seed: int) -> dict[str, float
     n = venv.num_envs
     obs = np.stack(
         [
-            env.reset(seed=seed + k, options={"scene": k % len(env.aec.scenes)})[0]
+            env.reset(seed=seed + k, options={"scene": k % len(env.scenes)})[0]
             for k, env in enumerate(venv.envs)
         ]
     )
@@ -165,8 +165,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     random_policy, cv_policy = RandomPolicy(args.seed), ConstantVelocityPolicy()
     egos = {
         "ppo": lambda e, obs: model.predict(obs, deterministic=True)[0],
-        "random": lambda e, obs: random_policy.act(e.aec, e.agent, obs),
-        "constant_velocity": lambda e, obs: cv_policy.act(e.aec, e.agent, obs),
+        "random": lambda e, obs: random_policy.act(e, e.agent, obs),
+        "constant_velocity": lambda e, obs: cv_policy.act(e, e.agent, obs),
     }
     seed = 10_000  # evaluation seeds differ from the training ones
     comparison = {name: evaluate_ego(venv, choose, seed) for name, choose in egos.items()}

@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from trajeglish_env.sampler.config import SamplingConfig
+
 
 class SB3Policy:
     """Wraps any trained SB3 model (``model.predict``); one instance can drive one or many agents."""
@@ -47,11 +49,11 @@ class TrajeglishPolicy:
     It re-encodes the scene at every call (exact but slow: a demonstration and an evaluation baseline).
     """
 
-    def __init__(self, checkpoint: Any = None, temperature: float = 1.0, top_p: float = 1.0, seed: int = 0):
-        from trajeglish_env.env.aec import load_npc_checkpoint
+    def __init__(self, checkpoint: Any = None, sampling: SamplingConfig | None = None):
+        from trajeglish_env.env.scene_batch import load_npc_checkpoint
 
         self.ckpt = load_npc_checkpoint(checkpoint)
-        self.temperature, self.top_p, self.seed = temperature, top_p, seed
+        self.sampling = sampling or SamplingConfig()  # the env's NPC defaults; its seed starts the calls
         self._calls = 0
 
     def reset(self, env: Any, agent: str) -> None:
@@ -67,7 +69,7 @@ class TrajeglishPolicy:
 
     def act(self, env: Any, agent: str, observation: Any) -> Any:
         """The action of ``agent`` at its turn."""
-        from trajeglish_env.sampler.engine import RolloutEngine, SamplingConfig
+        from trajeglish_env.sampler.engine import RolloutEngine
 
         raw = env.unwrapped
         sim, i = raw.sim, raw.agent_index(agent)
@@ -82,7 +84,7 @@ class TrajeglishPolicy:
         controlled[i] = True
         priority = np.where(view.moved, -2.0, 0.0)
         priority[i] = -1.0
-        config = SamplingConfig(self.temperature, self.top_p, seed=self.seed + self._calls)
+        config = dataclasses.replace(self.sampling, seed=self.sampling.seed + self._calls)
         self._calls += 1
         engine = RolloutEngine(self.ckpt, scene, 1, 1, controlled, priority=priority, config=config)
         engine.step()

@@ -122,13 +122,13 @@ def test_observations_of_different_scenes_together_equal_each_alone() -> None:
         env.reset(seed=0, options={"scene": name})
         for _ in range(3):
             env.step(np.array([0.5, 0.1], dtype=np.float32))
-    sims = [env.aec.sim for env in envs]
+    sims = [env.aec.sim.state for env in envs]
     agents = [env.aec.agent_index(env.agent) for env in envs]
     together = BatchGeometry().observations(sims + sims[:1], agents + agents[:1])  # a scene twice
     for i, env in enumerate(envs):
         assert np.array_equal(together[i], env.aec.observe(env.agent))
     assert np.array_equal(together[3], together[0])
-    assert len({s.sc.num_agents for s in sims}) > 1 and len({len(s.observer.points) for s in sims}) == 3
+    assert len({len(s.size) for s in sims}) > 1 and len({len(s.map_points) for s in sims}) == 3
 
 
 def _without_map(scene_name: str, keep_lanes: bool) -> Scenario:
@@ -172,7 +172,7 @@ def test_scenes_without_road_edges_or_map_mix_with_others() -> None:
         for i, env in enumerate(envs):
             _, _, _, _, info = env.step(far_off)
             offroad[i] |= info["offroad"]
-        sims = [env.aec.sim for env in envs]
+        sims = [env.aec.sim.state for env in envs]
         together = BatchGeometry().observations(sims, [env.aec.agent_index(env.agent) for env in envs])
         for i, env in enumerate(envs):
             assert np.array_equal(together[i], env.aec.observe(env.agent))
@@ -195,7 +195,7 @@ def test_scanning_only_nearby_items_gives_the_full_scan(monkeypatch: pytest.Monk
         for env in envs:
             if not (env.aec.terminations[env.agent] or env.aec.truncations[env.agent]):
                 env.step(rng.uniform(-1, 1, 2).astype(np.float32))
-        sims = [env.aec.sim for env in envs]
+        sims = [env.aec.sim.state for env in envs]
         agents = [env.aec.agent_index(env.agent) for env in envs]
         monkeypatch.setattr(batch_outcomes, "NEARBY_MIN_PAIRS", 0)
         got = near.outcomes(sims), near.observations(sims, agents)

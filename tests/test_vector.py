@@ -16,7 +16,8 @@ from trajeglish_env.env.scenes import load_bundle
 from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv, auto_threads
 from trajeglish_env.model.layers import MIN_GEMM_ROWS, invariant_linear
 from trajeglish_env.sampler import engine as engine_module
-from trajeglish_env.sampler.engine import BatchEngine, RowSpec, SamplingConfig, _row_blocks
+from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.engine import BatchEngine, RowSpec, _row_blocks
 from trajeglish_env.sampling import START, counter_uniform
 
 SCENES = [
@@ -227,8 +228,6 @@ def test_sb3_vec_env_equals_dummy_vec_env_and_trains() -> None:
 
 
 def test_batched_envs_refuse_bad_inputs() -> None:
-    with pytest.raises(ValueError, match="order='first'"):
-        BatchedEgoEnv(2, npc=TrajeglishNPC(TINY), order="last")
     with pytest.raises(ValueError, match="positive integer"):
         BatchedEgoEnv(0, npc="idm")
     with pytest.raises(ValueError, match="torch_threads"):
@@ -240,11 +239,10 @@ def test_batched_envs_refuse_bad_inputs() -> None:
     with pytest.raises(ValueError, match="expected 2 actions"):
         venv.step(np.zeros((3, 2), np.float32))
     # a bad action of the second scene: refused before the first scene's action is applied
-    before = [env.aec.sim.driver.xyh.copy() for env in venv.envs]
+    before = [venv.core.sim(i).driver.xyh.copy() for i in range(2)]
     with pytest.raises(ValueError, match=f"agent {venv.envs[1].agent}: action .* outside the action space"):
         venv.step(np.array([[0.5, 0.0], [3.0, 0.0]], np.float32))
-    assert all(np.array_equal(b, env.aec.sim.driver.xyh) for b, env in zip(before, venv.envs, strict=True))
-    assert not any(env.aec.suspended for env in venv.envs)
+    assert all(np.array_equal(b, venv.core.sim(i).driver.xyh) for i, b in enumerate(before))
     obs, *_ = venv.step(np.zeros((2, 2), np.float32))  # and it steps on normally
     alone = EgoEnv(npc="idm", max_cycles=3)
     alone.reset(seed=1)
@@ -269,4 +267,4 @@ def test_batched_render_follows_the_engine_when_a_bigger_scene_grows_its_arrays(
     venv.step(np.zeros((2, 2), np.float32))
     after = venv.render()
     assert all(f.dtype == np.uint8 and f.ndim == 3 for f in before + after)
-    assert venv.batch.engine.N == scenes[1].num_agents and not np.array_equal(before[0], after[0])
+    assert venv.core.batch.rows.engine.N == scenes[1].num_agents and not np.array_equal(before[0], after[0])

@@ -12,6 +12,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
+
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
 
 
@@ -136,10 +138,16 @@ def _checkpoints(items: list[str] | None) -> dict[str, Any]:
 
 def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.evaluation import EvalConfig, evaluate
+    from trajeglish_env.sampler.config import SamplingConfig
 
     ckpts = _checkpoints(args.ckpt)
     config = EvalConfig(
-        args.rollouts, args.scenes, tuple(args.temperature), args.top_p, args.metrics, args.seed
+        rollouts=args.rollouts,
+        scenes=args.scenes,
+        temperatures=tuple(args.temperature),
+        sampling=SamplingConfig(top_p=args.top_p, cache_dtype=args.cache_dtype),
+        metrics=args.metrics,
+        seed=args.seed,
     )
     partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts)))
     return evaluate(args.data, ckpts, config, args.out, partial=partial, progress=not args.quiet)
@@ -147,14 +155,19 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
 
 def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.render import RenderConfig, save_render
-    from trajeglish_env.sampler import SamplingConfig, rollout
+    from trajeglish_env.sampler import rollout
+    from trajeglish_env.sampler.config import SamplingConfig
     from trajeglish_env.scenario_io import load_scenario
 
     ckpt = next(iter(_checkpoints([args.ckpt] if args.ckpt else None).values()))
     scene = load_scenario(args.scenario, args.index)
     horizon = args.horizon or scene.num_steps - scene.current_index - 1
     res = rollout(
-        ckpt, scene, 1, horizon, config=SamplingConfig(args.temperature, args.top_p, seed=args.seed)
+        ckpt,
+        scene,
+        1,
+        horizon,
+        config=SamplingConfig(args.temperature, args.top_p, args.cache_dtype, seed=args.seed),
     )
     out = save_render(
         scene, args.out, xyh=res.xyh[0], valid=res.valid[0], config=RenderConfig(follow_sdc=args.follow_sdc)
@@ -312,8 +325,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--rollouts", type=int, default=8)
     p.add_argument("--scenes", type=int, default=16, help="evaluate the first N scenes")
-    p.add_argument("--temperature", type=float, nargs="+", default=[1.0])
+    p.add_argument(
+        "--temperature",
+        type=float,
+        nargs="+",
+        default=[DEFAULT_TEMPERATURE],
+        help="sampling temperatures to evaluate (default: the env's NPC default)",
+    )
     p.add_argument("--top-p", type=float, default=1.0)
+    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
     p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
     p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
     p.add_argument("--seed", type=int, default=0)
@@ -325,8 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
     p.add_argument("--out", required=True, help="output .gif, .mp4 or .png")
     p.add_argument("--horizon", type=int, help="steps after the current one (default: to the end of the log)")
-    p.add_argument("--temperature", type=float, default=1.0)
+    p.add_argument("--temperature", type=float, default=DEFAULT_TEMPERATURE)
     p.add_argument("--top-p", type=float, default=1.0)
+    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--follow-sdc", action="store_true")
 

@@ -14,7 +14,7 @@ import json
 import os
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +24,8 @@ from tqdm import tqdm
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.dataset import SceneStore
 from trajeglish_env.metrics import box_collisions, mean_scores, score_rollouts
-from trajeglish_env.sampler import SamplingConfig, rollout
+from trajeglish_env.sampler import rollout
+from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import atomic_path
 
@@ -33,12 +34,13 @@ Method = Callable[[Scenario, int, int], np.ndarray]  # (scene, rollouts, seed) -
 
 @dataclass(frozen=True)
 class EvalConfig:
-    """What to evaluate: scenes, rollouts per scene, temperatures, metric configuration and seed."""
+    """What to evaluate: scenes, rollouts per scene, the model's ``sampling`` (the env's NPC defaults
+    unless changed) at each of ``temperatures`` (default: the sampling's own), metrics and seed."""
 
     rollouts: int = 8
     scenes: int = 16  # evenly spaced over the data (so every source and kind is represented)
-    temperatures: tuple[float, ...] = (1.0,)
-    top_p: float = 1.0
+    temperatures: tuple[float, ...] = (DEFAULT_TEMPERATURE,)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
     metrics: str = "2025"
     seed: int = 0
 
@@ -77,13 +79,11 @@ def constant_velocity_method(scene: Scenario, rollouts: int, seed: int) -> np.nd
     return np.broadcast_to(fut, (rollouts, *fut.shape)).copy()
 
 
-def model_method(ckpt: Checkpoint, temperature: float, top_p: float = 1.0) -> Method:
+def model_method(ckpt: Checkpoint, sampling: SamplingConfig) -> Method:
     """Full-control rollouts of a checkpoint (every simulated agent driven by the model)."""
 
     def run(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
-        out = rollout(
-            ckpt, scene, rollouts, horizon(scene), config=SamplingConfig(temperature, top_p, seed=seed)
-        )
+        out = rollout(ckpt, scene, rollouts, horizon(scene), config=replace(sampling, seed=seed))
         return out.xyh[:, simulated(scene), scene.current_index + 1 :]
 
     return run
@@ -167,7 +167,7 @@ def partial_control(
                 horizon(scene),
                 controlled,
                 priority=priority,
-                config=SamplingConfig(config.temperatures[0], config.top_p, seed=config.seed + k),
+                config=replace(config.sampling, temperature=config.temperatures[0], seed=config.seed + k),
             )
             fut = slice(scene.current_index + 1, scene.num_steps)
             log_ok = scene.valid[scene.sdc, fut]
@@ -199,7 +199,7 @@ def evaluate(
     methods: dict[str, Method] = {"log": log_method, "constant_velocity": constant_velocity_method}
     for name, ckpt in checkpoints.items():
         for temp in config.temperatures:
-            methods[f"{name}@T={temp:g}"] = model_method(ckpt, temp, config.top_p)
+            methods[f"{name}@T={temp:g}"] = model_method(ckpt, replace(config.sampling, temperature=temp))
     raw = evaluate_methods(scenes, methods, config, progress)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

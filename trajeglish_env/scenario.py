@@ -7,7 +7,7 @@ Every source (highway-env, SUMO, WOMD, user arrays) produces a :class:`Scenario`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from enum import IntEnum
 
 import numpy as np
@@ -309,9 +309,7 @@ class Scenario:
     # ------------------------------------------------------------------ equality (exact, array-wise)
     def equals(self, other: Scenario) -> bool:
         """Exact equality of every field (arrays compared element-wise, dtypes included)."""
-        from trajeglish_env.scenario_io import scenario_fields
-
-        for name in scenario_fields():
+        for name in (f.name for f in fields(self)):
             a, b = getattr(self, name), getattr(other, name)
             if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
                 if not (

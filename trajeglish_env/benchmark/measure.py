@@ -250,6 +250,7 @@ def env_speed(
     figure is the long-run rate; replay NPCs over 40 steps."""
     from trajeglish_env.env import RewardConfig, TrajeglishNPC
     from trajeglish_env.env.vector import BatchedEgoEnv
+    from trajeglish_env.sampler.config import SamplingConfig
 
     rss0 = peak_rss_mb()
     never_end = RewardConfig(
@@ -260,9 +261,9 @@ def env_speed(
     npc_spec: Any = npc
     if npc == "trajeglish":
         ckpt = model_checkpoint()[0]
-        npc_spec = TrajeglishNPC(ckpt, cache_dtype=cache_dtype, subsets=subsets)
+        npc_spec = TrajeglishNPC(ckpt, SamplingConfig(cache_dtype=cache_dtype, subsets=subsets))
         if steps is None:  # one window cycle
-            steps = npc_spec.sampling().every(ckpt.model.cfg.steps)
+            steps = npc_spec.sampling.every(ckpt.model.cfg.steps)
     steps = 40 if steps is None else steps
     venv = BatchedEgoEnv(
         num_envs,
@@ -274,7 +275,8 @@ def env_speed(
     )
     venv.reset(seed=0)
     build = time.perf_counter() - build0
-    engine = venv.batch.engine
+    rows = venv.core.batch.rows
+    engine = getattr(rows, "engine", None)  # the Trajeglish engine (None for rule-based NPCs)
     elapsed, rebuilds = 0.0, 0
     for k in range(steps + warmup):
         actions = np.stack([_log_action(env) for env in venv.envs])
@@ -304,11 +306,10 @@ def env_speed(
 
 
 def _log_action(env: Any) -> np.ndarray:
-    """The continuous action bringing an EgoEnv's ego closest to its logged next state."""
-    aec = env.aec
-    i = aec.agent_index(env.agent)
-    sc = aec.scenario
-    return np.asarray(aec.action_towards(env.agent, sc.xyh[i, min(aec.sim.t + 1, sc.num_steps - 1)]))
+    """The continuous action bringing a batched env scene's ego closest to its logged next state."""
+    i = env.agent_index(env.agent)
+    sc = env.scenario
+    return np.asarray(env.action_towards(env.agent, sc.xyh[i, min(env.sim.t + 1, sc.num_steps - 1)]))
 
 
 def highway_env_speed(vehicles: int = 40, steps: int = 300, kind: str = "intersection") -> dict[str, Any]:

@@ -10,7 +10,7 @@ import sys
 import types
 from typing import Any
 
-from trajeglish_env.env.aec import env, load_npc_checkpoint, raw_env
+from trajeglish_env.env.aec import env, raw_env
 from trajeglish_env.env.config import (
     ACTION_TYPES,
     NPC_NAMES,
@@ -34,6 +34,7 @@ from trajeglish_env.env.npc import (
 )
 from trajeglish_env.env.parallel import parallel_env
 from trajeglish_env.env.registry import register_gymnasium, register_pettingzoo
+from trajeglish_env.env.scene_batch import load_npc_checkpoint
 from trajeglish_env.env.world import WorldView
 
 register_gymnasium()

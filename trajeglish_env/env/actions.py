@@ -10,6 +10,8 @@ that best reaches a given state).
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 from gymnasium import spaces
 
@@ -30,6 +32,13 @@ def make_action_space(action_type: str, vocab_size: int) -> spaces.Space:
     if action_type == "token":
         return spaces.Discrete(int(vocab_size))
     raise ValueError(f"unknown action type {action_type!r}")
+
+
+def named_action_space(action_type: str, vocab_size: int, agent: str) -> spaces.Space:
+    """An agent's own action space object, its sampling seeded from the agent's name (reproducible)."""
+    space = make_action_space(action_type, vocab_size)
+    space.seed(zlib.crc32(agent.encode()))
+    return space
 
 
 def check_action(space: spaces.Space, action: object, agent: str) -> np.ndarray | int:

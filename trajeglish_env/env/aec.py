@@ -4,22 +4,22 @@ between them act in between (Trajeglish: one model token each through the KV cac
 from __future__ import annotations
 
 import os
-import zlib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from gymnasium.utils import seeding
 from pettingzoo import AECEnv
 from pettingzoo.utils import wrappers
 
-from trajeglish_env.env.actions import action_towards, check_action, make_action_space
-from trajeglish_env.env.config import EnvConfig, TrajeglishNPC
-from trajeglish_env.env.npc import NPCPolicy, make_npc_policy
+from trajeglish_env.env.actions import check_action, make_action_space, named_action_space
+from trajeglish_env.env.config import EnvConfig
+from trajeglish_env.env.episodes import EpisodeStream
 from trajeglish_env.env.observations import observation_space
+from trajeglish_env.env.rendering import LiveRenderer
+from trajeglish_env.env.scene_batch import SceneBatch
 from trajeglish_env.env.scenes import scene_set
-from trajeglish_env.env.simulation import Simulation, agent_names, select_external
+from trajeglish_env.env.simulation import AgentReport, Simulation, agent_names, select_external
 from trajeglish_env.scenario import Scenario
 
 
@@ -62,21 +62,14 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
             )
         self.render_mode = render_mode
         self.scenes = scene_set(scenes)
-        self._npc, self._sampling, self.checkpoint = _resolve_npc(self.config.npc)
-        self.vocabulary = self.checkpoint.vocabulary if self.checkpoint is not None else None
-        if self.config.action == "token" and self.vocabulary is None:
-            from trajeglish_env.tokenizer.vocabulary import load_default_tokenizer
-
-            self.vocabulary = load_default_tokenizer()
-        if self.checkpoint is not None and self.config.torch_threads is not None:
-            import torch
-
-            torch.set_num_threads(self.config.torch_threads)
+        self.batch = SceneBatch(1, self.config, self.config.torch_threads)
+        self.checkpoint, self.vocabulary = self.batch.checkpoint, self.batch.vocabulary
         self._observation_space = observation_space(self.config.observation, self.config.obs)
         vocab_size = self.vocabulary.size if self.vocabulary is not None else 1
         self._action_template = make_action_space(self.config.action, vocab_size)
         self._action_spaces: dict[str, spaces.Space] = {}
-        self.np_random, _ = seeding.np_random(None)
+        self._episodes = EpisodeStream(self.scenes)
+        self.np_random = self._episodes.np_random
         first = self.scenes.get(0)
         names = agent_names(first)
         self.possible_agents = [
@@ -84,9 +77,7 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         ]
         self.agents = []
         self.sim: Simulation | None = None
-        self._shared_row: tuple[Any, int] | None = None  # set by a batched env that owns the engine
-        self._suspended = False
-        self._renderer: Any = None  # an EpisodeRenderer, made on the first render (imports matplotlib)
+        self._renderer = LiveRenderer(self.config.render_size, self.config.render_radius)
 
     # ------------------------------------------------------------------ spaces
     def observation_space(self, agent: str) -> spaces.Space:
@@ -96,36 +87,20 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
     def action_space(self, agent: str) -> spaces.Space:
         """The agent's own action space object (its sampling seeded from the agent's name)."""
         if agent not in self._action_spaces:
-            space = make_action_space(self.config.action, getattr(self._action_template, "n", 1))
-            space.seed(zlib.crc32(agent.encode()))
-            self._action_spaces[agent] = space
+            n = getattr(self._action_template, "n", 1)
+            self._action_spaces[agent] = named_action_space(self.config.action, n, agent)
         return self._action_spaces[agent]
 
     # ------------------------------------------------------------------ episode
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> None:
         """Start an episode on the scene ``options["scene"]`` (index or scenario_id) or one drawn from
         the seed; the NPCs acting before the first external agent act now."""
-        if seed is not None:
-            self.np_random, _ = seeding.np_random(seed)
-        scene = (options or {}).get("scene")  # the only option read; others are ignored
-        if scene is None:
-            index = int(self.np_random.integers(len(self.scenes)))
-        elif isinstance(scene, str):
-            index = self.scenes.index_of(scene)
-        else:
-            index = int(scene)
-            if not 0 <= index < len(self.scenes):
-                raise ValueError(f"reset options: scene {index} out of range for {len(self.scenes)} scenes")
-        self.scenario = self.scenes.get(index)
-        self._suspended = False
-        self._start(self.scenario)
+        self.scenario, rng = self._episodes.next(seed, options)
+        self.np_random = self._episodes.np_random
+        self._start(self.scenario, rng)
 
-    def _start(self, scenario: Scenario) -> None:
-        rng = np.random.default_rng(int(self.np_random.integers(2**63 - 1)))
-        npc = make_npc_policy(self._npc) if isinstance(self._npc, str) else self._npc
-        self.sim = sim = Simulation(
-            scenario, self.config, npc, self.vocabulary, rng, self._sampling, self._shared_row
-        )
+    def _start(self, scenario: Scenario, rng: np.random.Generator) -> None:
+        self.sim = sim = self.batch.start(0, scenario, rng)
         self.possible_agents = [sim.names[i] for i in sim.external_index]
         self._index = {sim.names[i]: int(i) for i in sim.external_index}
         self.rewards = dict.fromkeys(self.possible_agents, 0.0)
@@ -133,109 +108,50 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         self.terminations = dict.fromkeys(self.possible_agents, False)
         self.truncations = dict.fromkeys(self.possible_agents, False)
         self.infos: dict[str, dict[str, Any]] = {a: {} for a in self.possible_agents}
-        first = sim.advance()
+        first = self.batch.advance()
         if first is None:  # no external agent acts (cannot happen: they are present at the current step)
             raise RuntimeError(f"scenario {scenario.scenario_id!r}: no external agent to act")
         self.agents = [sim.names[i] for i in sim.external_order()]
-        self.agent_selection = sim.names[first]
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        self.agent_selection = sim.names[int(first[1][0])]
 
     def observe(self, agent: str) -> np.ndarray:
         """The agent's observation now (showing the moves made so far in this step)."""
-        return self._sim().observe(self.agent_index(agent))
+        self._sim()
+        return self.batch.observe([0], [self.agent_index(agent)])[0]
 
     def step(self, action: Any) -> None:
         """Apply the selected agent's action, let the NPCs up to the next external agent act; at the end
         of a timestep compute rewards, terminations and truncations."""
-        prepared = self.prepare_action(action)
-        if prepared is None:
-            return
-        sim, index, value = prepared
-        sim.apply(index, value)
-        self.after_action()
-
-    def prepare_action(self, action: Any) -> tuple[Simulation, int, Any] | None:
-        """First part of :meth:`step`: a finished agent's step (returns None), else the selected agent's
-        validated action, with its simulation and index, to apply (a batched env applies them together)."""
         agent = self.agent_selection
         if self.terminations[agent] or self.truncations[agent]:
             self._was_dead_step(action)
-            return None
+            return
         value = check_action(self.action_space(agent), action, agent)
         self._cumulative_rewards[agent] = 0.0
-        return self._sim(), self._index[agent], value
-
-    def after_action(self) -> None:
-        """Last part of :meth:`step`, once the action is applied."""
-        if self._sim().ready_for_batch():  # a batched env decodes every scene's NPCs at once, then resumes us
-            self._suspended = True
-            return
-        self._finish_action()
-
-    @property
-    def suspended(self) -> bool:
-        """The step waits for the batched env that owns the NPC engine (see :meth:`resume`)."""
-        return self._suspended
-
-    def resume(self) -> None:
-        """Finish the step after the owner of the shared engine has decoded this step's NPCs."""
-        if not self._suspended:
-            raise RuntimeError("resume(): the env is not waiting for a batched NPC step")
-        self._suspended = False
-        self._finish_action()
-
-    def _finish_action(self) -> None:
-        """After an external agent's action: let the NPCs up to the next external agent act, or end the
-        timestep."""
-        sim = self._sim()
-        nxt = sim.advance()
+        self.batch.supply([0], [self._index[agent]], [value])
+        nxt = self.batch.advance()
         if nxt is not None:
             self._clear_rewards()
-            self.agent_selection = sim.names[nxt]
+            self.agent_selection = self._sim().names[int(nxt[1][0])]
         else:
-            self._end_of_timestep()
+            self._end_of_timestep(self.batch.finish([0])[0])
         self._accumulate_rewards()
         if self.render_mode == "human":
             self.render()
 
-    def _end_of_timestep(self) -> None:
+    def _end_of_timestep(self, reports: dict[str, AgentReport]) -> None:
         sim = self._sim()
-        live, out = sim.finish_step()
         self._clear_rewards()
-        truncated = sim.horizon_reached
-        r = self.config.reward
-        for k, a in enumerate(live):
-            name = sim.names[a]
-            row = sim.route_row[int(a)]
-            self.rewards[name] = float(out.reward[k])
-            done = bool(
-                (r.terminate_on_collision and out.collision[k])
-                or (r.terminate_on_offroad and out.offroad[k])
-                or (r.terminate_on_goal and out.goal[k])
-            )
-            self.terminations[name] = done
-            self.truncations[name] = bool(truncated and not done)
-            self.infos[name] = {
-                "collision": bool(out.collision[k]),
-                "offroad": bool(out.offroad[k]),
-                "goal": bool(out.goal[k]),
-                "progress_m": float(sim.progress[row]),
-                "route_fraction": float(sim.progress[row] / max(sim.routes.length[row], 1e-6)),
-                "collision_steps": int(sim.collision_steps[row]),
-                "offroad_steps": int(sim.offroad_steps[row]),
-            }
-            if done or truncated:
-                sim.retire(int(a))
-        live_names = [sim.names[a] for a in live if not sim.retired[a]]
-        done_names = [sim.names[a] for a in live if sim.retired[a]]
-        if live_names:
-            first = sim.advance()
-            assert first is not None
-            order = [sim.names[i] for i in sim.external_order()]
-            self.agents = order + done_names
-            self.agent_selection = sim.names[first]
+        for name, report in reports.items():
+            self.rewards[name] = report.reward
+            self.terminations[name] = report.terminated
+            self.truncations[name] = report.truncated
+            self.infos[name] = report.info
+        done_names = [name for name in reports if sim.retired[self._index[name]]]
+        nxt = self.batch.advance() if sim.has_live_agents else None
+        if nxt is not None:
+            self.agents = [sim.names[i] for i in sim.external_order()] + done_names
+            self.agent_selection = sim.names[int(nxt[1][0])]
         else:
             self.agents = done_names
             self.agent_selection = done_names[0]
@@ -260,18 +176,7 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
 
     def action_towards(self, agent: str, target: np.ndarray) -> np.ndarray | int:
         """The action that brings external ``agent`` closest to state ``target [3]`` at the next step."""
-        sim, i = self._sim(), self.agent_index(agent)
-        templates = self.vocabulary.templates[self.scenario.kind[i]] if self.vocabulary is not None else None
-        return action_towards(
-            self.config.action,
-            sim.driver.xyh[i, sim.t],
-            float(sim.kin.speed[i]),
-            target,
-            float(self.scenario.size[i, 0]),
-            self.config.limits,
-            sim.dt,
-            templates,
-        )
+        return self._sim().action_towards(self.agent_index(agent), target)
 
     # ------------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
@@ -283,86 +188,21 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
                 "render() called without a render_mode; pass render_mode='rgb_array' or 'human'"
             )
             return None
-        frame = self._episode_renderer().frame(self._sim().t)
+        renderer = self._renderer.of(self._sim())
+        frame = renderer.frame(self._sim().t)
         if self.render_mode == "rgb_array":
             return frame
-        self._episode_renderer().show(frame)
+        renderer.show(frame)
         return None
-
-    def _episode_renderer(self) -> Any:
-        sim = self._sim()
-        if self._renderer is not None and not np.may_share_memory(self._renderer_xyh, sim.driver.xyh):
-            self._renderer.close()  # a batched env's engine grew its arrays: draw from the new ones
-            self._renderer = None
-        if self._renderer is None:
-            from trajeglish_env.env.rendering import EpisodeRenderer
-
-            self._renderer_xyh = sim.driver.xyh
-            self._renderer = EpisodeRenderer(
-                self.scenario,
-                sim.driver.xyh,
-                sim.driver.valid,
-                sim.external,
-                sim.npc,
-                size=self.config.render_size,
-                radius=self.config.render_radius,
-            )
-        return self._renderer
 
     def save_video(self, path: str | os.PathLike[str], fps: int | None = None) -> Path:
         """Write the episode so far (from the current index to now) as a GIF or MP4."""
         sim = self._sim()
-        return self._episode_renderer().save(path, range(self.scenario.current_index, sim.t + 1), fps or 10)
+        return self._renderer.of(sim).save(path, range(self.scenario.current_index, sim.t + 1), fps or 10)
 
     def close(self) -> None:
         """Release the renderer and its window."""
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-
-
-def _resolve_npc(spec: Any) -> tuple[Any, TrajeglishNPC | None, Any]:
-    """(NPC policy name/object or checkpoint, Trajeglish settings or None, checkpoint or None) of
-    EnvConfig.npc."""
-    if spec == "trajeglish":
-        spec = TrajeglishNPC()
-    if isinstance(spec, TrajeglishNPC):
-        ckpt = load_npc_checkpoint(spec.checkpoint)
-        return ckpt, spec, ckpt
-    if isinstance(spec, str):
-        return spec, None, None
-    if not isinstance(spec, NPCPolicy):
-        raise TypeError(
-            f"npc: expected a policy name, a TrajeglishNPC or an object with reset() and act() "
-            f"(trajeglish_env.env.npc.NPCPolicy), got {type(spec).__name__}"
-        )
-    return spec, None, None
-
-
-def load_npc_checkpoint(checkpoint: Any) -> Any:
-    """A checkpoint for Trajeglish NPCs: None -> the shipped model, a path, or a Checkpoint (checked)."""
-    from trajeglish_env.checkpoint import (
-        Checkpoint,
-        CheckpointError,
-        check_compatible,
-        load_checkpoint,
-        load_pretrained,
-    )
-
-    if checkpoint is None:
-        try:
-            return load_pretrained()
-        except CheckpointError as exc:
-            raise CheckpointError(
-                f"{exc}. Trajeglish NPCs need a model: pass npc=TrajeglishNPC(checkpoint=PATH) or a "
-                "rule-based NPC policy (npc='idm', 'replay' or 'constant_velocity')"
-            ) from exc
-    if isinstance(checkpoint, (str, os.PathLike)):
-        return load_checkpoint(checkpoint)
-    if not isinstance(checkpoint, Checkpoint):
-        raise TypeError(f"npc checkpoint: expected a path or a Checkpoint, got {type(checkpoint).__name__}")
-    check_compatible(checkpoint.config, checkpoint.vocabulary, where="npc checkpoint")
-    return checkpoint
+        self._renderer.close()
 
 
 def env(

@@ -2,13 +2,12 @@
 
 A :class:`BatchGeometry` serves one scene (an unbatched env) or every scene of a batched env; it keeps the
 padded static arrays of the scenes it saw last (sizes, road edges, observation map points, routes) and
-refreshes only the rows whose simulation changed (a reset)."""
+refreshes only the rows whose scene state changed (a reset)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,10 +23,8 @@ from trajeglish_env.env.batch_geometry import (
     vector_observations,
 )
 from trajeglish_env.env.routes import Paths, stack_paths
+from trajeglish_env.env.scene_state import SceneState
 from trajeglish_env.geometry import wrap_angle
-
-if TYPE_CHECKING:
-    from trajeglish_env.env.simulation import Simulation
 
 EDGE_REACH, EDGE_DRIFT = 40.0, 10.0  # m: road edges kept around an agent, and how far it may move off
 MAP_DRIFT = 15.0  # m an agent may move before the map points kept around it are chosen again
@@ -58,7 +55,7 @@ class EgoFeatures:
 
 
 class BatchGeometry:
-    """Outcomes (:meth:`outcomes`) and observations (:meth:`observations`) of a list of simulations."""
+    """Outcomes (:meth:`outcomes`) and observations (:meth:`observations`) of a list of scene states."""
 
     def __init__(self) -> None:
         self._size = PaddedRows(1.0)
@@ -71,13 +68,13 @@ class BatchGeometry:
         self._map_gathered: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ static arrays
-    def _edges(self, sims: Sequence[Simulation]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _edges(self, sims: Sequence[SceneState]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Road-edge columns ``[B,7,S]``, links ``[B,3,S]`` and segment counts ``[B]``."""
         columns = self._edge_columns.sync(sims, lambda s: s.edge_columns)
         links = self._edge_links.sync(sims, lambda s: s.edge_links)
         return columns, links, np.array([s.edge_columns.shape[1] for s in sims])
 
-    def _routes(self, sims: Sequence[Simulation]) -> tuple[Paths, np.ndarray]:
+    def _routes(self, sims: Sequence[SceneState]) -> tuple[Paths, np.ndarray]:
         """Every simulation's routes stacked, and the first route row of each."""
         if (
             self._paths is None
@@ -90,24 +87,24 @@ class BatchGeometry:
 
     # ------------------------------------------------------------------ outcomes
     def outcomes(
-        self, sims: Sequence[Simulation]
+        self, sims: Sequence[SceneState]
     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """Per simulation, at its current step: its live external agents, whether each collides, is off
-        the road, and its new arc length along its route (see :meth:`Simulation.finish_step`)."""
-        lives = [s.external_index[~s.retired[s.external_index]] for s in sims]
+        the road, and its new arc length along its route (see ``Simulation.finish_step``)."""
+        lives = [s.live_external() for s in sims]
         counts = [len(live) for live in lives]
         scene = np.repeat(np.arange(len(sims)), counts)
         agent = np.concatenate(lives).astype(np.int64)
         if not len(agent):
             empty = np.zeros(0, dtype=bool)
             return [(live, empty, empty, np.zeros(0)) for live in lives]
-        xyh = pad_stack([s.driver.xyh[:, s.t] for s in sims])
-        valid = pad_stack([s.driver.valid[:, s.t] for s in sims], False)
-        size = self._size.sync(sims, lambda s: s.sc.size)[:, : xyh.shape[1]]
-        kind = self._kind.sync(sims, lambda s: s.sc.kind)
+        xyh = pad_stack([s.row.xyh[:, s.t] for s in sims])
+        valid = pad_stack([s.row.valid[:, s.t] for s in sims], False)
+        size = self._size.sync(sims, lambda s: s.size)[:, : xyh.shape[1]]
+        kind = self._kind.sync(sims, lambda s: s.kind)
         hit = collision_flags(xyh, valid, size, scene, agent)
         cols, links, count = self._edges(sims)
-        margin = np.array([s.config.reward.offroad_margin for s in sims])[scene]
+        margin = np.array([s.offroad_margin for s in sims])[scene]
         nearby = None
         if len(scene) * cols.shape[2] >= NEARBY_MIN_PAIRS:  # a few scenes: a full scan is cheaper
             keys = [(sims[b], a) for b, a in zip(scene.tolist(), agent.tolist(), strict=True)]
@@ -139,11 +136,11 @@ class BatchGeometry:
         ]
 
     # ------------------------------------------------------------------ observations
-    def pictures(self, sims: Sequence[Simulation]) -> Pictures:
+    def pictures(self, sims: Sequence[SceneState]) -> Pictures:
         """Every scene as it stands now (mid-step: who has moved so far), padded to ``[B,N]``."""
         now, after, before, valid_now, valid_after, valid_before, moved = [], [], [], [], [], [], []
         for s in sims:
-            xyh, valid, t, m = s.driver.xyh, s.driver.valid, s.t, s.driver.moved()
+            xyh, valid, t, m = s.row.xyh, s.row.valid, s.t, s.row.moved()
             last = valid.shape[1] - 1
             now.append(xyh[:, t])
             after.append(xyh[:, min(t + 1, last)])
@@ -160,10 +157,10 @@ class BatchGeometry:
         return Pictures(state, present, velocity, flags[3])
 
     def ego_features(
-        self, sims: Sequence[Simulation], scene: np.ndarray, agent: np.ndarray, pictures: Pictures
+        self, sims: Sequence[SceneState], scene: np.ndarray, agent: np.ndarray, pictures: Pictures
     ) -> EgoFeatures:
         """The observing agents' own features: kinematics, and their place on their routes."""
-        obs = sims[0].config.obs
+        obs = sims[0].obs
         paths, first = self._routes(sims)
         rows = first[scene] + np.array([sims[b].route_row[a] for b, a in zip(scene, agent, strict=True)])
         own = pictures.state[scene, agent]
@@ -186,7 +183,7 @@ class BatchGeometry:
 
     def _nearby_map(
         self,
-        sims: Sequence[Simulation],
+        sims: Sequence[SceneState],
         scene: np.ndarray,
         agent: np.ndarray,
         centres: np.ndarray,
@@ -196,12 +193,11 @@ class BatchGeometry:
         and which are real: every point within ``radius`` of the agent is among them, since the agent is
         within the drift of the anchor they were chosen around (1 m spare for rounding); for a few queries,
         simply all of them."""
-        if len(scene) * max(len(s.observer.points) for s in sims) < NEARBY_MIN_PAIRS:  # scan them all
-            points = pad_stack([sims[b].observer.points for b in scene])
-            category = pad_stack([sims[b].observer.category for b in scene], OTHER)
+        if len(scene) * max(len(s.map_points) for s in sims) < NEARBY_MIN_PAIRS:  # scan them all
+            points = pad_stack([sims[b].map_points for b in scene])
+            category = pad_stack([sims[b].map_category for b in scene], OTHER)
             real = (
-                np.arange(points.shape[1])[None]
-                < np.array([len(sims[b].observer.points) for b in scene])[:, None]
+                np.arange(points.shape[1])[None] < np.array([len(sims[b].map_points) for b in scene])[:, None]
             )
             return points, category, real
         near = self._near_points
@@ -212,28 +208,28 @@ class BatchGeometry:
         index = near.update(
             keys,
             centres,
-            lambda s, p: np.hypot(s.observer.points[:, 0] - p[0], s.observer.points[:, 1] - p[1]),
+            lambda s, p: np.hypot(s.map_points[:, 0] - p[0], s.map_points[:, 1] - p[1]),
         )
         if self._map_gathered is None or self._map_gathered[0] != near.version:
             safe = np.maximum(index, 0)
             points = np.zeros((*index.shape, 2))
             category = np.full(index.shape, OTHER, dtype=np.int8)
             for q, (sim, _) in enumerate(near.keys):
-                points[q] = sim.observer.points[safe[q]] if len(sim.observer.points) else 0.0
-                category[q] = sim.observer.category[safe[q]] if len(sim.observer.points) else OTHER
+                points[q] = sim.map_points[safe[q]] if len(sim.map_points) else 0.0
+                category[q] = sim.map_category[safe[q]] if len(sim.map_points) else OTHER
             self._map_gathered = (near.version, points, category, index >= 0)
         return self._map_gathered[1:]
 
-    def observations(self, sims: Sequence[Simulation], agents: Sequence[int]) -> np.ndarray:
+    def observations(self, sims: Sequence[SceneState], agents: Sequence[int]) -> np.ndarray:
         """``vector`` observations ``[Q, F]`` of external agent ``agents[i]`` of ``sims[i]`` (a simulation
         may appear several times), as they stand now."""
-        unique: list[Simulation] = []
+        unique: list[SceneState] = []
         position: dict[int, int] = {}
         for s in sims:
             if id(s) not in position:
                 position[id(s)] = len(unique)
                 unique.append(s)
-        configs = {s.config.obs for s in unique}
+        configs = {s.obs for s in unique}
         if len(configs) != 1:
             raise ValueError(
                 f"observations: the scenes of one call must share the observation settings, got {configs}"
@@ -243,7 +239,7 @@ class BatchGeometry:
         agent = np.asarray(agents, dtype=np.int64)
         pictures = self.pictures(unique)
         ego = self.ego_features(unique, scene, agent, pictures)
-        size = self._size.sync(unique, lambda s: s.sc.size)
+        size = self._size.sync(unique, lambda s: s.size)
         points, category, real = self._nearby_map(
             unique, scene, agent, pictures.state[scene, agent, :2], obs.radius
         )

@@ -5,15 +5,19 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from trajeglish_env.sampler.config import SamplingConfig
+
+if TYPE_CHECKING:
+    from trajeglish_env.env.npc import NPCPolicy
 
 ACTION_TYPES = ("token", "continuous", "delta")
 OBSERVATION_TYPES = ("vector", "bev")
 ORDERS = ("first", "last", "random")
 NPC_NAMES = ("trajeglish", "replay", "constant_velocity", "idm")
-CACHE_DTYPES = ("float32", "bfloat16")
 
 
 @dataclass(frozen=True)
@@ -30,32 +34,18 @@ class RandomAgents:
 @dataclass(frozen=True)
 class TrajeglishNPC:
     """NPCs driven by a Trajeglish model: ``checkpoint`` (a path or a loaded ``Checkpoint``; None: the
-    shipped model) sampled with ``temperature`` and nucleus ``top_p``. The default temperature 0.75 is the
-    shipped model's most realistic setting measured (WOSAC meta-metric 0.573, vs 0.560 at 0.5 and 0.564
-    at 1.0, with the fewest collisions). ``cache_dtype``: ``"bfloat16"`` (default) or ``"float32"``
-    decoder key/value caches; bfloat16 halves their memory traffic (batched stepping ~1.2x faster on CPU)
-    and moves the shipped model's held-out NLL by 1e-5 nats (1.451026 vs 1.451018 on 53,504 tokens,
-    ``trajeglish nll --cache-dtype float32 bfloat16``). ``subsets``: how scenes larger than the model's
-    context are split, ``"overlap"`` (the paper's rule) or ``"cover"`` (fewest contexts; see
-    :mod:`trajeglish_env.sampler.subsets`)."""
+    shipped model) sampled with ``sampling`` (:class:`~trajeglish_env.sampler.config.SamplingConfig`: the
+    one sampling configuration of the project, with the same defaults everywhere; its ``seed`` is unused
+    here, since every episode draws its own)."""
 
     checkpoint: Any = None
-    temperature: float = 0.75
-    top_p: float = 1.0
-    cache_dtype: str = "bfloat16"
-    subsets: str = "overlap"
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
 
     def __post_init__(self) -> None:
-        if self.cache_dtype not in CACHE_DTYPES:
-            raise ValueError(
-                f"TrajeglishNPC.cache_dtype must be one of {CACHE_DTYPES}, got {self.cache_dtype!r}"
+        if not isinstance(self.sampling, SamplingConfig):
+            raise TypeError(
+                f"TrajeglishNPC.sampling must be a SamplingConfig, got {type(self.sampling).__name__}"
             )
-        if self.subsets not in ("overlap", "cover"):
-            raise ValueError(f"TrajeglishNPC.subsets must be 'overlap' or 'cover', got {self.subsets!r}")
-        if not (self.temperature >= 0):
-            raise ValueError(f"TrajeglishNPC.temperature must be >= 0, got {self.temperature}")
-        if not (0 < self.top_p <= 1):
-            raise ValueError(f"TrajeglishNPC.top_p must be in (0, 1], got {self.top_p}")
         ok = self.checkpoint is None or isinstance(self.checkpoint, (str, os.PathLike))
         if not ok and not hasattr(self.checkpoint, "vocabulary"):
             raise TypeError(
@@ -63,18 +53,14 @@ class TrajeglishNPC:
                 f"got {type(self.checkpoint).__name__}"
             )
 
-    def sampling(self) -> Any:
-        """The engine's :class:`~trajeglish_env.sampler.engine.SamplingConfig` for these settings."""
-        from trajeglish_env.sampler.engine import SamplingConfig
-
-        return SamplingConfig(temperature=self.temperature, top_p=self.top_p, subsets=self.subsets)
+    def with_checkpoint(self, checkpoint: Any) -> TrajeglishNPC:
+        """The same settings with a (loaded) checkpoint."""
+        return replace(self, checkpoint=checkpoint)
 
     @property
     def torch_cache_dtype(self) -> Any:
         """The torch dtype of the decoder caches."""
-        import torch
-
-        return getattr(torch, self.cache_dtype)
+        return self.sampling.torch_cache_dtype
 
 
 @dataclass(frozen=True)
@@ -171,7 +157,7 @@ class EnvConfig:
 
     external: str | tuple[int, ...] | RandomAgents = "sdc"
     order: str | tuple[str, ...] = "first"
-    npc: Any = "trajeglish"
+    npc: str | TrajeglishNPC | NPCPolicy = "trajeglish"
     action: str = "continuous"
     observation: str = "vector"
     reward: RewardConfig = field(default_factory=RewardConfig)

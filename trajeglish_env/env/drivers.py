@@ -1,14 +1,16 @@
-"""Step drivers: walk one timestep's intra-timestep order, letting the NPCs act and pausing at every
-external agent whose next state is needed (the engine's ``advance`` / ``supply`` protocol).
+"""NPC drivers over the B scene rows of a :class:`~trajeglish_env.env.scene_batch.SceneBatch`: they walk
+each row's intra-timestep order, let the NPCs act, and pause wherever an external agent's next state is
+needed (``advance`` hands those agents out, ``supply`` takes their states).
 
-:class:`EngineDriver` runs the Trajeglish model (one token per NPC through the KV cache, any scene size);
-:class:`OrderedDriver` runs a rule-based :class:`~trajeglish_env.env.npc.NPCPolicy` group by group. Both
-expose the exact states ``xyh [N,T,3]`` / ``valid [N,T]`` (T = current + 1 + horizon), the step ``t``
-and who has ``moved`` in it.
+:class:`EngineRows` runs the Trajeglish model (one :class:`~trajeglish_env.sampler.engine.BatchEngine`
+row per scene, one model call per token position for all rows); :class:`RuleRows` runs a rule-based
+:class:`~trajeglish_env.env.npc.NPCPolicy` per scene (:class:`OrderedDriver`). Both expose a row's exact
+states through :meth:`view` (a :class:`RowView`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -17,23 +19,47 @@ from trajeglish_env.env.npc import NPCPolicy
 from trajeglish_env.env.world import WorldView
 from trajeglish_env.scenario import Scenario
 
+Waiting = tuple[np.ndarray, np.ndarray]  # (rows, agents): one external agent per row whose state is needed
 
-class StepDriver(Protocol):
-    """What the environment needs from a driver."""
 
-    xyh: np.ndarray
-    valid: np.ndarray
+class RowView(Protocol):
+    """One scene row: exact states ``xyh [N,T,3]`` / ``valid [N,T]`` (T = current + 1 + horizon), the step
+    ``t`` being played, who has ``moved`` in it, and the external agents still to act, in order."""
+
+    @property
+    def xyh(self) -> np.ndarray: ...
+
+    @property
+    def valid(self) -> np.ndarray: ...
 
     @property
     def t(self) -> int: ...
 
     def moved(self) -> np.ndarray: ...
 
-    def advance(self) -> int | None: ...
-
-    def supply(self, agent: int, next_xyh: np.ndarray, valid: bool = True) -> None: ...
-
     def external_order(self) -> np.ndarray: ...
+
+
+class NPCRows(Protocol):
+    """What a scene batch needs from its NPC driver (rows are scenes)."""
+
+    def start(
+        self,
+        row: int,
+        scenario: Scenario,
+        external: np.ndarray,
+        horizon: int,
+        priority: np.ndarray,
+        seed: int,
+    ) -> RowView: ...
+
+    def stop(self, row: int) -> None: ...
+
+    def advance(self) -> Waiting | None: ...
+
+    def supply(
+        self, rows: np.ndarray, agents: np.ndarray, next_xyh: np.ndarray, valid: np.ndarray
+    ) -> None: ...
 
 
 def first_agent(priority: np.ndarray, active: np.ndarray) -> int:
@@ -43,8 +69,9 @@ def first_agent(priority: np.ndarray, active: np.ndarray) -> int:
 
 
 class OrderedDriver:
-    """Rule-based NPCs: agents act by (priority, distance to the first agent); consecutive NPCs act as one
-    vectorized group; agents that are neither NPC nor external follow the log (fixed in advance)."""
+    """Rule-based NPCs of one scene: agents act by (priority, distance to the first agent); consecutive NPCs
+    act as one vectorized group; agents that are neither NPC nor external follow the log (fixed in advance).
+    """
 
     def __init__(
         self,
@@ -139,65 +166,69 @@ class OrderedDriver:
         self.known[agent] = True
 
 
-class EngineDriver:
-    """Trajeglish NPCs through one row of a :class:`~trajeglish_env.sampler.engine.BatchEngine`.
+class RuleRows:
+    """Rule-based NPCs of B scenes, one :class:`OrderedDriver` (and policy object) per row: a row's step is
+    complete when its driver has walked its order; :meth:`advance` returns None once every row that takes
+    part in the step is complete (rows wait for each other, as in the engine)."""
 
-    By default the driver owns a one-row engine. With ``shared=(engine, row)`` the row belongs to an
-    engine that a batched environment steps for all its scenes at once (its owner calls
-    ``engine.step()`` after every scene has supplied its external agents; see
-    :mod:`trajeglish_env.env.vector`), and :meth:`advance` then only reports what the owner has done.
+    def __init__(self, rows: int, make_policy: Callable[[], NPCPolicy]):
+        self.drivers: list[OrderedDriver | None] = [None] * rows
+        self.make_policy = make_policy
+        self._complete: set[int] = set()
 
-    With ``externals_first`` every external agent acts before any NPC decodes (supplied up front, in
-    priority order), so NPCs of every model context condition on them; otherwise external agents act at
-    their place in the engine's acting order (priorities, then distance, per model context).
-    """
-
-    def __init__(
+    def start(
         self,
-        ckpt: object,
+        row: int,
         scenario: Scenario,
         external: np.ndarray,
         horizon: int,
         priority: np.ndarray,
         seed: int,
-        settings: object = None,
-        externals_first: bool = False,
-        shared: tuple[object, int] | None = None,
-    ):
-        from trajeglish_env.env.config import TrajeglishNPC
-        from trajeglish_env.model.config import Variant
-        from trajeglish_env.sampler.engine import BatchEngine, RowSpec
+    ) -> RowView:
+        """(Re)start ``row`` on a scene (rows are independent: any time)."""
+        self._complete.discard(row)
+        self.drivers[row] = OrderedDriver(self.make_policy(), scenario, external, horizon, priority, seed)
+        return self.drivers[row]
 
-        settings = settings if isinstance(settings, TrajeglishNPC) else TrajeglishNPC(ckpt)
-        cur = scenario.current_index
-        self.scenario = scenario
-        self.external = np.asarray(external, dtype=bool)
-        self.priority = np.asarray(priority, dtype=np.float64)
-        self.externals_first = externals_first
-        active = scenario.valid[:, cur]
-        if shared is None:
-            self.engine: BatchEngine = BatchEngine(
-                ckpt,  # type: ignore[arg-type]
-                1,
-                settings.sampling(),
-                settings.torch_cache_dtype,
-            )
-            self.row, self.shared = 0, False
-        else:
-            self.engine, self.row = shared  # type: ignore[assignment]
-            self.shared = True
-        spec = RowSpec(
-            scenario,
-            int(horizon),
-            active & ~self.external,
-            self.external,
-            priority=self.priority,
-            first=first_agent(self.priority, active),  # the first model context: the agent acting first
-        )
-        self.engine.start_rows([self.row], spec, [seed])
-        self.ordered_in_slots = self.engine.cfg.variant is Variant.TRAJEGLISH and not externals_first
-        self.n, self.T = scenario.num_agents, cur + 1 + int(horizon)
-        self._t = cur
+    def stop(self, row: int) -> None:
+        """Take ``row`` out until it is started again."""
+        self.drivers[row] = None
+        self._complete.discard(row)
+
+    def advance(self) -> Waiting | None:
+        """Let every stepping row's NPCs act up to its next external agent; None once every row has
+        finished the step."""
+        rows, agents = [], []
+        stepping = [r for r, d in enumerate(self.drivers) if d is not None and d.t < d.T - 1]
+        for r in stepping:
+            if r in self._complete:
+                continue
+            agent = self.drivers[r].advance()  # type: ignore[union-attr]
+            if agent is None:
+                self._complete.add(r)
+            else:
+                rows.append(r)
+                agents.append(agent)
+        if rows:
+            return np.array(rows, dtype=np.int64), np.array(agents, dtype=np.int64)
+        self._complete.clear()
+        return None
+
+    def supply(self, rows: np.ndarray, agents: np.ndarray, next_xyh: np.ndarray, valid: np.ndarray) -> None:
+        """Set the next states of external ``agents`` of ``rows``."""
+        for r, a, x, ok in zip(rows.tolist(), agents.tolist(), next_xyh, valid.tolist(), strict=True):
+            self.drivers[r].supply(a, x, ok)  # type: ignore[union-attr]
+
+
+class EngineRow:
+    """Row ``row`` of a :class:`EngineRows` as a :class:`RowView`."""
+
+    def __init__(self, rows: EngineRows, row: int, scenario: Scenario, external: np.ndarray, horizon: int):
+        self.engine, self.row, self.n = rows.engine, row, scenario.num_agents
+        self.T = scenario.current_index + 1 + int(horizon)
+        self.external = external
+        self.priority = rows.engine.row_priority[row, : self.n].copy()
+        self.ordered_in_slots = rows.ordered_in_slots
 
     @property
     def xyh(self) -> np.ndarray:
@@ -221,7 +252,8 @@ class EngineDriver:
             return np.zeros(self.n, dtype=bool)
         return self.engine.known[self.row, : self.n, t] & self.valid[:, t]
 
-    def _pending(self) -> np.ndarray:
+    def pending(self) -> np.ndarray:
+        """External agents present at this step whose next state is not supplied yet."""
         t = self.t
         if t >= self.T - 1:
             return np.zeros(0, dtype=np.int64)
@@ -229,7 +261,7 @@ class EngineDriver:
 
     def external_order(self) -> np.ndarray:
         """External agents still to act this step, in the order they will be asked for."""
-        pending = self._pending()
+        pending = self.pending()
         by_priority = pending[np.argsort(self.priority[pending], kind="stable")]
         plan = self.engine.plan[self.row]
         if not self.ordered_in_slots or plan is None:
@@ -237,24 +269,72 @@ class EngineDriver:
         planned = plan.acting_order[np.isin(plan.acting_order, pending)]
         return np.concatenate([planned, by_priority[~np.isin(by_priority, planned)]]).astype(np.int64)
 
-    def advance(self) -> int | None:
-        """The next external agent to supply, or None when the step is complete (NPCs decoded)."""
-        if self.shared and self.t != self._t:  # the owner has stepped the engine: this step is complete
-            self._t = self.t
+
+class EngineRows:
+    """Trajeglish NPCs of B scenes through one :class:`~trajeglish_env.sampler.engine.BatchEngine` (row i =
+    scene i). With ``externals_first`` every external agent is asked for, in priority order, before any NPC
+    decodes, so NPCs of every model context condition on them; otherwise external agents act at their place
+    in the engine's acting order (priorities, then distance, per model context)."""
+
+    def __init__(self, engine: object, externals_first: bool):
+        from trajeglish_env.model.config import Variant
+        from trajeglish_env.sampler.engine import BatchEngine
+
+        assert isinstance(engine, BatchEngine)
+        self.engine = engine
+        self.externals_first = externals_first
+        self.ordered_in_slots = engine.cfg.variant is Variant.TRAJEGLISH and not externals_first
+        self.views: list[EngineRow | None] = [None] * engine.B
+
+    def start(
+        self,
+        row: int,
+        scenario: Scenario,
+        external: np.ndarray,
+        horizon: int,
+        priority: np.ndarray,
+        seed: int,
+    ) -> RowView:
+        """(Re)start engine row ``row`` on a scene (an unfinished step of the others is undone)."""
+        from trajeglish_env.sampler.engine import RowSpec
+
+        active = scenario.valid[:, scenario.current_index]
+        spec = RowSpec(
+            scenario,
+            int(horizon),
+            active & ~external,
+            external,
+            priority=priority,
+            first=first_agent(priority, active),  # the first model context: the agent acting first
+        )
+        self.engine.start_rows([row], spec, [seed])
+        view = self.views[row] = EngineRow(self, row, scenario, external, horizon)
+        return view
+
+    def stop(self, row: int) -> None:
+        """Take ``row`` out until it is started again."""
+        self.engine.stop_rows([row])
+        self.views[row] = None
+
+    def advance(self) -> Waiting | None:
+        """Decode NPCs until every stepping row waits for an external agent (the first of each row is
+        returned) or the step is complete (None; also when no row is stepping)."""
+        if not self.engine.stepping.any():
             return None
         if self.externals_first:
-            pending = self._pending()
-            if len(pending):
-                return int(pending[np.argmin(self.priority[pending])])
-        if self.shared:
-            raise RuntimeError(
-                "this scene's NPCs are decoded by the batched environment that owns the engine "
-                "(call engine.step() once every scene has supplied its external agents)"
-            )
+            e = self.engine
+            b, t = np.arange(e.B), np.minimum(e.now, e.T - 2)
+            need = e.row_external & ~e.known[b, :, t] & e.valid[b, :, t] & e.stepping[:, None]
+            rows = np.flatnonzero(need.any(axis=1))
+            if len(rows):  # lowest priority first, lowest index on ties
+                agents = np.argmin(np.where(need[rows], e.row_priority[rows], np.inf), axis=1)
+                return rows, agents.astype(np.int64)
         waiting = self.engine.advance()
-        self._t = self.t
-        return None if waiting is None else int(waiting[1][0])
+        if waiting is None:
+            return None
+        rows, first = np.unique(waiting[0], return_index=True)  # late externals come several per row
+        return rows, waiting[1][first]
 
-    def supply(self, agent: int, next_xyh: np.ndarray, valid: bool = True) -> None:
-        """Set an external agent's next state; the model sees it tokenized."""
-        self.engine.supply([self.row], [agent], np.asarray(next_xyh, dtype=np.float64)[None], [valid])
+    def supply(self, rows: np.ndarray, agents: np.ndarray, next_xyh: np.ndarray, valid: np.ndarray) -> None:
+        """Set the next states of external ``agents`` of ``rows``; the model sees them tokenized."""
+        self.engine.supply(rows, agents, next_xyh, valid)

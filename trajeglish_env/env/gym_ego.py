@@ -31,16 +31,8 @@ class EgoEnv(gymnasium.Env):
         **options: Any,
     ):
         config = (config or EnvConfig()).with_overrides(**options)
-        _check_single(config)
+        check_single(config)
         self._attach(raw_env(scenes, config, render_mode))
-
-    @classmethod
-    def around(cls, aec: raw_env) -> EgoEnv:
-        """An EgoEnv driving an existing AEC env (the batched env builds its scenes this way)."""
-        env = cls.__new__(cls)
-        _check_single(aec.config)
-        env._attach(aec)
-        return env
 
     def _attach(self, aec: raw_env) -> None:
         self.aec = aec
@@ -63,42 +55,18 @@ class EgoEnv(gymnasium.Env):
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """One timestep: the ego's action, every NPC's move, the ego's reward and flags."""
-        self.act(action)
-        return self.outcome()
-
-    def act(self, action: Any) -> None:
-        """First half of :meth:`step`: apply the ego's action (a batched env then decodes the NPCs of all
-        its scenes at once and calls :meth:`outcome`)."""
-        sim, index, value = self.prepare(action)
-        sim.apply(index, value)
-        self.aec.after_action()
-
-    def prepare(self, action: Any) -> tuple[Any, int, Any]:
-        """The ego's validated action with its simulation and index (:meth:`act` without applying it)."""
         aec, agent = self.aec, self.agent
         if not agent:
             raise RuntimeError("call reset() before step()")
         if aec.terminations[agent] or aec.truncations[agent]:
             raise RuntimeError(f"the episode of {agent} is over; call reset()")
-        prepared = aec.prepare_action(action)
-        assert prepared is not None
-        return prepared
-
-    def outcome(
-        self, observation: np.ndarray | None = None
-    ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Second half of :meth:`step`: finish the timestep and report the ego's observation (``observation``
-        when the batched env has computed it with the other scenes'), reward, flags and info."""
-        aec, agent = self.aec, self.agent
-        if aec.suspended:
-            aec.resume()
-        info = dict(aec.infos[agent])
+        aec.step(action)
         return (
-            aec.observe(agent) if observation is None else observation,
+            aec.observe(agent),
             float(aec._cumulative_rewards[agent]),
             bool(aec.terminations[agent]),
             bool(aec.truncations[agent]),
-            info,
+            dict(aec.infos[agent]),
         )
 
     def render(self) -> np.ndarray | None:
@@ -110,7 +78,7 @@ class EgoEnv(gymnasium.Env):
         self.aec.close()
 
 
-def _check_single(config: EnvConfig) -> None:
+def check_single(config: EnvConfig) -> None:
     """EgoEnv drives exactly one external agent."""
     ext = config.external
     single = ext == "sdc" or (isinstance(ext, tuple) and len(ext) == 1) or ext == RandomAgents(1)

@@ -29,6 +29,7 @@ import numpy as np
 from gymnasium import spaces
 
 from trajeglish_env.env.batch_geometry import EDGE, LANE, LINE, OTHER
+from trajeglish_env.env.batch_outcomes import Pictures
 from trajeglish_env.env.config import ObservationConfig
 from trajeglish_env.geometry import transform_points
 from trajeglish_env.scenario import LANE_KINDS, ROAD_EDGE_KINDS, ROAD_LINE_KINDS, Scenario
@@ -51,16 +52,6 @@ class EgoState:
     lateral: float
     heading_error: float
     route_ahead: np.ndarray  # [Q,2] global points of the route ahead
-
-
-@dataclass(frozen=True)
-class Picture:
-    """Every agent's latest decided state ``[N,3]``, presence, velocity ``[N,2]`` and moved flag."""
-
-    state: np.ndarray
-    present: np.ndarray
-    velocity: np.ndarray
-    moved: np.ndarray
 
 
 def sample_map_points(scenario: Scenario, spacing: float) -> tuple[np.ndarray, np.ndarray]:
@@ -128,10 +119,14 @@ class BevObserver:
         y = state[:, None, 1] + s * body[..., 0] + c * body[..., 1]
         return transform_points(np.stack([x, y], -1).reshape(-1, 2), origin)
 
-    def observe(self, ego: EgoState, pic: Picture) -> np.ndarray:
+    def observe(self, ego: EgoState, pictures: Pictures, scene: int) -> np.ndarray:
+        """The raster of ``ego`` in scene ``scene`` of ``pictures`` (the scene as it stands now)."""
+        k = self.sc.num_agents
+        state, present = pictures.state[scene, :k], pictures.present[scene, :k]
+        moved = pictures.moved[scene, :k]
         n = self.cfg.bev_size
         out = np.zeros((BEV_CHANNELS, n, n), dtype=np.uint8)
-        origin = pic.state[ego.agent]
+        origin = state[ego.agent]
         if len(self.points):
             rr, cc, inside = self._pixels(transform_points(self.points, origin))
             cat = self.category[inside]
@@ -141,11 +136,11 @@ class BevObserver:
             out[1, rr[line], cc[line]] = 128
             edge = cat == EDGE
             out[1, rr[edge], cc[edge]] = 255
-        others = np.flatnonzero(pic.present & (np.arange(self.sc.num_agents) != ego.agent))
-        for channel, mask in ((2, ~pic.moved[others]), (3, pic.moved[others])):
+        others = np.flatnonzero(present & (np.arange(k) != ego.agent))
+        for channel, mask in ((2, ~moved[others]), (3, moved[others])):
             agents = others[mask]
             if len(agents):
-                rr, cc, _ = self._pixels(self._boxes(origin, pic.state[agents], self.sc.size[agents]))
+                rr, cc, _ = self._pixels(self._boxes(origin, state[agents], self.sc.size[agents]))
                 out[channel, rr, cc] = 255
         rr, cc, _ = self._pixels(self._boxes(origin, origin[None], self.sc.size[ego.agent][None]))
         out[4, rr, cc] = 255

@@ -12,13 +12,26 @@ from typing import Any
 from pettingzoo import ParallelEnv
 from pettingzoo.utils.conversions import aec_to_parallel_wrapper
 
+from trajeglish_env.env.actions import check_action
 from trajeglish_env.env.aec import raw_env
 from trajeglish_env.env.config import EnvConfig
 
 
 class SceneAwareParallelEnv(aec_to_parallel_wrapper):
     """``aec_to_parallel_wrapper`` that refreshes ``possible_agents`` at every reset (each scene has its
-    own agents; the stock wrapper copies them once, at construction)."""
+    own agents; the stock wrapper copies them once, at construction) and checks a step's actions (one per
+    live agent, no unknown agent, each inside its space) before any agent acts."""
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        missing = [a for a in self.aec_env.agents if a not in actions]
+        if missing:
+            raise KeyError(f"step: no action for agent(s) {missing}")
+        unknown = sorted(set(actions) - set(self.aec_env.agents))
+        if unknown:
+            raise KeyError(f"step: no live agent(s) {unknown}; the agents are {self.aec_env.agents}")
+        for agent in self.aec_env.agents:
+            check_action(self.aec_env.action_space(agent), actions[agent], agent)
+        return super().step(actions)
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         out = super().reset(seed=seed, options=options)

@@ -75,3 +75,41 @@ class EpisodeRenderer:
 
             pygame.display.quit()
             self._window = None
+
+
+class LiveRenderer:
+    """The :class:`EpisodeRenderer` of whatever simulation runs in one env slot: made on first use, made
+    anew for a new episode or when the engine grows its arrays (so it never draws from stale ones)."""
+
+    def __init__(self, size: int, radius: float):
+        self.size, self.radius = size, radius
+        self._renderer: EpisodeRenderer | None = None
+        self._source: tuple[object, np.ndarray] | None = None
+
+    def of(self, sim: object) -> EpisodeRenderer:
+        """The renderer of ``sim`` (a running ``Simulation``)."""
+        xyh = sim.driver.xyh  # type: ignore[attr-defined]
+        if (
+            self._source is None
+            or self._source[0] is not sim
+            or not np.may_share_memory(self._source[1], xyh)
+        ):
+            self.close()
+            self._renderer = EpisodeRenderer(
+                sim.sc,  # type: ignore[attr-defined]
+                xyh,
+                sim.driver.valid,  # type: ignore[attr-defined]
+                sim.external,  # type: ignore[attr-defined]
+                sim.npc,  # type: ignore[attr-defined]
+                size=self.size,
+                radius=self.radius,
+            )
+            self._source = (sim, xyh)
+        assert self._renderer is not None
+        return self._renderer
+
+    def close(self) -> None:
+        """Release the renderer and its window."""
+        if self._renderer is not None:
+            self._renderer.close()
+        self._renderer, self._source = None, None

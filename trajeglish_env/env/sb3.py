@@ -34,10 +34,7 @@ class SB3VecEnv(VecEnv):
 
     def reset(self) -> np.ndarray:
         """Reset every scene (with the seeds and options set for this reset, if any)."""
-        obs = []
-        for i, env in enumerate(self.envs):
-            o, self.reset_infos[i] = env.reset(seed=self._seeds[i], options=self._options[i] or None)
-            obs.append(o)
+        obs, self.reset_infos = self.venv.reset_each(self._seeds, [o or None for o in self._options])
         self._reset_seeds()
         self._reset_options()
         return np.stack(obs)
@@ -59,12 +56,12 @@ class SB3VecEnv(VecEnv):
             [],
         )
         for i, (o, reward, terminated, truncated, info, final) in enumerate(results):
-            info = dict(info)
+            info = dict(info if final is None else final[1])  # at an episode's end: its last step's info
             rewards[i], dones[i] = reward, terminated or truncated
             info["TimeLimit.truncated"] = bool(truncated and not terminated)
             if final is not None:
                 info["terminal_observation"] = final[0]
-                self.reset_infos[i] = info
+                self.reset_infos[i] = dict(results[i][4])
             obs.append(o)
             infos.append(info)
         return np.stack(obs), rewards, dones, infos

@@ -1,23 +1,23 @@
-"""One episode of one scene, apart from any RL API: roles, intra-timestep order, the step driver, the
-external agents' kinematics and routes, observations and per-step outcomes. The AEC env
-(:mod:`trajeglish_env.env.aec`) is a thin PettingZoo adapter around it."""
+"""One episode of one scene, apart from any RL API: roles, intra-timestep order, the external agents'
+kinematics, routes and per-step outcomes. A :class:`~trajeglish_env.env.scene_batch.SceneBatch` runs
+simulations (one per scene row) together with the NPC driver; the AEC env is a batch of one."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
-from trajeglish_env.env.actions import bicycle_step, delta_step, token_step
+from trajeglish_env.env.actions import action_towards, bicycle_step, delta_step, token_step
 from trajeglish_env.env.batch_geometry import edge_rows
-from trajeglish_env.env.batch_outcomes import BatchGeometry
 from trajeglish_env.env.config import EnvConfig, RandomAgents
-from trajeglish_env.env.drivers import EngineDriver, OrderedDriver, StepDriver
-from trajeglish_env.env.npc import NPCPolicy
-from trajeglish_env.env.observations import EgoState, Picture, make_observer
+from trajeglish_env.env.drivers import RowView
+from trajeglish_env.env.observations import make_observer
 from trajeglish_env.env.rewards import StepOutcome, road_edges, step_reward
 from trajeglish_env.env.routes import logged_paths
+from trajeglish_env.env.scene_state import Kinematics, SceneState
 from trajeglish_env.env.world import WorldView
 from trajeglish_env.geometry import wrap_angle
 from trajeglish_env.scenario import AgentKind, Scenario
@@ -97,60 +97,70 @@ def acting_priority(
     return prio
 
 
-@dataclass
-class Kinematics:
-    """Per-agent speed, last accelerations and yaw rate of the external agents (arrays over all agents)."""
+@dataclass(frozen=True)
+class Roles:
+    """Who is external (``external_index``, in configured order), the acting ``priority [N]`` (lower acts
+    earlier) and the NPC driver's ``seed``, drawn from an episode's random stream."""
 
-    speed: np.ndarray
-    accel: np.ndarray
-    lateral: np.ndarray
-    yaw_rate: np.ndarray
+    external_index: np.ndarray
+    priority: np.ndarray
+    seed: int
+
+    @classmethod
+    def draw(cls, scenario: Scenario, config: EnvConfig, rng: np.random.Generator) -> Roles:
+        """The roles of an episode (external agents, then order, then the seed: the stream's order)."""
+        external = select_external(scenario, config.external, rng)
+        priority = acting_priority(config.order, external, agent_names(scenario), rng)
+        return cls(external, priority, int(rng.integers(2**31 - 1)))
+
+    def mask(self, n: int) -> np.ndarray:
+        """``[n]`` True for the external agents."""
+        out = np.zeros(n, dtype=bool)
+        out[self.external_index] = True
+        return out
+
+
+def episode_horizon(scenario: Scenario, config: EnvConfig) -> int:
+    """Steps of an episode: ``max_cycles``, else the rest of the log."""
+    cur = scenario.current_index
+    horizon = config.max_cycles if config.max_cycles is not None else scenario.num_steps - 1 - cur
+    if horizon < 1:
+        raise ValueError(f"scenario {scenario.scenario_id!r}: no steps after the current index {cur}")
+    return horizon
+
+
+@dataclass(frozen=True)
+class AgentReport:
+    """One external agent's result of a timestep, in the RL APIs' terms."""
+
+    reward: float
+    terminated: bool
+    truncated: bool
+    info: dict[str, Any]
 
 
 class Simulation:
-    """A running episode (see the module docstring). ``npc`` is an NPCPolicy, or a Checkpoint for Trajeglish
-    NPCs sampled with ``settings`` (a TrajeglishNPC), in their own engine or in row ``shared[1]`` of a
-    batched environment's engine ``shared[0]``."""
+    """A running episode of one scene whose states live in ``row`` (its NPC driver's row)."""
 
     def __init__(
         self,
         scenario: Scenario,
         config: EnvConfig,
-        npc: object,
         vocabulary: MotionVocabulary | None,
-        rng: np.random.Generator,
-        settings: object = None,
-        shared: tuple[object, int] | None = None,
+        roles: Roles,
+        row: RowView,
+        horizon: int,
     ):
         self.sc, self.config, self.vocabulary = scenario, config, vocabulary
         cur = scenario.current_index
         self.dt = float(scenario.dt)
-        remaining = scenario.num_steps - 1 - cur
-        self.horizon = config.max_cycles if config.max_cycles is not None else remaining
-        if self.horizon < 1:
-            raise ValueError(f"scenario {scenario.scenario_id!r}: no steps after the current index {cur}")
+        self.horizon = horizon
         self.names = agent_names(scenario)
-        self.external_index = select_external(scenario, config.external, rng)
-        self.external = np.zeros(scenario.num_agents, dtype=bool)
-        self.external[self.external_index] = True
+        self.external_index = roles.external_index
+        self.external = roles.mask(scenario.num_agents)
         self.npc = scenario.valid[:, cur] & ~self.external
-        self.priority = acting_priority(config.order, self.external_index, self.names, rng)
-        seed = int(rng.integers(2**31 - 1))
-        self.driver: StepDriver
-        if isinstance(npc, NPCPolicy):
-            self.driver = OrderedDriver(npc, scenario, self.external, self.horizon, self.priority, seed)
-        else:
-            self.driver = EngineDriver(
-                npc,
-                scenario,
-                self.external,
-                self.horizon,
-                self.priority,
-                seed,
-                settings,
-                externals_first=config.order == "first",
-                shared=shared,
-            )
+        self.priority = roles.priority
+        self.driver = row
         self.retired = np.zeros(scenario.num_agents, dtype=bool)
         ext = self.external_index
         speed = scenario.speed()[:, cur]
@@ -171,43 +181,35 @@ class Simulation:
         self.has_goal = self.routes.length >= config.reward.min_route_length
         self.observer = make_observer(config.observation, scenario, config.obs)
         self.edges = road_edges(scenario)
-        self.edge_columns, self.edge_links = edge_rows(self.edges)
-        self.geometry = BatchGeometry()  # this scene's own; a batched env computes all its scenes at once
-        self.prepared: tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] | None = None
+        edge_columns, edge_links = edge_rows(self.edges)
+        self.state = SceneState(
+            row=row,
+            size=scenario.size,
+            kind=scenario.kind,
+            dt=self.dt,
+            edge_columns=edge_columns,
+            edge_links=edge_links,
+            offroad_margin=config.reward.offroad_margin,
+            map_points=self.observer.points,
+            map_category=self.observer.category,
+            obs=config.obs,
+            external_index=ext,
+            retired=self.retired,
+            routes=self.routes,
+            route_row=self.route_row,
+            progress=self.progress,
+            has_goal=self.has_goal,
+            kin=self.kin,
+        )
         self.steps = 0
 
-    # ------------------------------------------------------------------ the step protocol
     @property
     def t(self) -> int:
         return self.driver.t
 
-    def advance(self) -> int | None:
-        """The next external agent (index) whose action is needed, or None when the step is complete.
-        Retired external agents are taken out of the scene when their turn comes."""
-        while True:
-            agent = self.driver.advance()
-            if agent is None or not self.retired[agent]:
-                return agent
-            self.driver.supply(agent, np.zeros(3), valid=False)
-
-    def ready_for_batch(self) -> bool:
-        """With a shared engine (a batched env): True once every live external agent of this step has
-        acted (retired ones are taken out now), i.e. the NPCs can be decoded with the other scenes."""
-        if not getattr(self.driver, "shared", False) or self.driver.t >= self.driver.T - 1:
-            return False
-        for agent in self.driver.external_order():
-            if not self.retired[agent]:
-                return False
-            self.driver.supply(int(agent), np.zeros(3), valid=False)
-        return True
-
     def external_order(self) -> list[int]:
         """Live external agents still to act this step, in order."""
         return [int(a) for a in self.driver.external_order() if not self.retired[a]]
-
-    def apply(self, agent: int, action: np.ndarray | int) -> None:
-        """Turn an (already validated) action of external ``agent`` into its next state."""
-        apply_actions([self], [agent], [action])
 
     def next_state(self, agent: int, action: np.ndarray | int) -> tuple[np.ndarray, np.float64]:
         """Next state and speed of external ``agent`` under a ``delta`` or ``token`` action."""
@@ -222,15 +224,11 @@ class Simulation:
         return nxt, np.float64(np.hypot(*d) / self.dt * (1.0 if forward >= 0 else -1.0))
 
     def finish_step(
-        self, computed: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self, computed: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     ) -> tuple[np.ndarray, StepOutcome]:
-        """Outcome of the step just completed for the live external agents (returned with it).
-        ``computed`` (or :attr:`prepared` ``(step, computed)`` of this step, used once): this scene's entry
-        of :meth:`BatchGeometry.outcomes` when a batched env has computed every scene's at once."""
-        if computed is None and self.prepared is not None and self.prepared[0] == self.t:
-            computed = self.prepared[1]  # computed by the batched env for this very step
-        self.prepared = None
-        live, hit, off, s_new = computed if computed is not None else self.geometry.outcomes([self])[0]
+        """Outcome of the step just completed for the live external agents (returned with it), from this
+        scene's entry of :meth:`~trajeglish_env.env.batch_outcomes.BatchGeometry.outcomes`."""
+        live, hit, off, s_new = computed
         rows = self.route_row[live]
         gained = s_new - self.progress[rows]
         self.progress[rows] = s_new
@@ -253,50 +251,80 @@ class Simulation:
         self.steps += 1
         return live, replace(outcome, collision=hit, offroad=off)
 
-    def retire(self, agent: int) -> None:
-        """Take a finished external agent out of the scene from the next step on."""
-        self.retired[agent] = True
+    def report(self, live: np.ndarray, out: StepOutcome) -> dict[str, AgentReport]:
+        """Rewards, flags and infos of the live external agents after :meth:`finish_step`; a finished agent
+        is retired (it leaves the scene at the next step)."""
+        truncated = self.horizon_reached
+        r = self.config.reward
+        done = (
+            (r.terminate_on_collision & out.collision)
+            | (r.terminate_on_offroad & out.offroad)
+            | (r.terminate_on_goal & out.goal)
+        )
+        reports = {}
+        for k, a in enumerate(live.tolist()):
+            row = self.route_row[a]
+            reports[self.names[a]] = AgentReport(
+                reward=float(out.reward[k]),
+                terminated=bool(done[k]),
+                truncated=bool(truncated and not done[k]),
+                info={
+                    "collision": bool(out.collision[k]),
+                    "offroad": bool(out.offroad[k]),
+                    "goal": bool(out.goal[k]),
+                    "progress_m": float(self.progress[row]),
+                    "route_fraction": float(self.progress[row] / max(self.routes.length[row], 1e-6)),
+                    "collision_steps": int(self.collision_steps[row]),
+                    "offroad_steps": int(self.offroad_steps[row]),
+                },
+            )
+        self.retired[live[done | truncated]] = True
+        return reports
 
     @property
     def horizon_reached(self) -> bool:
         return self.steps >= self.horizon
 
-    # ------------------------------------------------------------------ observations and introspection
+    @property
+    def has_live_agents(self) -> bool:
+        """Some external agent is still in the episode."""
+        return bool((~self.retired[self.external_index]).any())
+
+    def index_of(self, agent: str) -> int:
+        """Index in the scene of an external agent's name."""
+        for i in self.external_index:
+            if self.names[i] == agent:
+                return int(i)
+        known = sorted(self.names[i] for i in self.external_index)
+        raise KeyError(f"no external agent named {agent!r}; external agents: {known}")
+
+    def action_towards(self, agent: int, target: np.ndarray) -> np.ndarray | int:
+        """The action that brings external ``agent`` closest to state ``target [3]`` at the next step."""
+        templates = self.vocabulary.templates[self.sc.kind[agent]] if self.vocabulary is not None else None
+        return action_towards(
+            self.config.action,
+            self.driver.xyh[agent, self.t],
+            float(self.kin.speed[agent]),
+            target,
+            float(self.sc.size[agent, 0]),
+            self.config.limits,
+            self.dt,
+            templates,
+        )
+
     def view(self) -> WorldView:
         """The world as it stands now (mid-step: who has moved so far)."""
         return WorldView(
             self.sc, self.driver.xyh, self.driver.valid, self.t, self.driver.moved(), self.external, self.npc
         )
 
-    def observe(self, agent: int) -> np.ndarray:
-        """Observation of external ``agent`` now."""
-        if self.config.observation == "vector":
-            return self.geometry.observations([self], [agent])[0]
-        pictures = self.geometry.pictures([self])
-        ego = self.geometry.ego_features([self], np.zeros(1, np.int64), np.array([agent]), pictures)
-        state = EgoState(
-            agent=agent,
-            speed=float(ego.speed[0]),
-            accel=float(ego.accel[0]),
-            yaw_rate=float(ego.yaw_rate[0]),
-            route_fraction=float(ego.route_fraction[0]),
-            lateral=float(ego.lateral[0]),
-            heading_error=float(ego.heading_error[0]),
-            route_ahead=ego.route_ahead[0],
-        )
-        n = self.sc.num_agents
-        picture = Picture(
-            pictures.state[0, :n], pictures.present[0, :n], pictures.velocity[0, :n], pictures.moved[0, :n]
-        )
-        return self.observer.observe(state, picture)  # type: ignore[union-attr]
-
 
 def apply_actions(
     sims: Sequence[Simulation], agents: Sequence[int], actions: Sequence[np.ndarray | int]
-) -> None:
-    """:meth:`Simulation.apply` of action ``actions[i]`` to external agent ``agents[i]`` of ``sims[i]``,
-    for all at once: continuous actions sharing vehicle limits go through one bicycle step, and the states
-    for a shared engine (a batched env's) reach it in one supply."""
+) -> np.ndarray:
+    """Next states ``[n,3]`` of external agent ``agents[i]`` of ``sims[i]`` under its (validated) action
+    ``actions[i]``, all at once (continuous actions sharing vehicle limits go through one bicycle step);
+    the agents' kinematics are updated."""
     n = len(sims)
     now = np.stack([s.driver.xyh[a, s.t] for s, a in zip(sims, agents, strict=True)])
     speed = np.array([s.kin.speed[a] for s, a in zip(sims, agents, strict=True)], dtype=np.float64)
@@ -314,7 +342,6 @@ def apply_actions(
         nxt[rows], v_next[rows] = bicycle_step(now[rows], speed[rows], moved, length, limits, dt[rows])  # type: ignore[arg-type]
     yaw = wrap_angle(nxt[:, 2] - now[:, 2]) / dt
     accel = (v_next - speed) / dt
-    engines: dict[int, list[int]] = {}
     for i, (s, a) in enumerate(zip(sims, agents, strict=True)):
         kin = s.kin
         kin.accel[a], kin.lateral[a], kin.yaw_rate[a], kin.speed[a] = (
@@ -323,12 +350,4 @@ def apply_actions(
             yaw[i],
             v_next[i],
         )
-        if getattr(s.driver, "shared", False):
-            engines.setdefault(id(s.driver.engine), []).append(i)
-        else:
-            s.driver.supply(a, nxt[i], valid=True)
-    for rows in engines.values():
-        engine = sims[rows[0]].driver.engine
-        engine.supply(
-            np.array([sims[i].driver.row for i in rows]), np.array([agents[i] for i in rows]), nxt[rows]
-        )
+    return nxt

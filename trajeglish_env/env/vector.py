@@ -1,25 +1,23 @@
-"""Batched environments: ``B`` scenes stepped together in one process, their Trajeglish NPCs decoded by
-one :class:`~trajeglish_env.sampler.engine.BatchEngine` (one model call per token position for all B
-scenes, no subprocesses).
+"""Batched environments: ``B`` scenes stepped together in one process on one
+:class:`~trajeglish_env.env.scene_batch.SceneBatch` (their Trajeglish NPCs decoded by one engine: one model
+call per token position for all B scenes, no subprocesses).
 
-- :class:`BatchedEgoEnv`: a Gymnasium ``VectorEnv`` of B single-ego envs (same-step autoreset, the final
+- :class:`BatchedEgoEnv`: a Gymnasium ``VectorEnv`` of B single-ego scenes (same-step autoreset, the final
   observation and info in ``infos["final_obs"]`` / ``infos["final_info"]``).
 - :class:`BatchedParallelEnv`: B multi-agent scenes with the PettingZoo parallel API per scene (lists of
   dicts), reset scene by scene with :meth:`BatchedParallelEnv.reset_scenes`.
-- :class:`SB3VecEnv`: the ego env as a Stable-Baselines3 ``VecEnv`` (``terminal_observation`` infos).
+- :class:`~trajeglish_env.env.sb3.SB3VecEnv`: the ego env as a Stable-Baselines3 ``VecEnv``.
 
-Semantics are those of B separate envs: scene ``i`` reset with seed ``s`` gives exactly the rollout of
-``EgoEnv`` / ``parallel_env`` reset with ``s`` (same scene choices, same NPC tokens; each sub-env keeps
-its own random stream across autoresets). Every step, each scene first applies its external agents'
-actions, then the NPCs of all scenes are decoded together; this is the ``order="first"`` intra-timestep
-order (external agents act before every NPC), the only order a batched env supports.
+Semantics are those of B separate envs, for every intra-timestep order: scene ``i`` reset with seed ``s``
+gives exactly the rollout of ``EgoEnv`` / ``parallel_env`` reset with ``s`` (same scene choices, same NPC
+tokens, same observations; each scene keeps its own random stream across autoresets). A step validates
+every scene's actions before anything moves; each external agent then acts at its turn in its scene's
+order, and observations are taken where the next step's first external agent acts (as in the AEC env).
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import Any
 
 import gymnasium
@@ -28,22 +26,21 @@ from gymnasium.vector import VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 from gymnasium.vector.vector_env import AutoresetMode
 
-from trajeglish_env.env.aec import raw_env
-from trajeglish_env.env.batch_outcomes import BatchGeometry
-from trajeglish_env.env.config import EnvConfig, TrajeglishNPC
-from trajeglish_env.env.gym_ego import EgoEnv
-from trajeglish_env.env.simulation import apply_actions
+from trajeglish_env.env.actions import check_action, named_action_space
+from trajeglish_env.env.config import EnvConfig
+from trajeglish_env.env.episodes import EpisodeStream
+from trajeglish_env.env.gym_ego import check_single
+from trajeglish_env.env.observations import observation_space
+from trajeglish_env.env.rendering import LiveRenderer
+from trajeglish_env.env.scene_batch import SceneBatch, auto_threads
+from trajeglish_env.env.scenes import scene_set
+from trajeglish_env.env.simulation import AgentReport, Simulation
 
-
-def auto_threads(num_envs: int) -> int:
-    """Torch threads for a batch: 1 for a few scenes (small calls are fastest single-threaded), then one
-    per 4 scenes up to the cores this process may use."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return max(1, min(cores, num_envs // 4))
+__all__ = ["BatchedEgoEnv", "BatchedParallelEnv", "auto_threads"]
 
 
 def _seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
-    """Per-env seeds as Gymnasium's vector envs derive them (``seed + i``, or a list of n seeds)."""
+    """Per-scene seeds as Gymnasium's vector envs derive them (``seed + i``, or a list of n seeds)."""
     if seed is None or isinstance(seed, (int, np.integer)):
         return [None if seed is None else int(seed) + i for i in range(n)]
     seeds = list(seed)
@@ -52,12 +49,9 @@ def _seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
     return seeds
 
 
-class SceneBatch:
-    """``num_envs`` AEC envs on one scene set whose Trajeglish NPCs share one engine (row i = env i).
-
-    Step protocol: every env applies its external agents' actions (their AEC steps end *suspended*),
-    :meth:`decode` decodes every scene's NPCs at once, then each suspended env is resumed.
-    """
+class BatchCore:
+    """What both batched envs share: the scene batch, each scene's episode stream and renderer, and the
+    start / position / observe steps of the protocol."""
 
     def __init__(
         self,
@@ -65,70 +59,115 @@ class SceneBatch:
         scenes: Any,
         config: EnvConfig,
         render_mode: str | None,
-        torch_threads: int | str | None = "auto",
+        torch_threads: int | str | None,
     ):
-        if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        if not (torch_threads in ("auto", None) or (isinstance(torch_threads, int) and torch_threads >= 1)):
-            raise ValueError(
-                f"torch_threads must be 'auto', None or a positive integer, got {torch_threads!r}"
-            )
-        first = raw_env(scenes, config, render_mode)
-        if first.checkpoint is not None:
-            if config.order != "first":
-                raise ValueError(
-                    f"batched envs need order='first' (external agents act before every NPC, so the NPCs of "
-                    f"all scenes are decoded together); got order={config.order!r}. Use the unbatched envs "
-                    "for other intra-timestep orders"
-                )
-            settings = first._sampling if isinstance(first._sampling, TrajeglishNPC) else TrajeglishNPC()
-            config = config.with_overrides(npc=replace(settings, checkpoint=first.checkpoint))  # load once
-        shared_scenes = first.scenes
-        self.envs = [first] + [raw_env(shared_scenes, config, render_mode) for _ in range(num_envs - 1)]
-        self.geometry = BatchGeometry()
-        self.engine = None
-        if first.checkpoint is not None:
-            import torch
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"batched envs render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.batch = SceneBatch(num_envs, config, torch_threads)
+        self.config = self.batch.config
+        self.num_envs = int(num_envs)
+        self.render_mode = render_mode
+        self.scenes = scene_set(scenes)
+        self.streams = [EpisodeStream(self.scenes) for _ in range(self.num_envs)]
+        self.renderers = [
+            LiveRenderer(config.render_size, config.render_radius) for _ in range(self.num_envs)
+        ]
+        self.single_observation_space = observation_space(config.observation, config.obs)
+        vocab = self.batch.vocabulary
+        self.vocab_size = vocab.size if vocab is not None else 1
 
-            from trajeglish_env.sampler.engine import BatchEngine
+    def start(self, scene: int, seed: int | None, options: dict[str, Any] | None) -> Simulation:
+        """Start the next episode of ``scene`` (positioned by the next :meth:`position`)."""
+        scenario, rng = self.streams[scene].next(seed, options)
+        return self.batch.start(scene, scenario, rng)
 
-            threads = auto_threads(num_envs) if torch_threads == "auto" else torch_threads
-            if threads is not None:
-                torch.set_num_threads(int(threads))
-            self.engine = BatchEngine(
-                first.checkpoint, num_envs, settings.sampling(), settings.torch_cache_dtype
-            )
-            for i, env in enumerate(self.envs):
-                env._shared_row = (self.engine, i)
+    def position(self) -> None:
+        """Let every running scene's NPCs act up to its first external agent of the step."""
+        self.batch.advance()
 
-    def decode(self) -> None:
-        """Decode this step's NPCs of every suspended scene, then resume those scenes (their step outcomes
-        computed for all of them at once)."""
-        waiting = [env for env in self.envs if env.suspended]
-        if self.engine is not None and waiting:
-            self.engine.step()
-        if waiting:
-            sims = [env._sim() for env in waiting]
-            for sim, outcome in zip(sims, self.geometry.outcomes(sims), strict=True):
-                sim.prepared = (sim.t, outcome)
-        for env in waiting:
-            env.resume()
+    def sim(self, scene: int) -> Simulation:
+        return self.batch.sim(scene)
 
-    def observe(self, envs: Sequence[raw_env], agents: Sequence[str]) -> list[np.ndarray]:
-        """Observations of agent ``agents[i]`` of ``envs[i]`` now, computed together for ``vector``
-        observations (see :mod:`~trajeglish_env.env.batch_geometry`)."""
-        if not envs:
-            return []
-        if self.envs[0].config.observation != "vector":
-            return [env.observe(agent) for env, agent in zip(envs, agents, strict=True)]
-        sims = [env._sim() for env in envs]
-        index = [env.agent_index(agent) for env, agent in zip(envs, agents, strict=True)]
-        return list(self.geometry.observations(sims, index))
+    def frames(self) -> tuple[np.ndarray | None, ...]:
+        """The current frame of every scene (None for a stopped one)."""
+        out = []
+        for i, sim in enumerate(self.batch.sims):
+            out.append(None if sim is None else self.renderers[i].of(sim).frame(sim.t))
+        return tuple(out)
 
-    def stop(self, index: int) -> None:
-        """Scene ``index`` has no agents left: its engine row stops decoding until the scene is reset."""
-        if self.engine is not None:
-            self.engine.stop_rows([index])
+    def close(self) -> None:
+        for renderer in self.renderers:
+            renderer.close()
+
+
+class EgoScene:
+    """Scene ``index`` of a :class:`BatchedEgoEnv`, as far as per-env tools need it (SB3's ``get_attr``,
+    ``env_method``, and the external policies of ``policies/``, which read a scene as they read the AEC
+    env): its ego's name, simulation and scenario, ``agent_index`` / ``action_towards``, its frame, and a
+    reset of this scene alone."""
+
+    def __init__(self, owner: BatchedEgoEnv, index: int):
+        self.owner, self.index = owner, index
+        self.render_mode = owner.render_mode
+
+    @property
+    def unwrapped(self) -> EgoScene:
+        return self
+
+    def observation_space(self, agent: str) -> gymnasium.Space:
+        """The observation space (PettingZoo-style, as the AEC env)."""
+        return self.owner.single_observation_space
+
+    def action_space(self, agent: str) -> gymnasium.Space:
+        """The ego's action space (PettingZoo-style, as the AEC env)."""
+        return self.owner.single_action_space
+
+    @property
+    def agent(self) -> str:
+        """The ego's name in the current episode."""
+        return self.owner.agents[self.index]
+
+    @property
+    def sim(self) -> Simulation:
+        """The running simulation of this scene."""
+        return self.owner.core.sim(self.index)
+
+    @property
+    def scenario(self) -> Any:
+        return self.sim.sc
+
+    @property
+    def config(self) -> EnvConfig:
+        return self.owner.core.config
+
+    @property
+    def vocabulary(self) -> Any:
+        return self.owner.core.batch.vocabulary
+
+    @property
+    def scenes(self) -> Any:
+        """The env's scene set."""
+        return self.owner.core.scenes
+
+    def agent_index(self, agent: str) -> int:
+        """Index in the scene of an external agent's name."""
+        return self.sim.index_of(agent)
+
+    def action_towards(self, agent: str, target: np.ndarray) -> np.ndarray | int:
+        """The action that brings ``agent`` closest to state ``target [3]`` at the next step."""
+        return self.sim.action_towards(self.agent_index(agent), target)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
+        """Start this scene's next episode (the others go on where they are)."""
+        info = self.owner.restart(self.index, seed, options)
+        self.owner.core.position()
+        return self.owner.core.batch.observe([self.index], [self.owner.egos[self.index]])[0], info
+
+    def render(self) -> np.ndarray | None:
+        return self.owner.core.frames()[self.index] if self.render_mode == "rgb_array" else None
+
+    def close(self) -> None:
+        self.owner.core.renderers[self.index].close()
 
 
 class BatchedEgoEnv(VectorEnv):
@@ -148,29 +187,47 @@ class BatchedEgoEnv(VectorEnv):
         **options: Any,
     ):
         config = (config or EnvConfig()).with_overrides(**options)
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"BatchedEgoEnv render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self.batch = SceneBatch(num_envs, scenes, config, render_mode, torch_threads)
-        self.envs = [EgoEnv.around(aec) for aec in self.batch.envs]
-        self.num_envs = int(num_envs)
+        check_single(config)
+        self.core = BatchCore(num_envs, scenes, config, render_mode, torch_threads)
+        self.num_envs = self.core.num_envs
         self.render_mode = render_mode
-        self.single_observation_space = self.envs[0].observation_space
-        self.single_action_space = self.envs[0].action_space
+        self.single_observation_space = self.core.single_observation_space
+        self.single_action_space = named_action_space(config.action, self.core.vocab_size, "ego")
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self._obs = create_empty_array(self.single_observation_space, self.num_envs)
-        self._single_obs: list[Any] = [None] * self.num_envs
+        self.egos = np.zeros(self.num_envs, dtype=np.int64)
+        self.agents = [""] * self.num_envs
+        self.envs = [EgoScene(self, i) for i in range(self.num_envs)]
+
+    def restart(self, scene: int, seed: int | None, options: dict[str, Any] | None) -> dict[str, Any]:
+        """Start scene ``scene``'s next episode; its reset info."""
+        sim = self.core.start(scene, seed, options)
+        self.egos[scene] = sim.external_index[0]
+        self.agents[scene] = sim.names[int(self.egos[scene])]
+        return {"agent": self.agents[scene], "scenario_id": sim.sc.scenario_id}
 
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[Any, dict[str, Any]]:
         """Reset every scene (``seed + i`` for scene i, or a list of seeds; ``options`` go to each)."""
         self._np_random_seed = seed if isinstance(seed, int) else None
-        infos: dict[str, Any] = {}
-        for i, (env, s) in enumerate(zip(self.envs, _seeds(seed, self.num_envs), strict=True)):
-            self._single_obs[i], info = env.reset(seed=s, options=options)
-            infos = self._add_info(infos, info, i)
-        return self._batched_obs(), infos
+        observations, infos = self.reset_each(_seeds(seed, self.num_envs), [options] * self.num_envs)
+        merged: dict[str, Any] = {}
+        for i, info in enumerate(infos):
+            merged = self._add_info(merged, info, i)
+        return self._batched(observations), merged
+
+    def reset_each(
+        self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
+    ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
+        """Reset scene i with ``seeds[i]`` and ``options[i]``; per-scene observations and infos."""
+        infos = [self.restart(i, s, o) for i, (s, o) in enumerate(zip(seeds, options, strict=True))]
+        self.core.position()
+        return self._observe_all(), infos
+
+    def _observe_all(self) -> list[np.ndarray]:
+        return self.core.batch.observe(range(self.num_envs), self.egos)
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """One timestep of every scene; finished scenes are reset in the same call."""
@@ -178,14 +235,15 @@ class BatchedEgoEnv(VectorEnv):
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = np.zeros(self.num_envs, dtype=bool)
         infos: dict[str, Any] = {}
+        observations = []
         for i, (obs, rewards[i], terminated[i], truncated[i], info, final) in enumerate(
             self.step_each(actions)
         ):
             if final is not None:
                 infos = self._add_info(infos, {"final_obs": final[0], "final_info": final[1]}, i)
-            self._single_obs[i] = obs
+            observations.append(obs)
             infos = self._add_info(infos, info, i)
-        return self._batched_obs(), rewards, terminated, truncated, infos
+        return self._batched(observations), rewards, terminated, truncated, infos
 
     def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
         """Step every scene; per scene ``(obs, reward, terminated, truncated, info, final)`` where a
@@ -193,36 +251,48 @@ class BatchedEgoEnv(VectorEnv):
         ``(obs, info)`` of the old one (None otherwise)."""
         if len(actions) != self.num_envs:
             raise ValueError(f"step: expected {self.num_envs} actions (one per scene), got {len(actions)}")
-        prepared = [env.prepare(action) for env, action in zip(self.envs, actions, strict=True)]
-        apply_actions(*zip(*prepared, strict=True))  # every action is valid before any is applied
-        for env in self.envs:
-            env.aec.after_action()
-        self.batch.decode()
-        observations = self.batch.observe([env.aec for env in self.envs], [env.agent for env in self.envs])
-        results = []
-        for env, observation in zip(self.envs, observations, strict=True):
-            obs, reward, terminated, truncated, info = env.outcome(observation)
-            final = None
-            if terminated or truncated:
-                final = (obs, info)
-                obs, info = env.reset()
-            results.append((obs, reward, terminated, truncated, info, final))
-        return results
+        if not all(self.agents):
+            raise RuntimeError("call reset() before step()")
+        values = [
+            check_action(self.single_action_space, a, name)
+            for a, name in zip(actions, self.agents, strict=True)
+        ]
+        scenes = range(self.num_envs)
+        batch = self.core.batch
+        batch.play(scenes, self.egos, values)
+        reports = [r[name] for r, name in zip(batch.finish(scenes), self.agents, strict=True)]
+        done = [i for i, r in enumerate(reports) if r.terminated or r.truncated]
+        finals = dict(zip(done, batch.observe(done, self.egos[done]), strict=True))
+        infos = [dict(r.info) for r in reports]
+        for i in done:
+            infos[i] = self.restart(i, None, None)
+        self.core.position()
+        observations = self._observe_all()
+        return [
+            (
+                obs,
+                r.reward,
+                r.terminated,
+                r.truncated,
+                info,
+                (finals[i], dict(r.info)) if i in finals else None,
+            )
+            for i, (obs, r, info) in enumerate(zip(observations, reports, infos, strict=True))
+        ]
 
-    def _batched_obs(self) -> Any:
-        return concatenate(self.single_observation_space, self._single_obs, self._obs).copy()
+    def _batched(self, observations: list[np.ndarray]) -> Any:
+        return concatenate(self.single_observation_space, observations, self._obs).copy()
 
     def render(self) -> tuple[Any, ...] | None:
         """Frames of every scene (``rgb_array``)."""
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
             return None
-        return tuple(env.render() for env in self.envs)
+        return self.core.frames()
 
     def close_extras(self, **kwargs: Any) -> None:
         """Release the renderers."""
-        for env in self.envs:
-            env.close()
+        self.core.close()
 
 
 class BatchedParallelEnv:
@@ -246,19 +316,21 @@ class BatchedParallelEnv:
         **options: Any,
     ):
         config = (config or EnvConfig()).with_overrides(**options)
-        self.batch = SceneBatch(num_envs, scenes, config, render_mode, torch_threads)
-        self.envs = self.batch.envs
-        self.num_envs = int(num_envs)
+        self.core = BatchCore(num_envs, scenes, config, render_mode, torch_threads)
+        self.num_envs = self.core.num_envs
         self.render_mode = render_mode
         self.agents: list[list[str]] = [[] for _ in range(self.num_envs)]
+        self._spaces: dict[str, gymnasium.Space] = {}
 
     def observation_space(self, agent: str) -> gymnasium.Space:
         """The observation space (the same for every agent of every scene)."""
-        return self.envs[0].observation_space(agent)
+        return self.core.single_observation_space
 
     def action_space(self, agent: str) -> gymnasium.Space:
-        """The agent's action space (as in the parallel env)."""
-        return self.envs[0].action_space(agent)
+        """The agent's action space (as in the parallel env: its sampling seeded from the name)."""
+        if agent not in self._spaces:
+            self._spaces[agent] = named_action_space(self.core.config.action, self.core.vocab_size, agent)
+        return self._spaces[agent]
 
     def reset(
         self, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
@@ -278,67 +350,86 @@ class BatchedParallelEnv:
         bad = [i for i in indices if not 0 <= i < self.num_envs]
         if bad:
             raise ValueError(f"reset_scenes: scene indices {bad} out of range for {self.num_envs} scenes")
-        observations, infos = [], []
         for i, s in zip(indices, _seeds(seed, len(indices)), strict=True):
-            env = self.envs[i]
-            env.reset(seed=s, options=options)
-            self.agents[i] = env.agents[:]
-            observations.append(
-                {a: env.observe(a) for a in env.agents if not (env.terminations[a] or env.truncations[a])}
-            )
-            infos.append(dict(**env.infos))
+            self.core.start(i, s, options)
+        self.core.position()
+        observations, infos = [], []
+        for i in indices:
+            sim = self.core.sim(i)
+            self.agents[i] = [sim.names[a] for a in sim.external_order()]
+            observations.append(self._observe(i, self.agents[i]))
+            infos.append({a: {} for a in self.agents[i]})
         return observations, infos
 
-    def step(self, actions: Sequence[dict[str, Any]]) -> tuple[list[dict[str, Any]], ...]:
-        """One timestep of every scene that has agents: ``actions[i]`` maps scene i's agents to actions.
-        Returns per-scene lists of observations, rewards, terminations, truncations and infos."""
+    def _observe(self, scene: int, names: Sequence[str]) -> dict[str, np.ndarray]:
+        sim = self.core.sim(scene)
+        index = {sim.names[a]: int(a) for a in sim.external_index}
+        obs = self.core.batch.observe([scene] * len(names), [index[n] for n in names])
+        return dict(zip(names, obs, strict=True))
+
+    def _validated(self, actions: Sequence[dict[str, Any]]) -> tuple[list[int], list[int], list[Any]]:
+        """Every scene's actions checked (one per live agent, no unknown agent, inside its space) before
+        anything moves: the flat (scenes, agents, actions) to play."""
         if len(actions) != self.num_envs:
             raise ValueError(
                 f"step: expected {self.num_envs} action dicts (one per scene), got {len(actions)}"
             )
-        rewards: list[dict[str, float]] = [{} for _ in range(self.num_envs)]
-        busy = [i for i in range(self.num_envs) if self.envs[i].agents]
-        for i in busy:
-            env = self.envs[i]
-            missing = [a for a in env.agents if a not in actions[i]]
+        scenes, agents, values = [], [], []
+        for i, names in enumerate(self.agents):
+            if not names:
+                continue
+            given = actions[i]
+            missing = [a for a in names if a not in given]
             if missing:
                 raise KeyError(f"step: scene {i} has no action for agent(s) {missing}")
-            for agent in env.agents:
-                env.step(actions[i][agent])
-                if not env.suspended:
-                    _add_rewards(rewards[i], env)
-        resumed = {i for i in busy if self.envs[i].suspended}
-        self.batch.decode()
+            unknown = sorted(set(given) - set(names))
+            if unknown:
+                raise KeyError(f"step: scene {i} has no live agent(s) {unknown}; its agents are {names}")
+            sim = self.core.sim(i)
+            index = {sim.names[a]: int(a) for a in sim.external_index}
+            for name in names:
+                scenes.append(i)
+                agents.append(index[name])
+                values.append(check_action(self.action_space(name), given[name], name))
+        return scenes, agents, values
+
+    def step(self, actions: Sequence[dict[str, Any]]) -> tuple[list[dict[str, Any]], ...]:
+        """One timestep of every scene that has agents: ``actions[i]`` maps scene i's agents to actions.
+        Returns per-scene lists of observations, rewards, terminations, truncations and infos."""
+        scenes, agents, values = self._validated(actions)
+        busy = [i for i in range(self.num_envs) if self.agents[i]]
+        batch = self.core.batch
+        batch.play(scenes, agents, values)
+        reports = dict(zip(busy, batch.finish(busy), strict=True))
         out: tuple[list[dict[str, Any]], ...] = tuple([{} for _ in range(self.num_envs)] for _ in range(5))
+        ended = [i for i in busy if not self.core.sim(i).has_live_agents]
+        for i in ended:  # observed as the step left them, then their rows stop
+            self._fill(out, i, reports[i])
+            batch.stop(i)
+            self.agents[i] = []
+        self.core.position()
         for i in busy:
-            env = self.envs[i]
-            if i in resumed:
-                _add_rewards(rewards[i], env)
-            out[0][i].update({a: env.observe(a) for a in env.agents})
-            out[1][i].update(rewards[i])
-            out[2][i].update(env.terminations)
-            out[3][i].update(env.truncations)
-            out[4][i].update(env.infos)
-            while env.agents and (
-                env.terminations[env.agent_selection] or env.truncations[env.agent_selection]
-            ):
-                env.step(None)
-            self.agents[i] = env.agents[:]
-            if not env.agents:
-                self.batch.stop(i)
+            if i not in ended:
+                self._fill(out, i, reports[i])
+                sim = self.core.sim(i)
+                self.agents[i] = [sim.names[a] for a in sim.external_order()]
         return out
 
+    def _fill(
+        self, out: tuple[list[dict[str, Any]], ...], scene: int, reports: dict[str, AgentReport]
+    ) -> None:
+        """Scene ``scene``'s entries of a step's results."""
+        out[0][scene].update(self._observe(scene, list(reports)))
+        for name, r in reports.items():
+            out[1][scene][name] = r.reward
+            out[2][scene][name] = r.terminated
+            out[3][scene][name] = r.truncated
+            out[4][scene][name] = r.info
+
     def render(self) -> tuple[Any, ...]:
-        """Frames of every scene (``rgb_array``)."""
-        return tuple(env.render() for env in self.envs)
+        """Frames of every scene (``rgb_array``; None for a finished scene)."""
+        return self.core.frames()
 
     def close(self) -> None:
         """Release the renderers."""
-        for env in self.envs:
-            env.close()
-
-
-def _add_rewards(total: dict[str, float], env: raw_env) -> None:
-    """Accumulate this AEC step's rewards of every agent (as PettingZoo's aec_to_parallel does)."""
-    for agent in env.agents:
-        total[agent] = total.get(agent, 0) + env.rewards[agent]
+        self.core.close()

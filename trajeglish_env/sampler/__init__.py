@@ -1,66 +1,26 @@
-"""Closed-loop rollouts: full or partial control, any scene size (spatial/temporal sliding window)."""
+"""Closed-loop rollouts: full or partial control, any scene size (spatial/temporal sliding window).
+
+Names load lazily, so that the torch-free :mod:`~trajeglish_env.sampler.config` can be imported alone.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from importlib import import_module
+from typing import Any
 
-import numpy as np
-
-from trajeglish_env.checkpoint import Checkpoint
-from trajeglish_env.sampler.engine import RolloutEngine, SamplingConfig
-from trajeglish_env.sampler.subsets import SubsetPlan, plan_subsets
-from trajeglish_env.scenario import Scenario
-
-__all__ = ["RolloutEngine", "Rollouts", "SamplingConfig", "SubsetPlan", "plan_subsets", "rollout"]
-
-
-@dataclass(frozen=True)
-class Rollouts:
-    """``xyh [R,N,T,3]`` and ``valid [R,N,T]`` for steps ``0 .. current+horizon`` (history included),
-    ``tokens [R,N,T-1]``, which agents the model ``controlled [N]``, and the ``current_index``."""
-
-    xyh: np.ndarray
-    valid: np.ndarray
-    tokens: np.ndarray
-    controlled: np.ndarray
-    current_index: int
-
-    @property
-    def future(self) -> slice:
-        return slice(self.current_index + 1, self.xyh.shape[2])
+_WHERE = {
+    "RolloutEngine": "engine",
+    "Rollouts": "rollouts",
+    "rollout": "rollouts",
+    "SamplingConfig": "config",
+    "DEFAULT_TEMPERATURE": "config",
+    "SubsetPlan": "subsets",
+    "plan_subsets": "subsets",
+}
+__all__ = sorted(_WHERE)
 
 
-def rollout(
-    ckpt: Checkpoint,
-    scenario: Scenario,
-    rollouts: int = 1,
-    horizon: int = 80,
-    controlled: np.ndarray | None = None,
-    current_index: int | None = None,
-    priority: np.ndarray | None = None,
-    config: SamplingConfig | None = None,
-) -> Rollouts:
-    """Sample ``rollouts`` futures of ``horizon`` steps after ``current_index`` (default: the scene's).
-
-    ``controlled [N]`` bool: agents the model drives (default: every agent valid at the current step);
-    all others replay the log. ``priority [N]``: lower acts earlier within a timestep (default: the sdc
-    first, then by distance to each subset's centre agent). Same seed, same rollout.
-    """
-    current = scenario.current_index if current_index is None else int(current_index)
-    if controlled is None:
-        controlled = scenario.valid[:, current].copy()
-    if priority is None:
-        priority = np.zeros(scenario.num_agents)
-        priority[scenario.sdc] = -1.0
-    engine = RolloutEngine(
-        ckpt,
-        scenario,
-        rollouts,
-        horizon,
-        np.asarray(controlled, dtype=bool),
-        current_index=current,
-        priority=priority,
-        config=config or SamplingConfig(),
-    )
-    engine.run()
-    return Rollouts(engine.xyh, engine.valid, engine.tokens, engine.controlled, current)
+def __getattr__(name: str) -> Any:
+    if name not in _WHERE:
+        raise AttributeError(f"module 'trajeglish_env.sampler' has no attribute {name!r}")
+    return getattr(import_module(f"trajeglish_env.sampler.{_WHERE[name]}"), name)

@@ -38,47 +38,14 @@ from trajeglish_env.model.config import Variant
 from trajeglish_env.model.layers import DecoderCache
 from trajeglish_env.model.masks import input_shift
 from trajeglish_env.model.network import SceneInputs
-from trajeglish_env.sampler.subsets import SUBSET_RULES, SubsetPlan, plan_subsets
+from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.subsets import SubsetPlan, plan_subsets
 from trajeglish_env.sampling import START, counter_uniform, sample_with_uniform, stream_seed
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.tokenize import tokenize
 
 MAP_RADIUS = 100.0  # metres around a window's centre agent, as in training windows
 ROW_BLOCK = 8  # rows encoded and primed per model call when windows are (re)built: activations stay in cache
-
-
-@dataclass(frozen=True)
-class SamplingConfig:
-    """Sampling settings: temperature/nucleus, the sliding window in time, and the seed."""
-
-    temperature: float = 1.0
-    top_p: float = 1.0
-    prime_steps: int | None = (
-        None  # steps of known motion re-fed when a window (re)starts; default steps // 4
-    )
-    recompute_every: int | None = None  # default: model steps - prime_steps
-    seed: int = 0
-    subsets: str = "overlap"  # how scenes larger than the model's context are split (see subsets.py)
-
-    def __post_init__(self) -> None:
-        if self.subsets not in SUBSET_RULES:
-            raise ValueError(f"SamplingConfig.subsets must be one of {SUBSET_RULES}, got {self.subsets!r}")
-
-    def prime(self, model_steps: int) -> int:
-        prime = max(1, model_steps // 4) if self.prime_steps is None else self.prime_steps
-        if not 0 <= prime < model_steps:
-            raise ValueError(f"prime_steps={prime} must be in 0..{model_steps - 1} (the model's context)")
-        return prime
-
-    def every(self, model_steps: int) -> int:
-        prime = self.prime(model_steps)
-        every = self.recompute_every or model_steps - prime
-        if not 1 <= every <= model_steps - prime:
-            raise ValueError(
-                f"recompute_every={every} must be in 1..{model_steps - prime} "
-                f"(the model's {model_steps} steps minus prime_steps={prime})"
-            )
-        return every
 
 
 @dataclass(frozen=True)
@@ -114,24 +81,25 @@ class BatchEngine:
     Per-row state (padded to the largest scene: ``N`` agents, ``T`` steps): exact states ``xyh [B,N,T,3]``
     and ``valid [B,N,T]``; the model's tokenized view ``mxyh``; ``tokens [B,N,T-1]`` and ``known`` (the
     token of a step is decided); ``now [B]`` the step being played and ``end [B]`` the last step.
-    ``cache_dtype``: dtype of the self-attention caches (``torch.bfloat16`` halves their memory traffic).
+    ``cache_dtype``: dtype of the self-attention caches (None: ``config.cache_dtype``).
     """
 
     def __init__(
         self,
         ckpt: Checkpoint,
         rows: int,
-        config: SamplingConfig = SamplingConfig(),
-        cache_dtype: torch.dtype = torch.float32,
+        config: SamplingConfig | None = None,
+        cache_dtype: torch.dtype | None = None,
     ):
         if rows < 1:
             raise ValueError(f"rows must be >= 1, got {rows}")
+        config = config or SamplingConfig()
         self.model = ckpt.model.eval()
         self.device = self.model.start.device  # the engine's state stays on the host; the model's here
         self.vocab = ckpt.vocabulary
         self.cfg = self.model.cfg
         self.config = config
-        self.cache_dtype = cache_dtype
+        self.cache_dtype = cache_dtype = config.torch_cache_dtype if cache_dtype is None else cache_dtype
         # the float32 single-query attention kernel rounds differently from the multi-query one: pad to 2
         # queries so that a row's result never depends on the chunk lengths of the other rows
         self._min_queries = 1 if cache_dtype == torch.bfloat16 else 2
@@ -195,9 +163,9 @@ class BatchEngine:
 
     # ------------------------------------------------------------------ rows
     def start_rows(self, rows: np.ndarray | list[int], spec: RowSpec, seeds: np.ndarray | list[int]) -> None:
-        """(Re)start ``rows`` on ``spec``, row ``rows[i]`` drawing from ``seeds[i]``; only between steps."""
-        if self._in_step:
-            raise RuntimeError("rows can only be (re)started between steps (the current step is unfinished)")
+        """(Re)start ``rows`` on ``spec``, row ``rows[i]`` drawing from ``seeds[i]`` (an unfinished step of
+        the other rows is undone, see :meth:`cancel_step`)."""
+        self.cancel_step()
         self._tokenize_supplied()
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)
@@ -271,10 +239,27 @@ class BatchEngine:
         self.window_step[rows] = -1
         self.num_subsets[rows] = 0
 
+    def cancel_step(self) -> None:
+        """Undo the unfinished step of every stepping row: the tokens decoded or supplied in it are forgotten
+        (decoding it again draws the same ones, and overwrites the same cache positions), so rows can be
+        (re)started or stopped as between steps."""
+        self._supplied = []
+        if not self._in_step:
+            return
+        rows = np.flatnonzero(self.stepping)
+        r, a = np.nonzero(self.row_controlled[rows] | self.row_external[rows])
+        rr, t = rows[r], self.now[rows[r]]
+        self.known[rr, a, t] = False
+        self.tokens[rr, a, t] = -1
+        ext = self.row_external[rr, a]
+        self.valid[rr[ext], a[ext], t[ext] + 1] = False
+        self.xyh[rr[ext], a[ext], t[ext] + 1] = 0.0
+        self._in_step = False
+
     def stop_rows(self, rows: np.ndarray | list[int]) -> None:
-        """Take ``rows`` out of the simulation (they stop stepping until started again)."""
-        if self._in_step:
-            raise RuntimeError("rows can only be stopped between steps (the current step is unfinished)")
+        """Take ``rows`` out of the simulation (they stop stepping until started again; an unfinished step
+        of the others is undone, see :meth:`cancel_step`)."""
+        self.cancel_step()
         self.live[np.asarray(rows, dtype=np.int64)] = False
 
     @property
@@ -429,7 +414,10 @@ class BatchEngine:
     def _advance(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Act the positions of the current step in order, for every stepping row. Returns
         ``(rows, agents)``: external agents whose next states are needed (supply them, then call again),
-        or None when the step is complete (every stepping row is one step further).
+        or None when the step is complete (every stepping row is one step further). A waiting row holds
+        while the others go on, so the call returns once no row can go further without a supply: every
+        row then stands at its next external agent (inference is batch-invariant, so the grouping of rows
+        into calls never changes a token).
 
         Each row runs through the slots of subset rank 0, 1, ... with its own cursor: a model call decodes,
         per row, the run of positions up to its next *blocker* (an agent to sample, or an external agent
@@ -458,11 +446,11 @@ class BatchEngine:
             wait = undecided & self.row_external[r_ix, safe] & self.valid[r_ix, safe, t_safe[:, None]]
             prev = np.clip(self._slot - 1, 0, A - 1)
             waiting = (self._slot > 0) & wait[np.arange(self.B), prev]
-            if waiting.any():
-                rows = np.flatnonzero(waiting)
-                return rows, w.slots[rows, prev[rows]]
-            active = stepping & (self._slot < A)
+            active = stepping & (self._slot < A) & ~waiting
             if not active.any():
+                if waiting.any():  # no row can go on without a supply: hand the waiting ones out
+                    rows = np.flatnonzero(waiting)
+                    return rows, w.slots[rows, prev[rows]]
                 self._rank += 1
                 self._slot = np.where(self.num_subsets > self._rank, 0, A)
                 continue
@@ -606,9 +594,10 @@ class RolloutEngine(BatchEngine):
         external: np.ndarray | None = None,
         current_index: int | None = None,
         priority: np.ndarray | None = None,
-        config: SamplingConfig = SamplingConfig(),
-        cache_dtype: torch.dtype = torch.float32,
+        config: SamplingConfig | None = None,
+        cache_dtype: torch.dtype | None = None,
     ):
+        config = config or SamplingConfig()
         super().__init__(ckpt, rollouts, config, cache_dtype)
         self.sc = scenario
         spec = RowSpec(scenario, horizon, controlled, external, current_index, priority)

@@ -1,0 +1,126 @@
+"""Batched envs play every intra-timestep order exactly as separate envs do; a step validates every
+scene's actions before anything moves; SB3's vector env keeps the final step's info."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from stable_baselines3.common.vec_env import DummyVecEnv
+from test_env import TINY
+
+from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
+from trajeglish_env.env.sb3 import SB3VecEnv
+from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv
+
+KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
+MERGE, RING = "highway-merge-999000", "highway-roundabout-999001"
+
+
+def same_dicts(got: dict, want: dict) -> bool:
+    """Equal keys and values (arrays compared exactly)."""
+    return got.keys() == want.keys() and all(np.array_equal(got[k], want[k]) for k in got)
+
+
+@pytest.mark.parametrize("order", ["last", "random"])
+def test_batched_parallel_env_equals_separate_envs_for_every_order(order: str) -> None:
+    kw = {"npc": TrajeglishNPC(TINY), "external": "all", "order": order, "max_cycles": 4}
+    penv = BatchedParallelEnv(2, **kw)
+    options = [{"scene": MERGE}, {"scene": RING}]
+    refs = [parallel_env(**kw) for _ in range(2)]
+    obs = [penv.reset_scenes([i], seed=7 + i, options=o)[0][0] for i, o in enumerate(options)]
+    for i, ref in enumerate(refs):
+        assert same_dicts(obs[i], ref.reset(seed=7 + i, options=options[i])[0])
+    for _ in range(5):
+        actions = [{a: penv.action_space(a).sample() for a in agents} for agents in penv.agents]
+        out = penv.step(actions)
+        for i, ref in enumerate(refs):
+            if not ref.agents:
+                assert out[0][i] == {} and penv.agents[i] == []
+                continue
+            want = ref.step(actions[i])
+            assert same_dicts(out[0][i], want[0])  # observations, where the next step's first agent acts
+            assert out[1][i] == pytest.approx(dict(want[1]))
+            assert out[2][i] == want[2] and out[3][i] == want[3] and out[4][i] == want[4]
+            assert penv.agents[i] == ref.agents
+
+
+def test_batched_ego_env_acting_last_equals_separate_envs_with_autoreset() -> None:
+    kw = {"npc": TrajeglishNPC(TINY), "order": "last", "max_cycles": 5}
+    venv = BatchedEgoEnv(2, **kw)
+    obs, _ = venv.reset(seed=11)
+    rng = np.random.default_rng(3)
+    actions = [rng.uniform(-1, 1, (2, 2)).astype(np.float32) for _ in range(9)]
+    batched = [venv.step(a) for a in actions]
+    assert sum(int((r[2] | r[3]).sum()) for r in batched) >= 2  # scenes ended and restarted
+    for i in range(2):
+        env = EgoEnv(**kw)
+        o, _ = env.reset(seed=11 + i)
+        assert np.array_equal(o, obs[i])
+        for a, (b_obs, b_rew, b_term, b_trunc, b_info) in zip(actions, batched, strict=True):
+            o, r, term, trunc, info = env.step(a[i])
+            assert (r, term, trunc) == (b_rew[i], b_term[i], b_trunc[i])
+            if term or trunc:
+                final = b_info["final_info"]
+                assert np.array_equal(o, b_info["final_obs"][i])
+                assert all(final[k][i] == info[k] for k in ("collision", "offroad", "progress_m"))
+                o, _ = env.reset()
+            assert np.array_equal(o, b_obs[i])
+
+
+def test_a_bad_action_in_one_scene_changes_nothing_and_a_retry_plays_on() -> None:
+    kw = {"npc": "idm", "external": "all", "max_cycles": 6, "reward": KEEP_GOING}
+    penv = BatchedParallelEnv(2, **kw)
+    penv.reset(seed=[3, 4], options={"scene": MERGE})
+    refs = [parallel_env(**kw) for _ in range(2)]
+    for ref, s in zip(refs, [3, 4], strict=True):
+        ref.reset(seed=s, options={"scene": MERGE})
+    steps = [penv.core.sim(i).t for i in range(2)]
+    states = [penv.core.sim(i).driver.xyh.copy() for i in range(2)]
+    good = [{a: np.zeros(2, np.float32) for a in agents} for agents in penv.agents]
+    bad = [dict(good[0]), dict(good[1])]
+    last = penv.agents[1][-1]
+    bad[1][last] = np.array([5.0, 0.0], np.float32)
+    with pytest.raises(ValueError, match=f"agent {last}: action .* outside the action space"):
+        penv.step(bad)
+    unknown = [dict(good[0]), {**good[1], "vehicle_999999": np.zeros(2, np.float32)}]
+    with pytest.raises(KeyError, match="scene 1 has no live agent"):
+        penv.step(unknown)
+    assert [penv.core.sim(i).t for i in range(2)] == steps
+    assert all(np.array_equal(penv.core.sim(i).driver.xyh, s) for i, s in enumerate(states))
+    out = penv.step(good)  # the retry plays exactly what separate envs play
+    for i, ref in enumerate(refs):
+        want = ref.step(good[i])
+        assert same_dicts(out[0][i], want[0]) and out[1][i] == pytest.approx(dict(want[1]))
+
+
+def test_the_unbatched_parallel_env_checks_every_action_before_any_agent_acts() -> None:
+    env = parallel_env(npc="idm", external="all", max_cycles=4)
+    env.reset(seed=0, options={"scene": MERGE})
+    raw = env.aec_env
+    t, agents = raw.sim.t, list(env.agents)
+    actions = {a: np.zeros(2, np.float32) for a in agents}
+    with pytest.raises(KeyError, match=f"no action for agent\\(s\\) \\['{agents[-1]}'\\]"):
+        env.step({a: actions[a] for a in agents[:-1]})
+    with pytest.raises(KeyError, match="no live agent"):
+        env.step({**actions, "vehicle_123456789": np.zeros(2, np.float32)})
+    with pytest.raises(ValueError, match=f"agent {agents[-1]}: action"):
+        env.step({**actions, agents[-1]: np.array([0.0, 9.0], np.float32)})
+    assert raw.sim.t == t and raw.agent_selection == agents[0]
+    env.step(actions)
+    assert raw.sim.t == t + 1
+
+
+def test_sb3_vec_env_reports_the_final_steps_info_at_an_episode_end() -> None:
+    kw = {"npc": "idm", "max_cycles": 3}
+    vec = SB3VecEnv(2, **kw)
+    ref = DummyVecEnv([lambda: EgoEnv(**kw) for _ in range(2)])
+    vec.seed(5)
+    ref.seed(5)
+    vec.reset(), ref.reset()
+    for _ in range(3):
+        got, want = vec.step(np.zeros((2, 2), np.float32)), ref.step(np.zeros((2, 2), np.float32))
+    assert got[2].all() and want[2].all()  # the episodes ended at this step
+    for g, w in zip(got[3], want[3], strict=True):
+        assert {"collision", "offroad", "goal", "progress_m", "route_fraction"} <= g.keys()
+        assert np.array_equal(g.pop("terminal_observation"), w.pop("terminal_observation"))
+        assert g == w

@@ -1,0 +1,101 @@
+"""The package's shape: no import cycle among its modules, no module over 500 lines, and one sampling
+configuration whose defaults the env, the CLI, the policies and ``evaluate`` all share."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import trajeglish_env
+from trajeglish_env.cli import build_parser
+from trajeglish_env.env import TrajeglishNPC
+from trajeglish_env.evaluation import EvalConfig
+from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
+
+PACKAGE = Path(trajeglish_env.__file__).parent
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def module_level_imports(path: Path, modules: set[str]) -> set[str]:
+    """The package modules a module imports when it is imported (module level, not under
+    ``if TYPE_CHECKING``; imports inside functions run later, when called)."""
+    tree = ast.parse(path.read_text())
+    found: set[str] = set()
+    stack = [n for n in tree.body if not (isinstance(n, ast.If) and "TYPE_CHECKING" in ast.dump(n.test))]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            continue  # runs when called, not on import
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        found |= {n for n in names if n in modules}
+        stack.extend(ast.iter_child_nodes(node))
+    return found
+
+
+def import_graph() -> dict[str, set[str]]:
+    paths = {module_name(p): p for p in PACKAGE.rglob("*.py")}
+    return {m: module_level_imports(p, set(paths)) - {m} for m, p in paths.items()}
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One cycle of the graph (depth-first search), or None."""
+    done: set[str] = set()
+    trail: list[str] = []
+
+    def visit(m: str) -> list[str] | None:
+        trail.append(m)
+        for n in sorted(graph[m]):
+            if n in trail:
+                return trail[trail.index(n) :] + [n]
+            if n not in done and (cycle := visit(n)):
+                return cycle
+        trail.pop()
+        done.add(m)
+        return None
+
+    for m in sorted(graph):
+        if m not in done and (cycle := visit(m)):
+            return cycle
+    return None
+
+
+def test_no_import_cycle_in_the_package() -> None:
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]  # the search finds one
+    graph = import_graph()
+    assert len(graph) > 80 and "trajeglish_env.env.scene_state" in graph["trajeglish_env.env.batch_outcomes"]
+    cycle = find_cycle(graph)
+    assert cycle is None, f"import cycle: {' -> '.join(cycle or [])}"
+
+
+def test_no_module_over_500_lines() -> None:
+    long = {
+        str(p.relative_to(PACKAGE)): n
+        for p in PACKAGE.rglob("*.py")
+        if (n := len(p.read_text().splitlines())) > 500
+    }
+    assert long == {}
+
+
+def test_one_sampling_default_for_env_cli_policies_and_evaluate() -> None:
+    from policies.learned import TrajeglishPolicy
+
+    env_default = TrajeglishNPC().sampling
+    assert env_default == SamplingConfig() and env_default.temperature == DEFAULT_TEMPERATURE
+    assert EvalConfig().sampling == env_default and EvalConfig().temperatures == (env_default.temperature,)
+    parser = build_parser()
+    evaluate = parser.parse_args(["evaluate", "--data", "d"])
+    rollout = parser.parse_args(["rollout", "--scenario", "s", "--out", "o.gif"])
+    assert (
+        evaluate.temperature == [env_default.temperature] and rollout.temperature == env_default.temperature
+    )
+    assert evaluate.cache_dtype == rollout.cache_dtype == env_default.cache_dtype
+    assert evaluate.top_p == rollout.top_p == env_default.top_p
+    assert TrajeglishPolicy.__init__.__defaults__ == (None, None)  # None: SamplingConfig()
