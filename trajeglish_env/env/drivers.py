@@ -104,6 +104,8 @@ class OrderedDriver:
 
     def _begin(self) -> None:
         t = self._t
+        if t == self.scenario.num_steps - 1 and self.T > self.scenario.num_steps:
+            self.npc |= self.valid[:, t] & ~self.external  # the log ends: its agents go on as NPCs
         acting = (self.npc | self.external) & self.valid[:, t]
         agents = np.flatnonzero(acting)
         if len(agents):

@@ -13,6 +13,11 @@ The NPC interface (any object with these two methods can drive the NPCs)::
 
 ``act`` is called once per group of consecutive NPCs in the intra-timestep order (the NPCs between two
 external agents), so a group sees every move made before it; all of it is vectorized over the group.
+
+Episodes may run past the end of the log (``max_cycles``): agents the log brings in later are handed to
+the policy where their log ends (``act`` is then called for them too). A policy that can only play the log
+says so with an optional ``max_steps(scenario, current_index) -> int`` (steps it can drive after
+``current_index``); the env refuses longer episodes with it instead of cutting them short.
 """
 
 from __future__ import annotations
@@ -36,8 +41,15 @@ class NPCPolicy(Protocol):
     def act(self, view: WorldView, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
+def log_steps(scenario: Scenario, current_index: int) -> int:
+    """Steps of the log after ``current_index``: what log-bound policies can play."""
+    return scenario.num_steps - 1 - current_index
+
+
 class ReplayNPC:
-    """NPCs follow the log exactly (and leave where the log ends)."""
+    """NPCs follow the log exactly (episodes end with the log)."""
+
+    max_steps = staticmethod(log_steps)
 
     def reset(self, scenario: Scenario, npc: np.ndarray, current_index: int, seed: int) -> None:
         """Prepare for a new episode (see the NPC interface)."""
@@ -96,7 +108,10 @@ class IDMParams:
 
 
 class IDMNPC:
-    """IDM along each NPC's logged path, the leader found on that path (vectorized over agents)."""
+    """IDM along each NPC's logged path, the leader found on that path (vectorized over agents; episodes
+    end with the log, where the paths end)."""
+
+    max_steps = staticmethod(log_steps)
 
     def __init__(self, params: IDMParams = IDMParams()):
         self.params = params

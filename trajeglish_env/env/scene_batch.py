@@ -128,11 +128,27 @@ class SceneBatch:
         step of the other scenes is undone, and the next :meth:`advance` redoes it (the same draws)."""
         roles = Roles.draw(scenario, self.config, rng)
         horizon = episode_horizon(scenario, self.config)
+        self._check_horizon(scenario, horizon)
         row = self.rows.start(
             scene, scenario, roles.mask(scenario.num_agents), horizon, roles.priority, roles.seed
         )
         sim = self.sims[scene] = Simulation(scenario, self.config, self.vocabulary, roles, row, horizon)
         return sim
+
+    def _check_horizon(self, scenario: Scenario, horizon: int) -> None:
+        """A rule-based NPC policy bound to the log cannot play past its end: refuse, naming the limit."""
+        policy = self.config.npc
+        max_steps = getattr(make_npc_policy(policy) if isinstance(policy, str) else policy, "max_steps", None)
+        if max_steps is None or self.settings is not None:
+            return
+        limit = int(max_steps(scenario, scenario.current_index))
+        if horizon > limit:
+            name = policy if isinstance(policy, str) else type(policy).__name__
+            raise ValueError(
+                f"scenario {scenario.scenario_id!r}: max_cycles={horizon} but {name!r} NPCs can play only "
+                f"the {limit} steps of its log after the current index; use npc='trajeglish' or "
+                "'constant_velocity' for episodes longer than the log"
+            )
 
     def stop(self, scene: int) -> None:
         """Row ``scene`` has no agents left: it stops stepping until it is started again."""

@@ -113,6 +113,7 @@ class BatchEngine:
         self.end = np.zeros(self.B, dtype=np.int64)
         self.seed = np.zeros(self.B, dtype=np.uint64)
         self.first = np.zeros(self.B, dtype=np.int64)
+        self.handover_step = np.full(self.B, -1, dtype=np.int64)
         self.scenes: list[Scenario | None] = [None] * self.B
         self.chunks: list[MapChunks | None] = [None] * self.B
         self.plan: list[SubsetPlan | None] = [None] * self.B
@@ -148,6 +149,7 @@ class BatchEngine:
         self.row_controlled = grow(get("row_controlled"), (B, n), False, bool)
         self.row_external = grow(get("row_external"), (B, n), False, bool)
         self.row_priority = grow(get("row_priority"), (B, n), 0.0, np.float64)
+        self.handover = grow(get("handover"), (B, n), False, bool)
         self.size = grow(get("size"), (B, n, 2), 1.0, np.float64)
         self.kind = grow(get("kind"), (B, n), 0, np.int64)
         self.N, self.T = n, t
@@ -225,6 +227,11 @@ class BatchEngine:
         self.row_external[rows, :n] = external
         self.row_priority[rows] = 0.0
         self.row_priority[rows, :n] = priority
+        # a rollout past the log: the log's agents present at its last step go on as controlled agents
+        self.handover[rows] = False
+        if T > sc.num_steps:
+            self.handover[rows, :n] = replay & sc.valid[:, -1]
+        self.handover_step[rows] = sc.num_steps - 1 if T > sc.num_steps else -1
         self.size[rows] = 1.0
         self.size[rows, :n] = sc.size
         self.kind[rows] = 0
@@ -428,6 +435,7 @@ class BatchEngine:
             raise RuntimeError("no row has steps left (start rows, or the horizon is reached)")
         self._tokenize_supplied()
         if not self._in_step:
+            self._hand_over(np.flatnonzero(stepping & (self.now == self.handover_step)))
             rebuild = self._needs_windows()
             if rebuild.any():
                 self._build_windows(np.flatnonzero(rebuild))
@@ -468,6 +476,19 @@ class BatchEngine:
         self.now[rows] += 1
         self._in_step = False
         return None
+
+    def _hand_over(self, rows: np.ndarray) -> None:
+        """Where ``rows``' logs end, their logged agents still present become controlled: the model drives
+        them from this step on (their windows are planned anew to hold them)."""
+        for r in rows.tolist():
+            agents = np.flatnonzero(self.handover[r] & self.valid[r, :, self.now[r]])
+            if len(agents):
+                t, end = int(self.now[r]), int(self.end[r])
+                self.row_controlled[r, agents] = True
+                self.known[r, agents, t:end] = False
+                self.valid[r, agents, t + 1 : end + 1] = True
+                self.window_step[r] = -1
+            self.handover[r] = False
 
     def _decode_chunk(
         self, w: _Window, count: np.ndarray, sample: np.ndarray, stepping: np.ndarray, t: np.ndarray
