@@ -3,8 +3,9 @@
 Inference is *batch-invariant*: a row's outputs do not depend on which other rows share its batch, so a
 scene simulated in a batch of many gives bit-identical tokens to the same scene simulated alone. BLAS
 picks different kernels (and summation orders) for very small matrices, so :class:`Linear` pads inputs
-of fewer than ``MIN_GEMM_ROWS`` rows; cached decoding attends over the whole preallocated cache (fixed
-shapes, masked) rather than over a batch-dependent prefix.
+of fewer than ``MIN_GEMM_ROWS`` rows; cached decoding attends, per group of rows, over the cached keys up
+to the end of the group's model step (masked, a length set by the row alone) rather than over a
+batch-dependent prefix.
 """
 
 from __future__ import annotations
