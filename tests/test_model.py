@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from trajeglish_env.model import SceneInputs, TrajeglishModel, Variant, preset
-from trajeglish_env.model.masks import carried_position
+from trajeglish_env.model.masks import START, teacher_inputs
 
 
 def random_scene(cfg, b: int = 2, seed: int = 0, padded: int = 1) -> tuple[SceneInputs, torch.Tensor]:
@@ -86,28 +87,46 @@ def test_cached_decoding_equals_full_forward(variant: Variant) -> None:
     scene, tokens = random_scene(cfg, b=2, padded=2)
     full = model(scene, tokens)  # [B,T,A,V]
     ids = model.global_ids(tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(2, -1)
+    carried, own = teacher_inputs(variant, ids, cfg.max_agents)
+    assert (carried[:, 0] == START).all() and (own[:, : cfg.max_agents] == -1).all()
     a = cfg.max_agents
     # one position at a time (how trajeglish samples), and one timestep at a time (the other variants)
     chunk = 1 if variant is Variant.TRAJEGLISH else a
-    cache, agents = model.start_decoding(scene)
+    cache = model.empty_cache(2, torch.float32)
+    agents = model.encode_into(cache, scene)
     worst = 0.0
     for p in range(0, cfg.steps * a, chunk):
-        carried = torch.stack(
-            [
-                ids[:, q] if q >= 0 else torch.full((2,), -2)
-                for q in (carried_position(variant, p + i, a) for i in range(chunk))
-            ],
-            1,
+        start, count = np.full(2, p), np.full(2, chunk)
+        hidden = model.decode_at(
+            cache, agents, carried[:, p : p + chunk], own[:, p : p + chunk], start, count
         )
-        kinds = scene.agent_kind[:, [(p + i) % a for i in range(chunk)]]
-        own = torch.stack([ids[:, q - a] if q >= a else torch.full((2,), -1) for q in range(p, p + chunk)], 1)
-        logits = model.decode(cache, agents, kinds, carried, own)
         t = p // a
+        with torch.no_grad():
+            logits = model.class_logits(hidden, scene.agent_kind[:, p % a : p % a + chunk])
         want = full[:, t, p % a : p % a + chunk]
         worst = max(worst, (logits - want).abs().max().item())
     assert worst <= 1e-4
-    with pytest.raises(RuntimeError, match="cache holds"):
-        model.decode(cache, agents, kinds, carried, own)
+    with pytest.raises(ValueError, match="must fit the cache"):
+        model.decode_at(cache, agents, carried[:, :chunk], own[:, :chunk], start + chunk, count)
+
+
+def test_primed_cache_equals_decoded_cache() -> None:
+    """Priming stores exactly the keys/values that decoding the same positions stores."""
+    cfg = preset("tiny")
+    model = TrajeglishModel(cfg).eval()
+    scene, tokens = random_scene(cfg, b=2, padded=2)
+    ids = model.global_ids(tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(2, -1)
+    carried, own = teacher_inputs(cfg.variant, ids, cfg.max_agents)
+    n = 3 * cfg.max_agents
+    primed, decoded = model.empty_cache(2, torch.float32), model.empty_cache(2, torch.float32)
+    agents = model.encode_into(primed, scene)
+    model.encode_into(decoded, scene)
+    model.prime(primed, agents, carried[:, :n], own[:, :n])
+    model.decode_at(decoded, agents, carried[:, :n], own[:, :n], np.zeros(2, np.int64), np.full(2, n))
+    for k in range(len(model.blocks)):
+        assert torch.equal(primed.self_k[k], decoded.self_k[k])
+        assert torch.equal(primed.self_v[k], decoded.self_v[k])
+    assert primed.self_k[0][:, :, :n].abs().sum() > 0 and not primed.self_k[0][:, :, n:].any()
 
 
 def test_loss_ignores_unobserved_and_padding() -> None:

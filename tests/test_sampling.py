@@ -1,23 +1,28 @@
-"""Sampling with temperature/nucleus and cached decoding with forced tokens."""
+"""Sampling with temperature/nucleus, and greedy closed-loop decoding through the engine's cache."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
-from test_model import random_scene
+from conftest import straight_road_scene
+from test_sampler import tiny_ckpt
 
-from trajeglish_env.model import TrajeglishModel, Variant, preset
-from trajeglish_env.sampling import decode_tokens, nucleus_mask, sample_logits
+from trajeglish_env.model import SceneInputs
+from trajeglish_env.model.layers import DecoderCache
+from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.engine import RolloutEngine
+from trajeglish_env.sampling import counter_uniform, nucleus_mask, sample_with_uniform
 
 
 def test_temperature_zero_is_argmax_and_small_temperature_approaches_it() -> None:
     g = torch.Generator().manual_seed(0)
     logits = torch.randn(50, 7, generator=g)
-    assert torch.equal(sample_logits(logits, 0.0), logits.argmax(-1))
-    cold = sample_logits(logits, 1e-4, generator=torch.Generator().manual_seed(1))
-    assert torch.equal(cold, logits.argmax(-1))
+    u = counter_uniform(np.full(50, 1, np.uint64), np.arange(50), np.zeros(50))
+    assert np.array_equal(sample_with_uniform(logits, 0.0, 1.0, u), logits.argmax(-1).numpy())
+    assert np.array_equal(sample_with_uniform(logits, 1e-4, 1.0, u), logits.argmax(-1).numpy())
     with pytest.raises(ValueError, match="temperature must be >= 0"):
-        sample_logits(logits, -1.0)
+        sample_with_uniform(logits, -1.0, 1.0, u)
 
 
 def test_nucleus_keeps_the_smallest_set_with_enough_mass() -> None:
@@ -26,29 +31,55 @@ def test_nucleus_keeps_the_smallest_set_with_enough_mass() -> None:
     assert nucleus_mask(probs, 0.8).tolist() == [[False, True, True, False], [True, True, True, True]]
     assert nucleus_mask(probs, 0.81).tolist()[0] == [False, True, True, True]
     assert nucleus_mask(probs, 1.0).all()
-    logits = probs.log()
-    draws = sample_logits(logits.expand(2000, 2, 4), 1.0, 0.8, torch.Generator().manual_seed(0))
-    assert set(draws[:, 0].tolist()) == {1, 2}
-    assert abs((draws[:, 0] == 1).float().mean().item() - 0.5 / 0.8) < 0.04
+    u = counter_uniform(np.zeros(2000, np.uint64), np.arange(2000), np.zeros(2000))
+    draws = sample_with_uniform(probs[:1].log().expand(2000, 4), 1.0, 0.8, u)
+    assert set(draws.tolist()) == {1, 2}
+    assert abs((draws == 1).mean() - 0.5 / 0.8) < 0.04
 
 
-@pytest.mark.parametrize("variant", [Variant.TRAJEGLISH, Variant.NO_INTRA])
-def test_forced_tokens_stay_and_greedy_decoding_is_a_fixed_point(variant: Variant) -> None:
-    torch.manual_seed(0)
-    cfg = preset("tiny", variant=variant)
-    model = TrajeglishModel(cfg).eval()
-    scene, tokens = random_scene(cfg, b=2, padded=1)
-    sample = torch.zeros_like(tokens, dtype=torch.bool)
-    sample[:, 1:3] = True  # the model controls agents 1 and 2; the others are forced
-    out = decode_tokens(model, scene, tokens, sample, temperature=0.0)
-    assert torch.equal(out[~sample], tokens[~sample])
-    assert (out[:, -1] == -1).all()  # padding is never sampled
-    assert ((out[sample] >= 0) & (out[sample] < cfg.vocab_size)).all()
-    # greedy: each sampled token is the argmax of the teacher-forced logits given the whole result
-    logits = model(scene, out).permute(0, 2, 1, 3)  # [B,A,T,V]
-    assert torch.equal(out[sample], logits.argmax(-1)[sample])
-    # same generator seed, same sample; another seed, another sample
-    a = decode_tokens(model, scene, tokens, sample, 1.0, 1.0, torch.Generator().manual_seed(5))
-    b = decode_tokens(model, scene, tokens, sample, 1.0, 1.0, torch.Generator().manual_seed(5))
-    c = decode_tokens(model, scene, tokens, sample, 1.0, 1.0, torch.Generator().manual_seed(6))
-    assert torch.equal(a, b) and not torch.equal(a, c)
+@pytest.mark.parametrize("variant", ["trajeglish", "no-intra"])
+def test_greedy_rollout_is_a_fixed_point_of_the_teacher_forced_model(
+    variant: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With temperature 0 every token the engine samples (through prime + decode_at) is the argmax of the
+    full forward pass over its window given the whole result; replayed agents keep their log tokens."""
+    ckpt = tiny_ckpt(variant)
+    model = ckpt.model
+    sc = straight_road_scene(num_agents=5, steps=30)
+    controlled = np.array([True, False, True, True, False])
+    scenes: list[SceneInputs] = []
+    encode = model.encode_into
+
+    def spy(cache: DecoderCache, scene: SceneInputs) -> torch.Tensor:
+        scenes.append(scene)
+        return encode(cache, scene)
+
+    monkeypatch.setattr(model, "encode_into", spy)
+    config = SamplingConfig(temperature=0.0, prime_steps=3)
+    horizon = config.every(model.cfg.steps)  # one window: it is never rebuilt
+    engine = RolloutEngine(ckpt, sc, 2, horizon, controlled, config=config)
+    engine.run()
+    assert len(scenes) == 1  # both rows encoded in one block, once
+    w, a = engine.windows[0], model.cfg.max_agents
+    s0, t0 = int(w.start[0]), sc.current_index
+    assert t0 - s0 == 3 and (engine.tokens[1] == engine.tokens[0]).all()  # greedy: both rows alike
+    slots = w.slots[0]
+    steps = np.arange(s0, s0 + model.cfg.steps)
+    inputs = np.full((a, len(steps)), -1)
+    inside = steps < engine.T - 1
+    inputs[:, inside] = np.where(slots[:, None] >= 0, engine.tokens[0][slots][:, steps[inside]], -1)
+    with torch.no_grad():
+        logits = model(scenes[0].rows(slice(0, 1)), torch.from_numpy(inputs)[None])[0]  # [T,A,V]
+    greedy = logits.argmax(-1).numpy()  # [T,A]
+    for j, agent in enumerate(slots):
+        if agent < 0:
+            continue
+        decided = engine.tokens[0, agent, t0 : t0 + horizon]
+        if controlled[agent]:
+            assert np.array_equal(decided, greedy[t0 - s0 : t0 - s0 + horizon, j])
+        else:
+            assert np.array_equal(engine.tokens[:, agent], np.stack([engine.tokens[0, agent]] * 2))
+    other = RolloutEngine(ckpt, sc, 1, horizon, controlled, config=SamplingConfig(prime_steps=3, seed=4))
+    other.run()
+    assert np.array_equal(other.tokens[0, ~controlled], engine.tokens[0, ~controlled])  # replay: the log
+    assert not np.array_equal(other.tokens[0, controlled], engine.tokens[0, controlled])

@@ -15,10 +15,11 @@ from trajeglish_env.env.sb3 import SB3VecEnv
 from trajeglish_env.env.scenes import load_bundle
 from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv, auto_threads
 from trajeglish_env.model.layers import MIN_GEMM_ROWS, invariant_linear
-from trajeglish_env.sampler import engine as engine_module
+from trajeglish_env.model.masks import teacher_inputs
+from trajeglish_env.sampler import windows as windows_module
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import BatchEngine, RowSpec, _row_blocks
-from trajeglish_env.sampling import START, counter_uniform
+from trajeglish_env.sampling import counter_uniform
 
 SCENES = [
     "highway-merge-999000",
@@ -59,7 +60,7 @@ def row_view(engine: BatchEngine, row: int, spec: RowSpec) -> tuple[np.ndarray, 
 def test_engine_rows_of_different_scenes_equal_their_solo_runs(
     dtype: torch.dtype, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(engine_module, "ROW_BLOCK", 2)  # windows of the batch built in blocks of 2 rows
+    monkeypatch.setattr(windows_module, "ROW_BLOCK", 2)  # windows of the batch built in blocks of 2 rows
     specs = [full_control(name) for name in SCENES]
     seeds = [11, 12, 13, 14]
     solo = [
@@ -115,9 +116,9 @@ def test_chunked_decoding_equals_the_full_forward_pass() -> None:
     with torch.no_grad():
         full = model(scene, tokens).reshape(b, t * a, -1)  # [B, positions, V]
     ids = model.global_ids(tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, -1)
-    carried = torch.cat([torch.full((b, 1), START), ids[:, :-1]], 1)
-    own = torch.cat([torch.full((b, a), -1), ids[:, :-a]], 1)
-    cache, agents = model.start_decoding(scene)
+    carried, own = teacher_inputs(cfg.variant, ids, a)
+    cache = model.empty_cache(b, torch.float32)
+    agents = model.encode_into(cache, scene)
     rng = np.random.default_rng(0)
     done = np.zeros(b, dtype=np.int64)
     while (done < t * a).any():

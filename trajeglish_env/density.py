@@ -17,9 +17,8 @@ import torch.nn.functional as F
 
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.dataset import SceneStore, collate_windows
-from trajeglish_env.model.masks import input_shift
+from trajeglish_env.model.masks import teacher_inputs
 from trajeglish_env.model.network import SceneInputs
-from trajeglish_env.sampling import START
 from trajeglish_env.scenario import AgentKind, Scenario
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.train import window_config
@@ -68,7 +67,8 @@ def cached_nll(
     batch_size: int = 16,
 ) -> dict[str, float]:
     """Teacher-forced NLL of the held-out windows of :func:`token_nll`, computed through the decoding
-    path (key/value cache in ``cache_dtype``, one timestep per call) instead of the full forward pass.
+    path (:meth:`~trajeglish_env.model.network.TrajeglishModel.decode_at`, key/value cache in
+    ``cache_dtype``, one timestep per call) instead of the full forward pass.
 
     It measures what a reduced-precision cache costs in model quality. Returns ``nll`` (the cache path),
     ``reference_nll`` (the float32 full forward pass), ``max_logit_diff`` and ``tokens``.
@@ -83,24 +83,17 @@ def cached_nll(
         b, a, t = inputs.shape
         full = model(scene, inputs)  # [B,T,A,V]
         ids = model.global_ids(inputs, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, t * a)
-        shift = input_shift(model.cfg.variant, a)
-        carried = torch.cat([torch.full((b, shift), START, dtype=ids.dtype), ids[:, :-shift]], dim=1)
-        own = torch.cat([torch.full((b, a), -1, dtype=ids.dtype), ids[:, :-a]], dim=1)
-        cache, agents = model.start_decoding(scene, dtype=cache_dtype)
+        carried, own = teacher_inputs(model.cfg.variant, ids, a)
+        cache = model.empty_cache(b, cache_dtype)
+        agents = model.encode_into(cache, scene)
         # one timestep per call: for the trajeglish variant the chunk is causal inside (its mask rows)
-        cached = torch.stack(
-            [
-                model.decode(
-                    cache,
-                    agents,
-                    scene.agent_kind,
-                    carried[:, s * a : (s + 1) * a],
-                    own[:, s * a : (s + 1) * a],
-                )
-                for s in range(t)
-            ],
-            dim=1,
-        )  # [B,T,A,V]
+        steps = []
+        for s in range(t):
+            chunk = slice(s * a, (s + 1) * a)
+            start, count = np.full(b, s * a), np.full(b, a)
+            hidden = model.decode_at(cache, agents, carried[:, chunk], own[:, chunk], start, count)
+            steps.append(model.class_logits(hidden, scene.agent_kind))
+        cached = torch.stack(steps, dim=1)  # [B,T,A,V]
         tgt = batch["tokens"].transpose(1, 2)
         ok = (tgt >= 0) & scene.agent_mask[:, None, :]
         sums["nll"] += F.cross_entropy(cached[ok].float(), tgt[ok], reduction="sum").item()

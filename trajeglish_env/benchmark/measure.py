@@ -22,7 +22,7 @@ from trajeglish_env.benchmark.workloads import (
     ring_scene,
 )
 from trajeglish_env.model import TrajeglishModel, preset
-from trajeglish_env.sampling import START
+from trajeglish_env.model.masks import teacher_inputs
 
 
 def peak_rss_mb() -> float:
@@ -162,12 +162,14 @@ def decoding_speed(name: str = "small", probes: int = 32) -> dict[str, float]:
     scene, tokens = random_inputs(cfg, 1)
     a, length = cfg.max_agents, cfg.max_agents * cfg.steps
     ids = model.global_ids(tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(1, -1)
+    carried, own = teacher_inputs(cfg.variant, ids, a)
+    one = np.ones(1, dtype=np.int64)
     start = time.perf_counter()
-    cache, agents = model.start_decoding(scene)
+    cache = model.empty_cache(1, model.start.dtype)
+    agents = model.encode_into(cache, scene)
     for p in range(length):
-        carried = torch.full((1, 1), START) if p == 0 else ids[:, p - 1 : p]
-        own = torch.full((1, 1), -1) if p < a else ids[:, p - a : p - a + 1]
-        model.decode(cache, agents, scene.agent_kind[:, [p % a]], carried, own)
+        hidden = model.decode_at(cache, agents, carried[:, p : p + 1], own[:, p : p + 1], p * one, one)
+        model.class_logits(hidden, scene.agent_kind[:, [p % a]])
     cached = length / (time.perf_counter() - start)
     positions = torch.linspace(0, length - 1, probes).long().tolist()
     start = time.perf_counter()

@@ -3,8 +3,9 @@
 Inference is *batch-invariant*: a row's outputs do not depend on which other rows share its batch, so a
 scene simulated in a batch of many gives bit-identical tokens to the same scene simulated alone. BLAS
 picks different kernels (and summation orders) for very small matrices, so :class:`Linear` pads inputs
-of fewer than ``MIN_GEMM_ROWS`` rows; cached decoding attends over the whole preallocated cache (fixed
-shapes, masked) rather than over a batch-dependent prefix.
+of fewer than ``MIN_GEMM_ROWS`` rows; cached decoding attends, per group of rows, over the cached keys up
+to the end of the group's model step (masked, a length set by the row alone) rather than over a
+batch-dependent prefix.
 """
 
 from __future__ import annotations
@@ -112,7 +113,6 @@ class DecoderCache:
     cross_k: list[torch.Tensor]
     cross_v: list[torch.Tensor]
     memory_mask: torch.Tensor  # [B,1,1,M]
-    length: int = 0
     memory_full: bool = False  # the owner knows (host side) that memory_mask is all True
 
     @property
@@ -121,7 +121,7 @@ class DecoderCache:
         return int(self.self_k[0].shape[2])
 
     def rows(self, index: slice) -> DecoderCache:
-        """Batch rows ``index`` as views (what is written to them lands in this cache), length 0."""
+        """Batch rows ``index`` as views (what is written to them lands in this cache)."""
         return DecoderCache(
             [k[index] for k in self.self_k],
             [v[index] for v in self.self_v],
@@ -143,12 +143,14 @@ class RowGroup:
     mask: torch.Tensor
     positions: torch.Tensor
     writes: tuple[torch.Tensor, torch.Tensor]
-    position: int | None = None  # set when every batch row stores its first input, all at this position
+    # set when every batch row stores its first ``span[1]`` inputs at positions ``span[0]`` onwards
+    span: tuple[int, int] | None = None
 
     def store(self, cache: torch.Tensor, new: torch.Tensor) -> None:
         """Write the group's new keys (or values) ``new [B,H,n,Dh]`` into ``cache [B,H,L,Dh]``."""
-        if self.position is not None:  # lockstep: a strided copy instead of gather + scatter
-            cache[:, :, self.position] = new[:, :, 0].to(cache.dtype)
+        if self.span is not None:  # the same positions in every row: a strided copy, no gather + scatter
+            first, width = self.span
+            cache[:, :, first : first + width] = new[:, :, :width].to(cache.dtype)
         else:
             batch_rows, slot = self.writes
             cache[batch_rows, :, self.positions] = new[batch_rows, :, slot].to(cache.dtype)
@@ -157,6 +159,10 @@ class RowGroup:
     def select(self) -> slice | torch.Tensor:
         """Index of the group's rows (a slice, i.e. views, when it is every row)."""
         return slice(None) if self.rows is None else self.rows
+
+
+# one layer's cache in a decoding call: its keys and values [B,H,L,Dh] and the call's row groups
+LayerCache = tuple[torch.Tensor, torch.Tensor, list[RowGroup]]
 
 
 class DecoderBlock(nn.Module):
@@ -178,49 +184,27 @@ class DecoderBlock(nn.Module):
         cross_k: torch.Tensor,
         cross_v: torch.Tensor,
         memory_mask: torch.Tensor | None,
-        cache: tuple[torch.Tensor, torch.Tensor, int | list[RowGroup]] | None = None,
     ) -> torch.Tensor:
-        """``x [B,N,C]``; with ``cache = (K, V, start)`` the new keys/values are written at ``start`` and
-        the prefix is attended; with ``cache = (K, V, groups)`` each :class:`RowGroup` writes at its own
-        position and attends over its own prefix (``self_mask`` is unused; each group has its mask)."""
+        """The whole sequence ``x [B,N,C]`` at once (teacher forcing), self-attention under ``self_mask``."""
         h = self.norm_self(x)
         k, v = self.self_attn.keys_values(h)
-        if cache is not None and isinstance(cache[2], list):
-            return self._grouped(x, h, k, v, cache[0], cache[1], cache[2], cross_k, cross_v, memory_mask)
-        if cache is not None:
-            ck, cv, start = cache
-            n = x.shape[1]
-            ck[:, :, start : start + n] = k.to(ck.dtype)  # type: ignore[misc]
-            cv[:, :, start : start + n] = v.to(cv.dtype)  # type: ignore[misc]
-            k, v = ck[:, :, : start + n], cv[:, :, : start + n]  # type: ignore[operator]
         x = x + self.self_attn.attend(h, k, v, self_mask)
-        x = x + self.cross_attn.attend(self.norm_cross(x), cross_k, cross_v, memory_mask)
-        return x + self.ff(self.norm_ff(x))
+        return self._cross_and_ff(x, cross_k, cross_v, memory_mask)
 
-    def store_keys(self, x: torch.Tensor, cache: tuple[torch.Tensor, torch.Tensor, int]) -> None:
-        """Only the cache part of :meth:`forward`: write the keys/values of ``x [B,N,C]`` at ``cache[2]``."""
-        ck, cv, start = cache
-        k, v = self.self_attn.keys_values(self.norm_self(x))
-        n = x.shape[1]
-        ck[:, :, start : start + n] = k.to(ck.dtype)
-        cv[:, :, start : start + n] = v.to(cv.dtype)
-
-    def _grouped(
+    def decode(
         self,
         x: torch.Tensor,
-        h: torch.Tensor,
-        k: torch.Tensor,
-        v: torch.Tensor,
-        ck: torch.Tensor,
-        cv: torch.Tensor,
-        groups: list[RowGroup],
+        cache: LayerCache,
         cross_k: torch.Tensor,
         cross_v: torch.Tensor,
         memory_mask: torch.Tensor | None,
     ) -> torch.Tensor:
-        """Self-attention group by group (fixed key length per group, masked), then cross-attention and
-        the feed-forward for every row."""
-        whole = len(groups) == 1 and groups[0].rows is None  # the lockstep case: no scatter needed
+        """New positions ``x [B,n,C]`` through the cache: each :class:`RowGroup` stores its keys/values
+        and attends over its own cached prefix under its own mask (fixed key length per group)."""
+        h = self.norm_self(x)
+        k, v = self.self_attn.keys_values(h)
+        ck, cv, groups = cache
+        whole = len(groups) == 1 and groups[0].rows is None  # every row in one group: no scatter needed
         attended = h if whole else torch.zeros_like(h)
         for g in groups:
             rows = g.select
@@ -232,6 +216,18 @@ class DecoderBlock(nn.Module):
                 attended = out
             else:
                 attended[rows] = out
-        x = x + attended
+        return self._cross_and_ff(x + attended, cross_k, cross_v, memory_mask)
+
+    def store_keys(self, x: torch.Tensor, cache: LayerCache) -> None:
+        """Only the storing part of :meth:`decode`: the keys/values of ``x [B,n,C]`` into the cache."""
+        k, v = self.self_attn.keys_values(self.norm_self(x))
+        ck, cv, groups = cache
+        for g in groups:
+            g.store(ck, k)
+            g.store(cv, v)
+
+    def _cross_and_ff(
+        self, x: torch.Tensor, cross_k: torch.Tensor, cross_v: torch.Tensor, memory_mask: torch.Tensor | None
+    ) -> torch.Tensor:
         x = x + self.cross_attn.attend(self.norm_cross(x), cross_k, cross_v, memory_mask)
         return x + self.ff(self.norm_ff(x))

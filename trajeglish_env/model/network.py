@@ -18,14 +18,8 @@ from torch import nn
 
 from trajeglish_env.model.config import ModelConfig, Variant
 from trajeglish_env.model.encoder import SceneEncoder, SceneInputs
-from trajeglish_env.model.layers import (
-    DecoderBlock,
-    DecoderCache,
-    Linear,
-    RowGroup,
-    invariant_linear,
-)
-from trajeglish_env.model.masks import decoder_mask, input_shift
+from trajeglish_env.model.layers import DecoderBlock, DecoderCache, Linear, RowGroup, invariant_linear
+from trajeglish_env.model.masks import START, decoder_mask, teacher_inputs
 
 
 def additive_mask(allowed: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -101,14 +95,12 @@ class TrajeglishModel(nn.Module):
         slot = agents.gather(1, (index % a)[..., None].expand(-1, -1, agents.shape[-1]))
         return self.time(index // a) + self.target_agent(slot)
 
-    def _decoder_inputs(self, carried_ids: torch.Tensor, own_ids: torch.Tensor | None) -> torch.Tensor:
-        """Embeddings of the tokens decoded positions carry (the start token where ``-2``), plus, for the
+    def _decoder_inputs(self, carried_ids: torch.Tensor, own_ids: torch.Tensor) -> torch.Tensor:
+        """Embeddings of the tokens positions carry (the start token where :data:`START`), plus, for the
         trajeglish variant, the projected previous token of each position's own agent."""
-        is_start = (carried_ids == -2)[..., None]
+        is_start = (carried_ids == START)[..., None]
         x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
         if self.own_previous is not None:
-            if own_ids is None:
-                raise ValueError("the trajeglish variant needs own_ids (each agent's token one step earlier)")
             x = x + self.own_previous(self.embed_tokens(own_ids))
         return x
 
@@ -126,11 +118,7 @@ class TrajeglishModel(nn.Module):
             )
         memory, memory_mask, agents = self.encoder(scene)
         ids = self.global_ids(input_tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, t * a)
-        shift = input_shift(self.cfg.variant, a)
-        x = torch.cat([self.start.expand(b, shift, -1), self.embed_tokens(ids[:, :-shift])], dim=1)
-        if self.own_previous is not None:  # the same agent's token one step earlier (p - A)
-            own = torch.cat([torch.full_like(ids[:, :a], -1), ids[:, :-a]], dim=1)
-            x = x + self.own_previous(self.embed_tokens(own))
+        x = self._decoder_inputs(*teacher_inputs(self.cfg.variant, ids, a))
         x = x + self._positions(agents, torch.arange(t * a, device=x.device))
         mask = (
             decoder_mask(self.cfg.variant, t, a, x.device)
@@ -158,40 +146,11 @@ class TrajeglishModel(nn.Module):
         return loss / max(n, 1), n
 
     # ---------------------------------------------------------------------------------- decoding
-    @torch.no_grad()
-    def start_decoding(
-        self, scene: SceneInputs, max_length: int | None = None, dtype: torch.dtype | None = None
-    ) -> tuple[DecoderCache, torch.Tensor]:
-        """Encode the scene once and allocate the cache (self-attention keys/values in ``dtype``, default
-        the model's); returns it with the agent embeddings."""
-        length = max_length or scene.agent_xyh.shape[1] * self.cfg.steps
-        memory = scene.agent_xyh.shape[1] + self.cfg.latent_queries
-        cache = self.empty_cache(scene.agent_xyh.shape[0], length, memory, dtype or self.start.dtype)
-        return cache, self.encode_into(cache, scene)
-
-    @torch.no_grad()
-    def encode_into(self, cache: DecoderCache, scene: SceneInputs) -> torch.Tensor:
-        """Encode the scene into an existing cache (e.g. :meth:`DecoderCache.rows` views of a bigger one):
-        its cross-attention keys/values and memory mask are overwritten and its length reset to 0.
-        Returns the agent embeddings ``[B,A,C]``."""
-        memory, memory_mask, agents = self.encoder(scene)
-        if tuple(memory.shape[:2]) != (cache.cross_k[0].shape[0], cache.cross_k[0].shape[2]):
-            raise ValueError(
-                f"encode_into: a scene memory of {tuple(memory.shape[:2])} (rows, entries) does not fit a "
-                f"cache of {cache.cross_k[0].shape[0]} rows and {cache.cross_k[0].shape[2]} memory entries"
-            )
-        for i, blk in enumerate(self.blocks):
-            k, v = blk.cross_attn.keys_values(memory)
-            cache.cross_k[i].copy_(k)
-            cache.cross_v[i].copy_(v)
-        cache.memory_mask.copy_(memory_mask[:, None, None, :])
-        cache.length = 0
-        return agents
-
-    def empty_cache(self, batch: int, length: int, memory: int, dtype: torch.dtype) -> DecoderCache:
-        """A zeroed cache for ``batch`` rows of ``length`` positions over a memory of ``memory`` entries
-        (all of it visible, so that unused rows stay finite)."""
+    def empty_cache(self, batch: int, dtype: torch.dtype) -> DecoderCache:
+        """A zeroed cache of ``batch`` rows for one whole context (``max_agents * steps`` positions, keys
+        and values in ``dtype``); its memory is all visible, so that unused rows stay finite."""
         h, dh = self.cfg.num_heads, self.cfg.d_model // self.cfg.num_heads
+        length, memory = self.cfg.max_agents * self.cfg.steps, self.cfg.max_agents + self.cfg.latent_queries
         dev = self.start.device
         layers = range(len(self.blocks))
         return DecoderCache(
@@ -203,82 +162,32 @@ class TrajeglishModel(nn.Module):
         )
 
     @torch.no_grad()
-    def decode(
-        self,
-        cache: DecoderCache,
-        agents: torch.Tensor,
-        kind: torch.Tensor,
-        carried_ids: torch.Tensor,
-        own_ids: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """Logits ``[B,n,V]`` for the next ``n`` flattened positions, appending them to the cache.
-
-        ``carried_ids [B,n]``: joint ids of the tokens those positions carry as input (see
-        :func:`~trajeglish_env.model.masks.carried_position`; ``-2`` = the start token, ``-1`` = unobserved).
-        ``kind [B,n]``: classes of the agents to predict. Positions that attend to each other within the
-        chunk must be decodable together (for trajeglish: one position at a time while sampling).
-        ``own_ids [B,n]`` (trajeglish only): joint ids of the same agents' tokens one step earlier (-1 none).
-        """
-        return self.class_logits(self.decode_hidden(cache, agents, carried_ids, own_ids), kind)
-
-    @torch.no_grad()
-    def decode_hidden(
-        self,
-        cache: DecoderCache,
-        agents: torch.Tensor,
-        carried_ids: torch.Tensor,
-        own_ids: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """:meth:`decode` without the head: hidden states ``[B,n,C]``."""
-        out = self._extend(cache, agents, carried_ids, own_ids, outputs=True)
-        assert out is not None
-        return out
+    def encode_into(self, cache: DecoderCache, scene: SceneInputs) -> torch.Tensor:
+        """Encode the scene into a cache (e.g. :meth:`DecoderCache.rows` views of a bigger one): its
+        cross-attention keys/values and memory mask are overwritten. Returns the agent embeddings
+        ``[B,A,C]``, which every decoding call of these rows takes."""
+        memory, memory_mask, agents = self.encoder(scene)
+        if tuple(memory.shape[:2]) != (cache.cross_k[0].shape[0], cache.cross_k[0].shape[2]):
+            raise ValueError(
+                f"encode_into: a scene memory of {tuple(memory.shape[:2])} (rows, entries) does not fit a "
+                f"cache of {cache.cross_k[0].shape[0]} rows and {cache.cross_k[0].shape[2]} memory entries"
+            )
+        for i, blk in enumerate(self.blocks):
+            k, v = blk.cross_attn.keys_values(memory)
+            cache.cross_k[i].copy_(k)
+            cache.cross_v[i].copy_(v)
+        cache.memory_mask.copy_(memory_mask[:, None, None, :])
+        return agents
 
     @torch.no_grad()
     def prime(
-        self,
-        cache: DecoderCache,
-        agents: torch.Tensor,
-        carried_ids: torch.Tensor,
-        own_ids: torch.Tensor | None = None,
+        self, cache: DecoderCache, agents: torch.Tensor, carried_ids: torch.Tensor, own_ids: torch.Tensor
     ) -> None:
-        """Append the next ``n`` positions to the cache without computing their outputs (teacher forcing
-        a window's known steps): the last layer stops once its keys and values are stored."""
-        self._extend(cache, agents, carried_ids, own_ids, outputs=False)
-
-    def _extend(
-        self,
-        cache: DecoderCache,
-        agents: torch.Tensor,
-        carried_ids: torch.Tensor,
-        own_ids: torch.Tensor | None,
-        outputs: bool,
-    ) -> torch.Tensor | None:
-        p, n = cache.length, carried_ids.shape[1]
-        a = agents.shape[1]
-        if p + n > cache.self_k[0].shape[2]:
-            raise RuntimeError(f"decoder cache holds {cache.self_k[0].shape[2]} positions; {p + n} requested")
-        x = self._decoder_inputs(carried_ids, own_ids)
-        x = x + self._positions(agents, torch.arange(p, p + n, device=x.device))
-        mask = self._mask_rows(p, n, a)
-        last = len(self.blocks) - 1
-        for i, block in enumerate(self.blocks):
-            kv = (cache.self_k[i], cache.self_v[i], p)
-            if i == last and not outputs:
-                block.store_keys(x, kv)
-                break
-            x = block(x, mask, cache.cross_k[i], cache.cross_v[i], cache.memory_mask, kv)
-        cache.length = p + n
-        return x if outputs else None
-
-    def _mask_rows(self, start: int, n: int, agents: int) -> torch.Tensor:
-        """Rows ``start..start+n-1`` of the decoder mask over keys ``0..start+n-1``."""
-        steps = (start + n - 1) // agents + 1
-        if agents == self.cfg.max_agents and steps <= self.cfg.steps:
-            full = self.mask
-        else:
-            full = decoder_mask(self.cfg.variant, steps, agents, self.mask.device)
-        return full[start : start + n, : start + n]
+        """Store positions ``0 .. n-1`` of every row (teacher forcing a window's known steps) without
+        computing their outputs: the last layer stops once its keys and values are stored."""
+        b, n = carried_ids.shape
+        start, count = np.zeros(b, dtype=np.int64), np.full(b, n, dtype=np.int64)
+        self._decode(cache, agents, carried_ids, own_ids, start, count, outputs=False)
 
     @torch.no_grad()
     def decode_at(
@@ -286,16 +195,35 @@ class TrajeglishModel(nn.Module):
         cache: DecoderCache,
         agents: torch.Tensor,
         carried_ids: torch.Tensor,
-        own_ids: torch.Tensor | None,
+        own_ids: torch.Tensor,
         start: np.ndarray,
         count: np.ndarray,
     ) -> torch.Tensor:
         """Hidden states ``[B,n,C]`` (logits: :meth:`class_logits`) of a chunk of positions per row: row
         ``b`` decodes positions ``start[b] .. start[b]+count[b]-1`` of its own window (``count`` 0: the row
-        is idle; inputs past ``count[b]`` are padding), appending them to its cache.
+        is idle; inputs past ``count[b]`` are padding), storing them in its cache.
+
+        ``carried_ids [B,n]``: joint ids of the tokens those positions carry as input (:data:`START`: the
+        start token, ``-1``: unobserved; see :mod:`~trajeglish_env.model.masks`); ``own_ids [B,n]``: joint
+        ids of the same agents' tokens one step earlier (-1: none; only the trajeglish variant uses them).
         ``start``/``count`` are host arrays (no device sync). Rows whose chunks end in the same model step
         attend together over the keys up to the end of that step (masked), so every shape a row meets
         depends on that row alone and its result never depends on the other rows of the batch."""
+        out = self._decode(cache, agents, carried_ids, own_ids, start, count, outputs=True)
+        assert out is not None
+        return out
+
+    def _decode(
+        self,
+        cache: DecoderCache,
+        agents: torch.Tensor,
+        carried_ids: torch.Tensor,
+        own_ids: torch.Tensor,
+        start: np.ndarray,
+        count: np.ndarray,
+        outputs: bool,
+    ) -> torch.Tensor | None:
+        """:meth:`decode_at`; with ``outputs`` False the last layer only stores its keys and values."""
         n, a = carried_ids.shape[1], agents.shape[1]
         start, count = np.asarray(start, dtype=np.int64), np.asarray(count, dtype=np.int64)
         busy = count > 0
@@ -309,6 +237,12 @@ class TrajeglishModel(nn.Module):
         if busy.any():  # idle rows ride along with the largest group (nothing written), so it needs no copy
             values, counts = np.unique(step[busy], return_counts=True)
             step = np.where(busy, step, values[np.argmax(counts)])
+        # every row stores the same positions: one strided copy per layer
+        span = (
+            (int(start[0]), int(count[0]))
+            if busy.all() and (start == start[0]).all() and (count == count[0]).all()
+            else None
+        )
         groups = []
         for s in np.unique(step[busy]).tolist():
             rows = np.flatnonzero(step == s)
@@ -319,24 +253,18 @@ class TrajeglishModel(nn.Module):
             mask = additive_mask(allowed, cache.self_k[0].dtype)
             local, slot = np.nonzero(count[rows][:, None] > np.arange(n))  # host side: no device sync
             writes = (torch.from_numpy(rows[local]).to(dev), torch.from_numpy(slot).to(dev))
-            stored = start[rows][local] + slot
-            lockstep = len(local) == len(step) and not slot.any() and (stored == stored[0]).all()
-            groups.append(
-                RowGroup(
-                    index,
-                    keys,
-                    mask,
-                    queries[torch.from_numpy(local).to(dev), writes[1]],
-                    writes,
-                    int(stored[0]) if lockstep else None,
-                )
-            )
+            positions = queries[torch.from_numpy(local).to(dev), writes[1]]
+            groups.append(RowGroup(index, keys, mask, positions, writes, span))
         index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
         index = index.clamp(max=cache.capacity - 1)
         x = self._decoder_inputs(carried_ids, own_ids) + self._positions(agents, index)
         # a memory with nothing masked needs no mask (the same numbers: SDPA adds zeros otherwise)
         memory_mask = None if cache.memory_full else additive_mask(cache.memory_mask, cache.cross_k[0].dtype)
+        last = len(self.blocks) - 1
         for i, block in enumerate(self.blocks):
             kv = (cache.self_k[i], cache.self_v[i], groups)
-            x = block(x, None, cache.cross_k[i], cache.cross_v[i], memory_mask, kv)
+            if i == last and not outputs:
+                block.store_keys(x, kv)
+                return None
+            x = block.decode(x, kv, cache.cross_k[i], cache.cross_v[i], memory_mask)
         return x

@@ -1,0 +1,245 @@
+"""Per-row state of :class:`~trajeglish_env.sampler.engine.BatchEngine`: what each row simulates, its
+exact and tokenized states, and how rows are (re)started, stopped and fed the states of external agents.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from trajeglish_env.scenario import Scenario
+from trajeglish_env.tokenizer.tokenize import tokenize
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+
+
+@dataclass(frozen=True)
+class RowSpec:
+    """What one row simulates: ``controlled [N]`` agents the model drives, ``external [N]`` agents whose
+    states are supplied from outside (others replay the log), ``horizon`` steps after ``current_index``
+    (default: the scene's), acting ``priority [N]`` (lower first), and ``first``: the agent whose model
+    context goes first (default: the sdc)."""
+
+    scenario: Scenario
+    horizon: int
+    controlled: np.ndarray
+    external: np.ndarray | None = None
+    current_index: int | None = None
+    priority: np.ndarray | None = None
+    first: int | None = None
+
+
+class RowStates:
+    """The per-row arrays of ``rows`` rows, padded to the largest scene: ``N`` agents, ``T`` steps.
+
+    Exact states ``xyh [B,N,T,3]`` and ``valid [B,N,T]``; the model's tokenized view ``mxyh``;
+    ``tokens [B,N,T-1]`` and ``known`` (the token of a step is decided); the agents' roles ``row_*``;
+    ``now [B]`` the step being played and ``end [B]`` the last step.
+    """
+
+    def __init__(self, rows: int, vocab: MotionVocabulary):
+        self.vocab = vocab
+        self.B = int(rows)
+        self.N, self.T = 0, 2
+        self._allocate(1, 2)
+        self.live = np.zeros(self.B, dtype=bool)
+        self.now = np.zeros(self.B, dtype=np.int64)
+        self.end = np.zeros(self.B, dtype=np.int64)
+        self.seed = np.zeros(self.B, dtype=np.uint64)
+        self.first = np.zeros(self.B, dtype=np.int64)
+        self.handover_step = np.full(self.B, -1, dtype=np.int64)  # where a row's log ends (past it: -1)
+        self.scenes: list[Scenario | None] = [None] * self.B
+        self._in_step = False  # a step has begun and is not finished (see cancel_step)
+        self._supplied: list[tuple[np.ndarray, ...]] = []  # supplies whose tokens are not computed yet
+
+    def _allocate(self, n: int, t: int) -> None:
+        """Grow the per-row arrays to ``n`` agents and ``t`` steps (padding: absent, decided)."""
+        n, t = max(n, self.N), max(t, self.T)
+        if n == self.N and t == self.T and hasattr(self, "xyh"):
+            return
+        B = self.B
+
+        def grow(old: np.ndarray | None, shape: tuple[int, ...], fill: object, dtype: object) -> np.ndarray:
+            new = np.full(shape, fill, dtype=dtype)
+            if old is not None:
+                new[tuple(slice(0, s) for s in old.shape)] = old
+            return new
+
+        get = self.__dict__.get
+        self.xyh = grow(get("xyh"), (B, n, t, 3), 0.0, np.float64)
+        self.mxyh = grow(get("mxyh"), (B, n, t, 3), 0.0, np.float64)
+        self.valid = grow(get("valid"), (B, n, t), False, bool)
+        self.tokens = grow(get("tokens"), (B, n, t - 1), -1, np.int64)
+        self.known = grow(get("known"), (B, n, t - 1), True, bool)
+        self.row_controlled = grow(get("row_controlled"), (B, n), False, bool)
+        self.row_external = grow(get("row_external"), (B, n), False, bool)
+        self.row_priority = grow(get("row_priority"), (B, n), 0.0, np.float64)
+        self.handover = grow(get("handover"), (B, n), False, bool)
+        self.size = grow(get("size"), (B, n, 2), 1.0, np.float64)
+        self.kind = grow(get("kind"), (B, n), 0, np.int64)
+        self.N, self.T = n, t
+
+    def start_rows(self, rows: np.ndarray | list[int], spec: RowSpec, seeds: np.ndarray | list[int]) -> None:
+        """(Re)start ``rows`` on ``spec``, row ``rows[i]`` drawing from ``seeds[i]`` (an unfinished step of
+        the other rows is undone, see :meth:`cancel_step`)."""
+        self.cancel_step()
+        self._tokenize_supplied()
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)
+        if len(rows) != len(seeds) or ((rows < 0) | (rows >= self.B)).any():
+            raise ValueError(
+                f"start_rows: {len(rows)} rows in 0..{self.B - 1} need as many seeds, got {seeds}"
+            )
+        sc = spec.scenario
+        n = sc.num_agents
+        cur = sc.current_index if spec.current_index is None else int(spec.current_index)
+        if not 0 <= cur < sc.num_steps:
+            raise ValueError(f"current_index {cur} out of range for {sc.num_steps} steps")
+        if int(spec.horizon) < 1:
+            raise ValueError(f"horizon must be >= 1, got {spec.horizon}")
+        controlled = _agent_mask(spec.controlled, n, "controlled")
+        external = (
+            _agent_mask(spec.external, n, "external") if spec.external is not None else np.zeros(n, bool)
+        )
+        if (controlled & external).any():
+            raise ValueError(
+                f"agents {np.flatnonzero(controlled & external).tolist()} are both controlled and external"
+            )
+        missing = np.flatnonzero(controlled & ~sc.valid[:, cur])
+        if len(missing):
+            raise ValueError(
+                f"controlled agents must be valid at the current step {cur}; track ids "
+                f"{sc.track_id[missing].tolist()} are not"
+            )
+        priority = np.zeros(n) if spec.priority is None else np.asarray(spec.priority, dtype=np.float64)
+        if priority.shape != (n,):
+            raise ValueError(f"priority: expected shape ({n},), got {priority.shape}")
+        T = cur + 1 + int(spec.horizon)
+        self._allocate(n, T)
+        # what is fixed before the rollout: everyone's history, replay agents' whole future
+        logged = np.zeros((n, T, 3))
+        lvalid = np.zeros((n, T), dtype=bool)
+        keep = min(T, sc.num_steps)
+        logged[:, :keep] = sc.xyh[:, :keep]
+        lvalid[:, :keep] = sc.valid[:, :keep]
+        replay = ~(controlled | external)
+        fixed = lvalid & ((np.arange(T) <= cur)[None] | replay[:, None])
+        tok = tokenize(self.vocab, logged, fixed, sc.size, sc.kind.astype(np.int64))
+        for arr, fill in ((self.xyh, 0.0), (self.mxyh, 0.0), (self.valid, False), (self.tokens, -1)):
+            arr[rows] = fill
+        self.known[rows] = True
+        self.xyh[rows, :n, :T] = np.where(fixed[..., None], logged, 0.0)
+        self.mxyh[rows, :n, :T] = np.nan_to_num(tok.xyh)
+        self.tokens[rows, :n, : T - 1] = tok.tokens
+        unknown = controlled | external  # their future tokens are decided during the rollout
+        self.known[np.ix_(rows, np.flatnonzero(unknown), np.arange(cur, T - 1))] = False
+        valid = fixed.copy()
+        valid[controlled, cur:] = True  # controlled agents exist for the whole rollout
+        self.valid[rows, :n, :T] = valid
+        self.row_controlled[rows] = False
+        self.row_controlled[rows, :n] = controlled
+        self.row_external[rows] = False
+        self.row_external[rows, :n] = external
+        self.row_priority[rows] = 0.0
+        self.row_priority[rows, :n] = priority
+        # a rollout past the log: the log's agents present at its last step go on as controlled agents
+        self.handover[rows] = False
+        if T > sc.num_steps:
+            self.handover[rows, :n] = replay & sc.valid[:, -1]
+        self.handover_step[rows] = sc.num_steps - 1 if T > sc.num_steps else -1
+        self.size[rows] = 1.0
+        self.size[rows, :n] = sc.size
+        self.kind[rows] = 0
+        self.kind[rows, :n] = sc.kind
+        for r in rows:
+            self.scenes[r] = sc
+        self.now[rows], self.end[rows] = cur, T - 1
+        self.seed[rows] = seeds
+        self.first[rows] = sc.sdc if spec.first is None else int(spec.first)
+        self.live[rows] = True
+
+    def stop_rows(self, rows: np.ndarray | list[int]) -> None:
+        """Take ``rows`` out of the simulation (they stop stepping until started again; an unfinished step
+        of the others is undone, see :meth:`cancel_step`)."""
+        self.cancel_step()
+        self.live[np.asarray(rows, dtype=np.int64)] = False
+
+    def cancel_step(self) -> None:
+        """Undo the unfinished step of every stepping row: the tokens decoded or supplied in it are forgotten
+        (decoding it again draws the same ones, and overwrites the same cache positions), so rows can be
+        (re)started or stopped as between steps."""
+        if not self._in_step:
+            return
+        self._supplied = []
+        rows = np.flatnonzero(self.stepping)
+        r, a = np.nonzero(self.row_controlled[rows] | self.row_external[rows])
+        rr, t = rows[r], self.now[rows[r]]
+        self.known[rr, a, t] = False
+        self.tokens[rr, a, t] = -1
+        ext = self.row_external[rr, a]
+        self.valid[rr[ext], a[ext], t[ext] + 1] = False
+        self.xyh[rr[ext], a[ext], t[ext] + 1] = 0.0
+        self._in_step = False
+
+    @property
+    def stepping(self) -> np.ndarray:
+        """``[B]`` rows that take part in the current step."""
+        return self.live & (self.now < self.end)
+
+    def supply(
+        self,
+        rows: np.ndarray,
+        agents: np.ndarray,
+        next_xyh: np.ndarray,
+        valid: bool | np.ndarray = True,
+    ) -> None:
+        """Set the states at ``t + 1`` of external ``agents [n]`` of ``rows [n]`` (``next_xyh [n,3]``;
+        ``valid=False``: the agent leaves the scene)."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        agents = np.asarray(agents, dtype=np.int64).reshape(-1)
+        n = len(rows)
+        next_xyh = np.broadcast_to(np.asarray(next_xyh, dtype=np.float64), (n, 3))
+        bad = ~self.row_external[rows, agents]
+        if bad.any():
+            b, a = int(rows[bad][0]), int(agents[bad][0])
+            sc = self.scenes[b]
+            track = sc.track_id[a] if sc is not None and a < sc.num_agents else "?"
+            raise ValueError(f"agent {a} (track {track}) of row {b} is not external")
+        if not self.stepping[rows].all():
+            raise RuntimeError(f"rows {rows[~self.stepping[rows]].tolist()} are not stepping")
+        t = self.now[rows]
+        ok = np.broadcast_to(np.asarray(valid, dtype=bool), (n,)) & self.valid[rows, agents, t]
+        self.xyh[rows, agents, t + 1] = np.where(ok[:, None], next_xyh, 0.0)
+        self.valid[rows, agents, t + 1] = ok
+        self.known[rows, agents, t] = True
+        # the model's view (tokens) of all supplies is computed at once before the next model call
+        self._supplied.append((rows, agents, t, next_xyh.copy(), ok))
+
+    def _tokenize_supplied(self) -> None:
+        """Tokenize every supplied state since the last call in one batch: the token from the model's view
+        at ``t`` to the true state at ``t + 1``, and the model's view at ``t + 1`` (its tokenized state,
+        re-anchored on the true state after a gap)."""
+        if not self._supplied:
+            return
+        rows, agents, t, nxt, ok = (np.concatenate(parts) for parts in zip(*self._supplied, strict=True))
+        self._supplied = []
+        pair = np.stack([self.mxyh[rows, agents, t], nxt], 1)[:, None]  # [n,1,2,3]
+        tok = tokenize(
+            self.vocab,
+            pair,
+            np.stack([ok, ok], 1)[:, None],
+            self.size[rows, agents][:, None, :],
+            self.kind[rows, agents][:, None],
+        )
+        self.tokens[rows, agents, t] = np.where(ok, tok.tokens[:, 0, 0], -1)
+        self.mxyh[rows, agents, t + 1] = np.where(ok[:, None], np.nan_to_num(tok.xyh[:, 0, 1]), 0.0)
+
+
+def _agent_mask(mask: np.ndarray, n: int, name: str) -> np.ndarray:
+    mask = np.asarray(mask)
+    if mask.dtype != np.bool_ or mask.shape != (n,):
+        raise ValueError(
+            f"{name}: expected a bool mask of shape ({n},) (one entry per agent), "
+            f"got {mask.dtype} {mask.shape}"
+        )
+    return mask

@@ -1,0 +1,233 @@
+"""Model contexts ("windows") of :class:`~trajeglish_env.sampler.engine.BatchEngine`: at recompute steps
+the active agents of a row are split into subsets (:mod:`~trajeglish_env.sampler.subsets`); each subset
+rank ``k`` of every row is one :class:`Window` whose cache is encoded from the subset's scene and primed
+with the known tokens of its first steps (see the engine's module docstring).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from trajeglish_env.geometry import to_local
+from trajeglish_env.map_chunks import MapChunks, chunk_map, nearest_chunks
+from trajeglish_env.model.layers import DecoderCache
+from trajeglish_env.model.masks import START, input_shift
+from trajeglish_env.model.network import SceneInputs, TrajeglishModel
+from trajeglish_env.sampler.rows import RowSpec, RowStates
+from trajeglish_env.sampler.subsets import SubsetPlan, plan_subsets
+from trajeglish_env.scenario import Scenario
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+
+MAP_RADIUS = 100.0  # metres around a window's centre agent, as in training windows
+ROW_BLOCK = 8  # rows encoded and primed per model call when windows are (re)built: activations stay in cache
+
+
+@dataclass
+class Window:
+    """Subset rank ``k`` of every row: agent slots, window start step, cache and agent embeddings."""
+
+    slots: np.ndarray  # [B, A] agent indices (-1 padding)
+    start: np.ndarray  # [B] s0: the step of the initial states
+    cache: DecoderCache
+    agents: torch.Tensor  # [B, A, C]
+    kind: torch.Tensor  # [B, A]
+
+
+class WindowedRows(RowStates):
+    """:class:`RowStates` with the model contexts of every row: ``plan`` (a row's subsets),
+    ``window_step`` (when they were built), ``windows`` (one per subset rank). Windows start ``prime``
+    steps before the step they are built at and are rebuilt every ``every`` steps; ``subsets`` is the
+    splitting rule and ``cache_dtype`` the dtype of the self-attention caches."""
+
+    def __init__(
+        self,
+        model: TrajeglishModel,
+        vocab: MotionVocabulary,
+        rows: int,
+        prime: int,
+        every: int,
+        subsets: str,
+        cache_dtype: torch.dtype,
+    ):
+        super().__init__(rows, vocab)
+        self.model = model
+        self.device = model.start.device  # the engine's state stays on the host; the model's here
+        self.cfg = model.cfg
+        self.prime, self.every, self.subsets = prime, every, subsets
+        self.cache_dtype = cache_dtype
+        self.chunks: list[MapChunks | None] = [None] * self.B
+        self.plan: list[SubsetPlan | None] = [None] * self.B
+        self.num_subsets = np.zeros(self.B, dtype=np.int64)
+        self.window_step = np.full(self.B, -1, dtype=np.int64)
+        self.windows: list[Window] = []
+        self._chunk_cache: dict[int, tuple[Scenario, MapChunks]] = {}
+
+    def start_rows(self, rows: np.ndarray | list[int], spec: RowSpec, seeds: np.ndarray | list[int]) -> None:
+        """See :meth:`RowStates.start_rows`; the rows' windows are built at their next step."""
+        super().start_rows(rows, spec, seeds)
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        chunks = self._map_chunks(spec.scenario)
+        for r in rows:
+            self.chunks[r], self.plan[r] = chunks, None
+        self.window_step[rows] = -1
+        self.num_subsets[rows] = 0
+
+    def _map_chunks(self, sc: Scenario) -> MapChunks:
+        hit = self._chunk_cache.get(id(sc))
+        if hit is None or hit[0] is not sc:
+            if len(self._chunk_cache) > 4 * self.B + 64:
+                self._chunk_cache.clear()
+            hit = (sc, chunk_map(sc, self.cfg.points_per_polyline))
+            self._chunk_cache[id(sc)] = hit
+        return hit[1]
+
+    def _needs_windows(self) -> np.ndarray:
+        since = self.now - self.window_step
+        return self.stepping & ((self.window_step < 0) | ((since % self.every == 0) & (since != 0)))
+
+    @torch.no_grad()
+    def _build_windows(self, rows: np.ndarray) -> None:
+        """Plan subsets of ``rows`` at their step and encode + prime each subset rank for them."""
+        A = self.cfg.max_agents
+        t = self.now[rows]
+        s0 = np.maximum(0, t - self.prime)
+        plans = [
+            plan_subsets(
+                self.mxyh[b, :, self.now[b], :2],
+                self.valid[b, :, self.now[b]],
+                A,
+                self.first[b],
+                self.row_priority[b],
+                self.subsets,
+            )
+            for b in rows
+        ]
+        counts = np.array([p.num_subsets for p in plans], dtype=np.int64)
+        while len(self.windows) < counts.max(initial=0):
+            cache = self.model.empty_cache(self.B, self.cache_dtype)
+            self.windows.append(
+                Window(
+                    np.full((self.B, A), -1, dtype=np.int64),
+                    np.zeros(self.B, dtype=np.int64),
+                    cache,
+                    torch.zeros(self.B, A, self.cfg.d_model, device=self.device),
+                    torch.zeros(self.B, A, dtype=torch.long, device=self.device),
+                )
+            )
+        for i, b in enumerate(rows):
+            self.plan[b] = plans[i]
+        self.num_subsets[rows] = counts
+        self.window_step[rows] = t
+        for k, w in enumerate(self.windows):
+            w.start[rows] = s0
+            has = counts > k
+            w.slots[rows[~has]] = -1
+            for n in np.unique(t[has] - s0[has]):  # rows primed with the same number of steps
+                group = has & (t - s0 == n)
+                sub = rows[group]
+                slots = np.stack([plans[i].slots[k] for i in np.flatnonzero(group)])
+                centres = np.array([plans[i].centres[k] for i in np.flatnonzero(group)])
+                w.slots[sub] = slots
+                scene = self._scene_inputs(sub, slots, s0[group], centres)
+                for part in _row_blocks(sub, ROW_BLOCK):  # encoded and primed in place, block by block
+                    rows_part = slice(int(sub[part.start]), int(sub[part.stop - 1]) + 1)
+                    cache, part_scene = w.cache.rows(rows_part), scene.rows(part)
+                    agents = self.model.encode_into(cache, part_scene)
+                    if n:
+                        self._prime(cache, agents, sub[part], slots[part], s0[group][part], int(n))
+                    w.agents[rows_part] = agents
+                    w.kind[rows_part] = part_scene.agent_kind
+        for w in self.windows:  # every slot of every row real: the memory masks are all True
+            w.cache.memory_full = bool((w.slots >= 0).all())
+
+    def _scene_inputs(
+        self, rows: np.ndarray, slots: np.ndarray, s0: np.ndarray, centres: np.ndarray
+    ) -> SceneInputs:
+        """Encoder inputs of one subset per row: initial states at ``s0`` (or the first valid step after
+        it, for agents that appeared later) in the frame of the centre agent, and the nearest map."""
+        c = self.cfg
+        real = slots >= 0
+        idx = np.where(real, slots, 0)
+        r_ix = rows[:, None]
+        steps = np.arange(self.T)
+        window = (steps[None] >= s0[:, None]) & (steps[None] <= self.now[rows][:, None])  # [r, T]
+        seg = self.valid[r_ix, idx] & window[:, None]  # [r, A, T]
+        first = np.where(seg.any(-1), np.argmax(seg, axis=-1), s0[:, None])
+        init = self.mxyh[r_ix, idx, first]
+        cseg = self.valid[rows, centres] & (steps[None] >= s0[:, None])
+        cfirst = np.where(cseg.any(-1), np.argmax(cseg, axis=-1), s0)
+        frames = self.mxyh[rows, centres, cfirst]
+        local = to_local(frames[:, None, :], init)
+        m = len(rows)
+        pts = np.zeros((m, c.max_polylines, c.points_per_polyline, 2), dtype=np.float32)
+        pmask = np.zeros(pts.shape[:3], dtype=bool)
+        mkind = np.zeros((m, c.max_polylines), dtype=np.int64)
+        mmask = np.zeros((m, c.max_polylines), dtype=bool)
+        for i, b in enumerate(rows):
+            pts[i], pmask[i], mkind[i], mmask[i] = nearest_chunks(
+                self.chunks[b], frames[i], c.max_polylines, MAP_RADIUS
+            )
+        dev = self.device
+        return SceneInputs(
+            agent_xyh=torch.from_numpy(np.where(real[..., None], local, 0.0)).float().to(dev),
+            agent_size=torch.from_numpy(np.where(real[..., None], self.size[r_ix, idx], 1.0)).float().to(dev),
+            agent_kind=torch.from_numpy(np.where(real, self.kind[r_ix, idx], 0)).to(dev),
+            agent_mask=torch.from_numpy(real).to(dev),
+            map_points=torch.from_numpy(pts).to(dev),
+            map_point_mask=torch.from_numpy(pmask).to(dev),
+            map_kind=torch.from_numpy(mkind).to(dev),
+            map_mask=torch.from_numpy(mmask).to(dev),
+        )
+
+    def _joint(self, rows: np.ndarray, agents: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """Joint ids of the tokens of ``agents [r,n]`` (-1 padding) at ``steps [r,n]`` (-1: unknown)."""
+        safe = np.maximum(agents, 0)
+        r_ix = rows[:, None]
+        tok = self.tokens[r_ix, safe, steps]
+        ok = (agents >= 0) & self.known[r_ix, safe, steps] & (tok >= 0)
+        return np.where(ok, tok + self.kind[r_ix, safe] * self.cfg.vocab_size, -1)
+
+    def _inputs(
+        self, rows: np.ndarray, slots: np.ndarray, s0: np.ndarray, positions: np.ndarray
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Carried and own-previous joint ids ``[r,n]`` of window ``positions [r,n]`` (see masks)."""
+        A = self.cfg.max_agents
+        q = positions - input_shift(self.cfg.variant, A)
+        qs = np.maximum(q, 0)
+        carried = self._joint(rows, np.take_along_axis(slots, qs % A, 1), s0[:, None] + qs // A)
+        carried = np.where(q >= 0, carried, START)
+        tau = positions // A
+        own = self._joint(
+            rows, np.take_along_axis(slots, positions % A, 1), s0[:, None] + np.maximum(tau - 1, 0)
+        )
+        own = np.where(tau > 0, own, -1)
+        return torch.from_numpy(carried).to(self.device), torch.from_numpy(own).to(self.device)
+
+    def _prime(
+        self,
+        cache: DecoderCache,
+        agents: torch.Tensor,
+        rows: np.ndarray,
+        slots: np.ndarray,
+        s0: np.ndarray,
+        steps: int,
+    ) -> None:
+        """Feed a new window the known tokens of its first ``steps`` steps (teacher forcing, one chunk)."""
+        A = self.cfg.max_agents
+        positions = np.broadcast_to(np.arange(steps * A), (len(rows), steps * A))
+        carried, own = self._inputs(rows, slots, s0, positions)
+        self.model.prime(cache, agents, carried, own)
+
+
+def _row_blocks(rows: np.ndarray, size: int) -> list[slice]:
+    """Slices of ``rows`` (sorted) into blocks of at most ``size`` consecutive row numbers."""
+    breaks = np.flatnonzero(np.diff(rows) != 1) + 1
+    blocks = []
+    for run in np.split(np.arange(len(rows)), breaks):
+        blocks += [
+            slice(int(run[i]), int(run[min(i + size, len(run)) - 1]) + 1) for i in range(0, len(run), size)
+        ]
+    return blocks
