@@ -359,7 +359,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/demo")
     p.add_argument("--scene", default="highway-intersection-999000", help="bundled scene id or index")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--steps", type=int, default=None, help="episode length (default: the rest of the log)")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="episode length (default: the rest of the log; longer episodes go on past the log's end)",
+    )
     p.add_argument("--checkpoint", help="model for the NPCs (default: the shipped pretrained model)")
     p.add_argument("--ego", choices=("idm", "replay", "constant_velocity"), default="idm")
     p.add_argument("--order", choices=("first", "last", "random"), default="first")

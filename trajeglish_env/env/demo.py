@@ -51,7 +51,10 @@ def run_demo(
             npc=TrajeglishNPC(checkpoint),
             order=order,
             max_cycles=steps,
-            reward=RewardConfig(terminate_on_collision=False, terminate_on_offroad=False),
+            # the whole episode plays, also past the end of the ego's route (--steps beyond the log)
+            reward=RewardConfig(
+                terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False
+            ),
         )
     except CheckpointError as exc:
         raise CheckpointError(f"{exc}; or run the demo with --checkpoint PATH") from exc

@@ -1,0 +1,70 @@
+"""Episodes longer than the log: learned and constant-velocity NPCs drive on, the log's late agents are
+handed to them where the log ends, and log-bound NPC policies refuse such episodes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_env import TINY
+
+from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC
+from trajeglish_env.env.aec import raw_env
+from trajeglish_env.env.vector import BatchedEgoEnv
+
+KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
+CROSSING = "highway-intersection-999001"  # 7 agents at the current step, 4 more enter later
+
+
+def play(env: raw_env) -> int:
+    """Play the episode with a braking-free zero action; the number of env steps taken."""
+    steps = 0
+    for _ in env.agent_iter():
+        _, _, term, trunc, _ = env.last()
+        env.step(None if term or trunc else np.zeros(2, np.float32))
+        steps += 1
+    return steps
+
+
+@pytest.mark.parametrize("npc", ["tiny", "constant_velocity"])
+def test_an_episode_runs_past_the_log_and_its_agents_drive_on(npc: str) -> None:
+    spec = TrajeglishNPC(TINY) if npc == "tiny" else npc
+    env = raw_env(npc=spec, max_cycles=150, reward=KEEP_GOING)
+    env.reset(seed=0, options={"scene": CROSSING})
+    sc, sim = env.scenario, env.sim
+    log_end = sc.num_steps - 1
+    play(env)
+    assert sim.steps == 150 and sim.t == sc.current_index + 150 > log_end
+    xyh, valid = sim.driver.xyh, sim.driver.valid
+    assert np.isfinite(xyh[valid]).all()
+    at_end = np.flatnonzero(sc.valid[:, log_end])
+    late = at_end[~sc.valid[at_end, sc.current_index]]
+    assert len(late) == 4  # agents the log brought in after the current step
+    assert valid[at_end, log_end:].all()  # everyone present at the log's end stays, the late ones too
+    moved = np.linalg.norm(xyh[late, -1, :2] - xyh[late, log_end, :2], axis=-1)
+    assert (moved > 1.0).any()  # and they keep driving after it
+
+
+@pytest.mark.parametrize("npc", ["replay", "idm"])
+def test_log_bound_npcs_refuse_episodes_longer_than_the_log(npc: str) -> None:
+    env = raw_env(npc=npc, max_cycles=81)
+    with pytest.raises(ValueError, match=f"max_cycles=81 but '{npc}' NPCs can play only the 80 steps"):
+        env.reset(seed=0, options={"scene": CROSSING})
+    env = raw_env(npc=npc, max_cycles=80)  # the whole log is fine
+    env.reset(seed=0, options={"scene": CROSSING})
+    assert play(env) >= 1 and env.sim.steps <= 80
+
+
+def test_batched_ego_env_past_the_log_equals_separate_envs() -> None:
+    kw = {"npc": TrajeglishNPC(TINY), "max_cycles": 90, "reward": KEEP_GOING}
+    venv = BatchedEgoEnv(2, **kw)
+    obs, _ = venv.reset(seed=4, options={"scene": CROSSING})
+    refs = [EgoEnv(**kw) for _ in range(2)]
+    for i, ref in enumerate(refs):
+        assert np.array_equal(ref.reset(seed=4 + i, options={"scene": CROSSING})[0], obs[i])
+    for _ in range(90):
+        got = venv.step(np.zeros((2, 2), np.float32))
+        for i, ref in enumerate(refs):
+            want = ref.step(np.zeros(2, np.float32))
+            assert got[1][i] == want[1] and got[3][i] == want[3]
+            assert np.array_equal(got[4]["final_obs"][i] if want[3] else got[0][i], want[0])
+    assert got[3].all()  # truncated at max_cycles, 9 s after the current step (the log has 8 s)
