@@ -68,3 +68,31 @@ def test_batched_ego_env_past_the_log_equals_separate_envs() -> None:
             assert got[1][i] == want[1] and got[3][i] == want[3]
             assert np.array_equal(got[4]["final_obs"][i] if want[3] else got[0][i], want[0])
     assert got[3].all()  # truncated at max_cycles, 9 s after the current step (the log has 8 s)
+
+
+def test_routes_past_the_log_follow_the_lanes_and_an_idm_ego_drives_them() -> None:
+    from trajeglish_env.env.controllers import RuleBasedController
+    from trajeglish_env.env.lane_routes import LanePoints, extended_routes
+    from trajeglish_env.env.scenes import load_bundle
+
+    bundle = load_bundle()
+    track = bundle.get(bundle.index_of("highway-racetrack-999000"))
+    lanes = LanePoints.of(track)
+    routes = extended_routes(track, np.array([track.sdc]), 1000.0)
+    assert 69 + 1000 <= routes.length[0] <= 69 + 1000 + 70  # the loop is followed round and round
+    points, _ = routes.at(np.zeros(200, np.int64), np.linspace(70, routes.length[0], 200))
+    gap = np.linalg.norm(points[:, None] - lanes.xy[None], axis=-1).min(axis=1)
+    assert gap.max() < 0.6  # the continuation lies on lane centres
+    road = bundle.get(bundle.index_of("highway-highway-999000"))  # its lanes run on 343 m past the log
+    lanes = LanePoints.of(road)
+    env = raw_env(npc="constant_velocity", max_cycles=200, reward=KEEP_GOING)
+    env.reset(seed=0, options={"scene": "highway-highway-999000"})
+    ego, controller = env.agent_selection, RuleBasedController("idm")
+    for agent in env.agent_iter():
+        _, _, term, trunc, _ = env.last()
+        env.step(None if term or trunc else controller.action(env, agent))
+    sim = env.sim
+    path = sim.driver.xyh[env.agent_index(ego), road.num_steps :, :2]
+    assert np.linalg.norm(path[:, None] - lanes.xy[None], axis=-1).min(axis=1).max() < 1.0  # on its lane
+    logged = np.hypot(*np.diff(road.xyh[road.sdc, road.current_index :, :2], axis=0).T).sum()
+    assert sim.progress[0] > logged + 150  # it kept driving along its route past the log

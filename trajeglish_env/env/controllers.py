@@ -28,6 +28,8 @@ class RuleBasedController:
             self._policy = make_npc_policy(self.name)
             self._policy.reset(raw.scenario, sim.external.copy(), raw.scenario.current_index, 0)
             self._scenario = raw.scenario
+            if isinstance(self._policy, IDMNPC):
+                self._follow_long_routes(self._policy, sim)
         i = raw.agent_index(agent)
         rows = np.array([i])
         if isinstance(self._policy, IDMNPC):
@@ -39,3 +41,13 @@ class RuleBasedController:
             target = sim.driver.xyh[i, sim.t][None].copy()
             target[0, :2] += sim.driver.xyh[i, sim.t, :2] - sim.driver.xyh[i, max(sim.t - 1, 0), :2]
         return raw.action_towards(agent, target[0])
+
+    @staticmethod
+    def _follow_long_routes(policy: IDMNPC, sim: Any) -> None:
+        """In an episode past the log, IDM drives each external agent along its env route (the logged path
+        continued along the lanes) instead of its logged path, and stops smoothly where the route ends."""
+        ext = sim.external_index
+        longer = sim.routes.length > policy.paths.length[ext]
+        if longer.any():
+            policy.paths = policy.paths.with_rows(ext[longer], sim.routes, np.flatnonzero(longer))
+            policy.stops_at_end[ext[longer]] = True

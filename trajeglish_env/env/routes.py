@@ -39,6 +39,14 @@ class Paths:
         h = self.heading[rows, k] * (1 - f[..., 0]) + self.heading[rows, k1] * f[..., 0]
         return p, wrap_angle(h)
 
+    def with_rows(self, rows: np.ndarray, other: Paths, source: np.ndarray) -> Paths:
+        """These paths with rows ``rows`` replaced by rows ``source`` of ``other`` (same spacing)."""
+        both, first = stack_paths([self, other])
+        keep = np.arange(len(self))
+        take = keep.copy()
+        take[np.asarray(rows, dtype=np.int64)] = first[1] + np.asarray(source, dtype=np.int64)
+        return Paths(both.points[take], both.heading[take], both.count[take], both.length[take], self.spacing)
+
     def project(
         self, rows: np.ndarray, xy: np.ndarray, s_prev: np.ndarray, back: float = 5.0, ahead: float = 30.0
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

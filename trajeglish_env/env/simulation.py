@@ -14,6 +14,7 @@ from trajeglish_env.env.actions import action_towards, bicycle_step, delta_step,
 from trajeglish_env.env.batch_geometry import edge_rows
 from trajeglish_env.env.config import EnvConfig, RandomAgents
 from trajeglish_env.env.drivers import RowView
+from trajeglish_env.env.lane_routes import extended_routes
 from trajeglish_env.env.observations import make_observer
 from trajeglish_env.env.rewards import StepOutcome, road_edges, step_reward
 from trajeglish_env.env.routes import logged_paths
@@ -169,8 +170,13 @@ class Simulation:
         turn = np.where(scenario.valid[:, prev] & (cur > 0), turn, 0.0)
         zeros = np.zeros(scenario.num_agents)
         self.kin = Kinematics(speed.copy(), zeros.copy(), zeros.copy(), turn)
-        # routes: each external agent's logged path from the current step on
-        self.routes = logged_paths(scenario.xyh[ext, cur:], scenario.valid[ext, cur:], spacing=1.0)
+        # routes: each external agent's logged path from the current step on, continued along the lanes
+        # when the episode runs past the log (as far as the agent could drive in the extra time)
+        beyond = cur + horizon - (scenario.num_steps - 1)
+        if beyond > 0:
+            self.routes = extended_routes(scenario, ext, beyond * self.dt * config.limits.max_speed)
+        else:
+            self.routes = logged_paths(scenario.xyh[ext, cur:], scenario.valid[ext, cur:], spacing=1.0)
         self.route_row = np.full(scenario.num_agents, -1, dtype=np.int64)  # agent -> its route's row
         self.route_row[ext] = np.arange(len(ext))
         self.progress = np.zeros(len(ext))
