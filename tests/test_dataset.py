@@ -10,10 +10,10 @@ import torch
 from conftest import straight_road_scene
 from torch.utils.data import DataLoader
 
-from trajeglish_env.dataset import WindowConfig, WindowDataset, collate_windows, make_window
 from trajeglish_env.geometry import to_global
-from trajeglish_env.map_chunks import chunk_map, nearest_chunks
+from trajeglish_env.model.map_chunks import chunk_map, nearest_chunks
 from trajeglish_env.scenario_io import save_scenarios
+from trajeglish_env.training.dataset import WindowConfig, WindowDataset, collate_windows, make_window
 
 
 def test_window_is_in_a_random_agents_frame_and_maps_back_exactly() -> None:

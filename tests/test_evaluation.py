@@ -69,7 +69,7 @@ def test_nll_through_the_decoding_cache(scenes, variant: str) -> None:
     cache really computes in bfloat16 (logits move) yet keeps the NLL within 0.01 nats."""
     import torch
 
-    from trajeglish_env.density import cached_nll
+    from trajeglish_env.training.density import cached_nll
 
     ckpt = tiny_ckpt(variant)
     f32 = cached_nll(ckpt, scenes, windows=4, cache_dtype=torch.float32, batch_size=2)

@@ -12,7 +12,7 @@ from trajeglish_env.model import SceneInputs
 from trajeglish_env.model.layers import DecoderCache
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import RolloutEngine
-from trajeglish_env.sampling import counter_uniform, nucleus_mask, sample_with_uniform
+from trajeglish_env.sampler.sampling import counter_uniform, nucleus_mask, sample_with_uniform
 
 
 def test_temperature_zero_is_argmax_and_small_temperature_approaches_it() -> None:

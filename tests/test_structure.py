@@ -99,3 +99,17 @@ def test_one_sampling_default_for_env_cli_policies_and_evaluate() -> None:
     assert evaluate.cache_dtype == rollout.cache_dtype == env_default.cache_dtype
     assert evaluate.top_p == rollout.top_p == env_default.top_p
     assert TrajeglishPolicy.__init__.__defaults__ == (None, None)  # None: SamplingConfig()
+
+
+def test_the_old_dataset_module_name_is_a_deprecated_alias() -> None:
+    import importlib
+    import sys
+
+    import pytest
+
+    from trajeglish_env.training.dataset import WindowDataset
+
+    sys.modules.pop("trajeglish_env.dataset", None)
+    with pytest.warns(DeprecationWarning, match="moved to trajeglish_env.training.dataset"):
+        old = importlib.import_module("trajeglish_env.dataset")
+    assert old.WindowDataset is WindowDataset

@@ -24,8 +24,8 @@ from trajeglish_env.tokenizer import (
 from trajeglish_env.tokenizer.baselines import kmeans_templates, xy_grid_templates, xyh_grid_templates
 from trajeglish_env.tokenizer.collisions import boxes_overlap, collision_flags
 from trajeglish_env.tokenizer.data import TrajectorySet
+from trajeglish_env.tokenizer.discretization import evaluate_vocabulary
 from trajeglish_env.tokenizer.distance import corner_distance
-from trajeglish_env.tokenizer.evaluate import evaluate_vocabulary
 from trajeglish_env.tokenizer.kdisks import default_epsilon, sample_kdisks
 from trajeglish_env.tokenizer.synthetic import synthetic_trajectories
 

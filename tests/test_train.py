@@ -16,7 +16,7 @@ from trajeglish_env.model import TrajeglishModel, preset
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.tokenizer.baselines import xyh_grid_templates
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
-from trajeglish_env.train import TrainConfig, train
+from trajeglish_env.training.train import TrainConfig, train
 
 VOCAB = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
 CFG = preset("tiny", vocab_size=VOCAB.size)
@@ -62,7 +62,7 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
     straight = train(scenes_dir, tmp_path / "a", CFG, _quick(), vocabulary=VOCAB, progress=False)
     assert straight["steps"] == 6 and straight["resumed_from"] == 0
 
-    import trajeglish_env.train as train_module
+    import trajeglish_env.training.train as train_module
 
     real_write = train_module._write_metrics
 
@@ -184,7 +184,7 @@ def test_curves_command_overlays_runs_and_rejects_bad_files(tmp_path, capsys) ->
 def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
     scenes_dir, tmp_path, monkeypatch, capsys
 ) -> None:
-    import trajeglish_env.train as train_module
+    import trajeglish_env.training.train as train_module
 
     original = train_module._LossModule.forward
 

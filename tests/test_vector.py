@@ -19,7 +19,7 @@ from trajeglish_env.model.masks import teacher_inputs
 from trajeglish_env.sampler import windows as windows_module
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import BatchEngine, RowSpec, _row_blocks
-from trajeglish_env.sampling import counter_uniform
+from trajeglish_env.sampler.sampling import counter_uniform
 
 SCENES = [
     "highway-merge-999000",

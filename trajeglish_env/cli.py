@@ -77,7 +77,7 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
 def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.model.config import preset
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
-    from trajeglish_env.train import TrainConfig, train
+    from trajeglish_env.training.train import TrainConfig, train
 
     vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
     overrides: dict[str, Any] = {"variant": args.variant}
@@ -101,7 +101,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_curves(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.train import plot_runs
+    from trajeglish_env.training.train import plot_runs
 
     runs = {}
     for item in args.runs:
@@ -111,7 +111,7 @@ def cmd_curves(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_nll(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.density import evaluate_nll
+    from trajeglish_env.training.density import evaluate_nll
 
     return evaluate_nll(
         _checkpoints(args.ckpt),

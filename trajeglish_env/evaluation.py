@@ -22,12 +22,12 @@ import numpy as np
 from tqdm import tqdm
 
 from trajeglish_env.checkpoint import Checkpoint
-from trajeglish_env.dataset import SceneStore
 from trajeglish_env.metrics import box_collisions, mean_scores, score_rollouts
 from trajeglish_env.sampler import rollout
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.training.dataset import SceneStore
 
 Method = Callable[[Scenario, int, int], np.ndarray]  # (scene, rollouts, seed) -> [R, N_sim, H, 3]
 

@@ -1,4 +1,4 @@
-"""The measurements of ``trajeglish bench`` and of the scripts in ``benchmarks/``: each returns a dict of
+"""The measurements of ``trajeglish bench``: each returns a dict of
 figures (wall-clock rates; best of repeats where the machine may be shared)."""
 
 from __future__ import annotations
@@ -104,7 +104,7 @@ def dataset_speed(data: Path, windows: int = 2000, batch: int = 32, workers: int
     """Training windows per second of WindowDataset: one process, and through a DataLoader."""
     from torch.utils.data import DataLoader
 
-    from trajeglish_env.dataset import WindowConfig, WindowDataset, collate_windows
+    from trajeglish_env.training.dataset import WindowConfig, WindowDataset, collate_windows
 
     ds = WindowDataset(data, WindowConfig(), seed=0)
     n_scenes = len(ds)

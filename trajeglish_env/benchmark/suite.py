@@ -1,7 +1,8 @@
 """``trajeglish bench``: the whole benchmark suite in one run, as one JSON document.
 
 Sections: tokenization agent-steps/s, dataset windows/s, training tokens/s, decoding tokens/s with and
-without the key/value cache, realism-metric scoring time, the batched ego env (Trajeglish and replay
+without the key/value cache, closed-loop rollout agent-steps/s (a bundled scene of about 24 agents and a
+200-agent grid scene), realism-metric scoring time, the batched ego env (Trajeglish and replay
 NPCs) for each batch size, each in a fresh process so that its peak memory is its own, and highway-env's
 own stepping speed measured in the same run, before and after the batched envs (their mean is the
 baseline). Ratios to highway-env make the figures comparable across noisy runs. JSON layout: see the
@@ -19,7 +20,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 SCHEMA_VERSION = 2  # 2: env figures over a whole window cycle; highway-env measured before and after
-SECTIONS = ("tokenizer", "dataset", "training", "decoding", "metrics", "env")
+SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "env")
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,8 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
         jobs.append(("training", lambda: _threads(cores, _training, 1 if q else 3)))
     if "decoding" in config.sections:  # single token calls: one thread is fastest
         jobs.append(("decoding", lambda: _threads(1, measure.decoding_speed, "small", 4 if q else 16)))
+    if "rollout" in config.sections:  # full-control rollouts, batched over rollouts: one thread
+        jobs.append(("rollout", lambda: _threads(1, _rollouts, 2 if q else 8, 10 if q else 40)))
     if "metrics" in config.sections:
         jobs.append(("metrics", lambda: measure.metrics_time(32 if q else 128, 8 if q else 32, (8,), 1)))
     if "env" in config.sections:
@@ -125,6 +128,28 @@ def _threads(n: int, fn: Callable[..., Any], *args: Any) -> Any:
         return fn(*args)
     finally:
         torch.set_num_threads(before)
+
+
+def _rollouts(rollouts: int, horizon: int) -> dict[str, Any]:
+    """Closed-loop rollout speed of the model on the bundled scene nearest 24 agents and a 200-agent grid."""
+    import numpy as np
+
+    from trajeglish_env.benchmark.measure import rollout_speed
+    from trajeglish_env.benchmark.workloads import grid_scene, model_checkpoint
+    from trajeglish_env.env.scenes import load_bundle
+
+    ckpt, model = model_checkpoint()
+    bundle = load_bundle()
+    scenes = [bundle.get(i) for i in range(len(bundle))]
+    count = np.array([int(s.valid[:, s.current_index].sum()) for s in scenes])
+    small = scenes[int(np.argmin(np.abs(count - 24)))]
+    return {
+        "model": model,
+        "rollouts": rollouts,
+        "horizon": horizon,
+        "scene_small": rollout_speed(ckpt, small, rollouts, horizon),
+        "scene_200": rollout_speed(ckpt, grid_scene(200), rollouts, horizon),
+    }
 
 
 def _training(steps: int) -> dict[str, Any]:

@@ -16,7 +16,6 @@ from trajeglish_env.env.actions import check_action, make_action_space, named_ac
 from trajeglish_env.env.config import EnvConfig
 from trajeglish_env.env.episodes import EpisodeStream
 from trajeglish_env.env.observations import observation_space
-from trajeglish_env.env.rendering import LiveRenderer
 from trajeglish_env.env.scene_batch import SceneBatch
 from trajeglish_env.env.scenes import scene_set
 from trajeglish_env.env.simulation import AgentReport, Simulation, agent_names, select_external
@@ -77,7 +76,7 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         ]
         self.agents = []
         self.sim: Simulation | None = None
-        self._renderer = LiveRenderer(self.config.render_size, self.config.render_radius)
+        self._renderer: Any = None  # a LiveRenderer, made on the first render (imports matplotlib)
 
     # ------------------------------------------------------------------ spaces
     def observation_space(self, agent: str) -> spaces.Space:
@@ -188,7 +187,7 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
                 "render() called without a render_mode; pass render_mode='rgb_array' or 'human'"
             )
             return None
-        renderer = self._renderer.of(self._sim())
+        renderer = self._live_renderer().of(self._sim())
         frame = renderer.frame(self._sim().t)
         if self.render_mode == "rgb_array":
             return frame
@@ -198,11 +197,21 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
     def save_video(self, path: str | os.PathLike[str], fps: int | None = None) -> Path:
         """Write the episode so far (from the current index to now) as a GIF or MP4."""
         sim = self._sim()
-        return self._renderer.of(sim).save(path, range(self.scenario.current_index, sim.t + 1), fps or 10)
+        return (
+            self._live_renderer().of(sim).save(path, range(self.scenario.current_index, sim.t + 1), fps or 10)
+        )
+
+    def _live_renderer(self) -> Any:
+        if self._renderer is None:
+            from trajeglish_env.render import LiveRenderer
+
+            self._renderer = LiveRenderer(self.config.render_size, self.config.render_radius)
+        return self._renderer
 
     def close(self) -> None:
         """Release the renderer and its window."""
-        self._renderer.close()
+        if self._renderer is not None:
+            self._renderer.close()
 
 
 def env(

@@ -31,7 +31,6 @@ from trajeglish_env.env.config import EnvConfig
 from trajeglish_env.env.episodes import EpisodeStream
 from trajeglish_env.env.gym_ego import check_single
 from trajeglish_env.env.observations import observation_space
-from trajeglish_env.env.rendering import LiveRenderer
 from trajeglish_env.env.scene_batch import SceneBatch, auto_threads
 from trajeglish_env.env.scenes import scene_set
 from trajeglish_env.env.simulation import AgentReport, Simulation
@@ -69,9 +68,7 @@ class BatchCore:
         self.render_mode = render_mode
         self.scenes = scene_set(scenes)
         self.streams = [EpisodeStream(self.scenes) for _ in range(self.num_envs)]
-        self.renderers = [
-            LiveRenderer(config.render_size, config.render_radius) for _ in range(self.num_envs)
-        ]
+        self.renderers: list[Any] = []  # one LiveRenderer per scene, made on the first frame (matplotlib)
         self.single_observation_space = observation_space(config.observation, config.obs)
         vocab = self.batch.vocabulary
         self.vocab_size = vocab.size if vocab is not None else 1
@@ -90,12 +87,18 @@ class BatchCore:
 
     def frames(self) -> tuple[np.ndarray | None, ...]:
         """The current frame of every scene (None for a stopped one)."""
+        if not self.renderers:
+            from trajeglish_env.render import LiveRenderer
+
+            size, radius = self.config.render_size, self.config.render_radius
+            self.renderers = [LiveRenderer(size, radius) for _ in range(self.num_envs)]
         out = []
         for i, sim in enumerate(self.batch.sims):
             out.append(None if sim is None else self.renderers[i].of(sim).frame(sim.t))
         return tuple(out)
 
     def close(self) -> None:
+        """Release the renderers."""
         for renderer in self.renderers:
             renderer.close()
 
@@ -167,7 +170,9 @@ class EgoScene:
         return self.owner.core.frames()[self.index] if self.render_mode == "rgb_array" else None
 
     def close(self) -> None:
-        self.owner.core.renderers[self.index].close()
+        """Release this scene's renderer."""
+        if self.owner.core.renderers:
+            self.owner.core.renderers[self.index].close()
 
 
 class BatchedEgoEnv(VectorEnv):

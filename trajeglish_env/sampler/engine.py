@@ -20,7 +20,7 @@ subsets act in order; an agent acts (is sampled) in the first subset holding it 
 ones. Subset ``k`` of every row is one model batch; rows may be at different points of their windows.
 
 Reproducibility: a row's tokens depend only on its scene, settings and seed, never on the other rows of
-the batch: draws are counter-based (:func:`~trajeglish_env.sampling.counter_uniform` of the row seed,
+the batch: draws are counter-based (:func:`~trajeglish_env.sampler.sampling.counter_uniform` of the row seed,
 the step and the agent) and inference is batch-invariant (:mod:`trajeglish_env.model.layers`).
 
 Layers of the engine: :mod:`~trajeglish_env.sampler.rows` (per-row state: starting rows, supplying
@@ -38,9 +38,9 @@ from trajeglish_env.geometry import to_global
 from trajeglish_env.model.config import Variant
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.rows import RowSpec
+from trajeglish_env.sampler.sampling import counter_uniform, sample_with_uniform, stream_seed
 from trajeglish_env.sampler.windows import Window, WindowedRows
 from trajeglish_env.sampler.windows import _row_blocks as _row_blocks  # re-exported
-from trajeglish_env.sampling import counter_uniform, sample_with_uniform, stream_seed
 from trajeglish_env.scenario import Scenario
 
 

@@ -12,8 +12,8 @@ import numpy as np
 import torch
 
 from trajeglish_env.geometry import to_local
-from trajeglish_env.map_chunks import MapChunks, chunk_map, nearest_chunks
 from trajeglish_env.model.layers import DecoderCache
+from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks
 from trajeglish_env.model.masks import START, input_shift
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.sampler.rows import RowSpec, RowStates

@@ -15,11 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 from torch.utils.data import Dataset, Sampler
 
-from trajeglish_env.dataset import WindowConfig, make_window
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+from trajeglish_env.training.dataset import WindowConfig, make_window
 
 
 @dataclass(frozen=True)

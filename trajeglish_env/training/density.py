@@ -16,13 +16,13 @@ import torch
 import torch.nn.functional as F
 
 from trajeglish_env.checkpoint import Checkpoint
-from trajeglish_env.dataset import SceneStore, collate_windows
 from trajeglish_env.model.masks import teacher_inputs
 from trajeglish_env.model.network import SceneInputs
 from trajeglish_env.scenario import AgentKind, Scenario
 from trajeglish_env.scenario_io import atomic_path
-from trajeglish_env.train import window_config
-from trajeglish_env.training_data import TokenizedWindows
+from trajeglish_env.training.dataset import SceneStore, collate_windows
+from trajeglish_env.training.train import window_config
+from trajeglish_env.training.training_data import TokenizedWindows
 
 KIND_NAMES = [k.name.lower() for k in AgentKind]
 

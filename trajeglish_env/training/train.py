@@ -29,14 +29,14 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from trajeglish_env.checkpoint import CheckpointError, check_compatible, load_checkpoint, save_checkpoint
-from trajeglish_env.dataset import SceneStore, WindowConfig, collate_windows
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
-from trajeglish_env.training_data import StepBatchSampler, TokenizedWindows
+from trajeglish_env.training.dataset import SceneStore, WindowConfig, collate_windows
+from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
 
 MAX_UNSTABLE_STEPS = 10  # consecutive non-finite-gradient steps skipped before training stops
 
