@@ -11,7 +11,10 @@ import torch
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
+# the shared data sits beside the main checkout (../shared) or above a worktree of it (../../shared)
+SHARED = next(
+    (p / "shared" for p in REPO.parents if (p / "shared" / "data").is_dir()), REPO.parent / "shared"
+)
 WOMD_TFRECORD = SHARED / "data" / "womd" / "motion_data_one_scenario.tfrecord"
 WOMD_SUBMISSION = SHARED / "data" / "womd" / "test_submission.binproto"
 

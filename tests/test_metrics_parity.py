@@ -7,10 +7,10 @@ TensorFlow code. Every score must match to 1e-4.
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SHARED
 
 from trajeglish_env.metrics import (
     CONFIGS,
@@ -24,7 +24,6 @@ from trajeglish_env.metrics import (
 )
 from trajeglish_env.sources.womd import read_womd
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
 WOMD = SHARED / "data" / "womd"
 SCENARIO_FILE = WOMD / "motion_data_one_scenario.tfrecord"
 SUBMISSION_FILE = WOMD / "test_submission.binproto"

@@ -216,5 +216,6 @@ def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
         next(model.parameters())[0] = float("nan")
     optimizer = torch.optim.AdamW(model.parameters())
     with pytest.raises(RuntimeError, match="not finite at step 7"):
-        train_module._save(tmp_path / "c.pt", model, VOCAB, optimizer, _quick(), 7, [], [], [], 1)
+        facts = train_module._RunFacts(train_scenes=0, val_scenes=0, sources=(), processes=1, init=None)
+        train_module._save(tmp_path / "c.pt", model, VOCAB, optimizer, _quick(), 7, [], facts)
     assert not (tmp_path / "c.pt").exists()

@@ -59,6 +59,13 @@ def _from_plain(state: dict[str, Any]) -> dict[str, Any]:
     return {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in state.items()}
 
 
+def _plain_config(cfg: ModelConfig) -> dict[str, Any]:
+    """A config as plain values (the variant by its name), as stored in checkpoint files."""
+    config = dataclasses.asdict(cfg)
+    config["variant"] = cfg.variant.value
+    return config
+
+
 def save_checkpoint(
     path: str | os.PathLike[str],
     model: TrajeglishModel,
@@ -69,8 +76,7 @@ def save_checkpoint(
 ) -> Path:
     """Write a checkpoint atomically (a crash never leaves a half-written file in place)."""
     check_compatible(model.cfg, vocabulary, where=str(path))
-    config = dataclasses.asdict(model.cfg)
-    config["variant"] = model.cfg.variant.value
+    config = _plain_config(model.cfg)
     payload = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
@@ -95,6 +101,33 @@ def check_compatible(cfg: ModelConfig, vocabulary: MotionVocabulary, where: str)
             "model "
             f"expects {cfg.num_kinds} x {cfg.vocab_size}"
         )
+
+
+def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary) -> None:
+    """A run started from ``ckpt`` (fine-tuning) must keep its config, vocabulary and finite weights;
+    otherwise raise a :class:`CheckpointError` naming what differs."""
+    where = f"--init {ckpt.path or 'checkpoint'}"
+    theirs_cfg, ours_cfg = _plain_config(ckpt.config), _plain_config(cfg)
+    diffs = [
+        f"{name} {theirs_cfg[name]} (checkpoint) vs {ours_cfg[name]} (requested)"
+        for name in theirs_cfg
+        if theirs_cfg[name] != ours_cfg[name]
+    ]
+    if diffs:
+        raise CheckpointError(
+            f"{where}: the model config differs from the checkpoint's: {'; '.join(diffs)} "
+            "(leave --preset/--variant out to use the checkpoint's)"
+        )
+    theirs, ours = ckpt.vocabulary.templates, vocabulary.templates
+    if theirs.shape != ours.shape or not np.array_equal(theirs, ours):
+        raise CheckpointError(
+            f"{where}: the vocabulary differs from the checkpoint's ({ckpt.vocabulary.method}, "
+            f"{list(theirs.shape)} vs {vocabulary.method}, {list(ours.shape)}; leave --vocab out to use "
+            "the checkpoint's)"
+        )
+    bad = [name for name, p in ckpt.model.named_parameters() if not torch.isfinite(p).all()]
+    if bad:
+        raise CheckpointError(f"{where}: weights {bad[:3]} are not finite")
 
 
 def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> Checkpoint:

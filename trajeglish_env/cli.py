@@ -75,15 +75,20 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.checkpoint import load_checkpoint
     from trajeglish_env.model.config import preset
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
     from trajeglish_env.training.train import TrainConfig, train
 
     vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
-    overrides: dict[str, Any] = {"variant": args.variant}
+    init = load_checkpoint(args.init) if args.init else None
+    overrides: dict[str, Any] = {"variant": args.variant or "trajeglish"}
     if vocabulary is not None:
         overrides["vocab_size"] = vocabulary.size
-    model_config = preset(args.preset, **overrides)
+    if init is not None and args.preset is None and args.variant is None:
+        model_config = init.config  # fine-tuning: the checkpoint's model unless asked otherwise
+    else:
+        model_config = preset(args.preset or "small", **overrides)
     config = TrainConfig(
         steps=args.steps,
         batch_size=args.batch_size,
@@ -96,12 +101,20 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         noisy_inputs=not args.no_noise,
     )
     return train(
-        args.data, args.out, model_config, config, vocabulary, args.val_data, args.resume, not args.quiet
+        args.data,
+        args.out,
+        model_config,
+        config,
+        vocabulary,
+        args.val_data,
+        args.resume,
+        not args.quiet,
+        init=init,
     )
 
 
 def cmd_curves(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.training.train import plot_runs
+    from trajeglish_env.training.curves import plot_runs
 
     runs = {}
     for item in args.runs:
@@ -279,11 +292,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--out", required=True, help="run directory (checkpoints, metrics.csv, training_curve.png)"
     )
-    p.add_argument("--preset", choices=("tiny", "small", "paper"), default="small")
     p.add_argument(
-        "--variant", choices=("trajeglish", "no-intra", "marginal", "no-map"), default="trajeglish"
+        "--preset", choices=("tiny", "small", "paper"), help="model size (default: small, or --init's)"
     )
-    p.add_argument("--vocab", help="vocabulary file (default: the shipped 384-token vocabulary)")
+    p.add_argument(
+        "--variant",
+        choices=("trajeglish", "no-intra", "marginal", "no-map"),
+        help="model variant (default: trajeglish, or --init's)",
+    )
+    p.add_argument("--vocab", help="vocabulary file (default: the shipped 384-token vocabulary, or --init's)")
+    p.add_argument(
+        "--init", help="start from this trained checkpoint (fine-tuning; same config and vocabulary)"
+    )
     p.add_argument("--steps", type=int, default=2000, help="optimisation steps")
     p.add_argument("--batch-size", type=int, default=16, help="global batch size (split over processes)")
     p.add_argument("--lr", type=float, default=5e-4)

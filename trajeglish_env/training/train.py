@@ -10,7 +10,6 @@ loss is normalised by the global token count so that W processes compute exactly
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
 import os
@@ -28,13 +27,22 @@ from torch import nn
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from trajeglish_env.checkpoint import CheckpointError, check_compatible, load_checkpoint, save_checkpoint
+from trajeglish_env.checkpoint import (
+    Checkpoint,
+    CheckpointError,
+    check_compatible,
+    check_init,
+    load_checkpoint,
+    save_checkpoint,
+)
+from trajeglish_env.distributed import init_ranks, rank_device
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.scenario import Scenario
-from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
+from trajeglish_env.training.curves import plot_curve
+from trajeglish_env.training.curves import write_metrics as _write_metrics
 from trajeglish_env.training.dataset import SceneStore, WindowConfig, collate_windows
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
 
@@ -92,26 +100,6 @@ class _LossModule(nn.Module):
         return mean * n, torch.tensor(float(n), device=mean.device)
 
 
-@dataclass
-class _Dist:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-
-def _init_distributed(device: torch.device) -> _Dist:
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return _Dist()
-    if not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
-    return _Dist(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")))
-
-
 def split_scenes(scenes: Sequence[Scenario], fraction: float) -> tuple[list[Scenario], list[Scenario]]:
     """Deterministic train/validation split: every k-th scene goes to validation."""
     if fraction <= 0 or len(scenes) < 2:
@@ -159,18 +147,22 @@ def train(
     val_data: str | os.PathLike[str] | None = None,
     resume: bool = False,
     progress: bool = True,
+    init: str | os.PathLike[str] | Checkpoint | None = None,
 ) -> dict[str, Any]:
-    """Train (or resume) a model on scene shards; writes ``last.pt``, ``model.pt`` and ``metrics.csv``."""
+    """Train (or resume) a model on scene shards; writes ``last.pt``, ``model.pt`` and ``metrics.csv``.
+
+    ``init``: a trained checkpoint to start from (fine-tuning, e.g. adapting a model to WOMD); its config
+    and vocabulary must be the run's (:func:`check_init`). A ``resume`` from ``last.pt`` takes precedence.
+    """
     out = Path(out)
-    device = (
-        torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
-        if torch.cuda.is_available()
-        else torch.device("cpu")
+    device = rank_device()
+    dd = init_ranks(device)
+    start_ckpt = load_checkpoint(init) if isinstance(init, (str, os.PathLike)) else init
+    vocabulary = vocabulary or (
+        start_ckpt.vocabulary if start_ckpt else load_default_tokenizer(model_config.vocab_size)
     )
-    dd = _init_distributed(device)
-    if device.type == "cuda":
-        torch.cuda.set_device(device)
-    vocabulary = vocabulary or load_default_tokenizer(model_config.vocab_size)
+    if start_ckpt is not None:
+        check_init(start_ckpt, model_config, vocabulary)
     check_compatible(model_config, vocabulary, where="train: --vocab")
     scenes = SceneStore(data).scenes
     if val_data is not None:
@@ -178,6 +170,7 @@ def train(
     else:
         train_scenes, val_scenes = split_scenes(scenes, config.val_fraction)
 
+    facts = _run_facts(train_scenes, val_scenes, dd.world, start_ckpt)
     torch.manual_seed(config.seed)
     model = TrajeglishModel(model_config).to(device)
     decay = [p for n, p in model.named_parameters() if p.ndim >= 2]
@@ -202,8 +195,11 @@ def train(
         optimizer.load_state_dict(ckpt.optimizer or {})
         start_step = int(trainer["step"])
         history = list(trainer.get("history", []))
-    elif resume and dd.main:
-        print(f"train: no {last} to resume from; starting from scratch", file=sys.stderr)
+    else:
+        if resume and dd.main:
+            print(f"train: no {last} to resume from; starting from scratch", file=sys.stderr)
+        if start_ckpt is not None:
+            model.load_state_dict(start_ckpt.model.state_dict())
 
     loss_module: nn.Module = _LossModule(model)
     if dd.world > 1:
@@ -302,9 +298,7 @@ def train(
                     config,
                     step,
                     history,
-                    train_scenes,
-                    val_scenes,
-                    dd.world,
+                    facts,
                 )
         bar.update(1)
     bar.close()
@@ -312,10 +306,10 @@ def train(
     result: dict[str, Any] = {"out": str(out), "steps": step, "resumed_from": start_step}
     if dd.main:
         final = out / "model.pt"
-        info = _training_info(config, step, history, train_scenes, val_scenes, dd.world)
+        info = _training_info(config, step, history, facts)
         info["seconds"] = round(elapsed, 1)
         save_checkpoint(final, model, vocabulary, training=info)
-        _plot_curve(history, out / "training_curve.png")
+        plot_curve(history, out / "training_curve.png")
         vals = [h["val_nll"] for h in history if "val_nll" in h]
         result.update(
             checkpoint=str(final),
@@ -331,26 +325,40 @@ def train(
     return result
 
 
-def _training_info(
-    config: TrainConfig,
-    step: int,
-    history: list[dict],
-    train: Sequence[Scenario],
-    val: Sequence[Scenario],
-    world: int,
-) -> dict[str, Any]:
-    sources = sorted({s.source for s in train})
-    return {
+@dataclass(frozen=True)
+class _RunFacts:
+    """What a run's checkpoints record about its data and setup (computed once)."""
+
+    train_scenes: int
+    val_scenes: int
+    sources: tuple[str, ...]
+    processes: int
+    init: str | None
+
+
+def _run_facts(
+    train: Sequence[Scenario], val: Sequence[Scenario], world: int, init: Checkpoint | None
+) -> _RunFacts:
+    sources = tuple(sorted({s.source for s in train}))
+    path = None if init is None else str(init.path or "checkpoint")
+    return _RunFacts(len(train), len(val), sources, world, path)
+
+
+def _training_info(config: TrainConfig, step: int, history: list[dict], facts: _RunFacts) -> dict[str, Any]:
+    info = {
         "train_config": dataclasses.asdict(config),
         "step": step,
-        "train_scenes": len(train),
-        "val_scenes": len(val),
-        "sources": sources,
-        "processes": world,
+        "train_scenes": facts.train_scenes,
+        "val_scenes": facts.val_scenes,
+        "sources": list(facts.sources),
+        "processes": facts.processes,
         "val_nll": next((h["val_nll"] for h in reversed(history) if "val_nll" in h), None),
         "torch": str(torch.__version__),
         "device": "cuda" if torch.cuda.is_available() else "cpu",
     }
+    if facts.init is not None:
+        info["init"] = facts.init
+    return info
 
 
 def _save(
@@ -361,86 +369,11 @@ def _save(
     config: TrainConfig,
     step: int,
     history: list[dict],
-    train: Sequence[Scenario],
-    val: Sequence[Scenario],
-    world: int,
+    facts: _RunFacts,
 ) -> None:
     bad = [name for name, p in model.named_parameters() if not torch.isfinite(p).all()]
     if bad:
         raise RuntimeError(f"train: weights {bad[:3]} are not finite at step {step}; {path} not overwritten")
     trainer = {"train_config": dataclasses.asdict(config), "step": step, "history": history}
-    info = _training_info(config, step, history, train, val, world)
+    info = _training_info(config, step, history, facts)
     save_checkpoint(path, model, vocabulary, training=info, optimizer=optimizer.state_dict(), trainer=trainer)
-
-
-def _write_metrics(path: Path, history: list[dict]) -> None:
-    fields = ["step", "loss", "val_nll", "lr", "grad_norm", "tokens_per_s"]
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields)
-        writer.writeheader()
-        for row in history:
-            writer.writerow({k: row.get(k, "") for k in fields})
-
-
-def read_metrics(run: str | os.PathLike[str]) -> list[dict[str, float]]:
-    """The rows of a run's ``metrics.csv`` (empty fields left out), for comparing runs."""
-    path = Path(run) / "metrics.csv" if Path(run).is_dir() else Path(run)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no metrics.csv (expected a run directory of `trajeglish train`)")
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        if not reader.fieldnames or "step" not in reader.fieldnames or "val_nll" not in reader.fieldnames:
-            raise ValueError(f"{path}: not a training metrics file (columns {reader.fieldnames})")
-        try:
-            return [{k: float(v) for k, v in row.items() if v not in ("", None)} for row in reader]
-        except ValueError as exc:
-            raise ValueError(f"{path}: a non-numeric value ({exc})") from None
-
-
-def plot_runs(runs: dict[str, str | os.PathLike[str]], out: str | os.PathLike[str]) -> dict[str, Any]:
-    """Validation NLL against step for several runs in one picture (e.g. the variants of the ablation);
-    returns each run's last validation NLL and the picture's path."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    last: dict[str, float | None] = {}
-    for name, run in runs.items():
-        val = [(r["step"], r["val_nll"]) for r in read_metrics(run) if "val_nll" in r]
-        last[name] = val[-1][1] if val else None
-        if val:
-            ax.plot(*zip(*val, strict=True), "o-", ms=3, label=name)
-    ax.set_xlabel("optimisation step")
-    ax.set_ylabel("validation NLL (nats / token)")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    with atomic_path(Path(out)) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
-    return {"plot": str(out), "last_val_nll": last}
-
-
-def _plot_curve(history: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    tr = [(h["step"], h["loss"]) for h in history if "loss" in h]
-    va = [(h["step"], h["val_nll"]) for h in history if "val_nll" in h]
-    if tr:
-        ax.plot(*zip(*tr, strict=True), label="train loss (noisy inputs)")
-    if va:
-        ax.plot(*zip(*va, strict=True), "o-", label="validation NLL")
-    ax.set_xlabel("optimisation step")
-    ax.set_ylabel("nats / token")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)

@@ -1,0 +1,119 @@
+"""Fine-tuning (``train --init``): the shipped model adapts to the shared WOMD scene, two DDP processes
+equal one, and incompatible starting checkpoints are refused with one clear line."""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+from conftest import WOMD_TFRECORD, straight_road_scene
+
+from trajeglish_env.checkpoint import CheckpointError, load_checkpoint, pretrained_path, save_checkpoint
+from trajeglish_env.cli import main
+from trajeglish_env.model import TrajeglishModel, preset
+from trajeglish_env.scenario_io import load_scenarios, save_scenarios
+from trajeglish_env.sources.womd import convert_womd
+from trajeglish_env.tokenizer.baselines import xyh_grid_templates
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+from trajeglish_env.training.train import TrainConfig, train, validation_nll
+
+VOCAB = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
+TINY = preset("tiny", vocab_size=VOCAB.size)
+QUICK = TrainConfig(
+    steps=3, batch_size=2, lr=5e-4, warmup_steps=1, val_fraction=0.0, num_workers=0, checkpoint_every=100
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_init(tmp_path_factory) -> Path:
+    """A trained-looking tiny checkpoint to start from."""
+    torch.manual_seed(3)
+    path = tmp_path_factory.mktemp("init") / "tiny.pt"
+    return save_checkpoint(path, TrajeglishModel(TINY), VOCAB, training={"note": "init"})
+
+
+@pytest.fixture(scope="module")
+def scenes_dir(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("scenes")
+    save_scenarios(d / "a.scn.npz", [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)])
+    return d
+
+
+@pytest.mark.skipif(not WOMD_TFRECORD.is_file(), reason="shared WOMD sample not found")
+def test_finetuning_the_shipped_model_lowers_the_womd_scene_nll(tmp_path: Path) -> None:
+    convert_womd([WOMD_TFRECORD], tmp_path / "womd", progress=False)
+    scenes = load_scenarios(tmp_path / "womd" / "motion_data_one_scenario.scn.npz")
+    shipped = load_checkpoint(pretrained_path())
+    cpu = torch.device("cpu")
+    before = validation_nll(shipped.model, scenes, shipped.vocabulary, 4, 0, cpu, batch_size=4)
+    config = TrainConfig(**{**QUICK.__dict__, "steps": 2, "batch_size": 4, "lr": 1e-4, "noisy_inputs": False})
+    result = train(tmp_path / "womd", tmp_path / "run", shipped.config, config, progress=False, init=shipped)
+    tuned = load_checkpoint(result["checkpoint"])
+    after = validation_nll(tuned.model, scenes, tuned.vocabulary, 4, 0, cpu, batch_size=4)
+    assert after < before - 0.02, (before, after)  # 1.963 -> 1.913 nats/token
+    assert tuned.training["init"] == str(pretrained_path()) and tuned.config == shipped.config
+    assert np.array_equal(tuned.vocabulary.templates, shipped.vocabulary.templates)
+
+
+def test_init_starts_from_the_checkpoint_weights(scenes_dir: Path, tiny_init: Path, tmp_path: Path) -> None:
+    config = TrainConfig(**{**QUICK.__dict__, "lr": 1e-12, "steps": 1})
+    result = train(scenes_dir, tmp_path / "run", TINY, config, progress=False, init=tiny_init)
+    start, tuned = load_checkpoint(tiny_init).model.state_dict(), load_checkpoint(result["checkpoint"])
+    for name, value in tuned.model.state_dict().items():
+        torch.testing.assert_close(value, start[name], rtol=0, atol=1e-6, msg=name)
+    assert tuned.vocabulary.method == "xyh-grid"  # the checkpoint's vocabulary, not the shipped one
+
+
+def test_incompatible_init_is_refused(scenes_dir: Path, tiny_init: Path, tmp_path: Path, capsys) -> None:
+    with pytest.raises(CheckpointError, match=r"config differs .*variant .*no-intra \(requested\)"):
+        train(
+            scenes_dir, tmp_path / "a", TINY.with_variant("no-intra"), QUICK, progress=False, init=tiny_init
+        )
+    other = MotionVocabulary(VOCAB.templates * 1.01, method="xyh-grid")
+    with pytest.raises(CheckpointError, match="vocabulary differs from the checkpoint's"):
+        train(scenes_dir, tmp_path / "b", TINY, QUICK, vocabulary=other, progress=False, init=tiny_init)
+    base = ["train", "--data", str(scenes_dir), "--out", str(tmp_path / "c"), "--steps", "1", "--quiet"]
+    assert main([*base, "--init", str(tmp_path / "missing.pt")]) == 2
+    assert main([*base, "--init", str(tiny_init), "--preset", "small"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "missing.pt: no such checkpoint file" in err[0]
+    assert err[-1].startswith("trajeglish train: error: --init ") and "d_model 32 (checkpoint)" in err[-1]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ddp_worker(rank: int, world: int, port: int, scenes: str, init: str, out: str) -> None:
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        WORLD_SIZE=str(world),
+        RANK=str(rank),
+        LOCAL_RANK=str(rank),
+    )
+    torch.set_num_threads(1)
+    train(scenes, out, TINY, QUICK, progress=False, init=init)
+    torch.distributed.destroy_process_group()
+
+
+def test_finetuning_under_two_processes_equals_one(scenes_dir: Path, tiny_init: Path, tmp_path: Path) -> None:
+    train(scenes_dir, tmp_path / "one", TINY, QUICK, progress=False, init=tiny_init)
+    args = (2, _free_port(), str(scenes_dir), str(tiny_init), str(tmp_path / "two"))
+    mp.start_processes(_ddp_worker, args=args, nprocs=2, start_method="spawn")
+    one, two = load_checkpoint(tmp_path / "one" / "model.pt"), load_checkpoint(tmp_path / "two" / "model.pt")
+    start = load_checkpoint(tiny_init).model.state_dict()
+    b = two.model.state_dict()
+    moved = 0.0
+    for name, value in one.model.state_dict().items():
+        atol = 2e-5 if name.endswith("kv.bias") else 1e-6  # as in test_train: zero-gradient key biases
+        torch.testing.assert_close(value, b[name], rtol=0, atol=atol, msg=name)
+        moved = max(moved, float((value - start[name]).abs().max()))
+    assert moved > 1e-4 and two.training["processes"] == 2 and two.training["init"] == str(tiny_init)
