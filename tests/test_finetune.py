@@ -17,7 +17,7 @@ from trajeglish_env.checkpoint import CheckpointError, load_checkpoint, pretrain
 from trajeglish_env.cli import main
 from trajeglish_env.model import TrajeglishModel, preset
 from trajeglish_env.scenario_io import load_scenarios, save_scenarios
-from trajeglish_env.sources.womd import convert_womd
+from trajeglish_env.sources.womd_convert import convert_womd
 from trajeglish_env.tokenizer.baselines import xyh_grid_templates
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 from trajeglish_env.training.train import TrainConfig, train, validation_nll

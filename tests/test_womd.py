@@ -6,21 +6,22 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import WOMD_TFRECORD
 
 from trajeglish_env.scenario import AgentKind, MapKind, SignalState
 from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.sources.womd import (
     WomdFormatError,
-    convert_womd,
     output_name,
     parse_scenario,
     read_tfrecord,
     read_womd,
 )
+from trajeglish_env.sources.womd_convert import convert_womd
 from trajeglish_env.sources.womd_proto import ScenarioProto
 from trajeglish_env.sources.womd_tfrecord import _crc_update_scalar, crc32c, masked_crc32c
 
-SAMPLE = Path(__file__).resolve().parents[2] / "shared/data/womd/motion_data_one_scenario.tfrecord"
+SAMPLE = WOMD_TFRECORD
 needs_sample = pytest.mark.skipif(not SAMPLE.is_file(), reason=f"WOMD sample file not found at {SAMPLE}")
 
 
@@ -221,4 +222,5 @@ def test_convert_reports_corrupt_input_and_converts_the_rest(tmp_path: Path):
     (failure,) = report["failed"]
     assert failure["file"] == str(bad)
     assert "broken.tfrecord: record 0" in failure["error"] and "truncated" in failure["error"]
-    assert sorted(p.name for p in out.iterdir()) == ["motion_data_one_scenario.scn.npz"]
+    names = ["motion_data_one_scenario.details.npz", "motion_data_one_scenario.scn.npz"]
+    assert sorted(p.name for p in out.iterdir()) == names

@@ -35,9 +35,16 @@ def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_convert_womd(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.sources.womd import convert_womd
+    from trajeglish_env.distributed import init_ranks
+    from trajeglish_env.sources.womd_convert import convert_womd
 
-    result = convert_womd([Path(f) for f in args.files], Path(args.out), progress=not args.quiet)
+    ranks = init_ranks()
+    files = [Path(f) for f in args.files]
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        raise FileNotFoundError(f"no such input file: {', '.join(missing[:3])}")
+    result = convert_womd(files, Path(args.out), not args.quiet and ranks.main, args.workers, ranks)
+    result["_silent"] = not ranks.main  # under torchrun the main rank prints the merged report
     if result.get("failed"):
         result["exit_code"] = 1
     return result
@@ -257,6 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("convert-womd", cmd_convert_womd, "convert Waymo Open Motion Dataset TFRecords to shard files")
     p.add_argument("files", nargs="+", help="WOMD scenario TFRecord files")
     p.add_argument("--out", required=True)
+    p.add_argument("--workers", type=int, default=1, help="processes per rank (one file each at a time)")
 
     p = add("render", cmd_render, "draw a scene as a PNG picture or a GIF/MP4 animation")
     p.add_argument("scene", help="scenario file (*.scn.npz)")
@@ -422,7 +430,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"trajeglish {args.command}: error: {message}", file=sys.stderr)
         return 2
     code = int(result.pop("exit_code", 0))
-    _print_result(result, args.json)
+    if not result.pop("_silent", False):  # non-main ranks of a torchrun job print nothing
+        _print_result(result, args.json)
     return code
 
 

@@ -1,81 +1,46 @@
 """Read and write Waymo Sim Agents submissions (``SimAgentsChallengeSubmission`` / ``ScenarioRollouts``)
-without protoc or the waymo package: the message classes are built here from a descriptor.
+without protoc or the waymo package (message classes: :mod:`submission_schema`).
 
-Field numbers follow the public ``sim_agents_submission.proto`` (proto2): SimAgentsChallengeSubmission
-{1 scenario_rollouts}; ScenarioRollouts {1 scenario_id, 2 joint_scenes}; JointScene {1
-simulated_trajectories}; SimulatedTrajectory {2 center_x, 3 center_y, 4 center_z, 5 heading (packed
-floats), 6 object_id}. Other fields (submission metadata, Scenario Gen boxes) are skipped as unknown.
+A submission is one or more ``.binproto`` shards, each a ``SimAgentsChallengeSubmission`` with the
+metadata (:class:`SubmissionMetadata`) and some scenarios' rollouts, packed for upload as a ``.tar.gz``.
+:func:`read_submission` reads a shard, a single ``ScenarioRollouts`` or a whole archive. Serialized
+messages concatenate: the bytes of the metadata followed by those of :func:`encode_scenario` for each
+scenario are one valid shard (how :mod:`trajeglish_env.submission_export` assembles shards).
 """
 
 from __future__ import annotations
 
 import os
+import tarfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf.message import DecodeError, Message
+
+from trajeglish_env.metrics.submission_metadata import SubmissionMetadata
+from trajeglish_env.metrics.submission_schema import ScenarioRolloutsProto, SubmissionProto
 
 __all__ = [
     "SubmissionFormatError",
+    "SubmissionMetadata",
+    "SubmissionProto",
     "SubmittedRollouts",
+    "encode_scenario",
     "encode_submission",
+    "is_archive",
+    "iter_submission",
     "parse_submission",
     "read_submission",
+    "read_submission_metadata",
 ]
 
-_PACKAGE = "trajeglish_env.sim_agents"
-_F = descriptor_pb2.FieldDescriptorProto
 _POSE_FIELDS = ("center_x", "center_y", "center_z", "heading")
 
 
 class SubmissionFormatError(ValueError):
     """A submission file is malformed; the message names the file, scenario, joint scene and object."""
-
-
-def _build_classes() -> dict[str, type[Message]]:
-    """Message classes of the submission schema, in a private descriptor pool."""
-    schema: dict[str, list[tuple[str, int, int, bool, str]]] = {
-        "SimulatedTrajectory": [
-            *[
-                (name, number, _F.TYPE_FLOAT, True, "")
-                for name, number in zip(_POSE_FIELDS, (2, 3, 4, 5), strict=True)
-            ],
-            ("object_id", 6, _F.TYPE_INT32, False, ""),
-        ],
-        "JointScene": [("simulated_trajectories", 1, _F.TYPE_MESSAGE, True, "SimulatedTrajectory")],
-        "ScenarioRollouts": [
-            ("scenario_id", 1, _F.TYPE_STRING, False, ""),
-            ("joint_scenes", 2, _F.TYPE_MESSAGE, True, "JointScene"),
-        ],
-        "SimAgentsChallengeSubmission": [
-            ("scenario_rollouts", 1, _F.TYPE_MESSAGE, True, "ScenarioRollouts"),
-        ],
-    }
-    file_proto = descriptor_pb2.FileDescriptorProto(name="trajeglish_env/sim_agents_subset.proto")
-    file_proto.package = _PACKAGE
-    file_proto.syntax = "proto2"
-    for message_name, fields in schema.items():
-        message = file_proto.message_type.add(name=message_name)
-        for name, number, kind, repeated, type_name in fields:
-            field = message.field.add(name=name, number=number, type=kind)
-            field.label = _F.LABEL_REPEATED if repeated else _F.LABEL_OPTIONAL
-            if type_name:
-                field.type_name = f".{_PACKAGE}.{type_name}"
-            elif repeated:
-                field.options.packed = True
-    pool = descriptor_pool.DescriptorPool()
-    pool.AddSerializedFile(file_proto.SerializeToString())
-    return {
-        name: message_factory.GetMessageClass(pool.FindMessageTypeByName(f"{_PACKAGE}.{name}"))
-        for name in schema
-    }
-
-
-_CLASSES = _build_classes()
-SubmissionProto: type[Message] = _CLASSES["SimAgentsChallengeSubmission"]
-ScenarioRolloutsProto: type[Message] = _CLASSES["ScenarioRollouts"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,15 +107,14 @@ def _scenario_arrays(proto: Message, where: str) -> SubmittedRollouts:
     )
 
 
-def parse_submission(data: bytes, *, origin: str = "") -> list[SubmittedRollouts]:
-    """Rollouts of every scenario in a serialized SimAgentsChallengeSubmission (or one ScenarioRollouts)."""
-    where = f"{origin}: " if origin else ""
-    messages: list[Message] = []
+def _parse(data: bytes, where: str) -> tuple[list[Message], SubmissionMetadata | None]:
+    """The ScenarioRollouts messages and the metadata of a shard (or of a lone ScenarioRollouts)."""
     try:
-        messages = list(SubmissionProto.FromString(data).scenario_rollouts)
+        message = SubmissionProto.FromString(data)
+        messages, metadata = list(message.scenario_rollouts), SubmissionMetadata.from_message(message)
     except DecodeError:
-        messages = []
-    if not any(len(m.joint_scenes) for m in messages):
+        messages, metadata = [], None
+    if metadata is None and not any(len(m.joint_scenes) for m in messages):
         try:
             single = ScenarioRolloutsProto.FromString(data)
         except DecodeError as exc:
@@ -160,38 +124,88 @@ def parse_submission(data: bytes, *, origin: str = "") -> list[SubmittedRollouts
         if len(single.joint_scenes) == 0:
             raise SubmissionFormatError(f"{where}no scenario rollouts with joint scenes found")
         messages = [single]
-    rollouts = [_scenario_arrays(m, where) for m in messages]
-    seen: set[str] = set()
-    for item in rollouts:
-        if item.scenario_id in seen:
-            raise SubmissionFormatError(f"{where}scenario {item.scenario_id!r} appears twice")
-        seen.add(item.scenario_id)
+    return messages, metadata
+
+
+def parse_submission(data: bytes, *, origin: str = "") -> list[SubmittedRollouts]:
+    """Rollouts of every scenario in a serialized SimAgentsChallengeSubmission (or one ScenarioRollouts)."""
+    where = f"{origin}: " if origin else ""
+    rollouts = [_scenario_arrays(m, where) for m in _parse(data, where)[0]]
+    _check_unique([r.scenario_id for r in rollouts], where)
     return rollouts
 
 
-def read_submission(path: str | os.PathLike[str]) -> list[SubmittedRollouts]:
-    """Read a ``.binproto`` submission file: the rollouts of each of its scenarios, in file order."""
-    path = Path(path)
+def _check_unique(ids: list[str], where: str) -> None:
+    seen: set[str] = set()
+    for sid in ids:
+        if sid in seen:
+            raise SubmissionFormatError(f"{where}scenario {sid!r} appears twice")
+        seen.add(sid)
+
+
+def is_archive(path: str | os.PathLike[str]) -> bool:
+    """Whether a path names a packed submission (``.tar.gz`` / ``.tgz``)."""
+    return str(path).endswith((".tar.gz", ".tgz"))
+
+
+def _shards(path: Path) -> Iterator[tuple[str, bytes]]:
+    """(origin, bytes) of every shard of a submission file or archive, in archive order."""
     try:
-        data = path.read_bytes()
-    except OSError as exc:
+        if not is_archive(path):
+            yield str(path), path.read_bytes()
+            return
+        with tarfile.open(path, "r:gz") as tar:
+            for member in tar:
+                if member.isfile():
+                    handle = tar.extractfile(member)
+                    assert handle is not None  # a regular member always has contents
+                    yield f"{path}:{member.name}", handle.read()
+    except (OSError, tarfile.TarError, EOFError) as exc:
         raise SubmissionFormatError(f"{path}: cannot read submission: {exc}") from exc
-    return parse_submission(data, origin=str(path))
 
 
-def encode_submission(rollouts: list[SubmittedRollouts]) -> bytes:
-    """Serialize rollouts as a SimAgentsChallengeSubmission (the scenario_rollouts part only)."""
+def iter_submission(path: str | os.PathLike[str]) -> Iterator[SubmittedRollouts]:
+    """The rollouts of every scenario of a ``.binproto`` shard or a ``.tar.gz`` of shards, one shard in
+    memory at a time (an archive of the whole validation set does not fit otherwise)."""
+    seen: set[str] = set()
+    for origin, data in _shards(Path(path)):
+        for message in _parse(data, f"{origin}: ")[0]:
+            item = _scenario_arrays(message, f"{origin}: ")
+            if item.scenario_id in seen:
+                raise SubmissionFormatError(f"{origin}: scenario {item.scenario_id!r} appears twice")
+            seen.add(item.scenario_id)
+            yield item
+
+
+def read_submission(path: str | os.PathLike[str]) -> list[SubmittedRollouts]:
+    """Read a ``.binproto`` shard or a ``.tar.gz`` of shards: each scenario's rollouts, in file order."""
+    return list(iter_submission(path))
+
+
+def read_submission_metadata(path: str | os.PathLike[str]) -> list[SubmissionMetadata | None]:
+    """The metadata of every shard of a submission file or archive (None for a shard without any)."""
+    return [_parse(data, f"{origin}: ")[1] for origin, data in _shards(Path(path))]
+
+
+def encode_scenario(item: SubmittedRollouts) -> bytes:
+    """One scenario's rollouts as a SimAgentsChallengeSubmission fragment; fragments and the metadata's
+    bytes concatenate into a shard."""
     message = SubmissionProto()
-    for item in rollouts:
-        scenario = message.scenario_rollouts.add(scenario_id=item.scenario_id)
-        for r in range(item.xyz.shape[0]):
-            scene = scenario.joint_scenes.add()
-            for i, object_id in enumerate(item.object_id):
-                scene.simulated_trajectories.add(
-                    center_x=item.xyz[r, i, :, 0].tolist(),
-                    center_y=item.xyz[r, i, :, 1].tolist(),
-                    center_z=item.xyz[r, i, :, 2].tolist(),
-                    heading=item.heading[r, i].tolist(),
-                    object_id=int(object_id),
-                )
+    scenario = message.scenario_rollouts.add(scenario_id=item.scenario_id)
+    for r in range(item.xyz.shape[0]):
+        scene = scenario.joint_scenes.add()
+        for i, object_id in enumerate(item.object_id):
+            scene.simulated_trajectories.add(
+                center_x=item.xyz[r, i, :, 0].tolist(),
+                center_y=item.xyz[r, i, :, 1].tolist(),
+                center_z=item.xyz[r, i, :, 2].tolist(),
+                heading=item.heading[r, i].tolist(),
+                object_id=int(object_id),
+            )
     return message.SerializeToString()
+
+
+def encode_submission(rollouts: list[SubmittedRollouts], metadata: SubmissionMetadata | None = None) -> bytes:
+    """Serialize rollouts (and the metadata, if given) as one SimAgentsChallengeSubmission shard."""
+    head = metadata.encode() if metadata is not None else b""
+    return head + b"".join(encode_scenario(item) for item in rollouts)

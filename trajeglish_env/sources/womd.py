@@ -20,24 +20,20 @@ subset of :mod:`womd_proto`. Conversion choices (all explicit here):
 from __future__ import annotations
 
 import os
-import sys
-import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 from google.protobuf.message import DecodeError, Message
-from tqdm import tqdm
 
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario, ScenarioError, SignalState
-from trajeglish_env.scenario_io import SUFFIX, load_scenarios, save_scenarios
+from trajeglish_env.scenario_io import SUFFIX
 from trajeglish_env.sources.womd_proto import ScenarioProto
 from trajeglish_env.sources.womd_tfrecord import WomdFormatError, read_tfrecord
 
 __all__ = [
     "OBJECT_TYPE_TO_KIND",
     "WomdFormatError",
-    "convert_womd",
     "output_name",
     "parse_scenario",
     "read_tfrecord",
@@ -96,64 +92,6 @@ def output_name(path: str | os.PathLike[str]) -> str:
     """
     name = Path(path).name
     return name.replace(".tfrecord", "", 1) + SUFFIX
-
-
-def convert_womd(
-    files: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str], progress: bool = True
-) -> dict:
-    """Convert WOMD TFRecord files to scenario shards in ``out`` (one ``<name>.scn.npz`` per input).
-
-    Resumable: an input whose shard already exists and loads is skipped. A corrupt input does not stop
-    the run; it is listed under ``failed`` with its error and no shard is written for it. Returns
-    ``{"converted", "skipped", "failed", "outputs", "scenes", "scenes_skipped", "seconds"}``.
-    """
-    start = time.perf_counter()
-    out = Path(out)
-    paths = [Path(f) for f in files]
-    names: dict[str, Path] = {}
-    for path in paths:
-        other = names.setdefault(output_name(path), path)
-        if other != path:
-            raise ValueError(f"{other} and {path} would both be written to {out / output_name(path)}")
-    report: dict = {
-        "converted": [],
-        "skipped": [],
-        "failed": [],
-        "outputs": [],
-        "scenes": 0,
-        "scenes_skipped": 0,
-    }
-    bar = tqdm(paths, desc="convert-womd", unit="file", file=sys.stderr, disable=not progress)
-    for path in bar:
-        target = out / output_name(path)
-        existing = _load_existing(target)
-        if existing is not None:
-            report["skipped"].append(str(path))
-            report["scenes_skipped"] += existing
-            continue
-        try:
-            scenes = list(read_womd(path))
-            save_scenarios(target, scenes)
-        except (ValueError, OSError) as exc:  # WomdFormatError, ScenarioError, unreadable file
-            report["failed"].append({"file": str(path), "error": str(exc)})
-            continue
-        report["converted"].append(str(path))
-        report["outputs"].append(str(target))
-        report["scenes"] += len(scenes)
-        bar.set_postfix(scenes=report["scenes"], failed=len(report["failed"]))
-    bar.close()
-    report["seconds"] = time.perf_counter() - start
-    return report
-
-
-def _load_existing(target: Path) -> int | None:
-    """Number of scenes in an existing, loadable shard; None if it is absent or unreadable."""
-    if not target.is_file():
-        return None
-    try:
-        return len(load_scenarios(target))
-    except (ValueError, OSError):
-        return None
 
 
 # ---------------------------------------------------------------------------------------------- conversion

@@ -1,0 +1,68 @@
+"""Files of raw WOMD log values (:class:`LogDetails`) kept beside converted scenario shards.
+
+``convert-womd`` writes ``NAME.details.npz`` next to ``NAME.scn.npz``, one entry per scene in the same
+order, so that what the planar :class:`~trajeglish_env.scenario.Scenario` drops (z, box heights, raw
+invalid states, object types, map z, per-step stop points) is there for the submission's ``center_z`` and
+for scores that match the official ones, without the TFRecords. Written atomically; a foreign or
+mismatched file fails with a message naming it.
+"""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from collections.abc import Sequence
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+
+from trajeglish_env.metrics.log_details import LogDetails
+from trajeglish_env.scenario_io import SUFFIX, atomic_path
+
+__all__ = ["DETAILS_SUFFIX", "details_path", "load_log_details", "save_log_details"]
+
+DETAILS_SUFFIX = ".details.npz"
+FORMAT_NAME = "trajeglish_env.log_details"
+FORMAT_VERSION = 1
+
+
+def details_path(scenario_file: str | os.PathLike[str]) -> Path:
+    """The details file that belongs to a scenario shard (``x.scn.npz`` -> ``x.details.npz``)."""
+    path = Path(scenario_file)
+    stem = path.name[: -len(SUFFIX)] if path.name.endswith(SUFFIX) else path.stem
+    return path.with_name(stem + DETAILS_SUFFIX)
+
+
+def save_log_details(path: str | os.PathLike[str], details: Sequence[LogDetails]) -> Path:
+    """Write the details of a shard's scenes (in the shard's order) atomically."""
+    arrays: dict[str, np.ndarray] = {
+        "__format__": np.array(FORMAT_NAME),
+        "__version__": np.array(FORMAT_VERSION),
+        "__count__": np.array(len(details)),
+    }
+    for i, item in enumerate(details):
+        for f in fields(LogDetails):
+            arrays[f"{i}/{f.name}"] = np.asarray(getattr(item, f.name))
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]
+    return path
+
+
+def load_log_details(path: str | os.PathLike[str]) -> list[LogDetails]:
+    """Read a details file written by :func:`save_log_details`."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such log-details file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "__format__" not in data.files or str(data["__format__"]) != FORMAT_NAME:
+                raise ValueError(f"{path}: not a log-details file (no '{FORMAT_NAME}' header)")
+            if int(data["__version__"]) != FORMAT_VERSION:
+                raise ValueError(f"{path}: log-details version {int(data['__version__'])} is not supported")
+            count = int(data["__count__"])
+            names = [f.name for f in fields(LogDetails)]
+            return [LogDetails(**{n: data[f"{i}/{n}"] for n in names}) for i in range(count)]
+    except (zipfile.BadZipFile, EOFError, OSError, KeyError) as exc:
+        raise ValueError(f"{path}: not a readable log-details file (truncated or corrupt?): {exc}") from exc
