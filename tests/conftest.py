@@ -61,3 +61,45 @@ def straight_scene() -> Scenario:
 # Tests run in parallel workers (pytest -n 2) on small tensors: one intra-op thread each avoids
 # oversubscribing the cores (thread spin-waits made small decodes ~20x slower).
 torch.set_num_threads(1)
+
+
+def write_tfrecord(path: Path, records: list[bytes]) -> Path:
+    """A TFRecord file of the given records (length, masked CRCs, data), as TensorFlow writes one."""
+    from trajeglish_env.sources.womd_tfrecord import masked_crc32c
+
+    with open(path, "wb") as fh:
+        for data in records:
+            length = len(data).to_bytes(8, "little")
+            fh.write(length + masked_crc32c(length).to_bytes(4, "little"))
+            fh.write(data + masked_crc32c(data).to_bytes(4, "little"))
+    return path
+
+
+def small_womd_records(keep: int = 8) -> list[bytes]:
+    """Two WOMD Scenario records cut from the shared sample: the sdc, the tracks to predict and the tracks
+    nearest the sdc at the current step (``keep`` sim agents in all; the others' states invalidated, so the
+    reader drops them), the second one renamed (``...-b``). Real format, small enough for quick rollouts."""
+    from trajeglish_env.sources.womd_proto import ScenarioProto
+    from trajeglish_env.sources.womd_tfrecord import read_tfrecord
+
+    ((_, data),) = list(read_tfrecord(WOMD_TFRECORD))
+    proto = ScenarioProto.FromString(data)
+    now = int(proto.current_time_index)
+    sdc = proto.tracks[proto.sdc_track_index].states[now]
+    required = {int(proto.sdc_track_index)} | {int(r.track_index) for r in proto.tracks_to_predict}
+    live = [i for i, t in enumerate(proto.tracks) if t.states[now].valid]
+    dist = {
+        i: np.hypot(t.states[now].center_x - sdc.center_x, t.states[now].center_y - sdc.center_y)
+        for i, t in enumerate(proto.tracks)
+        if i in live
+    }
+    kept = required | set(
+        sorted((i for i in live if i not in required), key=dist.get)[: keep - len(required)]
+    )
+    for i, track in enumerate(proto.tracks):
+        if i not in kept:
+            for state in track.states:
+                state.valid = False
+    first = proto.SerializeToString()
+    proto.scenario_id = proto.scenario_id + "-b"
+    return [first, proto.SerializeToString()]

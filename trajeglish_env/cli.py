@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from trajeglish_env.cli_womd import add_womd_commands
 from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
@@ -366,6 +367,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out/evaluate", help="directory for the table and plots")
+
+    add_womd_commands(add)
 
     p = add("rollout", cmd_rollout, "sample one rollout of a scene and render it")
     p.add_argument("--scenario", required=True, help="scenario file (*.scn.npz)")

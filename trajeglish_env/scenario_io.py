@@ -107,6 +107,20 @@ def load_scenarios(path: str | os.PathLike[str]) -> list[Scenario]:
     return scenes
 
 
+def scenario_ids(path: str | os.PathLike[str]) -> list[str]:
+    """The scenario ids of a file's scenes, read without loading the scenes (indexing large sets)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such scenario file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return [str(data[f"{i}/scenario_id"]) for i in range(_check_header(path, data))]
+    except (zipfile.BadZipFile, EOFError, OSError, KeyError, ValueError) as exc:
+        if isinstance(exc, ScenarioError):
+            raise
+        raise ScenarioError(f"{path}: not a readable scenario file (truncated or corrupt?): {exc}") from exc
+
+
 def _check_header(path: Path, data: np.lib.npyio.NpzFile) -> int:
     if "__format__" not in data.files or str(data["__format__"]) != FORMAT_NAME:
         raise ScenarioError(f"{path}: not a trajeglish_env scenario file (no '{FORMAT_NAME}' header)")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 import tarfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +34,7 @@ __all__ = [
     "parse_submission",
     "read_submission",
     "read_submission_metadata",
+    "submission_files",
 ]
 
 _POSE_FIELDS = ("center_x", "center_y", "center_z", "heading")
@@ -164,27 +165,47 @@ def _shards(path: Path) -> Iterator[tuple[str, bytes]]:
         raise SubmissionFormatError(f"{path}: cannot read submission: {exc}") from exc
 
 
-def iter_submission(path: str | os.PathLike[str]) -> Iterator[SubmittedRollouts]:
-    """The rollouts of every scenario of a ``.binproto`` shard or a ``.tar.gz`` of shards, one shard in
-    memory at a time (an archive of the whole validation set does not fit otherwise)."""
+def submission_files(path: str | os.PathLike[str]) -> list[Path]:
+    """The files of a submission: a shard, an archive, or a directory's ``*.binproto*`` shards (sorted)."""
+    path = Path(path)
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir() if ".binproto" in p.name and not p.name.startswith("."))
+        if not files:
+            raise SubmissionFormatError(f"{path}: no submission shards (*.binproto*) in this directory")
+        return files
+    if not path.is_file():
+        raise SubmissionFormatError(f"{path}: no such submission file or directory")
+    return [path]
+
+
+def iter_submission(
+    path: str | os.PathLike[str], keep: Callable[[int], bool] | None = None
+) -> Iterator[tuple[int, SubmittedRollouts]]:
+    """``(position, rollouts)`` of every scenario of a submission (shard, ``.tar.gz`` or directory of
+    shards), one shard in memory at a time; ``keep(position)`` False skips a scenario's decoding (how
+    ranks share the scoring)."""
     seen: set[str] = set()
-    for origin, data in _shards(Path(path)):
-        for message in _parse(data, f"{origin}: ")[0]:
-            item = _scenario_arrays(message, f"{origin}: ")
-            if item.scenario_id in seen:
-                raise SubmissionFormatError(f"{origin}: scenario {item.scenario_id!r} appears twice")
-            seen.add(item.scenario_id)
-            yield item
+    position = 0
+    for file in submission_files(path):
+        for origin, data in _shards(file):
+            for message in _parse(data, f"{origin}: ")[0]:
+                sid = str(message.scenario_id)
+                if sid in seen:
+                    raise SubmissionFormatError(f"{origin}: scenario {sid!r} appears twice")
+                seen.add(sid)
+                if keep is None or keep(position):
+                    yield position, _scenario_arrays(message, f"{origin}: ")
+                position += 1
 
 
 def read_submission(path: str | os.PathLike[str]) -> list[SubmittedRollouts]:
     """Read a ``.binproto`` shard or a ``.tar.gz`` of shards: each scenario's rollouts, in file order."""
-    return list(iter_submission(path))
+    return [item for _, item in iter_submission(path)]
 
 
 def read_submission_metadata(path: str | os.PathLike[str]) -> list[SubmissionMetadata | None]:
     """The metadata of every shard of a submission file or archive (None for a shard without any)."""
-    return [_parse(data, f"{origin}: ")[1] for origin, data in _shards(Path(path))]
+    return [_parse(data, f"{o}: ")[1] for file in submission_files(path) for o, data in _shards(file)]
 
 
 def encode_scenario(item: SubmittedRollouts) -> bytes:
