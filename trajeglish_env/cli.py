@@ -158,10 +158,16 @@ def _checkpoints(items: list[str] | None) -> dict[str, Any]:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.distributed import init_ranks, rank_device
     from trajeglish_env.evaluation import EvalConfig, evaluate
     from trajeglish_env.sampler.config import SamplingConfig
 
-    ckpts = _checkpoints(args.ckpt)
+    device = rank_device()
+    ranks = init_ranks(device)
+    # with --submission the checkpoints are evaluated only when named
+    ckpts = {} if args.submission and not args.ckpt else _checkpoints(args.ckpt)
+    for ckpt in ckpts.values():
+        ckpt.model.to(device)
     config = EvalConfig(
         rollouts=args.rollouts,
         scenes=args.scenes,
@@ -170,8 +176,19 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
         metrics=args.metrics,
         seed=args.seed,
     )
-    partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts)))
-    return evaluate(args.data, ckpts, config, args.out, partial=partial, progress=not args.quiet)
+    partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts), None))
+    result = evaluate(
+        args.data,
+        ckpts,
+        config,
+        args.out,
+        partial=partial,
+        progress=not args.quiet,
+        submission=args.submission,
+        ranks=ranks,
+    )
+    result["_silent"] = not ranks.main  # under torchrun the main rank prints the merged table
+    return result
 
 
 def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
@@ -367,6 +384,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out/evaluate", help="directory for the table and plots")
+    p.add_argument(
+        "--submission",
+        help="also score the rollouts of this submission (shard, .tar.gz or directory); then only the "
+        "checkpoints named with --ckpt are sampled",
+    )
 
     add_womd_commands(add)
 

@@ -22,14 +22,18 @@ import numpy as np
 from tqdm import tqdm
 
 from trajeglish_env.checkpoint import Checkpoint
-from trajeglish_env.metrics import box_collisions, mean_scores, score_rollouts
+from trajeglish_env.distributed import Ranks, gather, my_share
+from trajeglish_env.metrics import LogDetails, RealismScores, box_collisions, mean_scores, score_rollouts
+from trajeglish_env.metrics.log_details_io import details_for_files
+from trajeglish_env.metrics.submission import iter_submission
 from trajeglish_env.sampler import rollout
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.training.dataset import SceneStore
 
-Method = Callable[[Scenario, int, int], np.ndarray]  # (scene, rollouts, seed) -> [R, N_sim, H, 3]
+# (scene, rollouts, seed) -> [R, N_sim, H, 3], or with the rollouts' z [R, N_sim, H] (submissions)
+Method = Callable[[Scenario, int, int], np.ndarray | tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -89,6 +93,30 @@ def model_method(ckpt: Checkpoint, sampling: SamplingConfig) -> Method:
     return run
 
 
+def submission_method(path: str | os.PathLike[str], scenario_ids: Sequence[str]) -> Method:
+    """The rollouts (and z) a submission file holds for the given scenarios, as a method."""
+    wanted = set(scenario_ids)
+    held = {item.scenario_id: item for _, item in iter_submission(path) if item.scenario_id in wanted}
+    absent = sorted(wanted - set(held))
+    if absent:
+        raise ValueError(f"{path}: no rollouts for scenarios {absent[:3]} ({len(absent)} of {len(wanted)})")
+
+    def run(scene: Scenario, rollouts: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        item = held[scene.scenario_id]
+        ids = scene.track_id[simulated(scene)]
+        sorter = np.argsort(item.object_id)
+        order = sorter[np.searchsorted(item.object_id, ids, sorter=sorter).clip(max=len(sorter) - 1)]
+        if (
+            len(ids) != len(order)
+            or len(ids) != len(item.object_id)
+            or not np.array_equal(item.object_id[order], ids)
+        ):
+            raise ValueError(f"{path}: scenario {scene.scenario_id!r} does not hold exactly its sim agents")
+        return item.xyh[:, order].astype(np.float64), item.z[:, order].astype(np.float64)
+
+    return run
+
+
 def collisions_over_time(scene: Scenario, fut: np.ndarray) -> np.ndarray:
     """Per rollout and future step, the fraction of simulated agents overlapping another agent ``[R,H]``.
 
@@ -119,22 +147,32 @@ def _kinematics(scene: Scenario, fut: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def evaluate_methods(
-    scenes: Sequence[Scenario], methods: dict[str, Method], config: EvalConfig, progress: bool = True
+    scenes: Sequence[Scenario],
+    methods: dict[str, Method],
+    config: EvalConfig,
+    progress: bool = True,
+    details: Sequence[LogDetails | None] | None = None,
+    ranks: Ranks | None = None,
 ) -> dict[str, Any]:
-    """Score every method on every scene; returns per-method mean scores, curves and samples."""
-    results: dict[str, Any] = {}
-    bar = tqdm(total=len(scenes) * len(methods), disable=not progress, file=sys.stderr, desc="evaluate")
+    """Score every method on every scene; returns per-method mean scores, curves and samples.
+
+    ``details``: raw WOMD log values per scene (official-value parity; None: planar). Under ``torchrun``
+    the ranks share the scenes and every rank returns the merged (one-process) result.
+    """
+    ranks = ranks or Ranks()
+    mine = my_share(range(len(scenes)), ranks)
+    bar = tqdm(total=len(mine) * len(methods), disable=not progress, file=sys.stderr, desc="evaluate")
+    rows: dict[str, list] = {name: [] for name in methods}
     for name, method in methods.items():
-        scores, curves, speeds, accels = [], [], [], []
-        for k, scene in enumerate(scenes):
-            fut = method(scene, config.rollouts, config.seed + k)
-            ids = scene.track_id[simulated(scene)]
-            scores.append(score_rollouts(scene, fut, ids, config.metrics))
-            curves.append(collisions_over_time(scene, fut).mean(0))
-            s, a = _kinematics(scene, fut)
-            speeds.append(s)
-            accels.append(a)
+        for k in mine:
+            rows[name].append(_score_scene(scenes[k], k, method, config, details))
             bar.update(1)
+    bar.close()
+    merged = gather(rows, ranks)
+    results: dict[str, Any] = {}
+    for name in methods:
+        per_scene = sorted((row for part in merged for row in part[name]), key=lambda row: row[0])
+        _, scores, curves, speeds, accels = (list(x) for x in zip(*per_scene, strict=True))
         mean = mean_scores(scores)
         results[name] = {
             "scores": mean.to_dict(),
@@ -142,20 +180,42 @@ def evaluate_methods(
             "_speed": np.concatenate(speeds),
             "_accel": np.concatenate(accels),
         }
-    bar.close()
     return results
 
 
+def _score_scene(
+    scene: Scenario, k: int, method: Method, config: EvalConfig, details: Sequence[LogDetails | None] | None
+) -> tuple[int, RealismScores, np.ndarray, np.ndarray, np.ndarray]:
+    """(index, scores, collision curve, speeds, accelerations) of one method on scene ``k``."""
+    fut, z = _split(method(scene, config.rollouts, config.seed + k))
+    ids = scene.track_id[simulated(scene)]
+    detail = details[k] if details is not None else None
+    scores = score_rollouts(scene, fut, ids, config.metrics, rollouts_z=z, details=detail)
+    speed, accel = _kinematics(scene, fut)
+    return k, scores, collisions_over_time(scene, fut).mean(0), speed, accel
+
+
+def _split(out: np.ndarray | tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
+    """A method's rollouts ``[R,N,H,3]`` and their z ``[R,N,H]`` if it gives them (submissions do)."""
+    return out if isinstance(out, tuple) else (out, None)
+
+
 def partial_control(
-    ckpt: Checkpoint, scenes: Sequence[Scenario], config: EvalConfig, progress: bool = True
+    ckpt: Checkpoint,
+    scenes: Sequence[Scenario],
+    config: EvalConfig,
+    progress: bool = True,
+    ranks: Ranks | None = None,
 ) -> dict[str, dict[str, float]]:
-    """The sdc driven by the model, all others replaying the log; the sdc acts first vs last."""
+    """The sdc driven by the model, all others replaying the log; the sdc acts first vs last (ranks
+    share the scenes; the merged result is the one-process one)."""
+    ranks = ranks or Ranks()
     out: dict[str, dict[str, float]] = {}
     for place in ("first", "last"):
         ades, cols = [], []
-        for k, scene in enumerate(
-            tqdm(scenes, disable=not progress, file=sys.stderr, desc=f"partial ({place})")
-        ):
+        mine = my_share(range(len(scenes)), ranks)
+        for k in tqdm(mine, disable=not progress, file=sys.stderr, desc=f"partial ({place})"):
+            scene = scenes[k]
             controlled = np.zeros(scene.num_agents, bool)
             controlled[scene.sdc] = True
             priority = np.zeros(scene.num_agents)
@@ -172,14 +232,18 @@ def partial_control(
             fut = slice(scene.current_index + 1, scene.num_steps)
             log_ok = scene.valid[scene.sdc, fut]
             err = np.linalg.norm(res.xyh[:, scene.sdc, fut, :2] - scene.xyh[scene.sdc, fut, :2], axis=-1)
-            ades.append(float(err[:, log_ok].mean()))
+            ades.append((k, float(err[:, log_ok].mean())))
             others = np.flatnonzero(np.arange(scene.num_agents) != scene.sdc)
             ego = res.xyh[:, scene.sdc, fut][:, None]  # [R,1,H,3]
             oth = res.xyh[:, others, fut]
             ok = res.valid[:, others, fut]
             hit = box_collisions(ego, scene.size[scene.sdc], oth, scene.size[others][None, :, None]) & ok
-            cols.append(float(hit.any(axis=(1, 2)).mean()))
-        out[place] = {"ade": float(np.mean(ades)), "collision_rate": float(np.mean(cols))}
+            cols.append((k, float(hit.any(axis=(1, 2)).mean())))
+        ades, cols = (sorted(x for part in gather(values, ranks) for x in part) for values in (ades, cols))
+        out[place] = {
+            "ade": float(np.mean([a for _, a in ades])),
+            "collision_rate": float(np.mean([c for _, c in cols])),
+        }
     return out
 
 
@@ -190,17 +254,33 @@ def evaluate(
     out_dir: str | os.PathLike[str] = "out/evaluate",
     partial: str | None = None,
     progress: bool = True,
+    submission: str | os.PathLike[str] | None = None,
+    ranks: Ranks | None = None,
 ) -> dict[str, Any]:
-    """The evaluation table (JSON + Markdown + plots) for the log, constant velocity and checkpoints."""
-    every = SceneStore(data).scenes
-    scenes = list(every[:: max(1, len(every) // config.scenes)][: config.scenes])  # spread over all sources
+    """The evaluation table (JSON + Markdown + plots) for the log, constant velocity, checkpoints and
+    a ``submission`` file's rollouts (row ``submission``). WOMD shards with raw log details are scored
+    with them (official values). Under ``torchrun`` the ranks share the scenes and the main rank writes
+    the files; every rank returns the merged result."""
+    ranks = ranks or Ranks()
+    store = SceneStore(data)
+    every = store.scenes
+    chosen = list(range(len(every)))[:: max(1, len(every) // config.scenes)][: config.scenes]  # all sources
+    scenes = [every[k] for k in chosen]
     if not scenes:
         raise ValueError(f"{data}: no scenes to evaluate")
+    all_details = details_for_files(store.files)
+    details = [all_details[k] for k in chosen] if len(all_details) == len(every) else None
     methods: dict[str, Method] = {"log": log_method, "constant_velocity": constant_velocity_method}
+    if submission is not None:
+        methods["submission"] = submission_method(submission, [s.scenario_id for s in scenes])
     for name, ckpt in checkpoints.items():
         for temp in config.temperatures:
             methods[f"{name}@T={temp:g}"] = model_method(ckpt, replace(config.sampling, temperature=temp))
-    raw = evaluate_methods(scenes, methods, config, progress)
+    raw = evaluate_methods(scenes, methods, config, progress and ranks.main, details, ranks)
+    if partial is not None:
+        pc = partial_control(checkpoints[partial], scenes, config, progress and ranks.main, ranks)
+    if not ranks.main:
+        return {"scenes": len(scenes), "rank": ranks.rank}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     plots = _plot(raw, scenes[0].dt, out)
@@ -214,15 +294,14 @@ def evaluate(
         "scenes": len(scenes),
         "rollouts": config.rollouts,
         "metrics_config": config.metrics,
+        "log_details": details is not None,
+        "processes": ranks.world,
         "methods": table,
         "best_temperature": best,
         "plots": plots,
     }
     if partial is not None:
-        result["partial_control"] = {
-            "model": partial,
-            **partial_control(checkpoints[partial], scenes, config, progress),
-        }
+        result["partial_control"] = {"model": partial, **pc}
     md = markdown_table(result)
     with atomic_path(out / "evaluation.md") as tmp:
         tmp.write_text(md)

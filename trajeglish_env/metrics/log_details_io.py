@@ -20,7 +20,7 @@ import numpy as np
 from trajeglish_env.metrics.log_details import LogDetails
 from trajeglish_env.scenario_io import SUFFIX, atomic_path
 
-__all__ = ["DETAILS_SUFFIX", "details_path", "load_log_details", "save_log_details"]
+__all__ = ["DETAILS_SUFFIX", "details_for_files", "details_path", "load_log_details", "save_log_details"]
 
 DETAILS_SUFFIX = ".details.npz"
 FORMAT_NAME = "trajeglish_env.log_details"
@@ -66,3 +66,11 @@ def load_log_details(path: str | os.PathLike[str]) -> list[LogDetails]:
             return [LogDetails(**{n: data[f"{i}/{n}"] for n in names}) for i in range(count)]
     except (zipfile.BadZipFile, EOFError, OSError, KeyError) as exc:
         raise ValueError(f"{path}: not a readable log-details file (truncated or corrupt?): {exc}") from exc
+
+
+def details_for_files(files: Sequence[str | os.PathLike[str]]) -> list[LogDetails | None]:
+    """Details of every scene of the given shards in order; empty unless every shard has its file."""
+    sidecars = [details_path(f) for f in files]
+    if not sidecars or not all(p.is_file() for p in sidecars):
+        return []
+    return [item for p in sidecars for item in load_log_details(p)]

@@ -1,0 +1,188 @@
+"""The WOMD workflow end to end with tiny settings: TFRecords -> shards -> fine-tune -> submission .tar.gz ->
+local scores, through the CLI; an interrupted export resumes; two ranks (the processes torchrun starts)
+give the one-process files bit for bit."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+from conftest import WOMD_TFRECORD, small_womd_records, write_tfrecord
+
+import trajeglish_env.submission_export as export_module
+from trajeglish_env.checkpoint import load_checkpoint, save_checkpoint
+from trajeglish_env.cli import main
+from trajeglish_env.metrics import score_rollouts
+from trajeglish_env.metrics.log_details_io import details_path, load_log_details
+from trajeglish_env.metrics.submission import read_submission, read_submission_metadata
+from trajeglish_env.model import TrajeglishModel, preset
+from trajeglish_env.scenario_io import load_scenarios
+from trajeglish_env.submission_export import ExportConfig, sample_scenario
+from trajeglish_env.tokenizer.baselines import xyh_grid_templates
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+
+pytestmark = pytest.mark.skipif(not WOMD_TFRECORD.is_file(), reason="shared WOMD sample not found")
+
+ROLLOUTS = "2"
+METADATA = [
+    *("--account-name", "someone@example.com", "--method-name", "trajeglish-tiny"),
+    *("--authors", "A. Author", "B. Author", "--affiliation", "Nowhere"),
+    *("--description", "tiny test model", "--method-link", "https://example.com/paper"),
+]
+
+
+def _commands(root: Path, out: str) -> list[list[str]]:
+    """The workflow's commands, writing under ``root/out`` (inputs under ``root``)."""
+    o = root / out
+    shards, run, sub = str(o / "shards"), str(o / "run"), str(o / "sub")
+    inputs = sorted(str(p) for p in root.glob("validation.tfrecord-*"))
+    train = ["train", "--data", shards, "--out", run, "--init", str(root / "tiny.pt"), "--steps", "2"]
+    train += ["--batch-size", "2", "--warmup", "1", "--val-every", "100", "--workers", "0"]
+    # both runs export the one-process fine-tuned model (two-rank training matches it to 1e-6, not bitwise)
+    export = ["export-submission", "--data", shards, "--out", sub, "--ckpt", str(root / "one/run/model.pt")]
+    return [
+        ["convert-womd", *inputs, "--out", shards],
+        train,
+        [*export, "--rollouts", ROLLOUTS, *METADATA],
+        ["score-submission", f"{sub}/submission.tar.gz", "--data", shards, "--out", str(o / "scores.json")],
+        ["evaluate", "--data", shards, "--submission", f"{sub}/submission.tar.gz", "--out", str(o / "eval")],
+    ]
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory) -> Path:
+    """Two small WOMD TFRecords cut from the shared scenario and a tiny checkpoint to fine-tune."""
+    root = tmp_path_factory.mktemp("womd")
+    first, second = small_womd_records(keep=6)
+    write_tfrecord(root / "validation.tfrecord-00000-of-00002", [first])
+    write_tfrecord(root / "validation.tfrecord-00001-of-00002", [second])
+    vocab = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
+    torch.manual_seed(0)
+    save_checkpoint(root / "tiny.pt", TrajeglishModel(preset("tiny", vocab_size=vocab.size)), vocab)
+    return root
+
+
+@pytest.fixture(scope="module")
+def one(root: Path) -> dict[str, dict]:
+    """The workflow in one process; the export is interrupted after its first scenario and resumed."""
+    results = {}
+    convert, train, export, score, evaluate = _commands(root, "one")
+    for command in (convert, train):
+        results[command[0]] = _run(command)
+    real = export_module.sample_scenario
+    calls = []
+
+    def crash_on_second(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # the job is killed while sampling the second scenario
+        return real(*args, **kwargs)
+
+    export_module.sample_scenario = crash_on_second
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            main([*export, "--quiet"])
+    finally:
+        export_module.sample_scenario = real
+    for command in (export, score, evaluate):
+        results[command[0]] = _run(command)
+    return results
+
+
+def _run(command: list[str]) -> dict:
+    import contextlib
+    import io
+
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer):
+        assert main([*command, "--json", "--quiet"]) == 0, command
+    return json.loads(buffer.getvalue())
+
+
+def test_tfrecords_to_a_scored_submission(root: Path, one: dict[str, dict]) -> None:
+    assert one["convert-womd"]["scenes"] == 2 and one["train"]["steps"] == 2
+    export = one["export-submission"]
+    assert export["scenarios"] == 2 and export["resumed"] == 1 and export["sampled"] == 1  # resumed
+    assert [Path(p).name for p in export["shards"]] == [
+        "submission.binproto-00000-of-00002",
+        "submission.binproto-00001-of-00002",
+    ]
+    archive = Path(export["archive"])
+    rollouts = read_submission(archive)
+    assert [r.scenario_id for r in rollouts] == ["637f20cafde22ff8", "637f20cafde22ff8-b"]
+    assert all(r.xyz.shape == (2, 6, 80, 3) for r in rollouts)
+    for meta in read_submission_metadata(archive):
+        assert meta is not None and meta.validate() is meta
+        assert meta.authors == ("A. Author", "B. Author") and meta.method_link == "https://example.com/paper"
+        assert meta.acknowledge_complies_with_closed_loop_requirement and not meta.uses_lidar_data
+        assert meta.num_model_parameters == "95K"  # counted from the tiny checkpoint
+
+    # the files hold exactly the rollouts the sampler draws; scored from them, the same numbers
+    ckpt = load_checkpoint(root / "one" / "run" / "model.pt")
+    shard = root / "one" / "shards" / "validation-00001-of-00002.scn.npz"
+    (scene,), (details,) = load_scenarios(shard), load_log_details(details_path(shard))
+    direct = sample_scenario(ckpt, scene, details, ExportConfig(rollouts=2))
+    np.testing.assert_array_equal(direct.xyz, rollouts[1].xyz)
+    np.testing.assert_array_equal(direct.heading, rollouts[1].heading)
+    assert np.all(direct.z == np.float32(details.xyz[scene.valid[:, 10], 10, 2])[None, :, None])
+    per_scenario = json.loads((root / "one" / "scores.json").read_text())["per_scenario"]
+    in_memory = score_rollouts(scene, direct.xyh, direct.object_id, rollouts_z=direct.z, details=details)
+    assert per_scenario[1] == in_memory.to_dict()
+    scores = one["score-submission"]["scores"]
+    table = one["evaluate"]["methods"]
+    assert table["submission"]["scores"] == scores  # `trajeglish evaluate` on the same rollouts
+    assert one["evaluate"]["log_details"] and table["log"]["scores"]["metametric"] > scores["metametric"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _rank(rank: int, world: int, port: int, root: str) -> None:
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        WORLD_SIZE=str(world),
+        RANK=str(rank),
+        LOCAL_RANK=str(rank),
+    )
+    torch.set_num_threads(1)
+    for command in _commands(Path(root), "two"):
+        assert main([*command, "--quiet"]) == 0, command
+    torch.distributed.destroy_process_group()
+
+
+def test_two_ranks_write_the_one_process_files(root: Path, one: dict[str, dict]) -> None:
+    mp.start_processes(_rank, args=(2, _free_port(), str(root)), nprocs=2, start_method="spawn")
+    a, b = root / "one", root / "two"
+    for name in ("validation-00000-of-00002", "validation-00001-of-00002"):
+        (x,), (y,) = (
+            load_scenarios(a / "shards" / f"{name}.scn.npz"),
+            load_scenarios(b / "shards" / f"{name}.scn.npz"),
+        )
+        assert x.equals(y)
+        (dx,), (dy,) = (
+            load_log_details(a / "shards" / f"{name}.details.npz"),
+            load_log_details(b / "shards" / f"{name}.details.npz"),
+        )
+        assert all(np.array_equal(getattr(dx, f), getattr(dy, f)) for f in ("xyz", "heading", "box", "map_z"))
+    tuned_one, tuned_two = (load_checkpoint(d / "run" / "model.pt") for d in (a, b))
+    assert tuned_two.training["processes"] == 2 and tuned_two.training["init"] == str(root / "tiny.pt")
+    for key, value in tuned_one.model.state_dict().items():
+        atol = 2e-5 if key.endswith("kv.bias") else 1e-6  # as in test_train: zero-gradient key biases
+        torch.testing.assert_close(value, tuned_two.model.state_dict()[key], rtol=0, atol=atol, msg=key)
+    for name in ("sub/submission.tar.gz", "sub/submission.binproto-00001-of-00002", "scores.json"):
+        one_bytes, two_bytes = (a / name).read_bytes(), (b / name).read_bytes()
+        assert one_bytes == two_bytes or name == "scores.json", name
+    one_scores, two_scores = (json.loads((d / "scores.json").read_text()) for d in (a, b))
+    assert two_scores["processes"] == 2 and two_scores["per_scenario"] == one_scores["per_scenario"]
+    one_eval, two_eval = (json.loads((d / "eval" / "evaluation.json").read_text()) for d in (a, b))
+    assert two_eval["processes"] == 2 and two_eval["methods"] == one_eval["methods"]
