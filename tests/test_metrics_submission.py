@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from trajeglish_env.metrics import LogDetails, SubmissionFormatError, SubmittedRollouts, read_submission
-from trajeglish_env.metrics.submission import SubmissionProto, encode_submission, parse_submission
+from trajeglish_env.metrics.submission import (
+    SubmissionMetadata,
+    SubmissionProto,
+    encode_submission,
+    iter_submission,
+    parse_submission,
+    read_submission_metadata,
+)
+from trajeglish_env.metrics.submission_metadata import format_parameter_count
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario
 
 
@@ -108,3 +116,90 @@ def test_log_details_must_belong_to_the_scenario():
     )
     with pytest.raises(ValueError, match="field 'map_z' has shape"):
         details.check_matches(mapless)
+
+
+OFFICIAL_NUMBERS = {  # sim_agents_submission.proto, SimAgentsChallengeSubmission
+    "scenario_rollouts": 1,
+    "submission_type": 2,
+    "account_name": 3,
+    "unique_method_name": 4,
+    "authors": 5,
+    "affiliation": 6,
+    "description": 7,
+    "method_link": 8,
+    "uses_lidar_data": 9,
+    "uses_camera_data": 10,
+    "uses_public_model_pretraining": 11,
+    "num_model_parameters": 12,
+    "public_model_names": 13,
+    "acknowledge_complies_with_closed_loop_requirement": 14,
+}
+META = SubmissionMetadata(
+    account_name="someone@example.com",
+    unique_method_name="m",
+    authors=("A", "B"),
+    affiliation="X",
+    description="d",
+    method_link="https://example.com",
+    uses_public_model_pretraining=True,
+    public_model_names=("some-llm",),
+    num_model_parameters="3M",
+    acknowledge_complies_with_closed_loop_requirement=True,
+)
+
+
+def test_metadata_has_every_official_field_and_round_trips(tmp_path: Path):
+    fields = SubmissionProto.DESCRIPTOR.fields_by_name
+    assert {name: f.number for name, f in fields.items()} == OFFICIAL_NUMBERS
+    assert fields["submission_type"].enum_type.values_by_name["SIM_AGENTS_SUBMISSION"].number == 1
+    data = encode_submission([_rollouts("a"), _rollouts("b")], META)
+    (path := tmp_path / "s.binproto").write_bytes(data)
+    assert read_submission_metadata(path) == [META]
+    assert [r.scenario_id for r in read_submission(path)] == ["a", "b"]
+    # every field is present on the wire, False flags included
+    message = SubmissionProto.FromString(data)
+    assert message.HasField("uses_lidar_data") and message.HasField("uses_camera_data")
+    (empty := tmp_path / "e.binproto").write_bytes(META.encode())  # a shard with no scenario
+    assert read_submission(empty) == [] and read_submission_metadata(empty) == [META]
+
+
+def test_metadata_validation_names_every_problem():
+    with pytest.raises(ValueError) as info:
+        SubmissionMetadata(account_name="me", num_model_parameters="1.5M").validate()
+    message = str(info.value)
+    for problem in (
+        "unique_method_name (--method-name)",
+        "authors (--authors)",
+        "affiliation",
+        "e-mail",
+        "'1.5M' must be an integer",
+        "closed_loop_requirement must be true",
+    ):
+        assert problem in message, problem
+    assert META.validate() is META
+    assert [format_parameter_count(n) for n in (950, 95_000, 1_534_208, 45_000_000, 7_000_000_000)] == [
+        "1K",
+        "95K",
+        "1534K",
+        "45M",
+        "7000M",
+    ]
+
+
+def test_archives_and_directories_of_shards_read_back(tmp_path: Path):
+    from trajeglish_env.submission_export import pack_archive
+
+    shards = []
+    for k, names in enumerate((["a", "b"], ["c"])):
+        shard = tmp_path / f"submission.binproto-{k:05d}-of-00002"
+        shard.write_bytes(encode_submission([_rollouts(n) for n in names], META))
+        shards.append(shard)
+    first, second = pack_archive(shards, tmp_path / "x.tar.gz"), pack_archive(shards, tmp_path / "y.tar.gz")
+    assert first.read_bytes() == second.read_bytes()  # reproducible: no time stamps, fixed order
+    assert [r.scenario_id for r in read_submission(first)] == ["a", "b", "c"]
+    assert [r.scenario_id for r in read_submission(tmp_path)] == ["a", "b", "c"]  # the directory
+    assert [i for i, _ in iter_submission(first, keep=lambda i: i % 2 == 1)] == [1]
+    assert read_submission_metadata(first) == [META, META]
+    (tmp_path / "dup.binproto-00002-of-00002").write_bytes(encode_submission([_rollouts("a")]))
+    with pytest.raises(SubmissionFormatError, match="scenario 'a' appears twice"):
+        read_submission(tmp_path)

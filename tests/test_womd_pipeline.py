@@ -186,3 +186,52 @@ def test_two_ranks_write_the_one_process_files(root: Path, one: dict[str, dict])
     assert two_scores["processes"] == 2 and two_scores["per_scenario"] == one_scores["per_scenario"]
     one_eval, two_eval = (json.loads((d / "eval" / "evaluation.json").read_text()) for d in (a, b))
     assert two_eval["processes"] == 2 and two_eval["methods"] == one_eval["methods"]
+
+
+def test_bad_inputs_fail_with_one_line(root: Path, one: dict[str, dict], tmp_path: Path, capsys) -> None:
+    shards, sub = str(root / "one" / "shards"), str(root / "one" / "sub")
+    export = ["export-submission", "--data", shards, "--ckpt", str(root / "tiny.pt"), "--quiet"]
+    cases = {
+        "missing or invalid: account_name (--account-name)": [*export, "--out", str(tmp_path / "a")],
+        "num_model_parameters '1.5M' must be": [
+            *export,
+            "--out",
+            str(tmp_path / "b"),
+            *METADATA,
+            "--num-model-parameters",
+            "1.5M",
+        ],
+        "holds an export with other settings (config, model differ)": [
+            *export,
+            "--out",
+            sub,
+            *METADATA,
+            "--rollouts",
+            "3",
+        ],
+        "no such scenario file or directory": [
+            *export,
+            "--out",
+            str(tmp_path / "c"),
+            *METADATA,
+            "--data",
+            str(tmp_path / "nothing"),
+        ],
+        "no such input file": ["convert-womd", str(tmp_path / "missing.tfrecord"), "--out", str(tmp_path)],
+        "cannot read submission: no such file": [
+            "score-submission",
+            str(tmp_path / "x.tar.gz"),
+            "--data",
+            shards,
+        ],
+    }
+    for message, command in cases.items():
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], (message, err)
+    # WOMD shards without their raw log details cannot give the submission's z
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (bare / "w.scn.npz").write_bytes((root / "one/shards/validation-00000-of-00002.scn.npz").read_bytes())
+    assert main([*export, "--out", str(tmp_path / "d"), *METADATA, "--data", str(bare)]) == 2
+    assert "w.details.npz: missing (WOMD z values)" in capsys.readouterr().err

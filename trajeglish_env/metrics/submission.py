@@ -174,7 +174,7 @@ def submission_files(path: str | os.PathLike[str]) -> list[Path]:
             raise SubmissionFormatError(f"{path}: no submission shards (*.binproto*) in this directory")
         return files
     if not path.is_file():
-        raise SubmissionFormatError(f"{path}: no such submission file or directory")
+        raise SubmissionFormatError(f"{path}: cannot read submission: no such file or directory")
     return [path]
 
 

@@ -25,7 +25,7 @@ from trajeglish_env.distributed import Ranks, gather
 from trajeglish_env.metrics.log_details import LogDetails
 from trajeglish_env.metrics.log_details_io import details_path, load_log_details
 from trajeglish_env.metrics.scoring import RealismScores, mean_scores, score_rollouts
-from trajeglish_env.metrics.submission import SubmittedRollouts, iter_submission
+from trajeglish_env.metrics.submission import SubmittedRollouts, iter_submission, submission_files
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import atomic_path, list_scenario_files, load_scenarios, scenario_ids
 
@@ -87,6 +87,7 @@ def score_submission(
 ) -> dict[str, Any]:
     """Mean WOSAC scores of a submission over its scenarios (per-scenario scores in ``out`` if given)."""
     start, ranks = time.perf_counter(), ranks or Ranks()
+    submission_files(submission)  # a missing or empty submission fails here, in one line
     index = SceneIndex(data)
     mine: list[tuple[int, RealismScores]] = []
     bar = tqdm(desc="score-submission", unit="scenario", file=sys.stderr, disable=not progress)
