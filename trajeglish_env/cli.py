@@ -31,8 +31,13 @@ def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.sources.generation import GenerationConfig, generate
 
     kinds = tuple(k for k in (args.kinds or "").split(",") if k)
+    from trajeglish_env.distributed import init_ranks
+
+    ranks = init_ranks()
     config = GenerationConfig(args.source, args.scenes, args.seed, kinds, args.scenes_per_shard)
-    return generate(config, args.out, workers=args.workers, progress=not args.quiet)
+    result = generate(config, args.out, args.workers, not args.quiet and ranks.main, ranks)
+    result["_silent"] = not ranks.main  # under torchrun the main rank prints the merged summary
+    return result
 
 
 def cmd_convert_womd(args: argparse.Namespace) -> dict[str, Any]:
@@ -107,6 +112,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         val_every=args.val_every,
         checkpoint_every=args.checkpoint_every,
         noisy_inputs=not args.no_noise,
+        shard_cache=args.shard_cache,
     )
     return train(
         args.data,
@@ -341,6 +347,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=int, default=200)
     p.add_argument("--no-noise", action="store_true", help="argmin input tokens (no noisy tokenization)")
     p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
+    p.add_argument(
+        "--shard-cache",
+        type=int,
+        default=0,
+        help="keep at most K shards in memory per loading process, scenes drawn K shards at a time "
+        "(large data sets; default 0: every scene in memory)",
+    )
 
     p = add("curves", cmd_curves, "validation NLL curves of several training runs in one picture")
     p.add_argument("runs", nargs="+", help="[NAME=]run directory (its metrics.csv)")

@@ -107,18 +107,28 @@ def load_scenarios(path: str | os.PathLike[str]) -> list[Scenario]:
     return scenes
 
 
-def scenario_ids(path: str | os.PathLike[str]) -> list[str]:
-    """The scenario ids of a file's scenes, read without loading the scenes (indexing large sets)."""
+def _scene_strings(path: str | os.PathLike[str], name: str) -> list[str]:
+    """One string field of every scene of a file, read without loading the scenes."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such scenario file")
     try:
         with np.load(path, allow_pickle=False) as data:
-            return [str(data[f"{i}/scenario_id"]) for i in range(_check_header(path, data))]
+            return [str(data[f"{i}/{name}"]) for i in range(_check_header(path, data))]
     except (zipfile.BadZipFile, EOFError, OSError, KeyError, ValueError) as exc:
         if isinstance(exc, ScenarioError):
             raise
         raise ScenarioError(f"{path}: not a readable scenario file (truncated or corrupt?): {exc}") from exc
+
+
+def scenario_ids(path: str | os.PathLike[str]) -> list[str]:
+    """The scenario ids of a file's scenes, read without loading the scenes (indexing large sets)."""
+    return _scene_strings(path, "scenario_id")
+
+
+def scene_sources(path: str | os.PathLike[str]) -> list[str]:
+    """The sources of a file's scenes (one per scene), read without loading the scenes."""
+    return _scene_strings(path, "source")
 
 
 def _check_header(path: Path, data: np.lib.npyio.NpzFile) -> int:

@@ -23,8 +23,9 @@ from typing import Protocol
 
 from tqdm import tqdm
 
+from trajeglish_env.distributed import Ranks, barrier, gather, my_share
 from trajeglish_env.scenario import Scenario
-from trajeglish_env.scenario_io import SUFFIX, atomic_path, load_scenarios, save_scenarios
+from trajeglish_env.scenario_io import SUFFIX, atomic_path, load_scenarios, save_scenarios, scenario_ids
 
 MANIFEST = "manifest.json"
 
@@ -84,10 +85,12 @@ def _write_shard(config: GenerationConfig, index: int, out: str) -> tuple[int, i
 
 
 def _shard_complete(path: Path, expected: int) -> bool:
+    """A shard is done when its file holds the expected scenes (files are written atomically, so the
+    header suffices: no shard is loaded to resume a large run)."""
     if not path.is_file():
         return False
     try:
-        return len(load_scenarios(path)) == expected
+        return len(scenario_ids(path)) == expected
     except (ValueError, OSError):
         return False
 
@@ -111,9 +114,18 @@ def _check_manifest(out: Path, config: GenerationConfig) -> None:
 
 
 def generate(
-    config: GenerationConfig, out: str | os.PathLike[str], workers: int = 1, progress: bool = True
+    config: GenerationConfig,
+    out: str | os.PathLike[str],
+    workers: int = 1,
+    progress: bool = True,
+    ranks: Ranks | None = None,
 ) -> dict:
-    """Generate (or finish generating) ``config.scenes`` scenes into ``out``; returns a summary dict."""
+    """Generate (or finish generating) ``config.scenes`` scenes into ``out``; returns a summary dict.
+
+    Under ``torchrun`` the missing shards are shared over the ranks (every ``world``-th one), each rank
+    using ``workers`` processes; shards depend only on their index, so the files are the one-process ones.
+    """
+    ranks = ranks or Ranks()
     source = load_source(config.source)
     kinds = config.kinds or source.KINDS
     unknown = sorted(set(kinds) - set(source.KINDS))
@@ -128,13 +140,18 @@ def generate(
     )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    if ranks.main:
+        _check_manifest(out, config)
+    barrier(ranks)
     _check_manifest(out, config)
-    todo = [
+    missing = [
         i
         for i in range(config.num_shards)
         if not _shard_complete(shard_path(out, config, i), config.shard_count(i))
     ]
-    done_before = config.scenes - sum(config.shard_count(i) for i in todo)
+    done_before = config.scenes - sum(config.shard_count(i) for i in missing)
+    barrier(ranks)  # every rank has listed the missing shards before any is written
+    todo = my_share(missing, ranks)
     start = time.perf_counter()
     bar = tqdm(
         total=config.scenes,
@@ -159,6 +176,7 @@ def generate(
                     generated += count
                     bar.update(count)
     bar.close()
+    generated = sum(gather(generated, ranks))
     elapsed = time.perf_counter() - start
     return {
         "out": str(out),
@@ -172,6 +190,7 @@ def generate(
         "seconds": round(elapsed, 3),
         "scenes_per_second": round(generated / elapsed, 3) if generated and elapsed > 0 else None,
         "workers": workers,
+        "processes": ranks.world,
     }
 
 

@@ -10,9 +10,9 @@ of (seed, e, i): results do not depend on DataLoader workers.
 from __future__ import annotations
 
 import os
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -63,10 +63,17 @@ class SceneStore:
         return len(self.scenes)
 
 
-@lru_cache(maxsize=4096)
+# Map chunks per live scene: an entry goes with its scene (e.g. a shard dropped from a shard cache), so
+# the cache never holds more than the scenes in memory.
+_CHUNKS: weakref.WeakKeyDictionary[Scenario, dict[int, MapChunks]] = weakref.WeakKeyDictionary()
+
+
 def _chunks_for(scene: Scenario, points_per_chunk: int) -> MapChunks:
-    """Map chunks of a scene, computed once (Scenarios hash by identity)."""
-    return chunk_map(scene, points_per_chunk)
+    """Map chunks of a scene, computed once per scene object (Scenarios hash by identity)."""
+    per_scene = _CHUNKS.setdefault(scene, {})
+    if points_per_chunk not in per_scene:
+        per_scene[points_per_chunk] = chunk_map(scene, points_per_chunk)
+    return per_scene[points_per_chunk]
 
 
 class WindowDataset(Dataset):

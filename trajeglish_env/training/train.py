@@ -39,11 +39,13 @@ from trajeglish_env.distributed import init_ranks, rank_device
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
 from trajeglish_env.training.curves import plot_curve
 from trajeglish_env.training.curves import write_metrics as _write_metrics
 from trajeglish_env.training.dataset import SceneStore, WindowConfig, collate_windows
+from trajeglish_env.training.shard_cache import ShardBlockOrder, ShardedScenes, split_shards
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
 
 MAX_UNSTABLE_STEPS = 10  # consecutive non-finite-gradient steps skipped before training stops
@@ -69,6 +71,7 @@ class TrainConfig:
     log_every: int = 10
     checkpoint_every: int = 200
     num_workers: int = 1
+    shard_cache: int = 0  # 0: every scene in memory; K: at most K shards per loading process (shard_cache.py)
 
     def lr_at(self, step: int) -> float:
         """Learning rate at ``step``: linear warmup, then linear decay to 0 at ``steps``."""
@@ -164,11 +167,7 @@ def train(
     if start_ckpt is not None:
         check_init(start_ckpt, model_config, vocabulary)
     check_compatible(model_config, vocabulary, where="train: --vocab")
-    scenes = SceneStore(data).scenes
-    if val_data is not None:
-        train_scenes, val_scenes = scenes, SceneStore(val_data).scenes
-    else:
-        train_scenes, val_scenes = split_scenes(scenes, config.val_fraction)
+    train_scenes, val_scenes = _training_scenes(data, val_data, config)
 
     facts = _run_facts(train_scenes, val_scenes, dd.world, start_ckpt)
     torch.manual_seed(config.seed)
@@ -189,7 +188,8 @@ def train(
                 f"{last}: saved model config {ckpt.config} differs from the requested {model_config}"
             )
         trainer = ckpt.trainer or {}
-        if trainer.get("train_config") != dataclasses.asdict(config):
+        saved = {**dataclasses.asdict(TrainConfig()), **trainer.get("train_config", {})}  # older runs
+        if saved != dataclasses.asdict(config):
             raise CheckpointError(f"{last}: it was trained with {trainer.get('train_config')}, not {config}")
         model.load_state_dict(ckpt.model.state_dict())
         optimizer.load_state_dict(ckpt.optimizer or {})
@@ -207,7 +207,14 @@ def train(
             loss_module, device_ids=[device.index] if device.type == "cuda" else None
         )
     noise = NoiseConfig(config.noise_sigma, config.noise_top_p) if config.noisy_inputs else None
-    dataset = TokenizedWindows(train_scenes, window_config(model_config), vocabulary, noise, config.seed)
+    order = (
+        ShardBlockOrder(tuple(train_scenes.counts.tolist()), config.shard_cache, config.seed)
+        if isinstance(train_scenes, ShardedScenes)
+        else None
+    )
+    dataset = TokenizedWindows(
+        train_scenes, window_config(model_config), vocabulary, noise, config.seed, order
+    )
     sampler = StepBatchSampler(config.batch_size, start_step, config.steps, dd.rank, dd.world)
     loader = DataLoader(
         dataset,
@@ -336,10 +343,37 @@ class _RunFacts:
     init: str | None
 
 
+def _training_scenes(
+    data: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
+    val_data: str | os.PathLike[str] | None,
+    config: TrainConfig,
+) -> tuple[Sequence[Scenario], list[Scenario]]:
+    """Training and validation scenes: all in memory, or (``shard_cache``) a shard-cached sequence and the
+    first ``val_windows`` scenes of the validation shards (every k-th shard unless ``val_data``)."""
+    if config.shard_cache <= 0:
+        scenes = SceneStore(data).scenes
+        if val_data is not None:
+            return scenes, SceneStore(val_data).scenes
+        return split_scenes(scenes, config.val_fraction)
+    files = SceneStore(data).files
+    if val_data is not None:
+        train_files, val_files = files, SceneStore(val_data).files
+    else:
+        train_files, val_files = split_shards(files, config.val_fraction)
+    val: list[Scenario] = []
+    for file in val_files:
+        if len(val) >= config.val_windows:
+            break
+        val.extend(load_scenarios(file)[: config.val_windows - len(val)])
+    return ShardedScenes(train_files, config.shard_cache), val
+
+
 def _run_facts(
     train: Sequence[Scenario], val: Sequence[Scenario], world: int, init: Checkpoint | None
 ) -> _RunFacts:
-    sources = tuple(sorted({s.source for s in train}))
+    sources = tuple(
+        train.all_sources() if isinstance(train, ShardedScenes) else sorted({s.source for s in train})
+    )
     path = None if init is None else str(init.path or "checkpoint")
     return _RunFacts(len(train), len(val), sources, world, path)
 

@@ -9,7 +9,7 @@ exactly what one uninterrupted process would have seen.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,15 +48,16 @@ class TokenizedWindows(Dataset):
         vocabulary: MotionVocabulary,
         noise: NoiseConfig | None,
         seed: int,
+        order: Callable[[int], tuple[int, int]] | None = None,
     ):
-        if not scenes:
+        if not len(scenes):
             raise ValueError("TokenizedWindows: no scenes")
         self.scenes = scenes
         self.window = window
         self.vocabulary = vocabulary
         self.noise = noise
         self.seed = seed
-        self.order = SampleOrder(len(scenes), seed)
+        self.order = order or SampleOrder(len(scenes), seed)  # (epoch, scene) of each sample counter
 
     def __len__(self) -> int:  # a sampler provides the indices; any g >= 0 is valid
         return len(self.scenes)
