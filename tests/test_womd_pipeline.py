@@ -46,7 +46,19 @@ def _commands(root: Path, out: str) -> list[list[str]]:
     train += ["--batch-size", "2", "--warmup", "1", "--val-every", "100", "--workers", "0"]
     # both runs export the one-process fine-tuned model (two-rank training matches it to 1e-6, not bitwise)
     export = ["export-submission", "--data", shards, "--out", sub, "--ckpt", str(root / "one/run/model.pt")]
+    generate = [
+        "generate",
+        "--scenes",
+        "2",
+        "--scenes-per-shard",
+        "1",
+        "--kinds",
+        "merge",
+        "--out",
+        str(o / "gen"),
+    ]
     return [
+        generate,
         ["convert-womd", *inputs, "--out", shards],
         train,
         [*export, "--rollouts", ROLLOUTS, *METADATA],
@@ -72,8 +84,8 @@ def root(tmp_path_factory) -> Path:
 def one(root: Path) -> dict[str, dict]:
     """The workflow in one process; the export is interrupted after its first scenario and resumed."""
     results = {}
-    convert, train, export, score, evaluate = _commands(root, "one")
-    for command in (convert, train):
+    generate, convert, train, export, score, evaluate = _commands(root, "one")
+    for command in (generate, convert, train):
         results[command[0]] = _run(command)
     real = export_module.sample_scenario
     calls = []
@@ -163,6 +175,9 @@ def _rank(rank: int, world: int, port: int, root: str) -> None:
 def test_two_ranks_write_the_one_process_files(root: Path, one: dict[str, dict]) -> None:
     mp.start_processes(_rank, args=(2, _free_port(), str(root)), nprocs=2, start_method="spawn")
     a, b = root / "one", root / "two"
+    for name in ("highway-00000.scn.npz", "highway-00001.scn.npz"):
+        (x,), (y,) = load_scenarios(a / "gen" / name), load_scenarios(b / "gen" / name)
+        assert x.equals(y)
     for name in ("validation-00000-of-00002", "validation-00001-of-00002"):
         (x,), (y,) = (
             load_scenarios(a / "shards" / f"{name}.scn.npz"),

@@ -88,13 +88,16 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.checkpoint import load_checkpoint
+    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+    from trajeglish_env.distributed import init_ranks, rank_device
     from trajeglish_env.model.config import preset
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
     from trajeglish_env.training.train import TrainConfig, train
 
     vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
-    init = load_checkpoint(args.init) if args.init else None
+    init = None
+    if args.init:
+        init = load_pretrained() if args.init == "shipped" else load_checkpoint(args.init)
     overrides: dict[str, Any] = {"variant": args.variant or "trajeglish"}
     if vocabulary is not None:
         overrides["vocab_size"] = vocabulary.size
@@ -114,7 +117,8 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         noisy_inputs=not args.no_noise,
         shard_cache=args.shard_cache,
     )
-    return train(
+    ranks = init_ranks(rank_device())
+    result = train(
         args.data,
         args.out,
         model_config,
@@ -125,6 +129,8 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         not args.quiet,
         init=init,
     )
+    result["_silent"] = not ranks.main  # under torchrun the main rank prints the run's result
+    return result
 
 
 def cmd_curves(args: argparse.Namespace) -> dict[str, Any]:
@@ -334,7 +340,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--vocab", help="vocabulary file (default: the shipped 384-token vocabulary, or --init's)")
     p.add_argument(
-        "--init", help="start from this trained checkpoint (fine-tuning; same config and vocabulary)"
+        "--init",
+        help="start from this trained checkpoint, or 'shipped' for the shipped model (fine-tuning; same "
+        "config and vocabulary)",
     )
     p.add_argument("--steps", type=int, default=2000, help="optimisation steps")
     p.add_argument("--batch-size", type=int, default=16, help="global batch size (split over processes)")

@@ -273,6 +273,8 @@ def export_submission(
     archive = out / f"{config.prefix}.tar.gz"
     if ranks.main:
         pack_archive([out / s for s in shards], archive)
+        if (out / "parts").is_dir() and not any((out / "parts").iterdir()):
+            (out / "parts").rmdir()
     barrier(ranks)
     return {
         "archive": str(archive),
