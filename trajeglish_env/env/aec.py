@@ -18,7 +18,7 @@ from trajeglish_env.env.actions import action_towards, check_action, make_action
 from trajeglish_env.env.config import EnvConfig, TrajeglishNPC
 from trajeglish_env.env.npc import NPCPolicy, make_npc_policy
 from trajeglish_env.env.observations import observation_space
-from trajeglish_env.env.scenes import scene_set
+from trajeglish_env.env.scenes import scene_index, scene_set
 from trajeglish_env.env.simulation import Simulation, agent_names, select_external
 from trajeglish_env.scenario import Scenario
 
@@ -107,15 +107,9 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         the seed; the NPCs acting before the first external agent act now."""
         if seed is not None:
             self.np_random, _ = seeding.np_random(seed)
-        scene = (options or {}).get("scene")  # the only option read; others are ignored
-        if scene is None:
+        index = scene_index((options or {}).get("scene"), self.scenes)  # the only option read
+        if index is None:
             index = int(self.np_random.integers(len(self.scenes)))
-        elif isinstance(scene, str):
-            index = self.scenes.index_of(scene)
-        else:
-            index = int(scene)
-            if not 0 <= index < len(self.scenes):
-                raise ValueError(f"reset options: scene {index} out of range for {len(self.scenes)} scenes")
         self.scenario = self.scenes.get(index)
         self._suspended = False
         self._start(self.scenario)
