@@ -32,14 +32,16 @@ from tqdm import tqdm
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario, ScenarioError, SignalState
 from trajeglish_env.scenario_io import SUFFIX, load_scenarios, save_scenarios
 from trajeglish_env.sources.womd_proto import ScenarioProto
-from trajeglish_env.sources.womd_tfrecord import WomdFormatError, read_tfrecord
+from trajeglish_env.sources.womd_tfrecord import TFRecordFramingError, WomdFormatError, read_tfrecord
 
 __all__ = [
     "OBJECT_TYPE_TO_KIND",
+    "TFRecordFramingError",
     "WomdFormatError",
     "convert_womd",
     "output_name",
     "parse_scenario",
+    "read_good_records",
     "read_tfrecord",
     "read_womd",
 ]
@@ -103,9 +105,12 @@ def convert_womd(
 ) -> dict:
     """Convert WOMD TFRecord files to scenario shards in ``out`` (one ``<name>.scn.npz`` per input).
 
-    Resumable: an input whose shard already exists and loads is skipped. A corrupt input does not stop
-    the run; it is listed under ``failed`` with its error and no shard is written for it. Returns
-    ``{"converted", "skipped", "failed", "outputs", "scenes", "scenes_skipped", "seconds"}``.
+    Every input must be an existing, non-empty file (checked before anything is converted). Resumable:
+    an input whose shard already exists and loads is skipped. A corrupt input does not stop the run; it
+    is listed under ``failed`` with its error and no shard is written for it. A file whose good records
+    are followed by a truncated or corrupt tail (an interrupted copy) keeps its good records; the tail is
+    listed under ``bad_tails`` and reported on stderr. Returns ``{"converted", "skipped", "failed",
+    "bad_tails", "outputs", "scenes", "scenes_skipped", "seconds"}``.
     """
     start = time.perf_counter()
     out = Path(out)
@@ -115,10 +120,12 @@ def convert_womd(
         other = names.setdefault(output_name(path), path)
         if other != path:
             raise ValueError(f"{other} and {path} would both be written to {out / output_name(path)}")
+    _check_inputs(paths)
     report: dict = {
         "converted": [],
         "skipped": [],
         "failed": [],
+        "bad_tails": [],
         "outputs": [],
         "scenes": 0,
         "scenes_skipped": 0,
@@ -132,11 +139,14 @@ def convert_womd(
             report["scenes_skipped"] += existing
             continue
         try:
-            scenes = list(read_womd(path))
+            scenes, tail = read_good_records(path)
             save_scenarios(target, scenes)
         except (ValueError, OSError) as exc:  # WomdFormatError, ScenarioError, unreadable file
             report["failed"].append({"file": str(path), "error": str(exc)})
             continue
+        if tail is not None:
+            report["bad_tails"].append(_bad_tail(path, len(scenes), tail))
+            bar.write(f"convert-womd: warning: {_bad_tail_line(len(scenes), tail)}", file=sys.stderr)
         report["converted"].append(str(path))
         report["outputs"].append(str(target))
         report["scenes"] += len(scenes)
@@ -144,6 +154,46 @@ def convert_womd(
     bar.close()
     report["seconds"] = time.perf_counter() - start
     return report
+
+
+def _check_inputs(paths: Sequence[Path]) -> None:
+    """Every input must be an existing, non-empty regular file (a TFRecord holds at least one record)."""
+    for path in paths:
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such WOMD TFRecord file")
+        if not path.is_file():
+            raise WomdFormatError(f"{path}: not a regular file (expected a WOMD TFRecord file)")
+        if path.stat().st_size == 0:
+            raise WomdFormatError(f"{path}: empty file (a WOMD TFRecord file holds at least one record)")
+
+
+def read_good_records(path: str | os.PathLike[str]) -> tuple[list[Scenario], TFRecordFramingError | None]:
+    """The scenes of a TFRecord file's good records, and the framing error of its bad tail (None if the
+    file is intact). A file whose first record is already bad, or that holds no record, is an error."""
+    scenes: list[Scenario] = []
+    try:
+        for index, data in read_tfrecord(path):
+            scenes.append(parse_scenario(data, origin=f"{path}: record {index}"))
+    except TFRecordFramingError as exc:
+        if not scenes:
+            raise
+        return scenes, exc
+    if not scenes:
+        raise WomdFormatError(f"{path}: no records (empty file)")
+    return scenes, None
+
+
+def _bad_tail(path: Path, kept: int, tail: TFRecordFramingError) -> dict:
+    """The ``bad_tails`` entry of a file: what was kept, where the bad part starts and why."""
+    return {"file": str(path), "records_kept": kept, "byte_offset": tail.offset, "error": str(tail)}
+
+
+def _bad_tail_line(kept: int, tail: TFRecordFramingError) -> str:
+    """One-line warning naming the file and the byte offset of its ignored tail."""
+    return (
+        f"{tail.path}: kept {kept} good record(s); ignored the rest of the file from byte offset "
+        f"{tail.offset} (record {tail.record}: {tail.problem})"
+    )
 
 
 def _load_existing(target: Path) -> int | None:
