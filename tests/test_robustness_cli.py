@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from trajeglish_env.cli import main
@@ -127,3 +128,11 @@ def test_unexpected_exceptions_keep_their_traceback(files, monkeypatch, error) -
     monkeypatch.setattr(trajeglish_env.render, "save_render", broken)
     with pytest.raises(type(error), match="boom"):
         main(["render", str(files["shard"]), "--out", str(files["tmp"] / "x.png")])
+
+
+def test_a_bare_array_as_a_tokenizer_file_is_a_clear_error(tmp_path: Path) -> None:
+    from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, VocabularyError
+
+    np.save(tmp_path / "v.npy", np.zeros(3))
+    with pytest.raises(VocabularyError, match="v.npy: not a readable tokenizer file .*single array"):
+        MotionVocabulary.load(tmp_path / "v.npy")
