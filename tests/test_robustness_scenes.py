@@ -7,7 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import straight_road_scene
+from helpers import straight_road_scene
 
 import trajeglish_env
 from trajeglish_env.env.scenes import UnknownSceneError, scene_index, scene_set
