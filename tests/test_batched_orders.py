@@ -5,15 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import MERGE, tiny
 from stable_baselines3.common.vec_env import DummyVecEnv
-from test_env import TINY
 
 from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
 from trajeglish_env.env.sb3 import SB3VecEnv
 from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv
 
 KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
-MERGE, RING = "highway-merge-999000", "highway-roundabout-999001"
+RING = "highway-roundabout-999001"
 
 
 def same_dicts(got: dict, want: dict) -> bool:
@@ -23,7 +23,7 @@ def same_dicts(got: dict, want: dict) -> bool:
 
 @pytest.mark.parametrize("order", ["last", "random"])
 def test_batched_parallel_env_equals_separate_envs_for_every_order(order: str) -> None:
-    kw = {"npc": TrajeglishNPC(TINY), "external": "all", "order": order, "max_cycles": 4}
+    kw = {"npc": TrajeglishNPC(tiny()), "external": "all", "order": order, "max_cycles": 4}
     penv = BatchedParallelEnv(2, **kw)
     options = [{"scene": MERGE}, {"scene": RING}]
     refs = [parallel_env(**kw) for _ in range(2)]
@@ -45,7 +45,7 @@ def test_batched_parallel_env_equals_separate_envs_for_every_order(order: str) -
 
 
 def test_batched_ego_env_acting_last_equals_separate_envs_with_autoreset() -> None:
-    kw = {"npc": TrajeglishNPC(TINY), "order": "last", "max_cycles": 5}
+    kw = {"npc": TrajeglishNPC(tiny()), "order": "last", "max_cycles": 5}
     venv = BatchedEgoEnv(2, **kw)
     obs, _ = venv.reset(seed=11)
     rng = np.random.default_rng(3)

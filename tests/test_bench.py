@@ -66,7 +66,8 @@ def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> Non
         mean = (runs[0]["agent_steps_per_s"] + runs[1]["agent_steps_per_s"]) / 2
         assert result[key]["agent_steps_per_s"] == pytest.approx(mean, abs=0.01)
     learned = result["env"]["trajeglish"]["2"]
-    assert learned["timed_steps"] == 3 and learned["window_rebuild_steps"] in (0, 1)
+    # quick: 3 timed steps after the warm-up, inside one window cycle of the model (no re-priming step)
+    assert learned["timed_steps"] == 3 and learned["window_rebuild_steps"] == 0
     assert result["env"]["replay"]["2"]["window_rebuild_steps"] is None
     ratio = learned["agent_steps_per_s"] / result["highway_env"]["agent_steps_per_s"]
     assert result["ratios"]["trajeglish_B2_to_highway_env"] == pytest.approx(ratio, rel=1e-2)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from conftest import WOMD_TFRECORD
+from helpers import womd_tfrecord
 
 from trajeglish_env.cli import main
 from trajeglish_env.scenario_io import load_scenario, save_scenario
@@ -15,9 +15,8 @@ def _json(capsys: pytest.CaptureFixture[str]) -> dict:
     return json.loads(capsys.readouterr().out)
 
 
-@pytest.mark.skipif(not WOMD_TFRECORD.exists(), reason="shared WOMD sample not present")
 def test_convert_womd_then_render(tmp_path, capsys) -> None:
-    assert main(["convert-womd", str(WOMD_TFRECORD), "--out", str(tmp_path), "--json", "--quiet"]) == 0
+    assert main(["convert-womd", str(womd_tfrecord()), "--out", str(tmp_path), "--json", "--quiet"]) == 0
     result = _json(capsys)
     assert result["scenes"] == 1 and result["failed"] == []
     shard = tmp_path / "motion_data_one_scenario.scn.npz"
@@ -31,9 +30,11 @@ def test_convert_womd_then_render(tmp_path, capsys) -> None:
     }
     # a corrupt file among the inputs makes the command fail, but the good file stays converted
     bad = tmp_path / "bad.tfrecord"
-    bad.write_bytes(WOMD_TFRECORD.read_bytes()[:1000])
+    bad.write_bytes(womd_tfrecord().read_bytes()[:1000])
     out2 = tmp_path / "second"
-    assert main(["convert-womd", str(WOMD_TFRECORD), str(bad), "--out", str(out2), "--json", "--quiet"]) == 1
+    assert (
+        main(["convert-womd", str(womd_tfrecord()), str(bad), "--out", str(out2), "--json", "--quiet"]) == 1
+    )
     result = _json(capsys)
     assert result["failed"][0]["file"].endswith("bad.tfrecord") and "record 0" in result["failed"][0]["error"]
     assert (out2 / "motion_data_one_scenario.scn.npz").is_file()

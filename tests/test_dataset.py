@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from conftest import straight_road_scene
+from helpers import straight_road_scene
 from torch.utils.data import DataLoader
 
 from trajeglish_env.geometry import to_global

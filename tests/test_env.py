@@ -7,45 +7,11 @@ import os
 import warnings
 
 import numpy as np
-import torch
+from helpers import small_scenes, tiny, tiny_kwargs
 
-from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, env, parallel_env, raw_env
-from trajeglish_env.env.scenes import load_bundle
-from trajeglish_env.model import TrajeglishModel, preset
-from trajeglish_env.scenario import Scenario
-from trajeglish_env.tokenizer.baselines import xyh_grid_templates
-from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # the "human" render mode opens a pygame window
-
-
-def tiny_checkpoint(vocab_size: int = 128) -> Checkpoint:
-    """A randomly initialised tiny model (6 agents x 8 steps of context) with a grid vocabulary."""
-    vocab = MotionVocabulary(np.stack([xyh_grid_templates(vocab_size)] * 3), method="xyh-grid")
-    torch.manual_seed(0)
-    model = TrajeglishModel(preset("tiny", vocab_size=vocab.size)).eval()
-    return Checkpoint(model=model, vocabulary=vocab, training={})
-
-
-TINY = tiny_checkpoint()
-
-
-def bundle_scene(name: str) -> Scenario:
-    bundle = load_bundle()
-    return bundle.get(bundle.index_of(name))
-
-
-MERGE = "highway-merge-999000"  # 5 vehicles: fits in one context of the tiny model
-SMALL_SCENES = [
-    bundle_scene(MERGE),
-    bundle_scene("highway-two-way-999000"),
-    bundle_scene("highway-highway-999000"),
-]
-
-
-def tiny_kwargs(**overrides: object) -> dict:
-    return {"npc": TrajeglishNPC(TINY), "max_cycles": 8, **overrides}
 
 
 def test_pettingzoo_api_test_with_every_agent_external() -> None:
@@ -53,19 +19,21 @@ def test_pettingzoo_api_test_with_every_agent_external() -> None:
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # api_test warns about e.g. observations that are not all zeros
-        api_test(env(SMALL_SCENES, **tiny_kwargs(external="all")), num_cycles=20)
+        api_test(env(small_scenes(), **tiny_kwargs(external="all")), num_cycles=20)
 
 
 def test_pettingzoo_parallel_api_test() -> None:
     from pettingzoo.test import parallel_api_test
 
-    parallel_api_test(parallel_env(SMALL_SCENES, **tiny_kwargs(external="all", order="last")), num_cycles=20)
+    parallel_api_test(
+        parallel_env(small_scenes(), **tiny_kwargs(external="all", order="last")), num_cycles=20
+    )
 
 
 def test_pettingzoo_seed_test() -> None:
     from pettingzoo.test import seed_test
 
-    seed_test(lambda: env(SMALL_SCENES, **tiny_kwargs(external="all", order="random")), num_cycles=6)
+    seed_test(lambda: env(small_scenes(), **tiny_kwargs(external="all", order="random")), num_cycles=6)
 
 
 NEVER_TERMINATE = RewardConfig(
@@ -79,11 +47,11 @@ class _Module:
 
     @staticmethod
     def env(**kwargs: object) -> object:
-        return env(SMALL_SCENES[:1], npc=TrajeglishNPC(TINY), reward=NEVER_TERMINATE, **kwargs)
+        return env(small_scenes()[:1], npc=TrajeglishNPC(tiny()), reward=NEVER_TERMINATE, **kwargs)
 
     @staticmethod
     def parallel_env(**kwargs: object) -> object:
-        return parallel_env(SMALL_SCENES[:1], npc=TrajeglishNPC(TINY), reward=NEVER_TERMINATE, **kwargs)
+        return parallel_env(small_scenes()[:1], npc=TrajeglishNPC(tiny()), reward=NEVER_TERMINATE, **kwargs)
 
 
 def test_pettingzoo_max_cycles_test() -> None:
@@ -96,7 +64,7 @@ def test_pettingzoo_render_test_in_both_modes() -> None:
     from pettingzoo.test import render_test
 
     def make(render_mode: str | None = None) -> object:
-        return env(SMALL_SCENES[:1], npc="replay", render_mode=render_mode, render_size=64)
+        return env(small_scenes()[:1], npc="replay", render_mode=render_mode, render_size=64)
 
     render_test(make)
     e = make("rgb_array")
@@ -112,9 +80,9 @@ def test_gymnasium_and_sb3_check_env() -> None:
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        check_env(EgoEnv(SMALL_SCENES, **tiny_kwargs()))
-        sb3_check_env(EgoEnv(SMALL_SCENES, **tiny_kwargs(observation="bev", action="token")))
-        check_env(EgoEnv(SMALL_SCENES, **tiny_kwargs(action="delta")))
+        check_env(EgoEnv(small_scenes(), **tiny_kwargs()))
+        sb3_check_env(EgoEnv(small_scenes(), **tiny_kwargs(observation="bev", action="token")))
+        check_env(EgoEnv(small_scenes(), **tiny_kwargs(action="delta")))
 
 
 def test_registered_with_gymnasium_and_pettingzoo() -> None:
@@ -123,16 +91,16 @@ def test_registered_with_gymnasium_and_pettingzoo() -> None:
 
     import trajeglish_env
 
-    ego = gymnasium.make("trajeglish_env/EgoIDM-v0", scenes=SMALL_SCENES, max_cycles=3)
+    ego = gymnasium.make("trajeglish_env/EgoIDM-v0", scenes=small_scenes(), max_cycles=3)
     obs, info = ego.reset(seed=0)
     assert obs.shape == ego.observation_space.shape and info["agent"].startswith("vehicle_")
-    aec = pettingzoo.make("aec", "trajeglish_env/Traffic-v0", scenes=SMALL_SCENES, npc="replay")
+    aec = pettingzoo.make("aec", "trajeglish_env/Traffic-v0", scenes=small_scenes(), npc="replay")
     aec.reset(seed=0)
     assert aec.agents == [aec.agent_selection]
-    par = pettingzoo.make("parallel", "trajeglish_env/Traffic-v0", scenes=SMALL_SCENES, npc="idm")
+    par = pettingzoo.make("parallel", "trajeglish_env/Traffic-v0", scenes=small_scenes(), npc="idm")
     assert len(par.reset(seed=0)[0]) == 1
     # trajeglish_env.env is both the env subpackage and PettingZoo's env() factory
-    wrapped = trajeglish_env.env(SMALL_SCENES, npc="replay")
+    wrapped = trajeglish_env.env(small_scenes(), npc="replay")
     assert isinstance(wrapped.unwrapped, raw_env)
 
 
@@ -144,7 +112,7 @@ def test_subproc_vec_env_with_spawn() -> None:
         EgoEnv,
         n_envs=2,
         seed=3,
-        env_kwargs={"scenes": SMALL_SCENES, "npc": "idm", "max_cycles": 4},
+        env_kwargs={"scenes": small_scenes(), "npc": "idm", "max_cycles": 4},
         vec_env_cls=SubprocVecEnv,
         vec_env_kwargs={"start_method": "spawn"},
     )

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import straight_road_scene
-from test_env import SMALL_SCENES, bundle_scene
+from helpers import bundle_scene, small_scenes, straight_road_scene
 
 from trajeglish_env.env import EnvConfig, IDMParams, ObservationConfig, VehicleLimits, raw_env
 from trajeglish_env.env.actions import DELTA_HIGH, action_towards, bicycle_step, make_action_space
@@ -127,7 +126,7 @@ def test_constant_velocity_npcs_keep_their_last_step() -> None:
 
 
 def test_vector_observation_layout() -> None:
-    e = raw_env(SMALL_SCENES, npc="replay")
+    e = raw_env(small_scenes(), npc="replay")
     e.reset(seed=0, options={"scene": 2})
     obs = e.observe(e.agent_selection)
     cfg = EnvConfig().obs
@@ -147,7 +146,7 @@ def test_vector_observation_layout() -> None:
 
 
 def test_bev_observation_draws_ego_route_map_and_agents() -> None:
-    e = raw_env(SMALL_SCENES, npc="replay", observation="bev", obs=ObservationConfig(bev_resolution=3.0))
+    e = raw_env(small_scenes(), npc="replay", observation="bev", obs=ObservationConfig(bev_resolution=3.0))
     e.reset(seed=0, options={"scene": 2})
     bev = e.observe(e.agent_selection)
     n = EnvConfig().obs.bev_size
@@ -167,7 +166,7 @@ def test_map_points_are_resampled_per_polyline() -> None:
 
 def test_scene_sources(tmp_path: object) -> None:
     path = tmp_path / "shard.scn.npz"  # type: ignore[operator]
-    save_scenarios(path, SMALL_SCENES)
+    save_scenarios(path, small_scenes())
     files = scene_set(tmp_path)
     assert isinstance(files, SceneFiles) and len(files) == 3
     assert files.get(files.index_of("highway-two-way-999000")).scenario_id == "highway-two-way-999000"

@@ -7,8 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
-from conftest import straight_road_scene
-from test_env import MERGE, SMALL_SCENES, TINY, bundle_scene, tiny_checkpoint
+from helpers import MERGE, bundle_scene, small_scenes, straight_road_scene, tiny, tiny_checkpoint
 
 import trajeglish_env.sampler.engine as engine_module
 from trajeglish_env.checkpoint import Checkpoint, CheckpointError
@@ -35,7 +34,7 @@ def neighbours(obs: np.ndarray, k: int = 8) -> np.ndarray:
 @pytest.mark.parametrize("npc", ["tiny", "idm"])
 def test_external_acting_last_observes_the_npcs_moves_and_acting_first_observes_none(npc: str) -> None:
     scene = bundle_scene(MERGE)  # 5 vehicles: one model context
-    spec = TrajeglishNPC(TINY) if npc == "tiny" else npc
+    spec = TrajeglishNPC(tiny()) if npc == "tiny" else npc
     for order, moved in (("last", 1.0), ("first", 0.0)):
         e = raw_env([scene], npc=spec, order=order, max_cycles=5, reward=KEEP_GOING, obs=WIDE)
         e.reset(seed=0)
@@ -64,7 +63,9 @@ def _npc_logits(monkeypatch: pytest.MonkeyPatch, order: str, action: list[float]
         return original(logits, *args, **kwargs)
 
     monkeypatch.setattr(engine_module, "sample_with_uniform", spy)
-    e = raw_env([bundle_scene(MERGE)], npc=TrajeglishNPC(TINY), order=order, max_cycles=3, reward=KEEP_GOING)
+    e = raw_env(
+        [bundle_scene(MERGE)], npc=TrajeglishNPC(tiny()), order=order, max_cycles=3, reward=KEEP_GOING
+    )
     e.reset(seed=0)
     for _ in range(2):
         e.step(np.array(action, dtype=np.float32))
@@ -88,7 +89,7 @@ def test_npcs_after_the_external_condition_on_its_move(monkeypatch: pytest.Monke
 
 def test_order_first_holds_across_model_contexts_with_several_external_agents() -> None:
     scene = bundle_scene("sumo-random-999000-0-0")  # ~30 agents: five contexts of the tiny model
-    e = raw_env([scene], npc=TrajeglishNPC(TINY), external=RandomAgents(3), order="first", max_cycles=2)
+    e = raw_env([scene], npc=TrajeglishNPC(tiny()), external=RandomAgents(3), order="first", max_cycles=2)
     e.reset(seed=1)
     sim = e.sim
     t = sim.t
@@ -108,7 +109,7 @@ def test_explicit_order_puts_the_named_agents_first() -> None:
     names = [f"vehicle_{i}" for i in scene.track_id]
     ego = names[scene.sdc]
     leader = names[(scene.sdc + 2) % scene.num_agents]
-    e = raw_env([scene], npc=TrajeglishNPC(TINY), order=(leader, ego), max_cycles=3)
+    e = raw_env([scene], npc=TrajeglishNPC(tiny()), order=(leader, ego), max_cycles=3)
     e.reset(seed=0)
     moved = e.sim.driver.moved()
     assert moved[names.index(leader)] and moved.sum() == 1  # only the named NPC acted before the ego
@@ -120,7 +121,7 @@ def test_parallel_env_is_deterministic_over_many_steps() -> None:
     def play(seed: int) -> tuple[list[np.ndarray], list[float]]:
         scene = bundle_scene(MERGE)
         two = tuple(int(i) for i in scene.track_id[:2])  # two external agents, three Trajeglish NPCs
-        par = parallel_env([scene], npc=TrajeglishNPC(TINY), external=two, max_cycles=6, reward=KEEP_GOING)
+        par = parallel_env([scene], npc=TrajeglishNPC(tiny()), external=two, max_cycles=6, reward=KEEP_GOING)
         obs, _ = par.reset(seed=seed)
         rng = np.random.default_rng(0)
         seen, rewards = [], []
@@ -138,7 +139,7 @@ def test_parallel_env_is_deterministic_over_many_steps() -> None:
 
 
 def test_reset_picks_scenes_by_seed_index_or_id() -> None:
-    e = raw_env(SMALL_SCENES, npc="replay")
+    e = raw_env(small_scenes(), npc="replay")
     e.reset(seed=0, options={"scene": "highway-two-way-999000"})
     assert e.scenario.scenario_id == "highway-two-way-999000"
     e.reset(seed=0, options={"scene": 2})
@@ -147,7 +148,7 @@ def test_reset_picks_scenes_by_seed_index_or_id() -> None:
     for seed in range(12):
         e.reset(seed=seed)
         picks.add(e.scenario.scenario_id)
-        again = raw_env(SMALL_SCENES, npc="replay")
+        again = raw_env(small_scenes(), npc="replay")
         again.reset(seed=seed)
         assert again.scenario.scenario_id == e.scenario.scenario_id
     assert len(picks) == 3
@@ -198,7 +199,7 @@ def test_bad_inputs_are_refused_with_clear_errors(tmp_path: object) -> None:
         e.step(np.array([2.0, 0.0], dtype=np.float32))
     with pytest.raises(ValueError, match=r"must be a finite array of shape \(2,\)"):
         e.step(np.zeros(3, dtype=np.float32))
-    tok = raw_env([scene], npc=TrajeglishNPC(TINY), action="token")
+    tok = raw_env([scene], npc=TrajeglishNPC(tiny()), action="token")
     tok.reset(seed=0)
     n = tok.action_space(tok.agent_selection).n
     with pytest.raises(ValueError, match=f"action {n} is outside the action space Discrete"):
@@ -211,7 +212,9 @@ def test_bad_inputs_are_refused_with_clear_errors(tmp_path: object) -> None:
     with pytest.raises(ValueError, match="its sdc .* is not present at the current step 10"):
         raw_env([no_sdc], npc="replay").reset(seed=0)
     mismatched = Checkpoint(
-        model=tiny_checkpoint(128).model, vocabulary=tiny_checkpoint(256).vocabulary, training={}
+        model=tiny_checkpoint(vocab_size=128).model,
+        vocabulary=tiny_checkpoint(vocab_size=256).vocabulary,
+        training={},
     )
     with pytest.raises(
         CheckpointError, match="vocabulary has 3 classes x 294 templates but the model expects 3 x 144"

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from test_sampler import tiny_ckpt
+from helpers import tiny_checkpoint
 
 from trajeglish_env.evaluation import (
     EvalConfig,
@@ -43,7 +43,7 @@ def test_log_and_constant_velocity_rollouts(scenes) -> None:
 
 def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
     save_scenarios(tmp_path / "held.scn.npz", scenes)
-    ckpt = tiny_ckpt()
+    ckpt = tiny_checkpoint()
     cfg = EvalConfig(rollouts=2, scenes=2, temperatures=(1.0, 0.5))
     result = evaluate(tmp_path, {"tiny": ckpt}, cfg, tmp_path / "eval", partial="tiny", progress=False)
     methods = result["methods"]
@@ -71,7 +71,7 @@ def test_nll_through_the_decoding_cache(scenes, variant: str) -> None:
 
     from trajeglish_env.training.density import cached_nll
 
-    ckpt = tiny_ckpt(variant)
+    ckpt = tiny_checkpoint(variant)
     f32 = cached_nll(ckpt, scenes, windows=4, cache_dtype=torch.float32, batch_size=2)
     assert f32["tokens"] > 50
     assert abs(f32["nll"] - f32["reference_nll"]) < 1e-5 and f32["max_logit_diff"] < 1e-4

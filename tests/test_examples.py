@@ -8,8 +8,7 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
-from conftest import REPO, WOMD_TFRECORD
-from test_env import tiny_checkpoint
+from helpers import REPO, tiny_checkpoint
 
 from trajeglish_env.checkpoint import save_checkpoint
 from trajeglish_env.cli import main as cli_main
@@ -55,7 +54,6 @@ def test_partial_control_eval_smoke(tiny_model: Path) -> None:
     assert results["replay/first"]["collision_rate"] == 0.0  # the log never collides with the ego's log path
 
 
-@pytest.mark.skipif(not WOMD_TFRECORD.exists(), reason="shared WOMD sample not present")
 def test_womd_scene_smoke(tmp_path: Path) -> None:
     out = example("womd_scene").main(["--smoke", "--npc", "idm", "--out", str(tmp_path / "w.gif")])
     assert out["agents"] == 83 and out["steps"] == 6 and Path(out["video"]).is_file()
@@ -69,4 +67,6 @@ def test_cli_demo_with_a_checkpoint(
     )
     result = json.loads(capsys.readouterr().out)
     assert code == 0 and result["steps"] == 5 and result["npcs"] >= 1
-    assert Path(result["video"]).is_file() and 0 <= result["npc_collision_rate"] <= 1
+    assert Path(result["video"]).is_file()
+    # the tiny model's 7 NPCs of the default scene over 5 steps (seed 0): none collides, one leaves the road
+    assert result["npc_collision_rate"] == 0.0 and result["npc_offroad_rate"] == 0.143

@@ -8,19 +8,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import WOMD_TFRECORD, straight_road_scene
+from helpers import grid_vocabulary, straight_road_scene, tiny_config, womd_tfrecord
 
 from trajeglish_env.checkpoint import CheckpointError, load_checkpoint, pretrained_path, save_checkpoint
 from trajeglish_env.cli import main
-from trajeglish_env.model import TrajeglishModel, preset
+from trajeglish_env.model import TrajeglishModel
 from trajeglish_env.scenario_io import load_scenarios, save_scenarios
 from trajeglish_env.sources.womd_convert import convert_womd
-from trajeglish_env.tokenizer.baselines import xyh_grid_templates
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 from trajeglish_env.training.train import TrainConfig, train, validation_nll
 
-VOCAB = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
-TINY = preset("tiny", vocab_size=VOCAB.size)
+VOCAB = grid_vocabulary()
+TINY = tiny_config()
 QUICK = TrainConfig(
     steps=3, batch_size=2, lr=5e-4, warmup_steps=1, val_fraction=0.0, num_workers=0, checkpoint_every=100
 )
@@ -41,9 +40,8 @@ def scenes_dir(tmp_path_factory) -> Path:
     return d
 
 
-@pytest.mark.skipif(not WOMD_TFRECORD.is_file(), reason="shared WOMD sample not found")
 def test_finetuning_the_shipped_model_lowers_the_womd_scene_nll(tmp_path: Path) -> None:
-    convert_womd([WOMD_TFRECORD], tmp_path / "womd", progress=False)
+    convert_womd([womd_tfrecord()], tmp_path / "womd", progress=False)
     scenes = load_scenarios(tmp_path / "womd" / "motion_data_one_scenario.scn.npz")
     shipped = load_checkpoint(pretrained_path())
     cpu = torch.device("cpu")

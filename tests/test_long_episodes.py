@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_env import TINY
+from helpers import tiny
 
 from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC
 from trajeglish_env.env.aec import raw_env
@@ -27,7 +27,7 @@ def play(env: raw_env) -> int:
 
 @pytest.mark.parametrize("npc", ["tiny", "constant_velocity"])
 def test_an_episode_runs_past_the_log_and_its_agents_drive_on(npc: str) -> None:
-    spec = TrajeglishNPC(TINY) if npc == "tiny" else npc
+    spec = TrajeglishNPC(tiny()) if npc == "tiny" else npc
     env = raw_env(npc=spec, max_cycles=150, reward=KEEP_GOING)
     env.reset(seed=0, options={"scene": CROSSING})
     sc, sim = env.scenario, env.sim
@@ -55,7 +55,7 @@ def test_log_bound_npcs_refuse_episodes_longer_than_the_log(npc: str) -> None:
 
 
 def test_batched_ego_env_past_the_log_equals_separate_envs() -> None:
-    kw = {"npc": TrajeglishNPC(TINY), "max_cycles": 90, "reward": KEEP_GOING}
+    kw = {"npc": TrajeglishNPC(tiny()), "max_cycles": 90, "reward": KEEP_GOING}
     venv = BatchedEgoEnv(2, **kw)
     obs, _ = venv.reset(seed=4, options={"scene": CROSSING})
     refs = [EgoEnv(**kw) for _ in range(2)]

@@ -10,7 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import SHARED
+from helpers import womd_submission, womd_tfrecord
 
 from trajeglish_env.metrics import (
     CONFIGS,
@@ -23,15 +23,6 @@ from trajeglish_env.metrics import (
     score_rollouts,
 )
 from trajeglish_env.sources.womd import read_womd
-
-WOMD = SHARED / "data" / "womd"
-SCENARIO_FILE = WOMD / "motion_data_one_scenario.tfrecord"
-SUBMISSION_FILE = WOMD / "test_submission.binproto"
-
-pytestmark = pytest.mark.skipif(
-    not (SCENARIO_FILE.is_file() and SUBMISSION_FILE.is_file()),
-    reason=f"shared WOMD sample not found under {WOMD} (needs ../shared next to the repository)",
-)
 
 TOLERANCE = 1e-4
 
@@ -84,9 +75,9 @@ TABLE_B = {
 @pytest.fixture(scope="module")
 def womd():
     """(scenario, raw log details, submitted rollouts) of the shared sample."""
-    scenario = next(read_womd(SCENARIO_FILE))
-    details = next(read_womd_details(SCENARIO_FILE))
-    (rollouts,) = read_submission(SUBMISSION_FILE)
+    scenario = next(read_womd(womd_tfrecord()))
+    details = next(read_womd_details(womd_tfrecord()))
+    (rollouts,) = read_submission(womd_submission())
     return scenario, details, rollouts
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_env import MERGE, SMALL_SCENES, TINY, bundle_scene
+from helpers import MERGE, bundle_scene, small_scenes, tiny
 
 from policies import (
     ConstantVelocityPolicy,
@@ -41,7 +41,7 @@ def test_rule_based_egos_follow_their_route() -> None:
 
 
 def test_random_policy_is_seeded_and_stays_in_the_space() -> None:
-    env = raw_env(SMALL_SCENES, npc="replay", max_cycles=10)
+    env = raw_env(small_scenes(), npc="replay", max_cycles=10)
     a = play_episode(env, RandomPolicy(seed=3), seed=1)
     b = play_episode(env, RandomPolicy(seed=3), seed=1)
     c = play_episode(env, RandomPolicy(seed=4), seed=1)
@@ -74,10 +74,10 @@ def test_sb3_policy_drives_one_or_many_agents() -> None:
 
 
 def test_trajeglish_policy_drives_an_external_agent() -> None:
-    env = raw_env([bundle_scene(MERGE)], npc=TrajeglishNPC(TINY), action="token", max_cycles=5)
-    policy = TrajeglishPolicy(TINY)
+    env = raw_env([bundle_scene(MERGE)], npc=TrajeglishNPC(tiny()), action="token", max_cycles=5)
+    policy = TrajeglishPolicy(tiny())
     a = play_episode(env, policy, seed=0)
-    b = play_episode(env, TrajeglishPolicy(TINY), seed=0)
+    b = play_episode(env, TrajeglishPolicy(tiny()), seed=0)
     assert a.steps >= 1 and a.returns == b.returns
     other = raw_env([bundle_scene(MERGE)], npc="idm", action="token")  # the default 384-token vocabulary
     other.reset(seed=0)
@@ -100,5 +100,5 @@ def test_runner_maps_agents_and_summarises() -> None:
     assert summary["episodes"] == 2 and summary["agents"] == 10
     assert summary["collision_rate"] == np.mean(list(result.collision.values()))
     assert summary["mean_progress_m"] == pytest.approx(np.mean(list(result.progress_m.values())))
-    several = evaluate(raw_env(SMALL_SCENES, npc="idm", max_cycles=5), IDMPolicy(), 3, scenes=[0, 1, 2])
+    several = evaluate(raw_env(small_scenes(), npc="idm", max_cycles=5), IDMPolicy(), 3, scenes=[0, 1, 2])
     assert several["episodes"] == 3 and several["mean_steps"] == 5

@@ -6,24 +6,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-import torch
-from conftest import WOMD_TFRECORD, straight_road_scene
+from helpers import grid_vocabulary, straight_road_scene, tiny_checkpoint, womd_tfrecord
 
-from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.geometry import to_global
-from trajeglish_env.model import TrajeglishModel, preset
 from trajeglish_env.sampler import RolloutEngine, SamplingConfig, plan_subsets, rollout
 from trajeglish_env.scenario import AgentKind, Scenario
-from trajeglish_env.tokenizer.baselines import xyh_grid_templates
-from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
-
-VOCAB = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
-
-
-def tiny_ckpt(variant: str = "trajeglish") -> Checkpoint:
-    torch.manual_seed(0)
-    model = TrajeglishModel(preset("tiny", vocab_size=VOCAB.size, variant=variant)).eval()
-    return Checkpoint(model=model, vocabulary=VOCAB, training={})
 
 
 def crowd_scene(n: int = 210, steps: int = 40, seed: int = 0) -> Scenario:
@@ -74,7 +61,7 @@ def test_subsets_cover_everyone_with_the_sdc_first_and_padding_first() -> None:
 
 def test_rollouts_are_deterministic_and_respect_control() -> None:
     sc = straight_road_scene(num_agents=5, steps=40)
-    ckpt = tiny_ckpt()
+    ckpt = tiny_checkpoint()
     controlled = np.array([True, True, False, True, False])
     a = rollout(ckpt, sc, rollouts=3, horizon=20, controlled=controlled, config=SamplingConfig(seed=1))
     b = rollout(ckpt, sc, rollouts=3, horizon=20, controlled=controlled, config=SamplingConfig(seed=1))
@@ -91,17 +78,19 @@ def test_rollouts_are_deterministic_and_respect_control() -> None:
         a.valid[:, ~controlled], np.broadcast_to(sc.valid[~controlled, :31], (3, 2, 31))
     )
     assert a.valid[:, controlled, cur:].all()
-    assert ((a.tokens[:, controlled, cur:30] >= 0) & (a.tokens[:, controlled, cur:30] < VOCAB.size)).all()
+    assert (
+        (a.tokens[:, controlled, cur:30] >= 0) & (a.tokens[:, controlled, cur:30] < grid_vocabulary().size)
+    ).all()
     # controlled motion is exactly the rendered tokens
     k = sc.kind[0]
-    step = to_global(a.xyh[:, 0, cur + 3], VOCAB.templates[k][a.tokens[:, 0, cur + 3]])
+    step = to_global(a.xyh[:, 0, cur + 3], grid_vocabulary().templates[k][a.tokens[:, 0, cur + 3]])
     np.testing.assert_allclose(step, a.xyh[:, 0, cur + 4], atol=1e-9)
 
 
 @pytest.mark.parametrize(("variant", "agents"), [("trajeglish", 210), ("no-intra", 60)])
 def test_sliding_window_on_a_210_agent_scene_beyond_the_model_horizon(variant: str, agents: int) -> None:
     sc = crowd_scene(agents)
-    ckpt = tiny_ckpt(variant)  # 6 agents x 8 steps of context
+    ckpt = tiny_checkpoint(variant)  # 6 agents x 8 steps of context
     # prime 3: windows are recomputed at steps 10 and 15, so the rollout runs past one model window
     out = rollout(ckpt, sc, rollouts=2, horizon=7, config=SamplingConfig(prime_steps=3, seed=0))
     assert out.xyh.shape == (2, agents, 18, 3)
@@ -114,19 +103,19 @@ def test_sliding_window_on_a_210_agent_scene_beyond_the_model_horizon(variant: s
 def test_window_schedule_is_validated() -> None:
     sc = straight_road_scene(num_agents=3, steps=30)
     with pytest.raises(ValueError, match="recompute_every=9 must be in 1..6"):
-        rollout(tiny_ckpt(), sc, horizon=5, config=SamplingConfig(prime_steps=2, recompute_every=9))
+        rollout(tiny_checkpoint(), sc, horizon=5, config=SamplingConfig(prime_steps=2, recompute_every=9))
     bad = sc.valid.copy()
     bad[1, 10] = False
     with pytest.raises(
         ValueError,
         match=r"controlled agents must be valid at the current step 10; track ids \[101, 102\] are not",
     ):
-        rollout(tiny_ckpt(), dataclasses.replace(sc, valid=bad), horizon=5, controlled=np.ones(3, bool))
+        rollout(tiny_checkpoint(), dataclasses.replace(sc, valid=bad), horizon=5, controlled=np.ones(3, bool))
 
 
 def test_external_agent_is_asked_for_in_order_and_seen_by_later_agents() -> None:
     sc = straight_road_scene(num_agents=4, steps=30)
-    ckpt = tiny_ckpt()
+    ckpt = tiny_checkpoint()
     external = np.array([False, False, True, False])
     priority = np.array([1.0, 2.0, 0.0, 3.0])  # the external agent acts first
     controlled = ~external & sc.valid[:, sc.current_index]
@@ -142,12 +131,11 @@ def test_external_agent_is_asked_for_in_order_and_seen_by_later_agents() -> None
         eng.step()
 
 
-@pytest.mark.skipif(not WOMD_TFRECORD.exists(), reason="shared WOMD sample not present")
 def test_rollout_on_the_womd_sample() -> None:
     from trajeglish_env.sources.womd import read_womd
 
-    sc = next(read_womd(WOMD_TFRECORD))
-    out = rollout(tiny_ckpt(), sc, rollouts=2, horizon=12, config=SamplingConfig(prime_steps=3))
+    sc = next(read_womd(womd_tfrecord()))
+    out = rollout(tiny_checkpoint(), sc, rollouts=2, horizon=12, config=SamplingConfig(prime_steps=3))
     live = sc.valid[:, sc.current_index]
     assert live.sum() == 50
     assert out.valid[:, live, sc.current_index :].all()

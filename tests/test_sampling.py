@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import straight_road_scene
-from test_sampler import tiny_ckpt
+from helpers import straight_road_scene, tiny_checkpoint
 
 from trajeglish_env.model import SceneInputs
 from trajeglish_env.model.layers import DecoderCache
@@ -43,7 +42,7 @@ def test_greedy_rollout_is_a_fixed_point_of_the_teacher_forced_model(
 ) -> None:
     """With temperature 0 every token the engine samples (through prime + decode_at) is the argmax of the
     full forward pass over its window given the whole result; replayed agents keep their log tokens."""
-    ckpt = tiny_ckpt(variant)
+    ckpt = tiny_checkpoint(variant)
     model = ckpt.model
     sc = straight_road_scene(num_agents=5, steps=30)
     controlled = np.array([True, False, True, True, False])

@@ -7,7 +7,7 @@ import zipfile
 
 import numpy as np
 import pytest
-from conftest import straight_road_scene
+from helpers import straight_road_scene
 
 from trajeglish_env import (
     Scenario,

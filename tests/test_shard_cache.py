@@ -7,17 +7,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import straight_road_scene
+from helpers import grid_vocabulary, straight_road_scene, tiny_config
 
-from trajeglish_env.model import preset
 from trajeglish_env.scenario_io import save_scenarios
-from trajeglish_env.tokenizer.baselines import xyh_grid_templates
-from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 from trajeglish_env.training import shard_cache
 from trajeglish_env.training.shard_cache import ShardBlockOrder, ShardedScenes, split_shards
 from trajeglish_env.training.train import TrainConfig, train
 
-VOCAB = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
+VOCAB = grid_vocabulary()
 
 
 @pytest.fixture(scope="module")
@@ -88,6 +85,6 @@ def test_training_with_a_shard_cache_holds_at_most_k_shards(
         checkpoint_every=4,
         shard_cache=2,
     )
-    result = train(shards, tmp_path, preset("tiny", vocab_size=VOCAB.size), config, VOCAB, progress=False)
+    result = train(shards, tmp_path, tiny_config(), config, VOCAB, progress=False)
     assert result["steps"] == 4 and np.isfinite(result["val_nll"])
     assert len(held) == 16 and max(held) <= 2

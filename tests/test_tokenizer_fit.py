@@ -221,5 +221,7 @@ def test_fit_and_evaluate_directory(tmp_path: Path) -> None:
     assert summary["table_cm"]["k-disks"]["128"] < summary["table_cm"]["xyh-grid"]["128"]
     assert Path(summary["plot"]).is_file()
     res = summary["results"][1]
-    assert set(res["frac_above_cm"]) == {"2", "5", "10"} and 0 <= res["collision_rate"]["tokenized"] <= 1
+    assert set(res["frac_above_cm"]) == {"2", "5", "10"}
+    # boxes overlapping in the seeded synthetic tracks, before and after tokenization (the same pairs)
+    assert res["collision_rate"] == {"raw": 0.00292, "tokenized": 0.00292}
     assert len(res["error_vs_length"]["mean_cm"]) == 39

@@ -9,17 +9,14 @@ import numpy as np
 import pytest
 import torch
 import torch.multiprocessing as mp
-from conftest import straight_road_scene
+from helpers import grid_vocabulary, straight_road_scene, tiny_config
 
 from trajeglish_env.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from trajeglish_env.model import TrajeglishModel, preset
+from trajeglish_env.model import TrajeglishModel
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.tokenizer.baselines import xyh_grid_templates
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 from trajeglish_env.training.train import TrainConfig, train
-
-VOCAB = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
-CFG = preset("tiny", vocab_size=VOCAB.size)
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +46,7 @@ def _weights(path) -> dict[str, torch.Tensor]:
 
 def test_tiny_model_overfits_a_tiny_dataset(scenes_dir, tmp_path) -> None:
     cfg = _quick(steps=60, lr=3e-3, warmup_steps=5, noisy_inputs=False, log_every=5)
-    result = train(scenes_dir, tmp_path, CFG, cfg, vocabulary=VOCAB, progress=False)
+    result = train(scenes_dir, tmp_path, tiny_config(), cfg, vocabulary=grid_vocabulary(), progress=False)
     history = load_checkpoint(tmp_path / "last.pt").trainer["history"]
     first, last = history[0]["loss"], result["train_loss"]
     assert first > 4.0  # ~log(144) at the start
@@ -59,7 +56,9 @@ def test_tiny_model_overfits_a_tiny_dataset(scenes_dir, tmp_path) -> None:
 
 
 def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
-    straight = train(scenes_dir, tmp_path / "a", CFG, _quick(), vocabulary=VOCAB, progress=False)
+    straight = train(
+        scenes_dir, tmp_path / "a", tiny_config(), _quick(), vocabulary=grid_vocabulary(), progress=False
+    )
     assert straight["steps"] == 6 and straight["resumed_from"] == 0
 
     import trajeglish_env.training.train as train_module
@@ -73,16 +72,34 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
 
     monkeypatch.setattr(train_module, "_write_metrics", crash_at_step_4)
     with pytest.raises(KeyboardInterrupt):
-        train(scenes_dir, tmp_path / "b", CFG, _quick(), vocabulary=VOCAB, progress=False)
+        train(
+            scenes_dir, tmp_path / "b", tiny_config(), _quick(), vocabulary=grid_vocabulary(), progress=False
+        )
     assert load_checkpoint(tmp_path / "b" / "last.pt").trainer["step"] == 3
     monkeypatch.setattr(train_module, "_write_metrics", real_write)
-    resumed = train(scenes_dir, tmp_path / "b", CFG, _quick(), vocabulary=VOCAB, resume=True, progress=False)
+    resumed = train(
+        scenes_dir,
+        tmp_path / "b",
+        tiny_config(),
+        _quick(),
+        vocabulary=grid_vocabulary(),
+        resume=True,
+        progress=False,
+    )
     assert resumed["resumed_from"] == 3 and resumed["steps"] == 6
     a, b = _weights(tmp_path / "a" / "model.pt"), _weights(tmp_path / "b" / "model.pt")
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=f"parameter {k} differs after resume")
     with pytest.raises(CheckpointError, match="it was trained with"):
-        train(scenes_dir, tmp_path / "b", CFG, _quick(lr=1e-3), vocabulary=VOCAB, resume=True, progress=False)
+        train(
+            scenes_dir,
+            tmp_path / "b",
+            tiny_config(),
+            _quick(lr=1e-3),
+            vocabulary=grid_vocabulary(),
+            resume=True,
+            progress=False,
+        )
 
 
 def _free_port() -> int:
@@ -100,12 +117,19 @@ def _ddp_worker(rank: int, world: int, port: int, scenes: str, out: str) -> None
         LOCAL_RANK=str(rank),
     )
     torch.set_num_threads(1)
-    train(scenes, out, CFG, _quick(steps=3), vocabulary=VOCAB, progress=False)
+    train(scenes, out, tiny_config(), _quick(steps=3), vocabulary=grid_vocabulary(), progress=False)
     torch.distributed.destroy_process_group()
 
 
 def test_two_processes_equal_one_process_on_the_combined_batch(scenes_dir, tmp_path) -> None:
-    train(scenes_dir, tmp_path / "one", CFG, _quick(steps=3), vocabulary=VOCAB, progress=False)
+    train(
+        scenes_dir,
+        tmp_path / "one",
+        tiny_config(),
+        _quick(steps=3),
+        vocabulary=grid_vocabulary(),
+        progress=False,
+    )
     mp.start_processes(
         _ddp_worker,
         args=(2, _free_port(), str(scenes_dir), str(tmp_path / "two")),
@@ -125,10 +149,14 @@ def test_two_processes_equal_one_process_on_the_combined_batch(scenes_dir, tmp_p
 
 def test_checkpoint_round_trip_and_clear_errors(tmp_path) -> None:
     torch.manual_seed(0)
-    model = TrajeglishModel(CFG)
-    path = save_checkpoint(tmp_path / "m.pt", model, VOCAB, training={"note": "test"})
+    model = TrajeglishModel(tiny_config())
+    path = save_checkpoint(tmp_path / "m.pt", model, grid_vocabulary(), training={"note": "test"})
     ckpt = load_checkpoint(path)
-    assert ckpt.config == CFG and ckpt.vocabulary.equals(VOCAB) and ckpt.training == {"note": "test"}
+    assert (
+        ckpt.config == tiny_config()
+        and ckpt.vocabulary.equals(grid_vocabulary())
+        and ckpt.training == {"note": "test"}
+    )
     for k, v in model.state_dict().items():
         assert torch.equal(v, ckpt.model.state_dict()[k])
     truncated = tmp_path / "cut.pt"
@@ -200,7 +228,9 @@ def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
         monkeypatch.setattr(train_module._LossModule, "forward", forward)
 
     poison(lambda step: step == 2)
-    result = train(scenes_dir, tmp_path / "a", CFG, _quick(), vocabulary=VOCAB, progress=False)
+    result = train(
+        scenes_dir, tmp_path / "a", tiny_config(), _quick(), vocabulary=grid_vocabulary(), progress=False
+    )
     assert result["steps"] == 6 and np.isfinite(result["train_loss"])
     assert "non-finite gradients at step 2; update skipped" in capsys.readouterr().err
     assert all(torch.isfinite(w).all() for w in _weights(tmp_path / "a" / "model.pt").values())
@@ -208,14 +238,21 @@ def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
     # gradients that stay non-finite stop the run; the checkpoint keeps the last finite weights
     poison(lambda step: step >= 4)
     with pytest.raises(RuntimeError, match="in a row up to step 14 had non-finite gradients"):
-        train(scenes_dir, tmp_path / "b", CFG, _quick(steps=20), vocabulary=VOCAB, progress=False)
+        train(
+            scenes_dir,
+            tmp_path / "b",
+            tiny_config(),
+            _quick(steps=20),
+            vocabulary=grid_vocabulary(),
+            progress=False,
+        )
     assert load_checkpoint(tmp_path / "b" / "last.pt").trainer["step"] == 12
 
-    model = TrajeglishModel(CFG)
+    model = TrajeglishModel(tiny_config())
     with torch.no_grad():
         next(model.parameters())[0] = float("nan")
     optimizer = torch.optim.AdamW(model.parameters())
     with pytest.raises(RuntimeError, match="not finite at step 7"):
         facts = train_module._RunFacts(train_scenes=0, val_scenes=0, sources=(), processes=1, init=None)
-        train_module._save(tmp_path / "c.pt", model, VOCAB, optimizer, _quick(), 7, [], facts)
+        train_module._save(tmp_path / "c.pt", model, grid_vocabulary(), optimizer, _quick(), 7, [], facts)
     assert not (tmp_path / "c.pt").exists()

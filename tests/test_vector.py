@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from helpers import bundle_scene, tiny
 from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import DummyVecEnv
-from test_env import TINY, bundle_scene
 
 from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
 from trajeglish_env.env.sb3 import SB3VecEnv
@@ -39,7 +39,7 @@ def run_rows(
     specs: list[RowSpec], seeds: list[int], dtype: torch.dtype, restart: tuple | None = None
 ) -> BatchEngine:
     """Run one engine with a row per spec; ``restart = (step, row, spec, seed)`` restarts a row mid-run."""
-    engine = BatchEngine(TINY, len(specs), SamplingConfig(temperature=1.0), cache_dtype=dtype)
+    engine = BatchEngine(tiny(), len(specs), SamplingConfig(temperature=1.0), cache_dtype=dtype)
     for row, (spec, seed) in enumerate(zip(specs, seeds, strict=True)):
         engine.start_rows([row], spec, [seed])
     k = 0
@@ -96,7 +96,7 @@ def test_engine_row_restarted_mid_run_equals_a_fresh_run() -> None:
 
 def test_chunked_decoding_equals_the_full_forward_pass() -> None:
     """decode_at with per-row positions and chunk lengths gives the teacher-forced logits."""
-    model = TINY.model
+    model = tiny().model
     cfg = model.cfg
     a, t, b = cfg.max_agents, cfg.steps, 3
     g = torch.Generator().manual_seed(0)
@@ -157,7 +157,7 @@ def ego_actions(steps: int, n: int) -> list[np.ndarray]:
 
 @pytest.mark.parametrize("npc", ["tiny", "idm"])
 def test_batched_ego_env_equals_separate_envs_with_autoreset(npc: str) -> None:
-    spec = TrajeglishNPC(TINY) if npc == "tiny" else "idm"
+    spec = TrajeglishNPC(tiny()) if npc == "tiny" else "idm"
     kw = {"npc": spec, "max_cycles": 7}
     venv = BatchedEgoEnv(3, **kw)
     obs, info = venv.reset(seed=5)
@@ -179,7 +179,7 @@ def test_batched_ego_env_equals_separate_envs_with_autoreset(npc: str) -> None:
 
 
 def test_batched_parallel_env_equals_separate_parallel_envs() -> None:
-    kw = {"npc": TrajeglishNPC(TINY), "external": "all", "max_cycles": 5}
+    kw = {"npc": TrajeglishNPC(tiny()), "external": "all", "max_cycles": 5}
     penv = BatchedParallelEnv(2, **kw)
     obs, _ = penv.reset(seed=[3, 4], options={"scene": SCENES[0]})
     refs = [parallel_env(**kw) for _ in range(2)]
@@ -206,7 +206,7 @@ def test_batched_parallel_env_equals_separate_parallel_envs() -> None:
 
 
 def test_sb3_vec_env_equals_dummy_vec_env_and_trains() -> None:
-    kw = {"npc": TrajeglishNPC(TINY), "max_cycles": 6}
+    kw = {"npc": TrajeglishNPC(tiny()), "max_cycles": 6}
     vec = SB3VecEnv(3, **kw)
     ref = DummyVecEnv([lambda: EgoEnv(**kw) for _ in range(3)])
     vec.seed(21)
@@ -260,7 +260,7 @@ def test_batched_envs_refuse_bad_inputs() -> None:
 
 def test_batched_render_follows_the_engine_when_a_bigger_scene_grows_its_arrays() -> None:
     scenes = [bundle_scene(SCENES[0]), bundle_scene(SCENES[1])]  # the second has more agents: the arrays grow
-    venv = BatchedEgoEnv(2, scenes, render_mode="rgb_array", npc=TrajeglishNPC(TINY), max_cycles=4)
+    venv = BatchedEgoEnv(2, scenes, render_mode="rgb_array", npc=TrajeglishNPC(tiny()), max_cycles=4)
     venv.envs[0].reset(seed=0, options={"scene": 0})
     venv.envs[1].reset(seed=0, options={"scene": 0})
     before = venv.render()

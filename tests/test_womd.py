@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import WOMD_TFRECORD
+from helpers import womd_tfrecord
 
 from trajeglish_env.scenario import AgentKind, MapKind, SignalState
 from trajeglish_env.scenario_io import load_scenarios
@@ -21,15 +21,10 @@ from trajeglish_env.sources.womd_convert import convert_womd
 from trajeglish_env.sources.womd_proto import ScenarioProto
 from trajeglish_env.sources.womd_tfrecord import _crc_update_scalar, crc32c, masked_crc32c
 
-SAMPLE = WOMD_TFRECORD
-needs_sample = pytest.mark.skipif(not SAMPLE.is_file(), reason=f"WOMD sample file not found at {SAMPLE}")
-
 
 @pytest.fixture(scope="module")
 def record() -> bytes:
-    if not SAMPLE.is_file():
-        pytest.skip(f"WOMD sample file not found at {SAMPLE}")
-    ((index, data),) = list(read_tfrecord(SAMPLE))
+    ((index, data),) = list(read_tfrecord(womd_tfrecord()))
     assert index == 0
     return data
 
@@ -58,14 +53,12 @@ def test_crc32c_matches_published_vectors_and_scalar_reference():
     assert masked_crc32c(b"") == 0xA282EAD8
 
 
-@needs_sample
 def test_sample_record_framing(record: bytes):
-    assert len(record) == SAMPLE.stat().st_size - 16 == 952_947
+    assert len(record) == womd_tfrecord().stat().st_size - 16 == 952_947
 
 
-@needs_sample
 def test_truncated_file_names_file_and_record(tmp_path: Path):
-    raw = SAMPLE.read_bytes()
+    raw = womd_tfrecord().read_bytes()
     cut = tmp_path / "cut.tfrecord"
     cut.write_bytes(raw[: len(raw) // 2])
     with pytest.raises(WomdFormatError, match=r"cut\.tfrecord: record 0 .*truncated"):
@@ -81,9 +74,8 @@ def test_truncated_file_names_file_and_record(tmp_path: Path):
         next(reader)
 
 
-@needs_sample
 def test_flipped_bytes_fail_their_checksum(tmp_path: Path):
-    raw = bytearray(SAMPLE.read_bytes())
+    raw = bytearray(womd_tfrecord().read_bytes())
     bad = tmp_path / "flip.tfrecord"
     raw[500_000] ^= 0x01
     bad.write_bytes(bytes(raw))
@@ -100,7 +92,6 @@ def test_flipped_bytes_fail_their_checksum(tmp_path: Path):
 
 
 # ------------------------------------------------------------------------------------------ conversion
-@needs_sample
 def test_sample_agents(scene):
     assert scene.scenario_id == "637f20cafde22ff8" and scene.source == "womd"
     assert (scene.num_agents, scene.num_steps) == (83, 91)
@@ -119,7 +110,6 @@ def test_sample_agents(scene):
     assert (scene.xyh[~scene.valid] == 0).all()
 
 
-@needs_sample
 def test_sample_map(scene):
     assert scene.num_polylines == 301
     counts = np.bincount(scene.map_kind, minlength=len(MapKind))
@@ -148,7 +138,6 @@ def test_sample_map(scene):
     np.testing.assert_allclose(scene.polyline(int(stops[0]))[0], [-7884.11243404, -6739.49588259])
 
 
-@needs_sample
 def test_sample_traffic_signals(scene):
     assert scene.signal_lane_id.tolist() == [431, 432, 443, 445, 446, 447, 448, 449, 450, 455, 456, 457]
     np.testing.assert_allclose(scene.signal_xy[0], [-7811.1817935320987, -6717.7573872755256])
@@ -159,7 +148,6 @@ def test_sample_traffic_signals(scene):
     assert np.bincount(state.ravel(), minlength=9).tolist() == [540, 228, 0, 0, 324, 0, 0, 0, 0]
 
 
-@needs_sample
 def test_track_without_valid_state_is_dropped_and_indices_follow(record: bytes):
     def invalidate_first_track(proto):
         for state in proto.tracks[0].states:
@@ -170,7 +158,6 @@ def test_track_without_valid_state_is_dropped_and_indices_follow(record: bytes):
     assert scene.tracks_to_predict.tolist() == [71, 42, 41]
 
 
-@needs_sample
 def test_bad_scenarios_raise_errors_naming_origin(record: bytes):
     with pytest.raises(WomdFormatError, match=r"f\.tfrecord: record 7: not a valid WOMD Scenario"):
         parse_scenario(b"\xff\xff\xff", origin="f.tfrecord: record 7")
@@ -198,27 +185,29 @@ def test_output_names_are_unique_per_input():
         convert_womd([Path("a/x.tfrecord"), Path("b/x.tfrecord")], Path("out"), progress=False)
 
 
-@needs_sample
 def test_convert_writes_loadable_shard_and_resumes(tmp_path: Path, scene, capsys):
     out = tmp_path / "out"
-    report = convert_womd([SAMPLE], out)
-    assert report["converted"] == [str(SAMPLE)] and report["failed"] == [] and report["scenes"] == 1
+    report = convert_womd([womd_tfrecord()], out)
+    assert report["converted"] == [str(womd_tfrecord())] and report["failed"] == [] and report["scenes"] == 1
     assert "convert-womd" in capsys.readouterr().err  # progress bar on stderr
     shard = out / "motion_data_one_scenario.scn.npz"
     assert report["outputs"] == [str(shard)]
     (loaded,) = load_scenarios(shard)
     assert loaded.equals(scene)
-    again = convert_womd([SAMPLE], out, progress=False)
-    assert again["skipped"] == [str(SAMPLE)] and again["converted"] == [] and again["scenes_skipped"] == 1
+    again = convert_womd([womd_tfrecord()], out, progress=False)
+    assert (
+        again["skipped"] == [str(womd_tfrecord())]
+        and again["converted"] == []
+        and again["scenes_skipped"] == 1
+    )
 
 
-@needs_sample
 def test_convert_reports_corrupt_input_and_converts_the_rest(tmp_path: Path):
     bad = tmp_path / "broken.tfrecord"
-    bad.write_bytes(SAMPLE.read_bytes()[:1000])
+    bad.write_bytes(womd_tfrecord().read_bytes()[:1000])
     out = tmp_path / "out"
-    report = convert_womd([bad, SAMPLE], out, progress=False)
-    assert report["converted"] == [str(SAMPLE)] and report["scenes"] == 1
+    report = convert_womd([bad, womd_tfrecord()], out, progress=False)
+    assert report["converted"] == [str(womd_tfrecord())] and report["scenes"] == 1
     (failure,) = report["failed"]
     assert failure["file"] == str(bad)
     assert "broken.tfrecord: record 0" in failure["error"] and "truncated" in failure["error"]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 import torch.multiprocessing as mp
-from conftest import WOMD_TFRECORD, small_womd_records, write_tfrecord
+from helpers import grid_vocabulary, small_womd_records, tiny_config, write_tfrecord
 
 import trajeglish_env.submission_export as export_module
 from trajeglish_env.checkpoint import load_checkpoint, save_checkpoint
@@ -21,15 +21,11 @@ from trajeglish_env.cli import main
 from trajeglish_env.metrics import score_rollouts
 from trajeglish_env.metrics.log_details_io import details_path, load_log_details
 from trajeglish_env.metrics.submission import read_submission, read_submission_metadata
-from trajeglish_env.model import TrajeglishModel, preset
+from trajeglish_env.model import TrajeglishModel
 from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.submission_export import ExportConfig, sample_scenario
-from trajeglish_env.tokenizer.baselines import xyh_grid_templates
-from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
-pytestmark = pytest.mark.skipif(not WOMD_TFRECORD.is_file(), reason="shared WOMD sample not found")
-
-ROLLOUTS = "2"
+ROLLOUTS = "2"  # tiny settings (the README's run has WOSAC's 32)
 METADATA = [
     *("--account-name", "someone@example.com", "--method-name", "trajeglish-tiny"),
     *("--authors", "A. Author", "B. Author", "--affiliation", "Nowhere"),
@@ -71,17 +67,15 @@ def _commands(root: Path, out: str) -> list[list[str]]:
 def root(tmp_path_factory) -> Path:
     """Two small WOMD TFRecords cut from the shared scenario and a tiny checkpoint to fine-tune."""
     root = tmp_path_factory.mktemp("womd")
-    first, second = small_womd_records(keep=6)
+    first, second = small_womd_records(keep=4)
     write_tfrecord(root / "validation.tfrecord-00000-of-00002", [first])
     write_tfrecord(root / "validation.tfrecord-00001-of-00002", [second])
-    vocab = MotionVocabulary(np.stack([xyh_grid_templates(128)] * 3), method="xyh-grid")
     torch.manual_seed(0)
-    save_checkpoint(root / "tiny.pt", TrajeglishModel(preset("tiny", vocab_size=vocab.size)), vocab)
+    save_checkpoint(root / "tiny.pt", TrajeglishModel(tiny_config()), grid_vocabulary())
     return root
 
 
-@pytest.fixture(scope="module")
-def one(root: Path) -> dict[str, dict]:
+def run_one_process(root: Path) -> dict[str, dict]:
     """The workflow in one process; the export is interrupted after its first scenario and resumed."""
     results = {}
     generate, convert, train, export, score, evaluate = _commands(root, "one")
@@ -117,7 +111,28 @@ def _run(command: list[str]) -> dict:
     return json.loads(buffer.getvalue())
 
 
-def test_tfrecords_to_a_scored_submission(root: Path, one: dict[str, dict]) -> None:
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _rank(rank: int, world: int, port: int, root: str) -> None:
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        WORLD_SIZE=str(world),
+        RANK=str(rank),
+        LOCAL_RANK=str(rank),
+    )
+    torch.set_num_threads(1)
+    for command in _commands(Path(root), "two"):
+        assert main([*command, "--quiet"]) == 0, command
+    torch.distributed.destroy_process_group()
+
+
+def test_tfrecords_to_a_scored_submission_and_two_ranks_write_the_same_files(root: Path) -> None:
+    one = run_one_process(root)
     assert one["convert-womd"]["scenes"] == 2 and one["train"]["steps"] == 2
     export = one["export-submission"]
     assert export["scenarios"] == 2 and export["resumed"] == 1 and export["sampled"] == 1  # resumed
@@ -128,7 +143,7 @@ def test_tfrecords_to_a_scored_submission(root: Path, one: dict[str, dict]) -> N
     archive = Path(export["archive"])
     rollouts = read_submission(archive)
     assert [r.scenario_id for r in rollouts] == ["637f20cafde22ff8", "637f20cafde22ff8-b"]
-    assert all(r.xyz.shape == (2, 6, 80, 3) for r in rollouts)
+    assert all(r.xyz.shape == (2, 4, 80, 3) for r in rollouts)
     for meta in read_submission_metadata(archive):
         assert meta is not None and meta.validate() is meta
         assert meta.authors == ("A. Author", "B. Author") and meta.method_link == "https://example.com/paper"
@@ -151,28 +166,7 @@ def test_tfrecords_to_a_scored_submission(root: Path, one: dict[str, dict]) -> N
     assert table["submission"]["scores"] == scores  # `trajeglish evaluate` on the same rollouts
     assert one["evaluate"]["log_details"] and table["log"]["scores"]["metametric"] > scores["metametric"]
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _rank(rank: int, world: int, port: int, root: str) -> None:
-    os.environ.update(
-        MASTER_ADDR="127.0.0.1",
-        MASTER_PORT=str(port),
-        WORLD_SIZE=str(world),
-        RANK=str(rank),
-        LOCAL_RANK=str(rank),
-    )
-    torch.set_num_threads(1)
-    for command in _commands(Path(root), "two"):
-        assert main([*command, "--quiet"]) == 0, command
-    torch.distributed.destroy_process_group()
-
-
-def test_two_ranks_write_the_one_process_files(root: Path, one: dict[str, dict]) -> None:
+    # two ranks (the processes torchrun starts) write the one-process files
     mp.start_processes(_rank, args=(2, _free_port(), str(root)), nprocs=2, start_method="spawn")
     a, b = root / "one", root / "two"
     for name in ("highway-00000.scn.npz", "highway-00001.scn.npz"):
@@ -203,9 +197,13 @@ def test_two_ranks_write_the_one_process_files(root: Path, one: dict[str, dict])
     assert two_eval["processes"] == 2 and two_eval["methods"] == one_eval["methods"]
 
 
-def test_bad_inputs_fail_with_one_line(root: Path, one: dict[str, dict], tmp_path: Path, capsys) -> None:
-    shards, sub = str(root / "one" / "shards"), str(root / "one" / "sub")
+def test_bad_inputs_fail_with_one_line(root: Path, tmp_path: Path, capsys) -> None:
+    shards, sub = str(tmp_path / "shards"), str(tmp_path / "sub")
+    inputs = sorted(str(p) for p in root.glob("validation.tfrecord-*"))
+    assert main(["convert-womd", *inputs, "--out", shards, "--quiet"]) == 0
     export = ["export-submission", "--data", shards, "--ckpt", str(root / "tiny.pt"), "--quiet"]
+    assert main([*export, "--out", sub, *METADATA, "--rollouts", "1", "--steps", "1"]) == 0  # quick
+    capsys.readouterr()
     cases = {
         "missing or invalid: account_name (--account-name)": [*export, "--out", str(tmp_path / "a")],
         "num_model_parameters '1.5M' must be": [
@@ -216,7 +214,7 @@ def test_bad_inputs_fail_with_one_line(root: Path, one: dict[str, dict], tmp_pat
             "--num-model-parameters",
             "1.5M",
         ],
-        "holds an export with other settings (config, model differ)": [
+        "holds an export with other settings (config differ)": [
             *export,
             "--out",
             sub,
@@ -232,7 +230,12 @@ def test_bad_inputs_fail_with_one_line(root: Path, one: dict[str, dict], tmp_pat
             "--data",
             str(tmp_path / "nothing"),
         ],
-        "no such input file": ["convert-womd", str(tmp_path / "missing.tfrecord"), "--out", str(tmp_path)],
+        "no such WOMD TFRecord file": [
+            "convert-womd",
+            str(tmp_path / "missing.tfrecord"),
+            "--out",
+            str(tmp_path),
+        ],
         "cannot read submission: no such file": [
             "score-submission",
             str(tmp_path / "x.tar.gz"),
@@ -247,6 +250,6 @@ def test_bad_inputs_fail_with_one_line(root: Path, one: dict[str, dict], tmp_pat
     # WOMD shards without their raw log details cannot give the submission's z
     bare = tmp_path / "bare"
     bare.mkdir()
-    (bare / "w.scn.npz").write_bytes((root / "one/shards/validation-00000-of-00002.scn.npz").read_bytes())
+    (bare / "w.scn.npz").write_bytes((tmp_path / "shards/validation-00000-of-00002.scn.npz").read_bytes())
     assert main([*export, "--out", str(tmp_path / "d"), *METADATA, "--data", str(bare)]) == 2
     assert "w.details.npz: missing (WOMD z values)" in capsys.readouterr().err

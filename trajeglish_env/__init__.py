@@ -24,7 +24,7 @@ def __getattr__(name: str) -> object:
         return importlib.import_module("trajeglish_env.env")
     if name in _LAZY:
         if name != "load_pretrained":
-            importlib.import_module("trajeglish_env.env")  # registers with PettingZoo as well
+            importlib.import_module("trajeglish_env.env")
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'trajeglish_env' has no attribute {name!r}")
 
@@ -34,6 +34,11 @@ GYM_ENVS = {
     "trajeglish_env/Ego-v0": {},
     "trajeglish_env/EgoBev-v0": {"observation": "bev"},
     "trajeglish_env/EgoIDM-v0": {"npc": "idm"},
+}
+PETTINGZOO_ID = "trajeglish_env/Traffic-v0"
+PETTINGZOO_ENTRY_POINTS = {
+    "aec": "trajeglish_env.env.aec:env",
+    "parallel": "trajeglish_env.env.parallel:parallel_env",
 }
 
 
@@ -47,13 +52,30 @@ def register_gymnasium() -> None:
             register(env_id, entry_point="trajeglish_env.env.gym_ego:EgoEnv", kwargs=kwargs)
 
 
+def register_pettingzoo() -> None:
+    """Register the AEC and parallel envs with PettingZoo's registry (idempotent), so that
+    ``pettingzoo.make("aec" | "parallel", PETTINGZOO_ID)`` works after ``import trajeglish_env``.
+
+    The entry points are strings, so neither torch nor the env package is imported until one is made.
+    """
+    from pettingzoo.env_registry.registration import aec_registry, parallel_registry, register
+
+    registries = {"aec": aec_registry, "parallel": parallel_registry}
+    for env_type, entry_point in PETTINGZOO_ENTRY_POINTS.items():
+        if PETTINGZOO_ID not in registries[env_type]:
+            register(env_type, PETTINGZOO_ID, entry_point=entry_point)  # type: ignore[call-overload]
+
+
 register_gymnasium()
+register_pettingzoo()
 
 __all__ = [
     "AgentKind",
     "EgoEnv",
     "EnvConfig",
+    "GYM_ENVS",
     "MapKind",
+    "PETTINGZOO_ID",
     "Scenario",
     "ScenarioError",
     "SignalState",
@@ -62,6 +84,8 @@ __all__ = [
     "load_scenario",
     "parallel_env",
     "raw_env",
+    "register_gymnasium",
+    "register_pettingzoo",
     "load_scenarios",
     "save_scenario",
     "save_scenarios",

@@ -138,7 +138,10 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt/truncated/foreign files
-        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt?): {exc}") from exc
+        raise CheckpointError(
+            f"{path}: not a readable checkpoint (not written by trajeglish, truncated or corrupt?): "
+            f"{_load_failure(exc)}"
+        ) from exc
     if not isinstance(payload, dict) or payload.get("format") != FORMAT_NAME:
         raise CheckpointError(f"{path}: not a trajeglish_env checkpoint (no '{FORMAT_NAME}' header)")
     if payload.get("version") != FORMAT_VERSION:
@@ -178,6 +181,18 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
         optimizer=payload.get("optimizer"),
         trainer=payload.get("trainer"),
     )
+
+
+def _load_failure(exc: Exception) -> str:
+    """One line saying why ``torch.load`` failed: its own message is often many lines of advice about
+    ``weights_only`` that does not apply here (checkpoints never need pickled code)."""
+    text = str(exc)
+    marker = "WeightsUnpickler error:"
+    if marker in text:  # the weights-only unpickler met something that is not a checkpoint's data
+        text = text.split(marker, 1)[1]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    reason = lines[0] if lines else "no details"
+    return f"{type(exc).__name__}: {reason[:200]}"
 
 
 def pretrained_path() -> Path:

@@ -12,6 +12,18 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from trajeglish_env.cli_args import (
+    EXIT_BAD_INPUT,
+    NON_NEGATIVE,
+    POSITIVE,
+    USER_ERRORS,
+    ArgParser,
+    one_line,
+    output_dir,
+    positive_float,
+    probability,
+    scene_at,
+)
 from trajeglish_env.cli_womd import add_womd_commands
 from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
 
@@ -28,14 +40,13 @@ def _print_result(result: dict[str, Any], as_json: bool) -> None:
 
 # ---------------------------------------------------------------------------------------- commands
 def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.distributed import init_ranks
     from trajeglish_env.sources.generation import GenerationConfig, generate
 
     kinds = tuple(k for k in (args.kinds or "").split(",") if k)
-    from trajeglish_env.distributed import init_ranks
-
     ranks = init_ranks()
     config = GenerationConfig(args.source, args.scenes, args.seed, kinds, args.scenes_per_shard)
-    result = generate(config, args.out, args.workers, not args.quiet and ranks.main, ranks)
+    result = generate(config, output_dir(args.out), args.workers, not args.quiet and ranks.main, ranks)
     result["_silent"] = not ranks.main  # under torchrun the main rank prints the merged summary
     return result
 
@@ -46,10 +57,7 @@ def cmd_convert_womd(args: argparse.Namespace) -> dict[str, Any]:
 
     ranks = init_ranks()
     files = [Path(f) for f in args.files]
-    missing = [str(f) for f in files if not f.is_file()]
-    if missing:
-        raise FileNotFoundError(f"no such input file: {', '.join(missing[:3])}")
-    result = convert_womd(files, Path(args.out), not args.quiet and ranks.main, args.workers, ranks)
+    result = convert_womd(files, output_dir(args.out), not args.quiet and ranks.main, args.workers, ranks)
     result["_silent"] = not ranks.main  # under torchrun the main rank prints the merged report
     if result.get("failed"):
         result["exit_code"] = 1
@@ -58,9 +66,8 @@ def cmd_convert_womd(args: argparse.Namespace) -> dict[str, Any]:
 
 def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.render import RenderConfig, save_render
-    from trajeglish_env.scenario_io import load_scenario
 
-    scene = load_scenario(args.scene, args.index)
+    scene = scene_at(args.scene, args.index)
     config = RenderConfig(view_radius=args.radius, follow_sdc=args.follow_sdc, show_ids=args.ids)
     out = save_render(scene, args.out, config=config, fps=args.fps)
     return {"scene": scene.scenario_id, "source": scene.source, "agents": scene.num_agents, "out": str(out)}
@@ -81,7 +88,7 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
         args.data,
         vocab_sizes=tuple(args.vocab or (128, 256, 384, 512)),
         fit_data=args.fit_data,
-        out_dir=args.out,
+        out_dir=output_dir(args.out),
         seed=args.seed,
         trials=args.trials,
     )
@@ -120,7 +127,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     ranks = init_ranks(rank_device())
     result = train(
         args.data,
-        args.out,
+        output_dir(args.out),
         model_config,
         config,
         vocabulary,
@@ -193,7 +200,7 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
         args.data,
         ckpts,
         config,
-        args.out,
+        output_dir(args.out),
         partial=partial,
         progress=not args.quiet,
         submission=args.submission,
@@ -207,10 +214,9 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.render import RenderConfig, save_render
     from trajeglish_env.sampler import rollout
     from trajeglish_env.sampler.config import SamplingConfig
-    from trajeglish_env.scenario_io import load_scenario
 
+    scene = scene_at(args.scenario, args.index)
     ckpt = next(iter(_checkpoints([args.ckpt] if args.ckpt else None).values()))
-    scene = load_scenario(args.scenario, args.index)
     horizon = args.horizon or scene.num_steps - scene.current_index - 1
     res = rollout(
         ckpt,
@@ -229,7 +235,7 @@ def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.env.demo import run_demo
 
     return run_demo(
-        out=Path(args.out),
+        out=output_dir(args.out),
         scene=args.scene,
         seed=args.seed,
         steps=args.steps,
@@ -272,7 +278,7 @@ SECTIONS = ("tokenizer", "dataset", "training", "decoding", "metrics", "env")  #
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="trajeglish", description=__doc__)
+    parser = ArgParser(prog="trajeglish", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
     def add(name: str, handler: Handler, help_text: str, parent: Any = sub) -> argparse.ArgumentParser:
@@ -283,27 +289,27 @@ def build_parser() -> argparse.ArgumentParser:
         return p
 
     p = add("generate", cmd_generate, "generate scenes with a built-in simulator into shard files")
-    p.add_argument("--scenes", type=int, required=True, help="number of scenes")
+    p.add_argument("--scenes", type=POSITIVE, required=True, help="number of scenes")
     p.add_argument("--out", required=True, help="output directory (resumes if it holds a partial run)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=1, help="parallel processes")
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--workers", type=POSITIVE, default=1, help="parallel processes")
     p.add_argument("--source", choices=("highway", "sumo"), default="highway")
     p.add_argument("--kinds", help="comma-separated scene kinds (default: all kinds of the source)")
-    p.add_argument("--scenes-per-shard", type=int, default=8)
+    p.add_argument("--scenes-per-shard", type=POSITIVE, default=8)
 
     p = add("convert-womd", cmd_convert_womd, "convert Waymo Open Motion Dataset TFRecords to shard files")
     p.add_argument("files", nargs="+", help="WOMD scenario TFRecord files")
     p.add_argument("--out", required=True)
-    p.add_argument("--workers", type=int, default=1, help="processes per rank (one file each at a time)")
+    p.add_argument("--workers", type=POSITIVE, default=1, help="processes per rank (one file each at a time)")
 
     p = add("render", cmd_render, "draw a scene as a PNG picture or a GIF/MP4 animation")
     p.add_argument("scene", help="scenario file (*.scn.npz)")
     p.add_argument("--out", required=True, help="output .png, .gif or .mp4")
-    p.add_argument("--index", type=int, default=0, help="which scene of a multi-scene shard")
-    p.add_argument("--radius", type=float, default=None, help="half-width of the view in metres")
+    p.add_argument("--index", type=NON_NEGATIVE, default=0, help="which scene of a multi-scene shard")
+    p.add_argument("--radius", type=positive_float, default=None, help="half-width of the view in metres")
     p.add_argument("--follow-sdc", action="store_true", help="keep the sdc at the centre")
     p.add_argument("--ids", action="store_true", help="label agents with their track ids")
-    p.add_argument("--fps", type=int, default=10)
+    p.add_argument("--fps", type=POSITIVE, default=10)
 
     tok = sub.add_parser("tokenizer", help="fit and evaluate motion-token vocabularies")
     tsub = tok.add_subparsers(dest="tokenizer_command", required=True)
@@ -313,17 +319,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", nargs="+", required=True, help="scene directories")
     p.add_argument("--vocab", type=int, default=384, choices=(128, 256, 384, 512))
     p.add_argument("--out", required=True, help="output vocabulary file")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--trials", type=int, default=8, help="k-disks trials (the best on held-out data is kept)")
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument(
+        "--trials", type=POSITIVE, default=8, help="k-disks trials (the best on held-out data is kept)"
+    )
     p = add("eval", cmd_tokenizer_eval, "discretization error of k-disks and the baselines", tsub)
     p.add_argument("--data", nargs="+", required=True, help="held-out scenes to evaluate on")
     p.add_argument(
         "--fit-data", nargs="+", help="scenes to fit the vocabularies on (default: a split of --data)"
     )
-    p.add_argument("--trials", type=int, default=4)
+    p.add_argument("--trials", type=POSITIVE, default=4)
     p.add_argument("--vocab", type=int, nargs="*", choices=(128, 256, 384, 512))
     p.add_argument("--out", default="out/tokenizer_eval", help="directory for plots")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
 
     p = add("train", cmd_train, "train a Trajeglish model on scene shards (torchrun for several processes)")
     p.add_argument("--data", nargs="+", required=True, help="scene directories")
@@ -344,20 +352,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="start from this trained checkpoint, or 'shipped' for the shipped model (fine-tuning; same "
         "config and vocabulary)",
     )
-    p.add_argument("--steps", type=int, default=2000, help="optimisation steps")
-    p.add_argument("--batch-size", type=int, default=16, help="global batch size (split over processes)")
-    p.add_argument("--lr", type=float, default=5e-4)
-    p.add_argument("--warmup", type=int, default=100)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=1, help="DataLoader worker processes")
+    p.add_argument("--steps", type=POSITIVE, default=2000, help="optimisation steps")
+    p.add_argument("--batch-size", type=POSITIVE, default=16, help="global batch size (split over processes)")
+    p.add_argument("--lr", type=positive_float, default=5e-4)
+    p.add_argument("--warmup", type=NON_NEGATIVE, default=100)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--workers", type=NON_NEGATIVE, default=1, help="DataLoader worker processes")
     p.add_argument("--val-data", help="held-out scenes (default: every 20th training scene)")
-    p.add_argument("--val-every", type=int, default=200)
-    p.add_argument("--checkpoint-every", type=int, default=200)
+    p.add_argument("--val-every", type=POSITIVE, default=200)
+    p.add_argument("--checkpoint-every", type=POSITIVE, default=200)
     p.add_argument("--no-noise", action="store_true", help="argmin input tokens (no noisy tokenization)")
     p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
     p.add_argument(
         "--shard-cache",
-        type=int,
+        type=NON_NEGATIVE,
         default=0,
         help="keep at most K shards in memory per loading process, scenes drawn K shards at a time "
         "(large data sets; default 0: every scene in memory)",
@@ -374,8 +382,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
     )
-    p.add_argument("--windows", type=int, default=256)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--windows", type=POSITIVE, default=256)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument("--unigram-data", nargs="+", help="training scenes to fit the unigram baseline on")
     p.add_argument("--plots", help="directory for the analysis plots")
     p.add_argument(
@@ -390,20 +398,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
     )
-    p.add_argument("--rollouts", type=int, default=8)
-    p.add_argument("--scenes", type=int, default=16, help="evaluate the first N scenes")
+    p.add_argument("--rollouts", type=POSITIVE, default=8)
+    p.add_argument("--scenes", type=POSITIVE, default=16, help="evaluate the first N scenes")
     p.add_argument(
         "--temperature",
-        type=float,
+        type=positive_float,
         nargs="+",
         default=[DEFAULT_TEMPERATURE],
         help="sampling temperatures to evaluate (default: the env's NPC default)",
     )
-    p.add_argument("--top-p", type=float, default=1.0)
+    p.add_argument("--top-p", type=probability, default=1.0)
     p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
     p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
     p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument("--out", default="out/evaluate", help="directory for the table and plots")
     p.add_argument(
         "--submission",
@@ -415,14 +423,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("rollout", cmd_rollout, "sample one rollout of a scene and render it")
     p.add_argument("--scenario", required=True, help="scenario file (*.scn.npz)")
-    p.add_argument("--index", type=int, default=0)
+    p.add_argument("--index", type=NON_NEGATIVE, default=0)
     p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
     p.add_argument("--out", required=True, help="output .gif, .mp4 or .png")
-    p.add_argument("--horizon", type=int, help="steps after the current one (default: to the end of the log)")
-    p.add_argument("--temperature", type=float, default=DEFAULT_TEMPERATURE)
-    p.add_argument("--top-p", type=float, default=1.0)
+    p.add_argument(
+        "--horizon", type=POSITIVE, help="steps after the current one (default: to the end of the log)"
+    )
+    p.add_argument("--temperature", type=positive_float, default=DEFAULT_TEMPERATURE)
+    p.add_argument("--top-p", type=probability, default=1.0)
     p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument("--follow-sdc", action="store_true")
 
     p = add(
@@ -432,10 +442,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", default="out/demo")
     p.add_argument("--scene", default="highway-intersection-999000", help="bundled scene id or index")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument(
         "--steps",
-        type=int,
+        type=POSITIVE,
         default=None,
         help="episode length (default: the rest of the log; longer episodes go on past the log's end)",
     )
@@ -446,12 +456,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("bench", cmd_bench, "the benchmark suite: speed of every stage, batched env vs highway-env")
     p.add_argument(
-        "--batches", type=int, nargs="+", default=[1, 8, 32, 128, 256], help="scenes per batched env"
+        "--batches", type=POSITIVE, nargs="+", default=[1, 8, 32, 128, 256], help="scenes per batched env"
     )
-    p.add_argument("--agents", type=int, default=24, help="agents per scene")
+    p.add_argument("--agents", type=POSITIVE, default=24, help="agents per scene")
     p.add_argument(
         "--env-steps",
-        type=int,
+        type=POSITIVE,
         default=None,
         help="timed steps per batched-env run with Trajeglish NPCs (default: one window cycle of the model, "
         "re-priming included)",
@@ -465,16 +475,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``trajeglish`` console script; returns the process exit code."""
+    """Entry point of the ``trajeglish`` console script; returns the process exit code.
+
+    Bad input (:data:`USER_ERRORS`) is one line on stderr (and an ``error`` object on stdout with
+    ``--json``) and exit code 2; any other exception is a bug and propagates with its traceback.
+    """
     args = build_parser().parse_args(argv)
     try:
         result = args.handler(args)
-    except (ValueError, FileNotFoundError, KeyError, RuntimeError) as exc:
-        message = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+    except USER_ERRORS as exc:
+        message = one_line(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
         if getattr(args, "json", False):
             print(json.dumps({"error": message, "type": type(exc).__name__}))
         print(f"trajeglish {args.command}: error: {message}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
     code = int(result.pop("exit_code", 0))
     if not result.pop("_silent", False):  # non-main ranks of a torchrun job print nothing
         _print_result(result, args.json)

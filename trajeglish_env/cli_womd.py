@@ -8,6 +8,7 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
+from trajeglish_env.cli_args import NON_NEGATIVE, POSITIVE, output_dir, positive_float, probability
 from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
@@ -42,7 +43,7 @@ def cmd_export_submission(args: argparse.Namespace) -> dict[str, Any]:
     sampling = SamplingConfig(args.temperature, args.top_p, args.cache_dtype)
     config = ExportConfig(args.rollouts, args.steps, sampling, args.seed, args.prefix)
     result = export_submission(
-        args.data, ckpt, args.out, metadata, config, not args.quiet and ranks.main, ranks
+        args.data, ckpt, output_dir(args.out), metadata, config, not args.quiet and ranks.main, ranks
     )
     result.update(device=str(device), _silent=not ranks.main)
     return result
@@ -71,12 +72,16 @@ def add_womd_commands(add: AddCommand) -> None:
     p.add_argument("--data", nargs="+", required=True, help="converted scenario shards (convert-womd)")
     p.add_argument("--out", required=True, help="output directory (resumes an interrupted export)")
     p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
-    p.add_argument("--rollouts", type=int, default=32, help="joint rollouts per scenario (WOSAC: 32)")
-    p.add_argument("--steps", type=int, default=80, help="simulated steps after the current one (WOSAC: 80)")
-    p.add_argument("--temperature", type=float, default=DEFAULT_TEMPERATURE)
-    p.add_argument("--top-p", type=float, default=1.0)
+    p.add_argument("--rollouts", type=POSITIVE, default=32, help="joint rollouts per scenario (WOSAC: 32)")
+    p.add_argument(
+        "--steps", type=POSITIVE, default=80, help="simulated steps after the current one (WOSAC: 80)"
+    )
+    p.add_argument("--temperature", type=positive_float, default=DEFAULT_TEMPERATURE)
+    p.add_argument("--top-p", type=probability, default=1.0)
     p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
-    p.add_argument("--seed", type=int, default=0, help="each scenario's seed derives from this and its id")
+    p.add_argument(
+        "--seed", type=NON_NEGATIVE, default=0, help="each scenario's seed derives from this and its id"
+    )
     p.add_argument("--prefix", default="submission", help="file names: PREFIX.binproto-K-of-N, PREFIX.tar.gz")
     p.add_argument("--account-name", help="e-mail registered at waymo.com/open (required)")
     p.add_argument("--method-name", help="unique method name shown on the leaderboard (required)")

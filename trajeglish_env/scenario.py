@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
 from enum import IntEnum
+from typing import NoReturn
 
 import numpy as np
 
@@ -222,88 +223,14 @@ class Scenario:
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> Scenario:
-        """Check shapes, dtypes, finiteness and index ranges; raise ScenarioError naming the field."""
-        sid = f"scenario {self.scenario_id!r}" if self.scenario_id else "scenario"
-
-        def fail(name: str, msg: str) -> None:
-            raise ScenarioError(f"{sid}: field '{name}': {msg}")
-
-        def check(name: str, arr: object, ndim: int, last: int | None = None) -> np.ndarray:
-            if not isinstance(arr, np.ndarray):
-                fail(name, f"expected a numpy array, got {type(arr).__name__}")
-            assert isinstance(arr, np.ndarray)
-            if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
-                want = f"{ndim}-d array" + (f" with last dimension {last}" if last is not None else "")
-                fail(name, f"expected a {want}, got shape {arr.shape}")
-            return arr
-
-        xyh = check("xyh", self.xyh, 3, 3)
-        n, t = xyh.shape[:2]
-        if t < 1:
-            fail("xyh", "needs at least one timestep")
-        valid = check("valid", self.valid, 2)
-        if valid.shape != (n, t):
-            fail("valid", f"expected shape {(n, t)} to match xyh, got {valid.shape}")
-        if valid.dtype != np.bool_:
-            fail("valid", f"expected dtype bool, got {valid.dtype}")
-        if not np.isfinite(xyh[valid]).all():
-            bad = np.argwhere(valid & ~np.isfinite(xyh).all(-1))[0]
-            fail("xyh", f"non-finite value at valid agent {bad[0]} step {bad[1]}")
-        size = check("size", self.size, 2, 2)
-        if size.shape[0] != n:
-            fail("size", f"expected {n} rows (one per agent), got {size.shape[0]}")
-        if not np.isfinite(size).all() or (size <= 0).any():
-            bad = int(np.flatnonzero(~(np.isfinite(size).all(-1) & (size > 0).all(-1)))[0])
-            fail("size", f"agent {bad}: length and width must be finite and > 0, got {size[bad].tolist()}")
-        kind = check("kind", self.kind, 1)
-        if kind.shape[0] != n:
-            fail("kind", f"expected {n} entries, got {kind.shape[0]}")
-        if n and ((kind < 0) | (kind > max(AgentKind))).any():
-            fail("kind", f"values must be AgentKind 0..{int(max(AgentKind))}, got {np.unique(kind).tolist()}")
-        track_id = check("track_id", self.track_id, 1)
-        if track_id.shape[0] != n:
-            fail("track_id", f"expected {n} entries, got {track_id.shape[0]}")
-        if len(np.unique(track_id)) != n:
-            fail("track_id", "ids must be unique")
-        if not (0 <= int(self.sdc) < max(n, 1)) or n == 0:
-            fail("sdc", f"index {self.sdc} out of range for {n} agents")
-        points = check("map_points", self.map_points, 2, 2)
-        if not np.isfinite(points).all():
-            fail("map_points", "contains non-finite values")
-        offsets = check("map_offsets", self.map_offsets, 1)
-        k = offsets.shape[0] - 1
-        if k < 0 or offsets[0] != 0 or offsets[-1] != len(points) or (np.diff(offsets) < 0).any():
-            fail(
-                "map_offsets",
-                f"must start at 0, be non-decreasing and end at {len(points)} (number of points)",
-            )
-        map_kind = check("map_kind", self.map_kind, 1)
-        if map_kind.shape[0] != k:
-            fail("map_kind", f"expected {k} entries (one per polyline), got {map_kind.shape[0]}")
-        if k and ((map_kind < 0) | (map_kind > max(MapKind))).any():
-            fail("map_kind", f"values must be MapKind 0..{int(max(MapKind))}")
-        map_id = check("map_id", self.map_id, 1)
-        if map_id.shape[0] != k:
-            fail("map_id", f"expected {k} entries (one per polyline), got {map_id.shape[0]}")
-        if not (self.dt > 0 and np.isfinite(self.dt)):
-            fail("dt", f"must be a positive number of seconds, got {self.dt}")
-        if not (0 <= self.current_index < t):
-            fail("current_index", f"{self.current_index} out of range for {t} steps")
-        ttp = check("tracks_to_predict", self.tracks_to_predict, 1)
-        if len(ttp) and ((ttp < 0) | (ttp >= n)).any():
-            fail("tracks_to_predict", f"agent indices must be in 0..{n - 1}, got {ttp.tolist()}")
-        lanes = check("signal_lane_id", self.signal_lane_id, 1)
-        sxy = check("signal_xy", self.signal_xy, 2, 2)
-        if sxy.shape[0] != lanes.shape[0]:
-            fail("signal_xy", f"expected {lanes.shape[0]} rows (one per signal), got {sxy.shape[0]}")
-        if self.signal_state is not None:
-            st = check("signal_state", self.signal_state, 2)
-            if st.shape != (t, lanes.shape[0]):
-                fail("signal_state", f"expected shape {(t, lanes.shape[0])}, got {st.shape}")
-            if st.size and ((st < 0) | (st > max(SignalState))).any():
-                fail("signal_state", f"values must be SignalState 0..{int(max(SignalState))}")
-        elif lanes.shape[0]:
-            fail("signal_state", "signals are listed but their states are missing")
+        """Check shapes, dtypes, finiteness and ranges of every field (vectorized, one pass); raise
+        ScenarioError naming the scenario, the field, the agent (index and track id) or map point, the
+        step and what was expected. Returns the scenario."""
+        check = _Checker(self)
+        n, t = check.agents()
+        check.map_()
+        check.metadata(n, t)
+        check.signals(t)
         return self
 
     # ------------------------------------------------------------------ equality (exact, array-wise)
@@ -322,3 +249,175 @@ class Scenario:
             elif a != b:
                 return False
         return True
+
+
+# ---------------------------------------------------------------------------------------------- validation
+_FLOAT, _INT, _BOOL = "f", "iu", "b"  # NumPy dtype kinds accepted per field
+
+
+class _Checker:
+    """The checks of :meth:`Scenario.validate`, grouped by part; every failure names the field."""
+
+    def __init__(self, scenario: Scenario):
+        self.sc = scenario
+        self.sid = f"scenario {scenario.scenario_id!r}" if scenario.scenario_id else "scenario"
+
+    def fail(self, name: str, msg: str) -> NoReturn:
+        """Raise the ScenarioError of field ``name``."""
+        raise ScenarioError(f"{self.sid}: field '{name}': {msg}")
+
+    def array(self, name: str, ndim: int, kinds: str, last: int | None = None) -> np.ndarray:
+        """Field ``name`` as an array of ``ndim`` dimensions (last one ``last``) whose dtype kind is in
+        ``kinds``."""
+        arr = getattr(self.sc, name)
+        if not isinstance(arr, np.ndarray):
+            self.fail(name, f"expected a numpy array, got {type(arr).__name__}")
+        if arr.ndim != ndim or (last is not None and arr.shape[-1] != last):
+            want = f"{ndim}-d array" + (f" with last dimension {last}" if last is not None else "")
+            self.fail(name, f"expected a {want}, got shape {arr.shape}")
+        if arr.dtype.kind not in kinds:
+            want = {_FLOAT: "a floating-point", _INT: "an integer", _BOOL: "a bool"}[kinds]
+            self.fail(name, f"expected {want} dtype, got {arr.dtype}")
+        return arr
+
+    def rows(self, name: str, arr: np.ndarray, count: int, what: str) -> None:
+        """``arr`` must have ``count`` rows (one per ``what``)."""
+        if arr.shape[0] != count:
+            self.fail(name, f"expected {count} entries (one per {what}), got {arr.shape[0]}")
+
+    def track(self, i: int) -> str:
+        """``track_id k`` of agent ``i`` (used once that field is known to be well-formed)."""
+        return f"track_id {int(self.sc.track_id[i])}"
+
+    def integer(self, name: str) -> int:
+        """Scalar field ``name`` as an int (a Python or NumPy integer, not a bool)."""
+        value = getattr(self.sc, name)
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            self.fail(name, f"expected an integer, got {value!r}")
+        return int(value)
+
+    # -------------------------------------------------------------- parts
+    def agents(self) -> tuple[int, int]:
+        """Agent arrays: shapes, dtypes, unique ids, finite valid states, positive sizes, known kinds."""
+        xyh = self.array("xyh", 3, _FLOAT, 3)
+        n, t = xyh.shape[:2]
+        if t < 1:
+            self.fail("xyh", "needs at least one timestep")
+        track_id = self.array("track_id", 1, _INT)
+        self.rows("track_id", track_id, n, "agent")
+        ids, counts = np.unique(track_id, return_counts=True)
+        if (counts > 1).any():
+            self.fail(
+                "track_id", f"ids must be unique; {int(ids[counts > 1][0])} appears {counts.max()} times"
+            )
+        valid = self.array("valid", 2, _BOOL)
+        if valid.shape != (n, t):
+            self.fail("valid", f"expected shape {(n, t)} (agents, steps of xyh), got {valid.shape}")
+        bad = valid & ~np.isfinite(xyh).all(-1)
+        if bad.any():
+            i, step = (int(v) for v in np.argwhere(bad)[0])
+            self.fail(
+                "xyh",
+                f"non-finite value at valid agent {i} step {step} ({self.track(i)}): expected finite "
+                f"x, y, heading wherever valid is True, got {xyh[i, step].tolist()}",
+            )
+        size = self.array("size", 2, _FLOAT, 2)
+        self.rows("size", size, n, "agent")
+        bad_size = ~(np.isfinite(size) & (size > 0)).all(-1)
+        if bad_size.any():
+            i = int(np.flatnonzero(bad_size)[0])
+            self.fail(
+                "size",
+                f"agent {i}: length and width must be finite and > 0 (m), got {size[i].tolist()} "
+                f"({self.track(i)})",
+            )
+        kind = self.array("kind", 1, _INT)
+        self.rows("kind", kind, n, "agent")
+        bad_kind = (kind < 0) | (kind > max(AgentKind))
+        if bad_kind.any():
+            i = int(np.flatnonzero(bad_kind)[0])
+            self.fail(
+                "kind",
+                f"values must be AgentKind 0..{int(max(AgentKind))}; agent {i} ({self.track(i)}) "
+                f"has {int(kind[i])}",
+            )
+        sdc = self.integer("sdc")
+        if n == 0 or not 0 <= sdc < n:
+            self.fail("sdc", f"index {sdc} out of range for {n} agents")
+        return n, t
+
+    def map_(self) -> None:
+        """Ragged map: offsets consistent with the points, finite points, known kinds."""
+        points = self.array("map_points", 2, _FLOAT, 2)
+        offsets = self.array("map_offsets", 1, _INT)
+        k = offsets.shape[0] - 1
+        if k < 0 or offsets[0] != 0 or offsets[-1] != len(points) or (np.diff(offsets) < 0).any():
+            self.fail(
+                "map_offsets",
+                f"must start at 0, be non-decreasing and end at {len(points)} (number of points)",
+            )
+        map_kind = self.array("map_kind", 1, _INT)
+        self.rows("map_kind", map_kind, k, "polyline")
+        map_id = self.array("map_id", 1, _INT)
+        self.rows("map_id", map_id, k, "polyline")
+        bad_point = ~np.isfinite(points).all(-1)
+        if bad_point.any():
+            p = int(np.flatnonzero(bad_point)[0])
+            line = int(np.searchsorted(offsets, p, side="right") - 1)
+            self.fail(
+                "map_points",
+                f"point {p} (polyline {line}, map_id {int(map_id[line])}): expected finite x, y, "
+                f"got {points[p].tolist()}",
+            )
+        bad_kind = (map_kind < 0) | (map_kind > max(MapKind))
+        if bad_kind.any():
+            line = int(np.flatnonzero(bad_kind)[0])
+            self.fail(
+                "map_kind",
+                f"values must be MapKind 0..{int(max(MapKind))}; polyline {line} (map_id "
+                f"{int(map_id[line])}) has {int(map_kind[line])}",
+            )
+
+    def metadata(self, n: int, t: int) -> None:
+        """Sampling period, current step and the agents to predict."""
+        dt = self.sc.dt
+        if isinstance(dt, (bool, np.bool_)) or not isinstance(dt, (int, float, np.integer, np.floating)):
+            self.fail("dt", f"must be a positive number of seconds, got {dt!r}")
+        if not (np.isfinite(dt) and dt > 0):
+            self.fail("dt", f"must be a positive number of seconds, got {dt}")
+        current = self.integer("current_index")
+        if not 0 <= current < t:
+            self.fail("current_index", f"{current} out of range for {t} steps")
+        ttp = self.array("tracks_to_predict", 1, _INT)
+        if ((ttp < 0) | (ttp >= n)).any():
+            self.fail("tracks_to_predict", f"agent indices must be in 0..{n - 1}, got {ttp.tolist()}")
+
+    def signals(self, t: int) -> None:
+        """Traffic signals: one stop point and one state per step for every controlled lane."""
+        lanes = self.array("signal_lane_id", 1, _INT)
+        sxy = self.array("signal_xy", 2, _FLOAT, 2)
+        self.rows("signal_xy", sxy, lanes.shape[0], "signal")
+        bad_xy = ~np.isfinite(sxy).all(-1)
+        if bad_xy.any():
+            j = int(np.flatnonzero(bad_xy)[0])
+            self.fail(
+                "signal_xy",
+                f"signal {j} (lane {int(lanes[j])}): expected a finite stop point, got {sxy[j].tolist()}",
+            )
+        if self.sc.signal_state is None:
+            if lanes.shape[0]:
+                self.fail("signal_state", "signals are listed but their states are missing")
+            return
+        st = self.array("signal_state", 2, _INT)
+        if st.shape != (t, lanes.shape[0]):
+            self.fail(
+                "signal_state", f"expected shape {(t, lanes.shape[0])} (steps, signals), got {st.shape}"
+            )
+        bad = (st < 0) | (st > max(SignalState))
+        if bad.any():
+            step, j = (int(v) for v in np.argwhere(bad)[0])
+            self.fail(
+                "signal_state",
+                f"values must be SignalState 0..{int(max(SignalState))}; step {step}, signal {j} "
+                f"(lane {int(lanes[j])}) has {int(st[step, j])}",
+            )

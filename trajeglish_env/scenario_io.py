@@ -12,6 +12,7 @@ import dataclasses
 import os
 import tempfile
 import zipfile
+import zlib
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -79,16 +80,7 @@ def save_scenarios(path: str | os.PathLike[str], scenarios: Sequence[Scenario]) 
 def load_scenarios(path: str | os.PathLike[str]) -> list[Scenario]:
     """Read every scene of a file written by :func:`save_scenarios`; clear errors for bad files."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such scenario file")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            header = _check_header(path, data)
-            items = {k: data[k] for k in data.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
-        if isinstance(exc, ScenarioError):
-            raise
-        raise ScenarioError(f"{path}: not a readable scenario file (truncated or corrupt?): {exc}") from exc
+    header, items = _read_shard(path, header_only=False)
     scenes = []
     for i in range(header):
         kwargs: dict[str, object] = {}
@@ -107,6 +99,41 @@ def load_scenarios(path: str | os.PathLike[str]) -> list[Scenario]:
     return scenes
 
 
+def count_scenarios(path: str | os.PathLike[str]) -> int:
+    """Number of scenes in a scenario file, from its header only (cheap); clear errors for bad files."""
+    return _read_shard(Path(path), header_only=True)[0]
+
+
+# What NumPy and zipfile raise for truncated, corrupt or foreign files (zlib.error: a damaged deflate stream).
+_UNREADABLE = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError)
+
+
+def _read_shard(path: Path, header_only: bool) -> tuple[int, dict[str, np.ndarray]]:
+    """The scene count and (unless ``header_only``) every array of a scenario file.
+
+    Any failure of NumPy or zipfile becomes a :class:`ScenarioError` naming the file.
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such scenario file")
+    try:
+        data = np.load(path, allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ScenarioError(
+                f"{path}: not a trajeglish_env scenario file (a bare NumPy array, not an archive)"
+            )
+        with data:
+            count = _check_header(path, data)
+            items = {} if header_only else {k: data[k] for k in data.files}
+    except ScenarioError:
+        raise
+    except _UNREADABLE as exc:
+        reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        raise ScenarioError(
+            f"{path}: not a readable scenario file (truncated or corrupt?): {reason}"
+        ) from exc
+    return count, items
+
+
 def _scene_strings(path: str | os.PathLike[str], name: str) -> list[str]:
     """One string field of every scene of a file, read without loading the scenes."""
     path = Path(path)
@@ -115,10 +142,13 @@ def _scene_strings(path: str | os.PathLike[str], name: str) -> list[str]:
     try:
         with np.load(path, allow_pickle=False) as data:
             return [str(data[f"{i}/{name}"]) for i in range(_check_header(path, data))]
-    except (zipfile.BadZipFile, EOFError, OSError, KeyError, ValueError) as exc:
-        if isinstance(exc, ScenarioError):
-            raise
-        raise ScenarioError(f"{path}: not a readable scenario file (truncated or corrupt?): {exc}") from exc
+    except ScenarioError:
+        raise
+    except _UNREADABLE as exc:
+        reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        raise ScenarioError(
+            f"{path}: not a readable scenario file (truncated or corrupt?): {reason}"
+        ) from exc
 
 
 def scenario_ids(path: str | os.PathLike[str]) -> list[str]:
@@ -132,6 +162,7 @@ def scene_sources(path: str | os.PathLike[str]) -> list[str]:
 
 
 def _check_header(path: Path, data: np.lib.npyio.NpzFile) -> int:
+    """The scene count of an archive whose header names this format and version."""
     if "__format__" not in data.files or str(data["__format__"]) != FORMAT_NAME:
         raise ScenarioError(f"{path}: not a trajeglish_env scenario file (no '{FORMAT_NAME}' header)")
     version = int(data["__version__"])
@@ -139,7 +170,10 @@ def _check_header(path: Path, data: np.lib.npyio.NpzFile) -> int:
         raise ScenarioError(
             f"{path}: scenario format version {version} is not supported (this build reads {FORMAT_VERSION})"
         )
-    return int(data["__count__"])
+    count = int(data["__count__"])
+    if count < 0:
+        raise ScenarioError(f"{path}: header field '__count__': expected a scene count >= 0, got {count}")
+    return count
 
 
 def save_scenario(path: str | os.PathLike[str], scenario: Scenario) -> Path:

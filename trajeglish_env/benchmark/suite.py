@@ -27,7 +27,7 @@ SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics"
 class BenchConfig:
     """What the suite measures and how long: ``batches`` scene counts of the batched env, ``agents`` per
     scene, timed env steps per run (after ``warmup``), highway-env steps, torch threads for the batched
-    env (``"auto"``: see :func:`trajeglish_env.env.vector.auto_threads`), the NPC cache dtype and the
+    env (``"auto"``: see :class:`trajeglish_env.env.threads.AdaptiveThreads`), the NPC cache dtype and the
     sections to run (``quick`` shrinks every workload for a smoke run)."""
 
     batches: tuple[int, ...] = (1, 8, 32, 128, 256)

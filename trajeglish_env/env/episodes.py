@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from gymnasium.utils import seeding
 
-from trajeglish_env.env.scenes import SceneSet
+from trajeglish_env.env.scenes import SceneSet, scene_index
 from trajeglish_env.scenario import Scenario
 
 
@@ -25,14 +25,8 @@ class EpisodeStream:
         other options are ignored)."""
         if seed is not None:
             self.np_random, _ = seeding.np_random(seed)
-        scene = (options or {}).get("scene")
-        if scene is None:
+        index = scene_index((options or {}).get("scene"), self.scenes)  # the only option read
+        if index is None:
             index = int(self.np_random.integers(len(self.scenes)))
-        elif isinstance(scene, str):
-            index = self.scenes.index_of(scene)
-        else:
-            index = int(scene)
-            if not 0 <= index < len(self.scenes):
-                raise ValueError(f"reset options: scene {index} out of range for {len(self.scenes)} scenes")
         scenario = self.scenes.get(index)
         return scenario, np.random.default_rng(int(self.np_random.integers(2**63 - 1)))

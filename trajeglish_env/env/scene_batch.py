@@ -23,14 +23,8 @@ from trajeglish_env.env.drivers import EngineRows, NPCRows, RuleRows
 from trajeglish_env.env.npc import NPCPolicy, make_npc_policy
 from trajeglish_env.env.observations import EgoState
 from trajeglish_env.env.simulation import AgentReport, Roles, Simulation, apply_actions, episode_horizon
+from trajeglish_env.env.threads import AdaptiveThreads
 from trajeglish_env.scenario import Scenario
-
-
-def auto_threads(num_scenes: int) -> int:
-    """Torch threads for a batch: 1 for a few scenes (small calls are fastest single-threaded), then one
-    per 4 scenes up to the cores this process may use."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return max(1, min(cores, num_scenes // 4))
 
 
 def load_npc_checkpoint(checkpoint: Any) -> Any:
@@ -75,7 +69,8 @@ def trajeglish_settings(spec: object) -> TrajeglishNPC | None:
 
 class SceneBatch:
     """``num_scenes`` scene rows under one NPC driver (see the module docstring). ``torch_threads``: an
-    int, None to leave torch alone, or ``"auto"`` (:func:`auto_threads`); used when the model runs."""
+    int, None to leave torch alone, or ``"auto"`` (:class:`~trajeglish_env.env.threads.AdaptiveThreads`:
+    several threads for big batches, one while other processes compete for the cores)."""
 
     def __init__(self, num_scenes: int, config: EnvConfig, torch_threads: int | str | None = None):
         if not isinstance(num_scenes, (int, np.integer)) or num_scenes < 1:
@@ -97,6 +92,7 @@ class SceneBatch:
             from trajeglish_env.tokenizer.vocabulary import load_default_tokenizer
 
             self.vocabulary = load_default_tokenizer()
+        self.threads: AdaptiveThreads | None = None
         self.rows = self._make_rows(torch_threads)
         self.geometry = BatchGeometry()
         self.sims: list[Simulation | None] = [None] * self.num_scenes
@@ -111,9 +107,10 @@ class SceneBatch:
 
         from trajeglish_env.sampler.engine import BatchEngine
 
-        threads = auto_threads(self.num_scenes) if torch_threads == "auto" else torch_threads
-        if threads is not None:
-            torch.set_num_threads(int(threads))
+        if torch_threads == "auto":
+            self.threads = AdaptiveThreads(self.num_scenes)
+        elif torch_threads is not None:
+            torch.set_num_threads(int(torch_threads))
         engine = BatchEngine(
             self.checkpoint,  # type: ignore[arg-type]
             self.num_scenes,
@@ -195,6 +192,8 @@ class SceneBatch:
     def play(self, scenes: Sequence[int], agents: Sequence[int], actions: Sequence[Any]) -> None:
         """Finish the current step of every stepping scene, each external agent acting with its action from
         ``actions`` (validated; one per live external agent of those scenes) when its turn comes."""
+        if self.threads is not None:
+            self.threads.tick()
         sims = [self.sim(s) for s in scenes]
         nxt = apply_actions(sims, agents, actions) if len(scenes) else np.zeros((0, 3))
         n = max((s.sc.num_agents for s in self.sims if s is not None), default=0)

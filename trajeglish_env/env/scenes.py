@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import functools
 import os
+import weakref
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
@@ -14,8 +15,8 @@ from typing import Protocol
 
 import numpy as np
 
-from trajeglish_env.scenario import Scenario
-from trajeglish_env.scenario_io import list_scenario_files, load_scenarios, save_scenarios
+from trajeglish_env.scenario import Scenario, ScenarioError
+from trajeglish_env.scenario_io import count_scenarios, list_scenario_files, load_scenarios, save_scenarios
 
 BUNDLE_ASSET = "scenes_bundle.scn.npz"
 BUNDLE_SEED = 999_000  # highway scenes of the bundle use seeds 999_000+ (training data uses small seeds)
@@ -32,15 +33,28 @@ class SceneSet(Protocol):
     def index_of(self, name: str) -> int: ...
 
 
-class SceneList:
-    """Scenes held in memory (a user's list, or the shipped bundle)."""
+class UnknownSceneError(KeyError, ValueError):
+    """No scene of a scene set has the requested scenario_id (a KeyError, and a ValueError for callers that
+    treat it as bad input, like the command line)."""
 
-    def __init__(self, scenes: Sequence[Scenario], where: str = "scenes"):
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+class SceneList:
+    """Scenes held in memory (a user's list, or the shipped bundle).
+
+    Each scene is validated once here (``check=False`` for scenes that were validated when loaded).
+    """
+
+    def __init__(self, scenes: Sequence[Scenario], where: str = "scenes", check: bool = True):
         if not scenes:
             raise ValueError(f"{where}: no scenes given")
         for i, sc in enumerate(scenes):
             if not isinstance(sc, Scenario):
                 raise TypeError(f"{where}[{i}]: expected a Scenario, got {type(sc).__name__}")
+            if check:
+                _validate(sc, f"{where}[{i}]")
         self.scenes = tuple(scenes)
         self.where = where
 
@@ -55,9 +69,40 @@ class SceneList:
             if sc.scenario_id == name:
                 return i
         ids = [sc.scenario_id for sc in self.scenes[:20]]
-        raise KeyError(
+        raise UnknownSceneError(
             f"{self.where}: no scene with scenario_id {name!r} (have {ids}{'...' if len(self) > 20 else ''})"
         )
+
+
+class CheckedScenes:
+    """A user's own SceneSet whose scenes are validated the first time each Scenario object is served."""
+
+    def __init__(self, scenes: SceneSet):
+        self.scenes = scenes
+        self._checked: weakref.WeakSet[Scenario] = weakref.WeakSet()
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def get(self, index: int) -> Scenario:
+        sc = self.scenes.get(index)
+        if sc not in self._checked:
+            if not isinstance(sc, Scenario):
+                raise TypeError(f"scenes.get({index}): expected a Scenario, got {type(sc).__name__}")
+            _validate(sc, f"scenes.get({index})")
+            self._checked.add(sc)
+        return sc
+
+    def index_of(self, name: str) -> int:
+        return self.scenes.index_of(name)
+
+
+def _validate(scenario: Scenario, where: str) -> None:
+    """Validate a user's scene; the error says where it came from."""
+    try:
+        scenario.validate()
+    except ScenarioError as exc:
+        raise ScenarioError(f"{where}: {exc}") from exc
 
 
 class SceneFiles:
@@ -68,8 +113,12 @@ class SceneFiles:
         if not self.files:
             raise ValueError(f"{path}: no scenario files (*.scn.npz) found")
         self.where = str(path)
-        self._counts = np.array([_count_scenes(f) for f in self.files], dtype=np.int64)
+        self._counts = np.array([count_scenarios(f) for f in self.files], dtype=np.int64)
         self._starts = np.concatenate([[0], np.cumsum(self._counts)])
+        if len(self) == 0:
+            raise ScenarioError(
+                f"{path}: the scenario files hold no scenes ({len(self.files)} empty shard(s))"
+            )
         self._cache: tuple[int, list[Scenario]] | None = None
 
     def __len__(self) -> int:
@@ -88,7 +137,7 @@ class SceneFiles:
             for i, sc in enumerate(load_scenarios(path)):
                 if sc.scenario_id == name:
                     return int(self._starts[shard]) + i
-        raise KeyError(f"{self.where}: no scene with scenario_id {name!r}")
+        raise UnknownSceneError(f"{self.where}: no scene with scenario_id {name!r}")
 
 
 class GeneratedScenes:
@@ -115,7 +164,7 @@ class GeneratedScenes:
         # "highway-<kind>-<seed>" as written by the generator
         prefix, _, seed = name.rpartition("-")
         if not seed.isdigit() or not prefix.startswith(f"{GENERATOR_PREFIX}-"):
-            raise KeyError(f"generated scenes: expected an id 'highway-<kind>-<seed>', got {name!r}")
+            raise UnknownSceneError(f"generated scenes: expected an id 'highway-<kind>-<seed>', got {name!r}")
         return int(seed)
 
 
@@ -124,13 +173,6 @@ def _generated(kind: str, seed: int) -> Scenario:
     from trajeglish_env.sources.highway import generate_scene
 
     return generate_scene(kind, seed)
-
-
-def _count_scenes(path: Path) -> int:
-    with np.load(path, allow_pickle=False) as data:
-        if "__count__" in data.files:
-            return int(data["__count__"])
-    return len(load_scenarios(path))
 
 
 def bundle_path() -> Path:
@@ -144,7 +186,7 @@ def load_bundle() -> SceneList:
     path = bundle_path()
     if not path.is_file():
         raise FileNotFoundError(f"{path}: the bundled scenes are missing from this installation")
-    return SceneList(load_scenarios(path), where=str(path))
+    return SceneList(load_scenarios(path), where=str(path), check=False)  # load_scenarios validated them
 
 
 def scene_set(scenes: object) -> SceneSet:
@@ -164,12 +206,35 @@ def scene_set(scenes: object) -> SceneSet:
         return SceneFiles(scenes)
     if isinstance(scenes, (list, tuple)):
         return SceneList(list(scenes))
+    if isinstance(scenes, (SceneList, SceneFiles, GeneratedScenes, CheckedScenes)):
+        return scenes  # already checked (a batched env shares one scene set among its envs)
     if all(hasattr(scenes, a) for a in ("__len__", "get", "index_of")):
-        return scenes  # type: ignore[return-value]
+        return CheckedScenes(scenes)  # type: ignore[arg-type]
     raise TypeError(
         "scenes: expected None (the bundled scenes), a Scenario, a list of Scenarios, a path to scenario "
         f"files, or 'highway[:kinds]', got {type(scenes).__name__}"
     )
+
+
+def scene_index(option: object, scenes: SceneSet) -> int | None:
+    """Index in ``scenes`` of the ``scene`` reset option: None (the caller draws one from its seed), an
+    integer index (a Python or NumPy int; bools, floats and sequences are refused) or a scenario_id."""
+    if option is None:
+        return None
+    if isinstance(option, str):
+        return scenes.index_of(option)
+    if isinstance(option, (bool, np.bool_)) or not isinstance(option, (int, np.integer)):
+        raise TypeError(
+            f"reset options: 'scene' must be a scene index (int) or a scenario_id (str), "
+            f"got {type(option).__name__} {option!r}"
+        )
+    index = int(option)
+    if not 0 <= index < len(scenes):
+        raise ValueError(
+            f"reset options: 'scene' index {index} out of range: expected 0..{len(scenes) - 1} "
+            f"({len(scenes)} scenes)"
+        )
+    return index
 
 
 def build_bundle(out: str | os.PathLike[str], per_kind: int = 2, sumo_scenes: int = 4) -> Path:

@@ -31,9 +31,10 @@ from trajeglish_env.env.config import EnvConfig
 from trajeglish_env.env.episodes import EpisodeStream
 from trajeglish_env.env.gym_ego import check_single
 from trajeglish_env.env.observations import observation_space
-from trajeglish_env.env.scene_batch import SceneBatch, auto_threads
+from trajeglish_env.env.scene_batch import SceneBatch
 from trajeglish_env.env.scenes import scene_set
 from trajeglish_env.env.simulation import AgentReport, Simulation
+from trajeglish_env.env.threads import auto_threads
 
 __all__ = ["BatchedEgoEnv", "BatchedParallelEnv", "auto_threads"]
 
@@ -178,7 +179,8 @@ class EgoScene:
 class BatchedEgoEnv(VectorEnv):
     """``num_envs`` single-ego scenes as one Gymnasium ``VectorEnv`` (arguments as
     :class:`~trajeglish_env.env.gym_ego.EgoEnv`, plus ``torch_threads``: an int, None to leave torch
-    alone, or ``"auto"``, see :func:`auto_threads`). Autoreset: same step (``infos["final_obs"]``)."""
+    alone, or ``"auto"``, see :class:`~trajeglish_env.env.threads.AdaptiveThreads`). Autoreset: same step
+    (``infos["final_obs"]``)."""
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"], "render_fps": 10}
 

@@ -45,6 +45,7 @@ def rollout(
     all others replay the log. ``priority [N]``: lower acts earlier within a timestep (default: the sdc
     first, then by distance to each subset's centre agent). Same seed, same rollout.
     """
+    scenario.validate()  # a user's scene enters here: fail on its field, not deep inside the engine
     current = scenario.current_index if current_index is None else int(current_index)
     if controlled is None:
         controlled = scenario.valid[:, current].copy()

@@ -26,16 +26,21 @@ from pathlib import Path
 import numpy as np
 from google.protobuf.message import DecodeError, Message
 
+from trajeglish_env.distributed import Ranks
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario, ScenarioError, SignalState
 from trajeglish_env.scenario_io import SUFFIX
 from trajeglish_env.sources.womd_proto import ScenarioProto
-from trajeglish_env.sources.womd_tfrecord import WomdFormatError, read_tfrecord
+from trajeglish_env.sources.womd_tfrecord import TFRecordFramingError, WomdFormatError, read_tfrecord
 
 __all__ = [
     "OBJECT_TYPE_TO_KIND",
+    "TFRecordFramingError",
     "WomdFormatError",
+    "convert_womd",
+    "good_records",
     "output_name",
     "parse_scenario",
+    "read_good_records",
     "read_tfrecord",
     "read_womd",
 ]
@@ -92,6 +97,43 @@ def output_name(path: str | os.PathLike[str]) -> str:
     """
     name = Path(path).name
     return name.replace(".tfrecord", "", 1) + SUFFIX
+
+
+def convert_womd(
+    files: Sequence[str | os.PathLike[str]],
+    out: str | os.PathLike[str],
+    progress: bool = True,
+    workers: int = 1,
+    ranks: Ranks | None = None,
+) -> dict:
+    """Convert WOMD TFRecord files to scenario shards (and their raw log details) in ``out``; see
+    :func:`trajeglish_env.sources.womd_convert.convert_womd`, where the conversion lives."""
+    from trajeglish_env.sources.womd_convert import convert_womd as convert
+
+    return convert(files, out, progress, workers, ranks)
+
+
+def good_records(path: str | os.PathLike[str]) -> tuple[list[tuple[int, bytes]], TFRecordFramingError | None]:
+    """The good records ``(index, bytes)`` of a TFRecord file and the framing error of its bad tail (None
+    if the file is intact). A file whose first record is already bad is an error."""
+    records: list[tuple[int, bytes]] = []
+    try:
+        for index, data in read_tfrecord(path):
+            records.append((index, data))
+    except TFRecordFramingError as exc:
+        if not records:
+            raise
+        return records, exc
+    return records, None
+
+
+def read_good_records(path: str | os.PathLike[str]) -> tuple[list[Scenario], TFRecordFramingError | None]:
+    """The scenes of a TFRecord file's good records, and the framing error of its bad tail (None if the
+    file is intact). A file whose first record is already bad, or that holds no record, is an error."""
+    records, tail = good_records(path)
+    if not records:
+        raise WomdFormatError(f"{path}: no records (empty file)")
+    return [parse_scenario(data, origin=f"{path}: record {index}") for index, data in records], tail
 
 
 # ---------------------------------------------------------------------------------------------- conversion

@@ -25,10 +25,10 @@ from trajeglish_env.distributed import Ranks, gather, my_share
 from trajeglish_env.metrics.log_details_io import details_path, load_log_details, save_log_details
 from trajeglish_env.metrics.womd_details import parse_womd_details
 from trajeglish_env.scenario_io import load_scenarios, save_scenarios
-from trajeglish_env.sources.womd import output_name, parse_scenario
-from trajeglish_env.sources.womd_tfrecord import read_tfrecord
+from trajeglish_env.sources.womd import good_records, output_name, parse_scenario
+from trajeglish_env.sources.womd_tfrecord import WomdFormatError
 
-__all__ = ["convert_file", "convert_womd"]
+__all__ = ["check_inputs", "convert_file", "convert_womd"]
 
 
 def _existing_scenes(target: Path) -> int | None:
@@ -43,14 +43,19 @@ def _existing_scenes(target: Path) -> int | None:
 
 
 def convert_file(path: str, target: str) -> dict[str, Any]:
-    """Convert one TFRecord file; returns ``{"status": converted|skipped|failed, "scenes", "error"}``."""
+    """Convert one TFRecord file; returns ``{"status": converted|skipped|failed, "scenes", "error",
+    "bad_tail"}`` (``bad_tail``: what was kept of a file whose good records end in a truncated or corrupt
+    tail, with the warning line)."""
     out = Path(target)
     existing = _existing_scenes(out)
     if existing is not None:
         return {"status": "skipped", "scenes": existing}
     try:
+        records, tail = good_records(path)
+        if not records:
+            raise WomdFormatError(f"{path}: no records (empty file)")
         scenes, details = [], []
-        for index, data in read_tfrecord(path):
+        for index, data in records:
             origin = f"{path}: record {index}"
             scenes.append(parse_scenario(data, origin=origin))
             details.append(parse_womd_details(data, origin=origin))
@@ -58,7 +63,30 @@ def convert_file(path: str, target: str) -> dict[str, Any]:
         save_scenarios(out, scenes)
     except (ValueError, OSError) as exc:  # WomdFormatError, ScenarioError, unreadable file
         return {"status": "failed", "scenes": 0, "error": str(exc)}
-    return {"status": "converted", "scenes": len(scenes)}
+    result: dict[str, Any] = {"status": "converted", "scenes": len(scenes)}
+    if tail is not None:
+        result["bad_tail"] = {
+            "entry": {
+                "file": path,
+                "records_kept": len(scenes),
+                "byte_offset": tail.offset,
+                "error": str(tail),
+            },
+            "warning": f"{tail.path}: kept {len(scenes)} good record(s); ignored the rest of the file from "
+            f"byte offset {tail.offset} (record {tail.record}: {tail.problem})",
+        }
+    return result
+
+
+def check_inputs(paths: Sequence[Path]) -> None:
+    """Every input must be an existing, non-empty regular file (a TFRecord holds at least one record)."""
+    for path in paths:
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such WOMD TFRecord file")
+        if not path.is_file():
+            raise WomdFormatError(f"{path}: not a regular file (expected a WOMD TFRecord file)")
+        if path.stat().st_size == 0:
+            raise WomdFormatError(f"{path}: empty file (a WOMD TFRecord file holds at least one record)")
 
 
 def _results(jobs: list[tuple[str, str]], workers: int) -> Iterator[dict[str, Any]]:
@@ -80,8 +108,11 @@ def convert_womd(
 ) -> dict[str, Any]:
     """Convert WOMD TFRecord files to scenario shards in ``out`` (see the module docstring).
 
-    Returns (on every rank, merged over ranks) ``{"converted", "skipped", "failed", "outputs",
-    "scenes", "scenes_skipped", "processes", "workers", "seconds"}``; lists are in input order.
+    Every input must be an existing, non-empty file (checked before anything is converted). A file whose
+    good records are followed by a truncated or corrupt tail (an interrupted copy) keeps its good records;
+    the tail is listed under ``bad_tails`` and reported on stderr. Returns (on every rank, merged over
+    ranks) ``{"converted", "skipped", "failed", "bad_tails", "outputs", "scenes", "scenes_skipped",
+    "processes", "workers", "seconds"}``; lists are in input order.
     """
     start = time.perf_counter()
     ranks = ranks or Ranks()
@@ -92,17 +123,20 @@ def convert_womd(
         other = names.setdefault(output_name(path), path)
         if other != path:
             raise ValueError(f"{other} and {path} would both be written to {out / output_name(path)}")
+    check_inputs(paths)
     mine = my_share(list(range(len(paths))), ranks)
     jobs = [(str(paths[i]), str(out / output_name(paths[i]))) for i in mine]
     bar = tqdm(total=len(jobs), desc="convert-womd", unit="file", file=sys.stderr, disable=not progress)
     done: list[tuple[int, dict[str, Any]]] = []
     for i, result in zip(mine, _results(jobs, workers), strict=True):
         done.append((i, result))
+        if "bad_tail" in result:
+            bar.write(f"convert-womd: warning: {result['bad_tail']['warning']}", file=sys.stderr)
         bar.update(1)
         bar.set_postfix(scenes=sum(r["scenes"] for _, r in done))
     bar.close()
     merged = sorted((item for part in gather(done, ranks) for item in part), key=lambda item: item[0])
-    report: dict[str, Any] = {"converted": [], "skipped": [], "failed": [], "outputs": []}
+    report: dict[str, Any] = {"converted": [], "skipped": [], "failed": [], "bad_tails": [], "outputs": []}
     report.update(scenes=0, scenes_skipped=0)
     for i, result in merged:
         name = str(paths[i])
@@ -112,6 +146,8 @@ def convert_womd(
             report["skipped"].append(name)
             report["scenes_skipped"] += result["scenes"]
         else:
+            if "bad_tail" in result:
+                report["bad_tails"].append(result["bad_tail"]["entry"])
             report["converted"].append(name)
             report["outputs"].append(str(out / output_name(paths[i])))
             report["scenes"] += result["scenes"]

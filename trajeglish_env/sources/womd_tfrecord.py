@@ -91,8 +91,18 @@ def masked_crc32c(data: bytes | bytearray | memoryview) -> int:
     return (((crc >> 15) | (crc << 17)) + _MASK_DELTA) & 0xFFFFFFFF
 
 
-def _framing_error(path: Path, index: int, offset: int, problem: str) -> WomdFormatError:
-    return WomdFormatError(f"{path}: record {index} (byte offset {offset}): {problem}")
+class TFRecordFramingError(WomdFormatError):
+    """Record ``record`` of a TFRecord file, starting at byte ``offset``, is truncated or corrupt; the
+    records before it are intact (a reader may keep them and report the bad tail)."""
+
+    def __init__(self, path: Path, record: int, offset: int, problem: str):
+        super().__init__(f"{path}: record {record} (byte offset {offset}): {problem}")
+        self.path, self.record, self.offset, self.problem = path, record, offset, problem
+
+
+def _framing_error(path: Path, index: int, offset: int, problem: str) -> TFRecordFramingError:
+    """The error of record ``index`` at byte ``offset``, naming the file."""
+    return TFRecordFramingError(path, index, offset, problem)
 
 
 def read_tfrecord(
@@ -100,7 +110,8 @@ def read_tfrecord(
 ) -> Iterator[tuple[int, bytes]]:
     """Yield ``(record_index, data)`` for each record of a TFRecord file, verifying both checksums.
 
-    Raises :class:`WomdFormatError` naming the file and the record on a truncated or corrupt record.
+    Raises :class:`TFRecordFramingError` (a :class:`WomdFormatError`) naming the file, the record and its
+    byte offset on a truncated or corrupt record, after yielding the good records before it.
     ``check_data_crc=False`` skips the data checksum (the length checksum is always verified).
     """
     path = Path(path)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from functools import cached_property
 from importlib import resources
@@ -161,9 +162,12 @@ class MotionVocabulary:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such tokenizer file")
         try:
-            with np.load(path, allow_pickle=False) as data:
+            data = np.load(path, allow_pickle=False)
+            if isinstance(data, np.ndarray):  # a bare .npy array, not an archive of fields
+                raise ValueError("a single array, not a tokenizer archive")
+            with data:
                 state = {k: data[k] for k in data.files}
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error) as exc:
             raise VocabularyError(
                 f"{path}: not a readable tokenizer file (truncated or corrupt?): {exc}"
             ) from exc

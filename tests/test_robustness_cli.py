@@ -1,0 +1,138 @@
+"""Issue 17, bug 7: every ``trajeglish`` command answers bad input with one line on stderr and exit code 2
+(no traceback, nothing written), while unexpected exceptions keep their traceback."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from trajeglish_env.cli import main
+from trajeglish_env.scenario_io import save_scenario
+
+
+def _run(argv: list[str]) -> int:
+    """Exit code of the command line (argparse errors leave through SystemExit)."""
+    try:
+        return main(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+
+
+@pytest.fixture
+def files(tmp_path: Path, straight_scene) -> dict[str, Path]:
+    """A one-scene shard, a plain file, a text file posing as a checkpoint, and a missing path."""
+    not_ckpt = tmp_path / "notes.pt"
+    not_ckpt.write_text("not a checkpoint\n")  # torch answers this with many lines of advice
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    return {
+        "shard": save_scenario(tmp_path / "data" / "s.scn.npz", straight_scene),
+        "plain": plain,
+        "not_ckpt": not_ckpt,
+        "missing": tmp_path / "missing.tfrecord",
+        "tmp": tmp_path,
+    }
+
+
+CASES = [
+    (
+        "generate-out-is-a-file",
+        ["generate", "--scenes", "1", "--out", "{plain}"],
+        "--out {plain}: exists and is not a directory",
+    ),
+    ("generate-workers-0", ["generate", "--scenes", "1", "--out", "{tmp}/g", "--workers", "0"], "--workers"),
+    ("generate-scenes-0", ["generate", "--scenes", "0", "--out", "{tmp}/g"], "--scenes"),
+    (
+        "render-index-past-the-end",
+        ["render", "{shard}", "--index", "99", "--out", "{tmp}/x.png"],
+        "--index 99: {shard} holds 1 scene(s) (indices 0..0)",
+    ),
+    ("render-negative-index", ["render", "{shard}", "--index", "-1", "--out", "{tmp}/x.png"], "--index"),
+    (
+        "train-batch-size-0",
+        ["train", "--data", "{tmp}/data", "--out", "{tmp}/run", "--batch-size", "0"],
+        "argument --batch-size: expected an integer >= 1, got '0'",
+    ),
+    (
+        "train-steps-0",
+        ["train", "--data", "{tmp}/data", "--out", "{tmp}/run", "--steps", "0"],
+        "argument --steps: expected an integer >= 1, got '0'",
+    ),
+    (
+        "train-lr-nan",
+        ["train", "--data", "{tmp}/data", "--out", "{tmp}/run", "--lr", "nan"],
+        "argument --lr: expected a finite number > 0, got 'nan'",
+    ),
+    (
+        "evaluate-rollouts-0",
+        ["evaluate", "--data", "{tmp}/data", "--rollouts", "0", "--out", "{tmp}/ev"],
+        "argument --rollouts: expected an integer >= 1, got '0'",
+    ),
+    (
+        "rollout-not-a-checkpoint",
+        ["rollout", "--scenario", "{shard}", "--ckpt", "{not_ckpt}", "--out", "{tmp}/r.gif"],
+        "{not_ckpt}: not a readable checkpoint (not written by trajeglish, truncated or corrupt?): ",
+    ),
+    (
+        "rollout-top-p-2",
+        ["rollout", "--scenario", "{shard}", "--top-p", "2", "--out", "{tmp}/r.gif"],
+        "argument --top-p: expected a number in (0, 1], got '2'",
+    ),
+    (
+        "demo-not-a-checkpoint",
+        ["demo", "--checkpoint", "{not_ckpt}", "--out", "{tmp}/demo"],
+        "{not_ckpt}: not a readable checkpoint",
+    ),
+    ("demo-unknown-scene", ["demo", "--scene", "nope", "--ego", "replay", "--out", "{tmp}/d"], "'nope'"),
+    (
+        "convert-womd-missing-file",
+        ["convert-womd", "{missing}", "--out", "{tmp}/w"],
+        "{missing}: no such WOMD TFRecord file",
+    ),
+    ("bench-batches-0", ["bench", "--batches", "0"], "argument --batches"),
+]
+
+
+@pytest.mark.parametrize(("argv", "expected"), [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_bad_input_is_one_line_on_stderr_and_exit_2(files, capsys, argv, expected) -> None:
+    argv = [a.format(**files) for a in argv]
+    assert _run([*argv, "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    (line,) = captured.err.strip().splitlines()
+    assert line.startswith(f"trajeglish {argv[0]}: error: ") and expected.format(**files) in line
+    assert not (files["tmp"] / "run").exists() and not (files["tmp"] / "g").exists()  # nothing written
+
+
+def test_json_errors_are_one_object_on_stdout(files, capsys) -> None:
+    argv = ["render", str(files["shard"]), "--index", "5", "--out", str(files["tmp"] / "x.png"), "--json"]
+    assert _run(argv) == 2
+    captured = capsys.readouterr()
+    assert json.loads(captured.out) == {
+        "error": f"--index 5: {files['shard']} holds 1 scene(s) (indices 0..0)",
+        "type": "ValueError",
+    }
+    assert len(captured.err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("error", [RuntimeError("boom"), KeyError("boom"), IndexError("boom")])
+def test_unexpected_exceptions_keep_their_traceback(files, monkeypatch, error) -> None:
+    import trajeglish_env.render
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise error
+
+    monkeypatch.setattr(trajeglish_env.render, "save_render", broken)
+    with pytest.raises(type(error), match="boom"):
+        main(["render", str(files["shard"]), "--out", str(files["tmp"] / "x.png")])
+
+
+def test_a_bare_array_as_a_tokenizer_file_is_a_clear_error(tmp_path: Path) -> None:
+    from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, VocabularyError
+
+    np.save(tmp_path / "v.npy", np.zeros(3))
+    with pytest.raises(VocabularyError, match="v.npy: not a readable tokenizer file .*single array"):
+        MotionVocabulary.load(tmp_path / "v.npy")

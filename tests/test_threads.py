@@ -1,0 +1,54 @@
+"""The ``"auto"`` torch-thread policy: several threads on free cores, one beside busy processes; the thread
+count never changes a sampled token."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from helpers import bundle_scene, tiny
+
+from trajeglish_env.env.threads import AdaptiveThreads, auto_threads, cpu_seconds, threads_for
+from trajeglish_env.sampler import rollout
+
+
+def test_threads_fit_beside_the_cores_other_processes_keep_busy() -> None:
+    assert [auto_threads(b, cores=2) for b in (1, 7, 8, 128)] == [1, 1, 2, 2]
+    assert threads_for(0.0, wanted=2, cores=2) == 2  # an idle machine
+    assert threads_for(0.95, wanted=2, cores=2) == 1  # one busy process beside us
+    assert threads_for(1.9, wanted=2, cores=2) == 1  # never fewer than one
+    assert threads_for(1.0, wanted=8, cores=16) == 8
+    busy, own = cpu_seconds() or (1.0, 0.0)
+    assert busy >= own > 0 or busy > 0
+
+
+def test_the_policy_drops_to_one_thread_while_the_cores_are_busy(monkeypatch) -> None:
+    from trajeglish_env.env import threads as module
+
+    before = torch.get_num_threads()
+    clock = iter([0.0, 3.0, 6.0])
+    samples = iter([(100.0, 10.0), (105.5, 13.0), (108.5, 16.0)])  # others: 2.5/3 = 0.83, then 0 cores
+    monkeypatch.setattr(module.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(module, "cpu_seconds", lambda: next(samples))
+    monkeypatch.setattr(module, "usable_cores", lambda: 2)
+    try:
+        policy = AdaptiveThreads(num_scenes=32)
+        assert policy.threads == 2 and torch.get_num_threads() == 2
+        policy.tick()
+        assert policy.threads == 1 and torch.get_num_threads() == 1
+        policy.tick()
+        assert policy.threads == 2
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_the_thread_count_never_changes_a_token() -> None:
+    scene = bundle_scene("highway-exit-999001")  # 16 agents: several model contexts per step
+    before = torch.get_num_threads()
+    try:
+        outs = []
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            outs.append(rollout(tiny(), scene, rollouts=2, horizon=4).tokens)
+    finally:
+        torch.set_num_threads(before)
+    assert np.array_equal(outs[0], outs[1])

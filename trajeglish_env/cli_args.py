@@ -1,0 +1,97 @@
+"""Argument types and checks of the ``trajeglish`` command line: bad input is one line on stderr and
+exit code 2 (argparse types for counts, rates and probabilities; output directories; scene indices)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NoReturn
+
+# Errors that mean bad input (a wrong value, a missing, corrupt or misplaced file): one line on stderr and
+# exit code 2. ScenarioError, CheckpointError, WomdFormatError, UnknownSceneError and the validation errors
+# of the library are ValueErrors. Anything else is a bug and keeps its traceback.
+USER_ERRORS: tuple[type[BaseException], ...] = (
+    ValueError,
+    FileNotFoundError,
+    FileExistsError,
+    IsADirectoryError,
+    NotADirectoryError,
+    PermissionError,
+)
+EXIT_BAD_INPUT = 2
+
+
+class ArgParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line on stderr (``prog: error: ...``), exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        """Report a bad command line in one line, without the usage block."""
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {one_line(message)}\n")
+
+
+def one_line(message: str) -> str:
+    """``message`` with its lines joined, so that an error is always a single line."""
+    return " ".join(line.strip() for line in message.splitlines() if line.strip())
+
+
+def integer_at_least(low: int) -> Callable[[str], int]:
+    """Argument type: an integer >= ``low``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}")
+        return value
+
+    return parse
+
+
+def positive_float(text: str) -> float:
+    """Argument type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
+
+def probability(text: str) -> float:
+    """Argument type: a number in (0, 1] (nucleus sampling's top-p)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value <= 1:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
+    return value
+
+
+POSITIVE = integer_at_least(1)
+NON_NEGATIVE = integer_at_least(0)
+
+
+def output_dir(path: str, option: str = "--out") -> Path:
+    """An output directory: it may not exist yet, but it may not be a file."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{option} {out}: exists and is not a directory")
+    return out
+
+
+def scene_at(path: str, index: int) -> Any:
+    """Scene ``index`` of a scenario file; an index past its end names the option and the file."""
+    from trajeglish_env.scenario_io import load_scenarios
+
+    scenes = load_scenarios(path)
+    if index >= len(scenes):
+        raise ValueError(
+            f"--index {index}: {path} holds {len(scenes)} scene(s) (indices 0..{len(scenes) - 1})"
+        )
+    return scenes[index]
