@@ -253,3 +253,21 @@ def test_bad_inputs_fail_with_one_line(root: Path, tmp_path: Path, capsys) -> No
     (bare / "w.scn.npz").write_bytes((tmp_path / "shards/validation-00000-of-00002.scn.npz").read_bytes())
     assert main([*export, "--out", str(tmp_path / "d"), *METADATA, "--data", str(bare)]) == 2
     assert "w.details.npz: missing (WOMD z values)" in capsys.readouterr().err
+
+
+def test_conversion_in_worker_processes_writes_the_same_shards(root: Path, tmp_path: Path) -> None:
+    from trajeglish_env.sources.womd_convert import convert_womd
+
+    inputs = sorted(root.glob("validation.tfrecord-*"))
+    one = convert_womd(inputs, tmp_path / "one", progress=False)
+    two = convert_womd(inputs, tmp_path / "two", progress=False, workers=2)
+    assert two["workers"] == 2 and {
+        k: v for k, v in two.items() if k not in ("outputs", "seconds", "workers")
+    } == {k: v for k, v in one.items() if k not in ("outputs", "seconds", "workers")}
+    for shard in (tmp_path / "one").iterdir():
+        if shard.name.endswith(".scn.npz"):
+            (a,), (b,) = load_scenarios(shard), load_scenarios(tmp_path / "two" / shard.name)
+            assert a.equals(b)
+        else:
+            (a,), (b,) = load_log_details(shard), load_log_details(tmp_path / "two" / shard.name)
+            assert np.array_equal(a.xyz, b.xyz) and np.array_equal(a.map_z, b.map_z)
