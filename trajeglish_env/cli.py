@@ -148,6 +148,7 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
         sampling=SamplingConfig(top_p=args.top_p, cache_dtype=args.cache_dtype),
         metrics=args.metrics,
         seed=args.seed,
+        guards={"off": (False,), "on": (True,), "both": (False, True)}[args.guard],
     )
     partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts)))
     return evaluate(args.data, ckpts, config, args.out, partial=partial, progress=not args.quiet)
@@ -335,6 +336,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top-p", type=float, default=1.0)
     p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
     p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
+    p.add_argument(
+        "--guard",
+        choices=("off", "on", "both"),
+        default="both",
+        help="guarded sampling: methods NAME@T=t (off) and NAME+guard@T=t (on); default: both",
+    )
     p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out/evaluate", help="directory for the table and plots")
