@@ -15,6 +15,7 @@ from typing import Any
 from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
+GUARD_CHOICES = {"off": (False,), "on": (True,), "both": (False, True)}  # --guard: guarded sampling
 
 
 def _print_result(result: dict[str, Any], as_json: bool) -> None:
@@ -148,7 +149,7 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
         sampling=SamplingConfig(top_p=args.top_p, cache_dtype=args.cache_dtype),
         metrics=args.metrics,
         seed=args.seed,
-        guards={"off": (False,), "on": (True,), "both": (False, True)}[args.guard],
+        guards=GUARD_CHOICES[args.guard],
     )
     partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts)))
     return evaluate(args.data, ckpts, config, args.out, partial=partial, progress=not args.quiet)
@@ -207,6 +208,7 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
         cache_dtype=args.cache_dtype,
         sections=tuple(args.sections),
         quick=args.quick,
+        guards=GUARD_CHOICES[args.guard],
     )
     result = run_suite(config, progress=not args.quiet)
     if args.out:
@@ -388,6 +390,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dtype", choices=("bfloat16", "float32"), default="bfloat16")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure")
     p.add_argument("--quick", action="store_true", help="tiny workloads (a smoke run)")
+    p.add_argument(
+        "--guard",
+        choices=GUARD_CHOICES,
+        default="both",
+        help="Trajeglish NPCs of the env runs without (off) and/or with (on) guarded sampling",
+    )
     p.add_argument("--out", help="also write the JSON document here (atomically)")
     return parser
 
