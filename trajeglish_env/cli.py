@@ -15,6 +15,7 @@ from typing import Any
 from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
+BRAKE_NPCS = ("trajeglish", "trajeglish+guard", "idm", "replay", "constant_velocity")  # see brake_test.NPCS
 GUARD_CHOICES = {"off": (False,), "on": (True,), "both": (False, True)}  # --guard: guarded sampling
 
 
@@ -153,6 +154,34 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
     )
     partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts)))
     return evaluate(args.data, ckpts, config, args.out, partial=partial, progress=not args.quiet)
+
+
+def cmd_brake_test(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.brake_test import BrakeTestConfig, brake_test, markdown_table
+    from trajeglish_env.env.scenes import load_bundle
+    from trajeglish_env.sampler.config import SamplingConfig
+
+    if args.data:
+        from trajeglish_env.dataset import SceneStore
+
+        scenes = list(SceneStore(args.data).scenes)
+    else:
+        bundle = load_bundle()
+        scenes = [bundle.get(i) for i in range(len(bundle))]
+    config = BrakeTestConfig(
+        npcs=tuple(args.npc),
+        episodes=args.episodes,
+        steps=args.steps,
+        max_gap=args.max_gap,
+        seed=args.seed,
+        sampling=SamplingConfig(args.temperature, args.top_p, args.cache_dtype),
+    )
+    ckpt = next(iter(_checkpoints([args.ckpt]).values())) if args.ckpt else None
+    result = brake_test(scenes, config, ckpt, args.out, progress=not args.quiet)
+    if not args.json:
+        print(markdown_table(result), end="")
+        return {key: result[key] for key in ("table", "plot")}
+    return result
 
 
 def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
@@ -347,6 +376,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out/evaluate", help="directory for the table and plots")
+
+    p = add(
+        "brake-test",
+        cmd_brake_test,
+        "reactivity: an ego brakes hard to a stop in front of following NPCs; how often is it rear-ended?",
+    )
+    p.add_argument("--npc", nargs="+", choices=BRAKE_NPCS, default=list(BRAKE_NPCS[:4]), help="NPC policies")
+    p.add_argument("--episodes", type=int, default=22, help="episodes per NPC policy")
+    p.add_argument("--steps", type=int, default=60, help="steps per episode")
+    p.add_argument("--max-gap", type=float, default=25.0, help="followers at most this far behind (m)")
+    p.add_argument("--data", nargs="+", help="scene directories or files (default: the bundled scenes)")
+    p.add_argument("--ckpt", help="model of the Trajeglish NPCs (default: the shipped model)")
+    p.add_argument("--temperature", type=float, default=DEFAULT_TEMPERATURE)
+    p.add_argument("--top-p", type=float, default=1.0)
+    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="out/brake_test", help="directory for the JSON, table and plot")
 
     p = add("rollout", cmd_rollout, "sample one rollout of a scene and render it")
     p.add_argument("--scenario", required=True, help="scenario file (*.scn.npz)")
