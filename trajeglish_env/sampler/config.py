@@ -15,7 +15,7 @@ DEFAULT_TEMPERATURE = 0.75
 # Metres a vehicle's box corner may reach beyond a road edge before it is off the road: the env's
 # ``RewardConfig.offroad_margin`` default, and the margin of guarded sampling's road-edge rule.
 OFFROAD_MARGIN = 0.5
-DEFAULT_GUARD = False
+DEFAULT_GUARD = True
 
 
 @dataclass(frozen=True)

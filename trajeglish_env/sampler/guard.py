@@ -11,10 +11,11 @@ when that still leaves none, the token is drawn unguarded.
 
 The token is the one :func:`~trajeglish_env.sampling.sample_with_uniform` draws from the masked logits with
 the agent's own counter-based number (so a row's rollout never depends on the other rows), but checking
-all V candidates of every agent would cost more than the model. So for temperatures > 0 (top_p = 1) only
+all V candidates of every agent would cost more than the model. So (with top_p = 1, or at temperature 0)
 the 16 most likely ones (LAZY_CANDIDATES) are checked first: the masses of the allowed ones and of the
 unchecked rest bound the cumulative distribution of every possible mask, and when those bounds put the
-draw on the same token, that token is the one the full mask gives. The other agents (when the draw falls
+draw on the same token, that token is the one the full mask gives (at temperature 0: the most likely
+allowed one, when one of them is allowed). The other agents (when the draw falls
 near a token boundary, or when most of the likely candidates are masked) are checked with 64, then all.
 """
 
