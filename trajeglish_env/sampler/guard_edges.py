@@ -71,7 +71,7 @@ class EdgeLists:
 
     def __init__(self) -> None:
         self.anchor = np.zeros((0, 0, 2))
-        self.lists = np.zeros((0, 0, 0), dtype=np.int64)
+        self.lists = np.zeros((0, 0, 0), dtype=np.int32)
         self.sure = np.zeros((0, 0), bool)
         self.keys: list[object] = []
         self.flat: dict[int, tuple[RowEdges, bool]] = {}
@@ -102,7 +102,7 @@ class EdgeLists:
         B, N = rs.B, rs.N
         if self.anchor.shape[:2] != (B, N):
             self.anchor = np.full((B, N, 2), np.inf)
-            self.lists = np.full((B, N, 1), -1, dtype=np.int64)
+            self.lists = np.full((B, N, 1), -1, dtype=np.int32)
             self.sure = np.zeros((B, N), bool)
             self.keys = [None] * B
         for r in range(B):
@@ -117,7 +117,7 @@ class EdgeLists:
             distance, side = segment_geometry(columns, r, np.where(real, every, -1), origin[stale, :2])
             lists = _compact(distance <= EDGE_REACH, every)
             if lists.shape[1] > self.lists.shape[2]:
-                grown = np.full((B, N, lists.shape[1]), -1, dtype=np.int64)
+                grown = np.full((B, N, lists.shape[1]), -1, dtype=np.int32)
                 grown[..., : self.lists.shape[2]] = self.lists
                 self.lists = grown
             self.lists[r, a] = -1
