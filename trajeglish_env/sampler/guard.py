@@ -16,7 +16,8 @@ the 16 most likely ones (LAZY_CANDIDATES) are checked first: the masses of the a
 unchecked rest bound the cumulative distribution of every possible mask, and when those bounds put the
 draw on the same token, that token is the one the full mask gives (at temperature 0: the most likely
 allowed one, when one of them is allowed). The other agents (when the draw falls
-near a token boundary, or when most of the likely candidates are masked) are checked with 64, then all.
+near a token boundary, or when most of the likely candidates are masked) are checked with 64, then all;
+a pass whose candidates hold less than half the probability (an untrained model) is skipped.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from trajeglish_env.sampling import sample_with_uniform
 
 # the most likely candidates checked first, then more where the draw is not decided yet, then all
 LAZY_CANDIDATES = (16, 64)
+LAZY_MIN_MASS = 0.5  # a lazy pass is tried where its candidates hold at least this probability mass
 _SLACK = 1e-12  # probability mass of slack in the bounds, covering the rounding of the full draw's CDF
 
 
@@ -132,10 +134,15 @@ class SamplingGuard:
         m, v = probs.shape
         k = min(k, v)
         top = np.argpartition(-probs, k - 1, axis=1)[:, :k]
-        collide, off = self.geometry.blocked(pairs, sel, top)
         rows = np.arange(m)[:, None]
-        allowed = np.zeros((m, v))
-        unknown = np.ones((m, v))
+        chosen, done = np.zeros(m, np.int64), np.zeros(m, bool)
+        try_ = np.flatnonzero(probs[rows, top].sum(axis=1) >= LAZY_MIN_MASS)  # else the bounds are too loose
+        if not len(try_):
+            return chosen, done
+        probs, top, rows, uniform = probs[try_], top[try_], rows[: len(try_)], uniform[try_]
+        collide, off = self.geometry.blocked(pairs, sel[try_], top)
+        allowed = np.zeros(probs.shape)
+        unknown = np.ones(probs.shape)
         allowed[rows, top] = ~(collide | off)
         unknown[rows, top] = 0.0
         sure, maybe = probs * allowed, probs * unknown
@@ -144,8 +151,9 @@ class SamplingGuard:
         earliest = np.argmax(high > (uniform * z - _SLACK)[:, None], axis=1)
         past = low > (uniform * (z + eps) + _SLACK)[:, None]
         latest = np.argmax(past, axis=1)
-        done = (z > 0) & past.any(axis=1) & (earliest == latest)
-        return latest, done
+        chosen[try_] = latest
+        done[try_] = (z > 0) & past.any(axis=1) & (earliest == latest)
+        return chosen, done
 
     def _full_draw(
         self,
