@@ -101,6 +101,20 @@ def straight_road_scene(num_agents: int = 6, steps: int = 91, seed: int = 0) -> 
     )
 
 
+def queue_scene(n: int = 6, steps: int = 30) -> Scenario:
+    """``n`` cars in one lane along +x, 6.5 m apart (2 m gaps) at 10 m/s, between two road edges 2 m from
+    the lane's centre (the road on their left)."""
+    t = np.arange(steps) * 0.1
+    xyh = np.zeros((n, steps, 3))
+    xyh[..., 0] = np.arange(n)[:, None] * 6.5 + 10.0 * t
+    xs = np.arange(-20.0, 120.0, 1.0)
+    edges = [np.stack([xs, np.full_like(xs, -2.0)], -1), np.stack([xs[::-1], np.full_like(xs, 2.0)], -1)]
+    return Scenario.from_arrays(
+        xyh, np.ones((n, steps), bool), np.tile([4.5, 2.0], (n, 1)), np.zeros(n, np.int64), sdc=n - 1,
+        polylines=edges, polyline_kinds=[MapKind.ROAD_EDGE_BOUNDARY] * 2, scenario_id="queue",
+    )  # fmt: skip
+
+
 # ---------------------------------------------------------------------------------------------- shared files
 def shared_dir() -> Path:
     """The shared data folder: ``$TRAJEGLISH_SHARED``, else ``shared/`` beside the checkout (or above a

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from trajeglish_env.benchmark.measure import env_speed
-from trajeglish_env.benchmark.suite import BenchConfig, ratios, run_suite, summary_lines
+from trajeglish_env.benchmark.suite import BenchConfig, guard_cost, ratios, run_suite, summary_lines
 from trajeglish_env.benchmark.workloads import benchmark_scenes
 from trajeglish_env.cli import main
 
@@ -33,13 +33,24 @@ def test_ratios_and_summary_of_a_result() -> None:
         "machine": {"cpu_count": 2},
         "highway_env": {"steps_per_s": 50.0, "mean_vehicles": 20.0, "agent_steps_per_s": 1000.0},
         "env": {
-            "trajeglish": {"8": {"agent_steps_per_s": 2500.0, "scene_steps_per_s": 104.2, "peak_rss_mb": 9}}
+            "trajeglish": {"8": {"agent_steps_per_s": 2500.0, "scene_steps_per_s": 104.2, "peak_rss_mb": 9}},
+            "trajeglish_guard": {
+                "8": {"agent_steps_per_s": 2000.0, "scene_steps_per_s": 83.3, "peak_rss_mb": 9}
+            },
         },
         "seconds": 1.0,
     }
     result["ratios"] = ratios(result)
-    assert result["ratios"] == {"trajeglish_B8_to_highway_env": 2.5}
-    assert any("2.5x intersection" in line for line in summary_lines(result))
+    assert result["ratios"] == {
+        "trajeglish_B8_to_highway_env": 2.5,
+        "trajeglish_guard_B8_to_highway_env": 2.0,
+    }
+    result["guard_cost"] = guard_cost(result["env"])
+    assert result["guard_cost"] == {"8": {"off": 2500.0, "on": 2000.0, "slowdown": 1.25}}
+    lines = summary_lines(result)
+    assert any("2.5x intersection" in line for line in lines) and any(
+        "1.25x slower" in line for line in lines
+    )
 
 
 def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -47,19 +58,21 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         BenchConfig(sections=("gpu",))
     with pytest.raises(ValueError, match="batch sizes"):
         BenchConfig(batches=(0,))
+    with pytest.raises(ValueError, match="guards"):
+        BenchConfig(guards=())
     assert main(["bench", "--threads", "lots", "--quiet"]) == 2
     assert "--threads must be 'auto' or a positive integer" in capsys.readouterr().err
     out = tmp_path / "bench.json"
     assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == 2
+    assert printed["schema_version"] == written["schema_version"] == 3
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
 
 
 def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> None:
     result = run_suite(BenchConfig(sections=("env",), batches=(2,), quick=True), progress=False)
-    assert result["schema_version"] == 2
+    assert result["schema_version"] == 3
     for key in ("highway_env", "highway_env_highway"):
         runs = result[key]["runs"]
         assert len(runs) == 2 and all(r["agent_steps_per_s"] > 0 for r in runs)
@@ -71,3 +84,9 @@ def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> Non
     assert result["env"]["replay"]["2"]["window_rebuild_steps"] is None
     ratio = learned["agent_steps_per_s"] / result["highway_env"]["agent_steps_per_s"]
     assert result["ratios"]["trajeglish_B2_to_highway_env"] == pytest.approx(ratio, rel=1e-2)
+    guarded = result["env"]["trajeglish_guard"]["2"]
+    assert guarded["guard"] is True and learned["guard"] is False and guarded["timed_steps"] == 3
+    cost = result["guard_cost"]["2"]
+    assert cost["slowdown"] == pytest.approx(
+        learned["agent_steps_per_s"] / guarded["agent_steps_per_s"], rel=1e-2
+    )

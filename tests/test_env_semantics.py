@@ -22,6 +22,7 @@ from trajeglish_env.env import (
 )
 from trajeglish_env.env.observations import EGO_FEATURES, NEIGHBOUR_FEATURES
 from trajeglish_env.geometry import to_local
+from trajeglish_env.sampler.config import SamplingConfig
 
 WIDE = ObservationConfig(radius=500.0)
 KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
@@ -63,9 +64,8 @@ def _npc_logits(monkeypatch: pytest.MonkeyPatch, order: str, action: list[float]
         return original(logits, *args, **kwargs)
 
     monkeypatch.setattr(engine_module, "sample_with_uniform", spy)
-    e = raw_env(
-        [bundle_scene(MERGE)], npc=TrajeglishNPC(tiny()), order=order, max_cycles=3, reward=KEEP_GOING
-    )
+    unguarded = TrajeglishNPC(tiny(), SamplingConfig(guard=False))  # the spy sits on the engine's own draw
+    e = raw_env([bundle_scene(MERGE)], npc=unguarded, order=order, max_cycles=3, reward=KEEP_GOING)
     e.reset(seed=0)
     for _ in range(2):
         e.step(np.array(action, dtype=np.float32))

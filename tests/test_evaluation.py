@@ -47,11 +47,14 @@ def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
     cfg = EvalConfig(rollouts=2, scenes=2, temperatures=(1.0, 0.5))
     result = evaluate(tmp_path, {"tiny": ckpt}, cfg, tmp_path / "eval", partial="tiny", progress=False)
     methods = result["methods"]
-    assert list(methods) == ["log", "constant_velocity", "tiny@T=1", "tiny@T=0.5"]
+    models = ["tiny@T=1", "tiny+guard@T=1", "tiny@T=0.5", "tiny+guard@T=0.5"]
+    assert list(methods) == ["log", "constant_velocity", *models] and result["guards"] == [False, True]
+    plain, guarded = methods["tiny@T=1"]["scores"], methods["tiny+guard@T=1"]["scores"]
+    assert guarded["collision_rate"] < plain["collision_rate"]  # the untrained model crashes unguarded
     log, cv = methods["log"]["scores"], methods["constant_velocity"]["scores"]
     assert log["metametric"] > cv["metametric"] > 0
     assert log["min_ade"] == 0.0 and log["collision_rate"] == 0.0
-    assert result["best_temperature"]["tiny"] in (1.0, 0.5)
+    assert result["best_temperature"]["tiny"] in (1.0, 0.5) and "tiny+guard" in result["best_temperature"]
     pc = result["partial_control"]
     assert set(pc) == {"model", "first", "last"} and pc["first"]["ade"] > 0
     md = (tmp_path / "eval" / "evaluation.md").read_text()

@@ -18,8 +18,6 @@ from trajeglish_env.sources.womd_convert import convert_womd
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 from trajeglish_env.training.train import TrainConfig, train, validation_nll
 
-VOCAB = grid_vocabulary()
-TINY = tiny_config()
 QUICK = TrainConfig(
     steps=3, batch_size=2, lr=5e-4, warmup_steps=1, val_fraction=0.0, num_workers=0, checkpoint_every=100
 )
@@ -30,7 +28,7 @@ def tiny_init(tmp_path_factory) -> Path:
     """A trained-looking tiny checkpoint to start from."""
     torch.manual_seed(3)
     path = tmp_path_factory.mktemp("init") / "tiny.pt"
-    return save_checkpoint(path, TrajeglishModel(TINY), VOCAB, training={"note": "init"})
+    return save_checkpoint(path, TrajeglishModel(tiny_config()), grid_vocabulary(), training={"note": "init"})
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +55,7 @@ def test_finetuning_the_shipped_model_lowers_the_womd_scene_nll(tmp_path: Path) 
 
 def test_init_starts_from_the_checkpoint_weights(scenes_dir: Path, tiny_init: Path, tmp_path: Path) -> None:
     config = TrainConfig(**{**QUICK.__dict__, "lr": 1e-12, "steps": 1})
-    result = train(scenes_dir, tmp_path / "run", TINY, config, progress=False, init=tiny_init)
+    result = train(scenes_dir, tmp_path / "run", tiny_config(), config, progress=False, init=tiny_init)
     start, tuned = load_checkpoint(tiny_init).model.state_dict(), load_checkpoint(result["checkpoint"])
     for name, value in tuned.model.state_dict().items():
         torch.testing.assert_close(value, start[name], rtol=0, atol=1e-6, msg=name)
@@ -67,11 +65,18 @@ def test_init_starts_from_the_checkpoint_weights(scenes_dir: Path, tiny_init: Pa
 def test_incompatible_init_is_refused(scenes_dir: Path, tiny_init: Path, tmp_path: Path, capsys) -> None:
     with pytest.raises(CheckpointError, match=r"config differs .*variant .*no-intra \(requested\)"):
         train(
-            scenes_dir, tmp_path / "a", TINY.with_variant("no-intra"), QUICK, progress=False, init=tiny_init
+            scenes_dir,
+            tmp_path / "a",
+            tiny_config().with_variant("no-intra"),
+            QUICK,
+            progress=False,
+            init=tiny_init,
         )
-    other = MotionVocabulary(VOCAB.templates * 1.01, method="xyh-grid")
+    other = MotionVocabulary(grid_vocabulary().templates * 1.01, method="xyh-grid")
     with pytest.raises(CheckpointError, match="vocabulary differs from the checkpoint's"):
-        train(scenes_dir, tmp_path / "b", TINY, QUICK, vocabulary=other, progress=False, init=tiny_init)
+        train(
+            scenes_dir, tmp_path / "b", tiny_config(), QUICK, vocabulary=other, progress=False, init=tiny_init
+        )
     base = ["train", "--data", str(scenes_dir), "--out", str(tmp_path / "c"), "--steps", "1", "--quiet"]
     assert main([*base, "--init", str(tmp_path / "missing.pt")]) == 2
     assert main([*base, "--init", str(tiny_init), "--preset", "small"]) == 2

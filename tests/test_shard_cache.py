@@ -14,8 +14,6 @@ from trajeglish_env.training import shard_cache
 from trajeglish_env.training.shard_cache import ShardBlockOrder, ShardedScenes, split_shards
 from trajeglish_env.training.train import TrainConfig, train
 
-VOCAB = grid_vocabulary()
-
 
 @pytest.fixture(scope="module")
 def shards(tmp_path_factory) -> Path:
@@ -85,6 +83,6 @@ def test_training_with_a_shard_cache_holds_at_most_k_shards(
         checkpoint_every=4,
         shard_cache=2,
     )
-    result = train(shards, tmp_path, tiny_config(), config, VOCAB, progress=False)
+    result = train(shards, tmp_path, tiny_config(), config, grid_vocabulary(), progress=False)
     assert result["steps"] == 4 and np.isfinite(result["val_nll"])
     assert len(held) == 16 and max(held) <= 2

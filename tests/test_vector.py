@@ -39,7 +39,8 @@ def run_rows(
     specs: list[RowSpec], seeds: list[int], dtype: torch.dtype, restart: tuple | None = None
 ) -> BatchEngine:
     """Run one engine with a row per spec; ``restart = (step, row, spec, seed)`` restarts a row mid-run."""
-    engine = BatchEngine(tiny(), len(specs), SamplingConfig(temperature=1.0), cache_dtype=dtype)
+    config = SamplingConfig(temperature=1.0, guard=False)  # guarded rows: tests/test_guard.py
+    engine = BatchEngine(tiny(), len(specs), config, cache_dtype=dtype)
     for row, (spec, seed) in enumerate(zip(specs, seeds, strict=True)):
         engine.start_rows([row], spec, [seed])
     k = 0

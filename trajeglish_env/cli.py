@@ -21,11 +21,10 @@ from trajeglish_env.cli_args import (
     one_line,
     output_dir,
     positive_float,
-    probability,
     scene_at,
 )
+from trajeglish_env.cli_eval import GUARD_CHOICES, add_eval_commands, checkpoints
 from trajeglish_env.cli_womd import add_womd_commands
-from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
 
@@ -154,7 +153,7 @@ def cmd_nll(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.training.density import evaluate_nll
 
     return evaluate_nll(
-        _checkpoints(args.ckpt),
+        checkpoints(args.ckpt),
         args.data,
         args.windows,
         args.seed,
@@ -162,73 +161,6 @@ def cmd_nll(args: argparse.Namespace) -> dict[str, Any]:
         args.plots,
         cache_dtypes=tuple(args.cache_dtype or ()),
     )
-
-
-def _checkpoints(items: list[str] | None) -> dict[str, Any]:
-    """``[NAME=]PATH`` items -> {name: Checkpoint}; none -> the shipped pretrained model."""
-    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
-
-    ckpts = {}
-    for item in items or []:
-        name, _, path = item.rpartition("=")
-        ckpt = load_checkpoint(path)
-        ckpts[name or ckpt.config.variant.value] = ckpt
-    return ckpts or {"trajeglish": load_pretrained()}
-
-
-def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.distributed import init_ranks, rank_device
-    from trajeglish_env.evaluation import EvalConfig, evaluate
-    from trajeglish_env.sampler.config import SamplingConfig
-
-    device = rank_device()
-    ranks = init_ranks(device)
-    # with --submission the checkpoints are evaluated only when named
-    ckpts = {} if args.submission and not args.ckpt else _checkpoints(args.ckpt)
-    for ckpt in ckpts.values():
-        ckpt.model.to(device)
-    config = EvalConfig(
-        rollouts=args.rollouts,
-        scenes=args.scenes,
-        temperatures=tuple(args.temperature),
-        sampling=SamplingConfig(top_p=args.top_p, cache_dtype=args.cache_dtype),
-        metrics=args.metrics,
-        seed=args.seed,
-    )
-    partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts), None))
-    result = evaluate(
-        args.data,
-        ckpts,
-        config,
-        output_dir(args.out),
-        partial=partial,
-        progress=not args.quiet,
-        submission=args.submission,
-        ranks=ranks,
-    )
-    result["_silent"] = not ranks.main  # under torchrun the main rank prints the merged table
-    return result
-
-
-def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.render import RenderConfig, save_render
-    from trajeglish_env.sampler import rollout
-    from trajeglish_env.sampler.config import SamplingConfig
-
-    scene = scene_at(args.scenario, args.index)
-    ckpt = next(iter(_checkpoints([args.ckpt] if args.ckpt else None).values()))
-    horizon = args.horizon or scene.num_steps - scene.current_index - 1
-    res = rollout(
-        ckpt,
-        scene,
-        1,
-        horizon,
-        config=SamplingConfig(args.temperature, args.top_p, args.cache_dtype, seed=args.seed),
-    )
-    out = save_render(
-        scene, args.out, xyh=res.xyh[0], valid=res.valid[0], config=RenderConfig(follow_sdc=args.follow_sdc)
-    )
-    return {"scene": scene.scenario_id, "agents": scene.num_agents, "horizon": horizon, "out": str(out)}
 
 
 def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
@@ -262,6 +194,7 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
         cache_dtype=args.cache_dtype,
         sections=tuple(args.sections),
         quick=args.quick,
+        guards=GUARD_CHOICES[args.guard],
     )
     result = run_suite(config, progress=not args.quiet)
     if args.out:
@@ -393,47 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="also compute the NLL through the decoding cache in these dtypes (what bfloat16 NPCs cost)",
     )
 
-    p = add("evaluate", cmd_evaluate, "realism of rollouts vs the log and baselines on held-out scenes")
-    p.add_argument("--data", nargs="+", required=True, help="held-out scene directories")
-    p.add_argument(
-        "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
-    )
-    p.add_argument("--rollouts", type=POSITIVE, default=8)
-    p.add_argument("--scenes", type=POSITIVE, default=16, help="evaluate the first N scenes")
-    p.add_argument(
-        "--temperature",
-        type=positive_float,
-        nargs="+",
-        default=[DEFAULT_TEMPERATURE],
-        help="sampling temperatures to evaluate (default: the env's NPC default)",
-    )
-    p.add_argument("--top-p", type=probability, default=1.0)
-    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
-    p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
-    p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
-    p.add_argument("--out", default="out/evaluate", help="directory for the table and plots")
-    p.add_argument(
-        "--submission",
-        help="also score the rollouts of this submission (shard, .tar.gz or directory); then only the "
-        "checkpoints named with --ckpt are sampled",
-    )
-
+    add_eval_commands(add)
     add_womd_commands(add)
-
-    p = add("rollout", cmd_rollout, "sample one rollout of a scene and render it")
-    p.add_argument("--scenario", required=True, help="scenario file (*.scn.npz)")
-    p.add_argument("--index", type=NON_NEGATIVE, default=0)
-    p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
-    p.add_argument("--out", required=True, help="output .gif, .mp4 or .png")
-    p.add_argument(
-        "--horizon", type=POSITIVE, help="steps after the current one (default: to the end of the log)"
-    )
-    p.add_argument("--temperature", type=positive_float, default=DEFAULT_TEMPERATURE)
-    p.add_argument("--top-p", type=probability, default=1.0)
-    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
-    p.add_argument("--follow-sdc", action="store_true")
 
     p = add(
         "demo",
@@ -470,6 +364,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dtype", choices=("bfloat16", "float32"), default="bfloat16")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure")
     p.add_argument("--quick", action="store_true", help="tiny workloads (a smoke run)")
+    p.add_argument(
+        "--guard",
+        choices=GUARD_CHOICES,
+        default="both",
+        help="Trajeglish NPCs of the env runs without (off) and/or with (on) guarded sampling",
+    )
     p.add_argument("--out", help="also write the JSON document here (atomically)")
     return parser
 

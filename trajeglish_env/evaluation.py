@@ -2,9 +2,10 @@
 
 Methods compared on the same scenes and seeds: the log itself (upper bound), constant velocity, and any
 number of model checkpoints (e.g. the marginal, no-intra and trajeglish variants) at one or more sampling
-temperatures. Every scene's rollouts are scored with the WOSAC-style metrics; results are averaged over
-scenes and written as JSON, a Markdown table and plots (collision rate over time, speed/acceleration
-histograms of log vs rollouts). Partial control: one agent driven by the model, everyone else replaying
+temperatures, each without and with guarded sampling (``NAME@T=t`` and ``NAME+guard@T=t``). Every
+scene's rollouts are scored with the WOSAC-style metrics; results are averaged over scenes and written as
+JSON, a Markdown table and plots (collision rate over time, speed/acceleration histograms of log vs
+rollouts). Partial control: one agent driven by the model, everyone else replaying
 the log, with the controlled agent placed first versus last in the intra-timestep order.
 """
 
@@ -39,7 +40,9 @@ Method = Callable[[Scenario, int, int], np.ndarray | tuple[np.ndarray, np.ndarra
 @dataclass(frozen=True)
 class EvalConfig:
     """What to evaluate: scenes, rollouts per scene, the model's ``sampling`` (the env's NPC defaults
-    unless changed) at each of ``temperatures`` (default: the sampling's own), metrics and seed."""
+    unless changed) at each of ``temperatures`` (default: the sampling's own) and each of ``guards``
+    (guarded sampling off and on; the partial-control experiment keeps ``sampling.guard``), metrics and
+    seed."""
 
     rollouts: int = 8
     scenes: int = 16  # evenly spaced over the data (so every source and kind is represented)
@@ -47,6 +50,16 @@ class EvalConfig:
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     metrics: str = "2025"
     seed: int = 0
+    guards: tuple[bool, ...] = (False, True)
+
+    def __post_init__(self) -> None:
+        if not self.guards or not all(isinstance(g, bool) for g in self.guards):
+            raise ValueError(f"EvalConfig.guards must be a non-empty tuple of bools, got {self.guards!r}")
+
+
+def method_name(model: str, temperature: float, guard: bool) -> str:
+    """The table's name of a model sampled at ``temperature``, with or without the guard."""
+    return f"{model}{'+guard' if guard else ''}@T={temperature:g}"
 
 
 def simulated(scene: Scenario) -> np.ndarray:
@@ -275,7 +288,9 @@ def evaluate(
         methods["submission"] = submission_method(submission, [s.scenario_id for s in scenes])
     for name, ckpt in checkpoints.items():
         for temp in config.temperatures:
-            methods[f"{name}@T={temp:g}"] = model_method(ckpt, replace(config.sampling, temperature=temp))
+            for guard in config.guards:
+                sampling = replace(config.sampling, temperature=temp, guard=guard)
+                methods[method_name(name, temp, guard)] = model_method(ckpt, sampling)
     raw = evaluate_methods(scenes, methods, config, progress and ranks.main, details, ranks)
     if partial is not None:
         pc = partial_control(checkpoints[partial], scenes, config, progress and ranks.main, ranks)
@@ -287,8 +302,12 @@ def evaluate(
     table = {name: {k: v for k, v in r.items() if not k.startswith("_")} for name, r in raw.items()}
     best = {}
     for name in checkpoints:
-        cands = {t: table[f"{name}@T={t:g}"]["scores"]["metametric"] for t in config.temperatures}
-        best[name] = max(cands, key=cands.get)  # type: ignore[arg-type]
+        for guard in config.guards:
+            key = f"{name}+guard" if guard else name
+            cands = {
+                t: table[method_name(name, t, guard)]["scores"]["metametric"] for t in config.temperatures
+            }
+            best[key] = max(cands, key=cands.get)  # type: ignore[arg-type]
     result: dict[str, Any] = {
         "data": str(data),
         "scenes": len(scenes),
@@ -296,6 +315,7 @@ def evaluate(
         "metrics_config": config.metrics,
         "log_details": details is not None,
         "processes": ranks.world,
+        "guards": list(config.guards),
         "methods": table,
         "best_temperature": best,
         "plots": plots,

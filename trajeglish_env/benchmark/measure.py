@@ -24,6 +24,8 @@ from trajeglish_env.benchmark.workloads import (
 from trajeglish_env.model import TrajeglishModel, preset
 from trajeglish_env.model.masks import teacher_inputs
 
+GUARDED = {"trajeglish": False, "trajeglish_guard": True}  # model NPCs of the env runs: guarded sampling?
+
 
 def peak_rss_mb() -> float:
     """Peak resident memory of this process image so far (MB): VmHWM, which, unlike ``ru_maxrss``, does
@@ -245,7 +247,8 @@ def env_speed(
     """Stepping speed of the batched ego env: ``num_envs`` scenes of ``agents`` agents (the bundled
     SUMO scenes cut to the sdc and its nearest neighbours), one ego each replaying its log through
     continuous actions, episodes that never end early. Times ``env.step`` only (the actions are
-    computed outside the timed region) and reports peak memory of the process.
+    computed outside the timed region) and reports peak memory of the process. ``npc``: ``"replay"``,
+    ``"trajeglish"`` (unguarded sampling) or ``"trajeglish_guard"`` (guarded sampling).
 
     ``steps`` None: Trajeglish NPCs are timed over one whole window cycle of the model (its
     ``recompute_every`` steps, one of which re-encodes and re-primes every scene's windows), so the
@@ -261,9 +264,11 @@ def env_speed(
     scenes = benchmark_scenes(agents)
     build0 = time.perf_counter()
     npc_spec: Any = npc
-    if npc == "trajeglish":
+    model = npc in GUARDED
+    if model:
         ckpt = model_checkpoint()[0]
-        npc_spec = TrajeglishNPC(ckpt, SamplingConfig(cache_dtype=cache_dtype, subsets=subsets))
+        sampling = SamplingConfig(cache_dtype=cache_dtype, subsets=subsets, guard=GUARDED[npc])
+        npc_spec = TrajeglishNPC(ckpt, sampling)
         if steps is None:  # one window cycle
             steps = npc_spec.sampling.every(ckpt.model.cfg.steps)
     steps = 40 if steps is None else steps
@@ -294,10 +299,11 @@ def env_speed(
         "npc": npc,
         "agents_per_scene": agents,
         "torch_threads": torch.get_num_threads(),
-        "cache_dtype": cache_dtype if npc == "trajeglish" else None,
-        "subsets": subsets if npc == "trajeglish" else None,
+        "cache_dtype": cache_dtype if model else None,
+        "subsets": subsets if model else None,
+        "guard": GUARDED[npc] if model else None,
         "timed_steps": steps,
-        "window_rebuild_steps": rebuilds if npc == "trajeglish" else None,
+        "window_rebuild_steps": rebuilds if model else None,
         "env_steps_per_s": round(rate, 3),
         "scene_steps_per_s": round(rate * num_envs, 2),
         "agent_steps_per_s": round(rate * num_envs * agents, 1),

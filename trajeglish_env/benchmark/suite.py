@@ -19,7 +19,9 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
-SCHEMA_VERSION = 2  # 2: env figures over a whole window cycle; highway-env measured before and after
+# 2: env figures over a whole window cycle; highway-env measured before and after; 3: guarded sampling's
+# env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section
+SCHEMA_VERSION = 3
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "env")
 
 
@@ -27,8 +29,9 @@ SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics"
 class BenchConfig:
     """What the suite measures and how long: ``batches`` scene counts of the batched env, ``agents`` per
     scene, timed env steps per run (after ``warmup``), highway-env steps, torch threads for the batched
-    env (``"auto"``: see :class:`trajeglish_env.env.threads.AdaptiveThreads`), the NPC cache dtype and the
-    sections to run (``quick`` shrinks every workload for a smoke run)."""
+    env (``"auto"``: see :class:`trajeglish_env.env.threads.AdaptiveThreads`), the NPC cache dtype, the
+    Trajeglish NPCs' ``guards`` (guarded sampling off and/or on: env runs ``trajeglish`` and
+    ``trajeglish_guard``) and the sections to run (``quick`` shrinks every workload for a smoke run)."""
 
     batches: tuple[int, ...] = (1, 8, 32, 128, 256)
     agents: int = 24
@@ -39,6 +42,7 @@ class BenchConfig:
     cache_dtype: str = "bfloat16"
     sections: tuple[str, ...] = SECTIONS
     quick: bool = False
+    guards: tuple[bool, ...] = (False, True)
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.sections) - set(SECTIONS))
@@ -46,6 +50,8 @@ class BenchConfig:
             raise ValueError(f"bench: unknown section(s) {unknown}; expected some of {list(SECTIONS)}")
         if not self.batches or min(self.batches) < 1:
             raise ValueError(f"bench: batch sizes must be positive, got {list(self.batches)}")
+        if not self.guards or not all(isinstance(g, bool) for g in self.guards):
+            raise ValueError(f"bench: guards must be a non-empty tuple of bools, got {self.guards!r}")
         if (self.env_steps is not None and self.env_steps < 1) or min(
             self.replay_steps, self.highway_steps
         ) < 1:
@@ -82,7 +88,8 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
             ("highway_env_highway", lambda: measure.highway_env_speed(config.agents, hw_steps, "highway")),
         ]
         jobs += [(f"{name}/before", job) for name, job in baselines]
-        for npc in ("trajeglish", "replay"):
+        models = [name for name, guard in measure.GUARDED.items() if guard in config.guards]
+        for npc in (*models, "replay"):
             for b in config.batches:
                 jobs.append((f"env/{npc}/{b}", _env_job(config, npc, b)))
         jobs += [(f"{name}/after", job) for name, job in baselines]  # the machine's load drifts
@@ -105,6 +112,8 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
         if key in result:
             result[key] = _mean_run(result[key]["runs"])
     result["ratios"] = ratios(result)
+    if "trajeglish" in result.get("env", {}) and "trajeglish_guard" in result["env"]:
+        result["guard_cost"] = guard_cost(result["env"])
     result["seconds"] = round(time.perf_counter() - start, 1)
     return result
 
@@ -177,7 +186,7 @@ def _env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str
     """Run one batched-env measurement in a fresh Python process (its own peak memory)."""
 
     def job() -> dict[str, Any]:
-        steps = config.env_steps if npc == "trajeglish" else config.replay_steps
+        steps = config.replay_steps if npc == "replay" else config.env_steps
         if config.quick:
             steps = 3
         spec = {
@@ -209,6 +218,18 @@ def ratios(result: dict[str, Any]) -> dict[str, Any]:
         for npc, runs in result.get("env", {}).items():
             for b, run in runs.items():
                 out[f"{npc}_B{b}_to_{key}"] = round(run["agent_steps_per_s"] / base, 3)
+    return out
+
+
+def guard_cost(env: dict[str, Any]) -> dict[str, Any]:
+    """Per batch size, the batched env's agent-steps/s with Trajeglish NPCs sampled without and with the
+    guard, and the slowdown the guard costs (off / on)."""
+    out = {}
+    for b, off in env["trajeglish"].items():
+        on = env["trajeglish_guard"].get(b)
+        if on:
+            off_rate, on_rate = off["agent_steps_per_s"], on["agent_steps_per_s"]
+            out[b] = {"off": off_rate, "on": on_rate, "slowdown": round(off_rate / on_rate, 3)}
     return out
 
 
@@ -245,5 +266,7 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
                 f"{run['agent_steps_per_s']:>10} agent-steps/s ({ratio}x intersection, {ratio_hw}x highway), "
                 f"peak {run['peak_rss_mb']} MB"
             )
+    for b, cost in result.get("guard_cost", {}).items():
+        lines.append(f"guarded sampling B={b:>4}: {cost['slowdown']}x slower ({cost['off']} -> {cost['on']})")
     lines.append(f"total {result['seconds']} s")
     return lines

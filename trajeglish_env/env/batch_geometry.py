@@ -97,7 +97,7 @@ def _rows(a: np.ndarray, scene: np.ndarray) -> np.ndarray:
     return a[scene]
 
 
-def _selection_d2(cols: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def selection_d2(cols: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Squared 3-D distances (z stretched, queries at z = 0: exactly the planar value on flat maps) from
     points ``x, y [Q,C]`` to segments ``cols [Q,7,K]`` -> ``[Q,C,K]`` (float32, the reference's formula)."""
     f32 = np.float32
@@ -116,7 +116,7 @@ def nearest_segments(
     """Index ``[Q,C]`` of the road-edge segment nearest (as the reference chooses it: 3-D, z stretched,
     first on ties) to each of ``points [Q,C,2]`` among every segment of its scene ``scene [Q]``."""
     pts = points.astype(np.float32)
-    d2 = _selection_d2(_rows(columns, scene), pts[..., 0], pts[..., 1])
+    d2 = selection_d2(_rows(columns, scene), pts[..., 0], pts[..., 1])
     real = np.arange(columns.shape[2])[None, None] < count[scene][:, None, None]
     return np.argmin(np.where(real, d2, np.inf), axis=-1)
 
@@ -172,17 +172,17 @@ def nearest_segments_near(
     points: np.ndarray,
     candidates: np.ndarray,
     anchor: np.ndarray,
-    reach: float,
+    reach: float | np.ndarray,
 ) -> np.ndarray:
     """:func:`nearest_segments`, scanning per query only ``candidates [Q,K]`` (-1 padding): the segments
-    within ``reach`` m (2-D) of ``anchor [Q,2]``. A segment left out is farther than ``reach`` minus the
-    point's distance to the anchor, in 2-D and so in 3-D; when the best candidate is nearer than that (1 m
-    to spare for float32 rounding) it is the reference's choice, ties included (candidates ascend), else
-    the point's query is answered by a full scan."""
+    within ``reach`` m (2-D; a number, or ``[Q,1]`` per query) of ``anchor [Q,2]``. A segment left out is
+    farther than ``reach`` minus the point's distance to the anchor, in 2-D and so in 3-D; when the best
+    candidate is nearer than that (1 m to spare for float32 rounding) it is the reference's choice, ties
+    included (candidates ascend), else the point's query is answered by a full scan."""
     pts = points.astype(np.float32)
     safe = np.maximum(candidates, 0)
     cols = columns[scene[:, None, None], np.arange(7)[None, :, None], safe[:, None, :]]  # [Q,7,K]
-    d2 = np.where((candidates >= 0)[:, None, :], _selection_d2(cols, pts[..., 0], pts[..., 1]), np.inf)
+    d2 = np.where((candidates >= 0)[:, None, :], selection_d2(cols, pts[..., 0], pts[..., 1]), np.inf)
     best = np.argmin(d2, axis=-1)  # [Q,C]
     nearest = np.take_along_axis(candidates, best, 1)
     margin = reach - np.hypot(points[..., 0] - anchor[:, None, 0], points[..., 1] - anchor[:, None, 1]) - 1.0

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.config import OFFROAD_MARGIN, SamplingConfig
 
 if TYPE_CHECKING:
     from trajeglish_env.env.npc import NPCPolicy
@@ -128,7 +128,7 @@ class RewardConfig:
     offroad: float = -1.0
     comfort: float = -0.005
     comfort_accel: float = 3.0
-    offroad_margin: float = 0.5
+    offroad_margin: float = OFFROAD_MARGIN
     goal: float = 0.0
     goal_tolerance: float = 2.0
     min_route_length: float = 5.0

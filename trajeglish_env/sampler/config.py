@@ -12,6 +12,10 @@ CACHE_DTYPES = ("float32", "bfloat16")
 # The shipped model's most realistic temperature measured (WOSAC meta-metric 0.573, vs 0.560 at 0.5 and
 # 0.564 at 1.0, with the fewest collisions; docs/evaluation.md).
 DEFAULT_TEMPERATURE = 0.75
+# Metres a vehicle's box corner may reach beyond a road edge before it is off the road: the env's
+# ``RewardConfig.offroad_margin`` default, and the margin of guarded sampling's road-edge rule.
+OFFROAD_MARGIN = 0.5
+DEFAULT_GUARD = True
 
 
 @dataclass(frozen=True)
@@ -22,7 +26,14 @@ class SamplingConfig:
     than the model's context are split (``subsets``: ``"overlap"``, the paper's rule, or ``"cover"``,
     fewest contexts); the sliding window in time (``prime_steps`` re-fed when a window restarts, default
     steps // 4; ``recompute_every``, default model steps - prime_steps); and the ``seed`` of
-    :func:`~trajeglish_env.sampler.rollout` (environments draw their seeds from their own streams)."""
+    :func:`~trajeglish_env.sampler.rollout` (environments draw their seeds from their own streams).
+
+    ``guard``: guarded sampling (:mod:`~trajeglish_env.sampler.guard`). When an agent is sampled, the
+    next states of the agents that moved before it in the step are known, so the candidate tokens whose
+    box would overlap one of them (or the current box of an agent that has not moved yet), or that would
+    put a vehicle's box more than :data:`OFFROAD_MARGIN` m beyond a road edge (unless it is off the road
+    already), are masked before the token is drawn; when that leaves nothing, the road-edge rule is
+    dropped, then the guard altogether."""
 
     temperature: float = DEFAULT_TEMPERATURE
     top_p: float = 1.0
@@ -31,8 +42,11 @@ class SamplingConfig:
     prime_steps: int | None = None
     recompute_every: int | None = None
     seed: int = 0
+    guard: bool = DEFAULT_GUARD
 
     def __post_init__(self) -> None:
+        if not isinstance(self.guard, bool):
+            raise TypeError(f"SamplingConfig.guard must be a bool, got {self.guard!r}")
         if not (self.temperature >= 0):
             raise ValueError(f"SamplingConfig.temperature must be >= 0, got {self.temperature}")
         if not (0 < self.top_p <= 1):

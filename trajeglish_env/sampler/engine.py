@@ -30,6 +30,8 @@ this module (stepping: decoding and sampling the positions of each step).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import torch
 
@@ -42,6 +44,9 @@ from trajeglish_env.sampler.sampling import counter_uniform, sample_with_uniform
 from trajeglish_env.sampler.windows import Window, WindowedRows
 from trajeglish_env.sampler.windows import _row_blocks as _row_blocks  # re-exported
 from trajeglish_env.scenario import Scenario
+
+if TYPE_CHECKING:
+    from trajeglish_env.sampler.guard import SamplingGuard
 
 
 class BatchEngine(WindowedRows):
@@ -73,6 +78,13 @@ class BatchEngine(WindowedRows):
         # queries so that a row's result never depends on the chunk lengths of the other rows
         self._min_queries = 1 if cache_dtype == torch.bfloat16 else 2
         self._rank = 0  # subset rank being decoded in this step
+        self.guard: SamplingGuard | None = None
+        if config.guard:  # guarded sampling (its geometry needs the rows' road edges)
+            from trajeglish_env.sampler.guard import SamplingGuard
+            from trajeglish_env.sampler.guard_geometry import GuardGeometry
+
+            self.guard = SamplingGuard(GuardGeometry(self.vocab.templates))
+            self.with_edges = True
         self._slot = np.zeros(self.B, dtype=np.int64)  # per row: next slot of that rank to decode
 
     # ------------------------------------------------------------------ stepping
@@ -178,7 +190,11 @@ class BatchEngine(WindowedRows):
         logits = self.model.class_logits_by_kind(hidden[rows_t, cols_t], self.kind[rr, who]).cpu()
         tt = self.now[rr]
         u = counter_uniform(self.seed[rr], tt, who)
-        tok = sample_with_uniform(logits, self.config.temperature, self.config.top_p, u)
+        temperature, top_p = self.config.temperature, self.config.top_p
+        if self.guard is None:
+            tok = sample_with_uniform(logits, temperature, top_p, u)
+        else:
+            tok = self.guard.sample(self, logits, rr, who, tt, u, temperature, top_p)
         self.tokens[rr, who, tt] = tok
         self.known[rr, who, tt] = True
         nxt = to_global(self.mxyh[rr, who, tt], self.vocab.templates[self.kind[rr, who], tok])

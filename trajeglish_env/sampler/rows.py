@@ -12,6 +12,11 @@ from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
+# A row's road edges as :func:`~trajeglish_env.env.batch_geometry.edge_rows` gives them: columns [7,S]
+# (float32) and links [3,S] (int64); S = 0 for a row without road edges (or not started).
+RowEdges = tuple[np.ndarray, np.ndarray]
+NO_EDGES: RowEdges = (np.zeros((7, 0), np.float32), np.zeros((3, 0), np.int64))
+
 
 @dataclass(frozen=True)
 class RowSpec:
@@ -49,6 +54,9 @@ class RowStates:
         self.first = np.zeros(self.B, dtype=np.int64)
         self.handover_step = np.full(self.B, -1, dtype=np.int64)  # where a row's log ends (past it: -1)
         self.scenes: list[Scenario | None] = [None] * self.B
+        self.with_edges = False  # engines that need the rows' road edges (guarded sampling) set this
+        self.edges: list[RowEdges] = [NO_EDGES] * self.B
+        self._edge_cache: dict[int, tuple[Scenario, RowEdges]] = {}
         self._in_step = False  # a step has begun and is not finished (see cancel_step)
         self._supplied: list[tuple[np.ndarray, ...]] = []  # supplies whose tokens are not computed yet
 
@@ -151,12 +159,27 @@ class RowStates:
         self.size[rows, :n] = sc.size
         self.kind[rows] = 0
         self.kind[rows, :n] = sc.kind
+        edges = self._road_edges(sc) if self.with_edges else NO_EDGES
         for r in rows:
             self.scenes[r] = sc
+            self.edges[r] = edges
         self.now[rows], self.end[rows] = cur, T - 1
         self.seed[rows] = seeds
         self.first[rows] = sc.sdc if spec.first is None else int(spec.first)
         self.live[rows] = True
+
+    def _road_edges(self, sc: Scenario) -> RowEdges:
+        """The scene's road-edge segments (computed once per scene object, like the map chunks)."""
+        hit = self._edge_cache.get(id(sc))
+        if hit is None or hit[0] is not sc:
+            from trajeglish_env.env.batch_geometry import edge_rows
+            from trajeglish_env.env.rewards import road_edges
+
+            if len(self._edge_cache) > 4 * self.B + 64:
+                self._edge_cache.clear()
+            hit = (sc, edge_rows(road_edges(sc)))
+            self._edge_cache[id(sc)] = hit
+        return hit[1]
 
     def stop_rows(self, rows: np.ndarray | list[int]) -> None:
         """Take ``rows`` out of the simulation (they stop stepping until started again; an unfinished step

@@ -1,0 +1,186 @@
+"""Guarded sampling: the masks are exactly the env's collision and off-road rules over every candidate,
+guarded rollouts never overlap an agent that moved before (or has not moved yet) nor leave the road, the
+lazy checks draw what the full mask draws, and a row's guarded rollout does not depend on its batch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from helpers import bundle_scene, queue_scene, straight_road_scene, tiny
+
+from trajeglish_env.env.batch_geometry import collision_flags
+from trajeglish_env.env.rewards import offroad, road_edges
+from trajeglish_env.geometry import to_global
+from trajeglish_env.metrics.boxes import box_collisions
+from trajeglish_env.sampler import guard as guard_module
+from trajeglish_env.sampler.config import OFFROAD_MARGIN, SamplingConfig
+from trajeglish_env.sampler.engine import BatchEngine, RolloutEngine, RowSpec
+
+
+def test_the_guard_option_is_a_bool() -> None:
+    assert SamplingConfig(guard=True).guard is True
+    with pytest.raises(TypeError, match="SamplingConfig.guard"):
+        SamplingConfig(guard=1)  # type: ignore[arg-type]
+
+
+def brute_force_masks(engine: RolloutEngine, agent: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every candidate of ``agent`` in rollout 0 at the current step against every other agent (its next
+    box if it moved, else its current one) and the scene's road edges, with the env's functions."""
+    sc, t = engine.sc, engine.t
+    cand = to_global(engine.mxyh[0, agent, t], engine.vocab.templates[sc.kind[agent]])  # [V,3]
+    moved = engine.known[0, :, t] & engine.valid[0, :, t + 1]
+    still = engine.valid[0, :, t] & ~engine.known[0, :, t]
+    others = np.flatnonzero((moved | still) & (np.arange(sc.num_agents) != agent))
+    boxes = np.where(moved[others, None], engine.xyh[0, others, t + 1], engine.xyh[0, others, t])
+    collide = box_collisions(cand[:, None], sc.size[agent], boxes[None], sc.size[others][None]).any(axis=1)
+    edges = road_edges(sc)
+    size, kind = np.broadcast_to(sc.size[agent], (len(cand), 2)), np.full(len(cand), sc.kind[agent])
+    off = offroad(cand, size, kind, edges, OFFROAD_MARGIN)
+    off_now = offroad(engine.mxyh[0, agent, t][None], sc.size[agent][None], sc.kind[agent][None], edges, 0.5)
+    return collide, off & ~off_now[0]
+
+
+@pytest.mark.parametrize("name", ["straight", "queue", "highway-roundabout-999001"])
+def test_masks_are_the_envs_rules_over_every_candidate(name: str) -> None:
+    scenes = {"straight": lambda: straight_road_scene(8, 40), "queue": queue_scene}
+    scene = scenes.get(name, lambda: bundle_scene(name))()
+    n = scene.num_agents
+    external = np.zeros(n, bool)
+    external[scene.sdc] = True
+    active = scene.valid[:, scene.current_index]
+    engine = RolloutEngine(
+        tiny(), scene, 1, 5, active & ~external, external, config=SamplingConfig(guard=True, seed=3)
+    )
+    for _ in range(2):  # play two steps, then stop mid-step: the sdc has moved, the NPCs have not
+        while (agent := engine.advance()) is not None:
+            engine.supply(agent, scene.xyh[agent, engine.t + 1])
+    assert engine.advance() == scene.sdc
+    engine.supply(scene.sdc, scene.xyh[scene.sdc, engine.t + 1])
+    npcs = np.flatnonzero(active & ~external)
+    rows, t = np.zeros(len(npcs), np.int64), np.full(len(npcs), engine.t)
+    geometry = engine.guard.geometry
+    pairs = geometry.pairs(engine, rows, npcs, t)
+    v = engine.vocab.size
+    collide, off = geometry.blocked(
+        pairs, np.arange(len(npcs)), np.broadcast_to(np.arange(v), (len(npcs), v))
+    )
+    masked = np.zeros(2, np.int64)
+    for i, agent in enumerate(npcs):
+        want_collide, want_off = brute_force_masks(engine, agent)
+        assert np.array_equal(collide[i], want_collide), f"agent {agent}: collisions differ"
+        assert np.array_equal(off[i], want_off), f"agent {agent}: off-road differs"
+        masked += [want_collide.sum(), want_off.sum()]
+    assert masked.sum() > 50  # the scene really has candidates to mask
+
+
+def new_events(engine: RolloutEngine) -> tuple[int, int]:
+    """Collisions that were not there a step before (among the agents sampled), and vehicles on the road
+    (env rule) that are off it a step later, summed over rollouts and steps."""
+    sc = engine.sc
+    agents = np.flatnonzero(engine.controlled)
+    edges = road_edges(sc)
+    scene = np.zeros(len(agents), np.int64)
+    hits = off = 0
+    for r in range(engine.R):
+        for t in range(engine.current, engine.xyh.shape[2] - 1):
+            xyh, valid = engine.xyh[r, :, t : t + 2], engine.valid[r, :, t : t + 2]
+            was, now = (
+                collision_flags(xyh[None, :, k], valid[None, :, k], sc.size[None], scene, agents)
+                for k in (0, 1)
+            )
+            hits += int((now & ~was).sum())
+            out = [
+                offroad(xyh[agents, k], sc.size[agents], sc.kind[agents], edges, OFFROAD_MARGIN)
+                for k in (0, 1)
+            ]
+            off += int((out[1] & ~out[0]).sum())
+    return hits, off
+
+
+def test_guarded_rollouts_neither_collide_nor_leave_the_road() -> None:
+    sc = bundle_scene("highway-roundabout-999001")
+    active = sc.valid[:, sc.current_index].copy()
+    runs = {}
+    for guard in (False, True):
+        engine = RolloutEngine(tiny(), sc, 2, 20, active, config=SamplingConfig(temperature=1.0, guard=guard))
+        engine.run()
+        runs[guard] = engine
+    hits, off = new_events(runs[False])
+    assert hits >= 2 and off >= 10  # the untrained model crashes and leaves the road
+    stats = runs[True].guard.stats
+    assert stats.edge_fallback == stats.plain_fallback == 0 and stats.masked > 50
+    assert new_events(runs[True]) == (0, 0)
+
+
+@pytest.mark.parametrize("temperature", [0.05, 0.0])
+def test_lazy_checks_draw_what_the_full_mask_draws(
+    temperature: float, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    sc = bundle_scene("highway-roundabout-999001")
+    active = sc.valid[:, sc.current_index].copy()
+    config = SamplingConfig(temperature=temperature, guard=True, seed=5)
+    lazy = RolloutEngine(tiny(), sc, 2, 12, active, config=config)
+    lazy.run()
+    monkeypatch.setattr(guard_module, "LAZY_CANDIDATES", ())  # every candidate of every agent checked
+    full = RolloutEngine(tiny(), sc, 2, 12, active, config=config)
+    full.run()
+    assert np.array_equal(lazy.tokens, full.tokens)
+    stats = lazy.guard.stats
+    assert stats.masked > 10 and stats.full < stats.guarded / 2  # lazily decided, and the guard mattered
+    assert full.guard.stats.full == full.guard.stats.guarded
+
+
+def test_guarded_rows_equal_their_solo_runs() -> None:
+    names = ["highway-merge-999000", "sumo-random-999000-0-0", "highway-roundabout-999001"]
+    scenes = [bundle_scene(name) for name in names]
+    specs = [RowSpec(sc, 8, sc.valid[:, sc.current_index].copy()) for sc in scenes]
+    config = SamplingConfig(temperature=1.0, guard=True)
+
+    def run(rows: list[int]) -> BatchEngine:
+        engine = BatchEngine(tiny(), len(rows), config, cache_dtype=torch.float32)
+        for row, i in enumerate(rows):
+            engine.start_rows([row], specs[i], [20 + i])
+        engine.run()
+        return engine
+
+    batch = run([2, 0, 1])
+    masked = 0
+    for row, i in enumerate([2, 0, 1]):
+        solo = run([i])
+        n, steps = scenes[i].num_agents, scenes[i].current_index + 9
+        assert np.array_equal(batch.tokens[row, :n, : steps - 1], solo.tokens[0, :n, : steps - 1]), names[i]
+        masked += solo.guard.stats.masked
+    assert masked > 20
+
+
+class FixedMasks:
+    """A stand-in geometry: pair i's candidates collide where ``collide[i]`` and leave the road where
+    ``off[i]`` (whatever the tokens asked about, which are all V here)."""
+
+    def __init__(self, collide: np.ndarray, off: np.ndarray):
+        self.collide, self.off = collide, off
+
+    def blocked(self, pairs: object, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.collide[sel], self.off[sel]
+
+
+def test_fallbacks_drop_the_road_rule_then_the_guard() -> None:
+    v, n = 12, 400
+    logits = torch.randn(n, v, generator=torch.Generator().manual_seed(0)) * 2
+    uniform = np.random.default_rng(0).random(n)
+    first_half = np.arange(v) < v // 2
+    collide = np.zeros((n, v), bool)
+    off = np.zeros((n, v), bool)
+    collide[0::3], off[0::3] = True, True  # everything masked: drawn unguarded
+    collide[1::3], off[1::3] = first_half, ~first_half  # only the road rule left: dropped, collisions stay
+    collide[2::3], off[2::3] = first_half, np.arange(v) == v - 1  # allowed: the second half but the last
+    guard = guard_module.SamplingGuard(FixedMasks(collide, off))  # type: ignore[arg-type]
+    tokens = guard._full_draw(None, np.arange(n), logits, 1.0, 1.0, uniform)  # type: ignore[arg-type]
+    plain = guard_module.sample_with_uniform(logits, 1.0, 1.0, uniform)
+    assert np.array_equal(tokens[0::3], plain[0::3])
+    assert (tokens[1::3] >= v // 2).all() and (tokens[2::3] >= v // 2).all() and (tokens[2::3] < v - 1).all()
+    assert guard.stats.plain_fallback == len(tokens[0::3]) and guard.stats.edge_fallback == len(tokens[1::3])
+    allowed = (plain[2::3] >= v // 2) & (plain[2::3] < v - 1)
+    same = (tokens[2::3] == plain[2::3])[allowed].mean()  # 0.72: one number per draw keeps most tokens
+    assert 0.5 < same < 1.0 and 0.3 < allowed.mean() < 0.7

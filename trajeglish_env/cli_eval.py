@@ -1,0 +1,177 @@
+"""The ``trajeglish`` commands that sample and score the model (``evaluate``, ``brake-test``, ``rollout``),
+registered by :func:`trajeglish_env.cli.build_parser`."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from typing import Any
+
+from trajeglish_env.cli_args import NON_NEGATIVE, POSITIVE, output_dir, positive_float, probability, scene_at
+from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
+
+GUARD_CHOICES = {"off": (False,), "on": (True,), "both": (False, True)}  # --guard: guarded sampling
+BRAKE_NPCS = ("trajeglish", "trajeglish+guard", "idm", "replay", "constant_velocity")  # see brake_test.NPCS
+AddCommand = Callable[..., argparse.ArgumentParser]  # build_parser's add(name, handler, help_text)
+
+
+def checkpoints(items: list[str] | None) -> dict[str, Any]:
+    """``[NAME=]PATH`` items -> {name: Checkpoint}; none -> the shipped pretrained model."""
+    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+
+    ckpts = {}
+    for item in items or []:
+        name, _, path = item.rpartition("=")
+        ckpt = load_checkpoint(path)
+        ckpts[name or ckpt.config.variant.value] = ckpt
+    return ckpts or {"trajeglish": load_pretrained()}
+
+
+def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.distributed import init_ranks, rank_device
+    from trajeglish_env.evaluation import EvalConfig, evaluate
+    from trajeglish_env.sampler.config import SamplingConfig
+
+    device = rank_device()
+    ranks = init_ranks(device)
+    # with --submission the checkpoints are evaluated only when named
+    ckpts = {} if args.submission and not args.ckpt else checkpoints(args.ckpt)
+    for ckpt in ckpts.values():
+        ckpt.model.to(device)
+    config = EvalConfig(
+        rollouts=args.rollouts,
+        scenes=args.scenes,
+        temperatures=tuple(args.temperature),
+        sampling=SamplingConfig(top_p=args.top_p, cache_dtype=args.cache_dtype),
+        metrics=args.metrics,
+        seed=args.seed,
+        guards=GUARD_CHOICES[args.guard],
+    )
+    partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts), None))
+    result = evaluate(
+        args.data,
+        ckpts,
+        config,
+        output_dir(args.out),
+        partial=partial,
+        progress=not args.quiet,
+        submission=args.submission,
+        ranks=ranks,
+    )
+    result["_silent"] = not ranks.main  # under torchrun the main rank prints the merged table
+    return result
+
+
+def cmd_brake_test(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.brake_test import BrakeTestConfig, brake_test, markdown_table
+    from trajeglish_env.env.scenes import load_bundle
+    from trajeglish_env.sampler.config import SamplingConfig
+
+    if args.data:
+        from trajeglish_env.dataset import SceneStore
+
+        scenes = list(SceneStore(args.data).scenes)
+    else:
+        bundle = load_bundle()
+        scenes = [bundle.get(i) for i in range(len(bundle))]
+    config = BrakeTestConfig(
+        npcs=tuple(args.npc),
+        episodes=args.episodes,
+        steps=args.steps,
+        max_gap=args.max_gap,
+        seed=args.seed,
+        sampling=SamplingConfig(args.temperature, args.top_p, args.cache_dtype),
+    )
+    ckpt = next(iter(checkpoints([args.ckpt]).values())) if args.ckpt else None
+    result = brake_test(scenes, config, ckpt, args.out, progress=not args.quiet)
+    if not args.json:
+        print(markdown_table(result), end="")
+        return {key: result[key] for key in ("table", "plot")}
+    return result
+
+
+def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.render import RenderConfig, save_render
+    from trajeglish_env.sampler import rollout
+    from trajeglish_env.sampler.config import SamplingConfig
+
+    scene = scene_at(args.scenario, args.index)
+    ckpt = next(iter(checkpoints([args.ckpt] if args.ckpt else None).values()))
+    horizon = args.horizon or scene.num_steps - scene.current_index - 1
+    res = rollout(
+        ckpt,
+        scene,
+        1,
+        horizon,
+        config=SamplingConfig(args.temperature, args.top_p, args.cache_dtype, seed=args.seed),
+    )
+    out = save_render(
+        scene, args.out, xyh=res.xyh[0], valid=res.valid[0], config=RenderConfig(follow_sdc=args.follow_sdc)
+    )
+    return {"scene": scene.scenario_id, "agents": scene.num_agents, "horizon": horizon, "out": str(out)}
+
+
+def add_eval_commands(add: AddCommand) -> None:
+    """Register the sampling and scoring commands with ``build_parser``'s ``add``."""
+    p = add("evaluate", cmd_evaluate, "realism of rollouts vs the log and baselines on held-out scenes")
+    p.add_argument("--data", nargs="+", required=True, help="held-out scene directories")
+    p.add_argument(
+        "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
+    )
+    p.add_argument("--rollouts", type=POSITIVE, default=8)
+    p.add_argument("--scenes", type=POSITIVE, default=16, help="evaluate the first N scenes")
+    p.add_argument(
+        "--temperature",
+        type=positive_float,
+        nargs="+",
+        default=[DEFAULT_TEMPERATURE],
+        help="sampling temperatures to evaluate (default: the env's NPC default)",
+    )
+    p.add_argument("--top-p", type=probability, default=1.0)
+    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
+    p.add_argument(
+        "--guard",
+        choices=("off", "on", "both"),
+        default="both",
+        help="guarded sampling: methods NAME@T=t (off) and NAME+guard@T=t (on); default: both",
+    )
+    p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--out", default="out/evaluate", help="directory for the table and plots")
+    p.add_argument(
+        "--submission",
+        help="also score the rollouts of this submission (shard, .tar.gz or directory); then only the "
+        "checkpoints named with --ckpt are sampled",
+    )
+
+    p = add(
+        "brake-test",
+        cmd_brake_test,
+        "reactivity: an ego brakes hard to a stop in front of following NPCs; how often is it rear-ended?",
+    )
+    p.add_argument("--npc", nargs="+", choices=BRAKE_NPCS, default=list(BRAKE_NPCS[:4]), help="NPC policies")
+    p.add_argument("--episodes", type=int, default=22, help="episodes per NPC policy")
+    p.add_argument("--steps", type=int, default=60, help="steps per episode")
+    p.add_argument("--max-gap", type=float, default=25.0, help="followers at most this far behind (m)")
+    p.add_argument("--data", nargs="+", help="scene directories or files (default: the bundled scenes)")
+    p.add_argument("--ckpt", help="model of the Trajeglish NPCs (default: the shipped model)")
+    p.add_argument("--temperature", type=float, default=DEFAULT_TEMPERATURE)
+    p.add_argument("--top-p", type=float, default=1.0)
+    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="out/brake_test", help="directory for the JSON, table and plot")
+
+    p = add("rollout", cmd_rollout, "sample one rollout of a scene and render it")
+    p.add_argument("--scenario", required=True, help="scenario file (*.scn.npz)")
+    p.add_argument("--index", type=NON_NEGATIVE, default=0)
+    p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
+    p.add_argument("--out", required=True, help="output .gif, .mp4 or .png")
+    p.add_argument(
+        "--horizon", type=POSITIVE, help="steps after the current one (default: to the end of the log)"
+    )
+    p.add_argument("--temperature", type=positive_float, default=DEFAULT_TEMPERATURE)
+    p.add_argument("--top-p", type=probability, default=1.0)
+    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--follow-sdc", action="store_true")

@@ -1,0 +1,177 @@
+"""Guarded sampling (``SamplingConfig.guard``): candidate tokens that would overlap another agent or take a
+vehicle off the road are masked before a token is drawn.
+
+The intra-timestep factorization makes this exact: when an agent is sampled, the next states of the agents
+that moved before it in the step are known (and the current boxes of those that have not moved yet), so
+each of its candidate tokens -- every template of its class, applied to its current model state -- can be
+checked against them (:mod:`~trajeglish_env.sampler.guard_geometry`). A candidate is masked when its box
+overlaps one of those boxes, or, for a vehicle on the road, when a corner of its box lies more than the
+env's off-road margin beyond a road edge. When every candidate is masked, the road-edge rule is dropped;
+when that still leaves none, the token is drawn unguarded.
+
+The token is the one :func:`~trajeglish_env.sampler.sampling.sample_with_uniform` draws from the masked
+logits with the agent's own counter-based number (so a row's rollout never depends on the other rows), but
+checking all V candidates of every agent would cost more than the model. So (with top_p = 1, or at
+temperature 0) the 16 most likely ones (LAZY_CANDIDATES) are checked first: the masses of the allowed ones
+and of the unchecked rest bound the cumulative distribution of every possible mask, and when those bounds
+put the draw on the same token, that token is the one the full mask gives (at temperature 0: the most
+likely allowed one, when one of them is allowed). The other agents (when the draw falls near a token
+boundary, or when most of the likely candidates are masked) are checked with 64, then all; a pass whose
+candidates hold less than half the probability (an untrained model) is skipped."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from trajeglish_env.sampler.guard_geometry import GuardGeometry, Pairs
+from trajeglish_env.sampler.rows import RowStates
+from trajeglish_env.sampler.sampling import sample_with_uniform
+
+# the most likely candidates checked first, then more where the draw is not decided yet, then all
+LAZY_CANDIDATES = (16, 64)
+LAZY_MIN_MASS = 0.5  # a lazy pass is tried where its candidates hold at least this probability mass
+_SLACK = 1e-12  # probability mass of slack in the bounds, covering the rounding of the full draw's CDF
+
+
+@dataclass
+class GuardStats:
+    """Counters of a guard: ``sampled`` agents, ``guarded`` ones (an obstacle or a road edge within reach
+    of a candidate), ``full`` ones whose V candidates were all checked, ``masked`` draws that differ from
+    the unguarded one, and fallbacks that dropped the road-edge rule (``edge_fallback``) or the whole
+    guard (``plain_fallback``)."""
+
+    sampled: int = 0
+    guarded: int = 0
+    full: int = 0
+    masked: int = 0
+    edge_fallback: int = 0
+    plain_fallback: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        """The counters by name."""
+        return dict(self.__dict__)
+
+
+@dataclass
+class SamplingGuard:
+    """The guard of one engine (see the module docstring): its geometry and counters."""
+
+    geometry: GuardGeometry
+    stats: GuardStats = field(default_factory=GuardStats)
+
+    def sample(
+        self,
+        rs: RowStates,
+        logits: torch.Tensor,
+        rows: np.ndarray,
+        agents: np.ndarray,
+        t: np.ndarray,
+        uniform: np.ndarray,
+        temperature: float,
+        top_p: float,
+    ) -> np.ndarray:
+        """Tokens ``[n]`` of agents ``agents`` of rows ``rows`` at steps ``t`` from their class logits
+        ``[n,V]`` and numbers ``uniform [n]``: the draw of the guarded logits."""
+        tokens = sample_with_uniform(logits, temperature, top_p, uniform)
+        pairs = self.geometry.pairs(rs, rows, agents, t)
+        guarded = np.flatnonzero(pairs.guarded)
+        self.stats.sampled += len(rows)
+        self.stats.guarded += len(guarded)
+        if not len(guarded):
+            return tokens
+        plain = tokens[guarded]
+        sub = logits[torch.from_numpy(guarded)]
+        chosen, done = plain.copy(), np.zeros(len(guarded), bool)
+        lazy = temperature == 0 or top_p == 1.0  # a masked nucleus depends on every candidate
+        for k in LAZY_CANDIDATES if lazy else ():
+            rest = np.flatnonzero(~done)
+            if not len(rest):
+                break
+            sel, lg = guarded[rest], sub[torch.from_numpy(rest)]
+            if temperature == 0:
+                chosen[rest], done[rest] = self._lazy_argmax(pairs, sel, lg, k)
+            else:
+                chosen[rest], done[rest] = self._lazy_draw(pairs, sel, lg, k, temperature, uniform[sel])
+        rest = np.flatnonzero(~done)
+        if len(rest):
+            chosen[rest] = self._full_draw(
+                pairs, guarded[rest], sub[torch.from_numpy(rest)], temperature, top_p, uniform[guarded[rest]]
+            )
+        tokens[guarded] = chosen
+        self.stats.full += len(rest)
+        self.stats.masked += int((chosen != plain).sum())
+        return tokens
+
+    def _lazy_argmax(
+        self, pairs: Pairs, sel: np.ndarray, logits: torch.Tensor, k: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Temperature 0: the most likely allowed candidate (lowest index on ties) when one of the ``k``
+        most likely is allowed."""
+        lg = logits.double().numpy()
+        k = min(k, lg.shape[1])
+        order = np.argsort(-lg, axis=1, kind="stable")[:, :k]
+        collide, off = self.geometry.blocked(pairs, sel, order)
+        ok = ~(collide | off)
+        first = np.argmax(ok, axis=1)
+        return order[np.arange(len(sel)), first], ok.any(axis=1)
+
+    def _lazy_draw(
+        self,
+        pairs: Pairs,
+        sel: np.ndarray,
+        logits: torch.Tensor,
+        k: int,
+        temperature: float,
+        uniform: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The draw of the fully masked distribution where the ``k`` most likely candidates decide it (see
+        the module docstring); ``done [m]`` says where."""
+        probs = torch.softmax(logits.double() / temperature, dim=-1).numpy()
+        m, v = probs.shape
+        k = min(k, v)
+        top = np.argpartition(-probs, k - 1, axis=1)[:, :k]
+        rows = np.arange(m)[:, None]
+        chosen, done = np.zeros(m, np.int64), np.zeros(m, bool)
+        try_ = np.flatnonzero(probs[rows, top].sum(axis=1) >= LAZY_MIN_MASS)  # else the bounds are too loose
+        if not len(try_):
+            return chosen, done
+        probs, top, rows, uniform = probs[try_], top[try_], rows[: len(try_)], uniform[try_]
+        collide, off = self.geometry.blocked(pairs, sel[try_], top)
+        allowed = np.zeros(probs.shape)
+        unknown = np.ones(probs.shape)
+        allowed[rows, top] = ~(collide | off)
+        unknown[rows, top] = 0.0
+        sure, maybe = probs * allowed, probs * unknown
+        z, eps = sure.sum(axis=1), maybe.sum(axis=1)
+        low, high = np.cumsum(sure, axis=1), np.cumsum(sure + maybe, axis=1)
+        earliest = np.argmax(high > (uniform * z - _SLACK)[:, None], axis=1)
+        past = low > (uniform * (z + eps) + _SLACK)[:, None]
+        latest = np.argmax(past, axis=1)
+        chosen[try_] = latest
+        done[try_] = (z > 0) & past.any(axis=1) & (earliest == latest)
+        return chosen, done
+
+    def _full_draw(
+        self,
+        pairs: Pairs,
+        sel: np.ndarray,
+        logits: torch.Tensor,
+        temperature: float,
+        top_p: float,
+        uniform: np.ndarray,
+    ) -> np.ndarray:
+        """Check every candidate of pairs ``sel`` and draw from the masked logits, with the fallbacks."""
+        v = logits.shape[1]
+        collide, off = self.geometry.blocked(pairs, sel, np.broadcast_to(np.arange(v), (len(sel), v)))
+        ok = ~(collide | off)
+        no_edge = ~ok.any(axis=1)
+        ok[no_edge] = ~collide[no_edge]
+        nothing = ~ok.any(axis=1)
+        ok[nothing] = True
+        self.stats.edge_fallback += int((no_edge & ~nothing).sum())
+        self.stats.plain_fallback += int(nothing.sum())
+        masked = logits.masked_fill(torch.from_numpy(~ok), float("-inf"))
+        return sample_with_uniform(masked, temperature, top_p, uniform)

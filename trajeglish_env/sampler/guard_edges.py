@@ -1,0 +1,224 @@
+"""Road edges of guarded sampling: which sampled vehicles a candidate could take off the road, and the env's
+off-road rule for their candidate boxes (a corner more than the margin beyond a road edge, the edge chosen
+and signed as the WOSAC reference does: :mod:`~trajeglish_env.env.batch_geometry`).
+
+A vehicle is left unchecked only where no candidate can be off the road, which is proved, not assumed: on
+a flat map, every segment that can be nearest to a point of a disc holding all its candidates' corners has
+the whole disc on its road side (the sign rule then gives every corner a distance <= 0). Each row-agent
+keeps a list of the segments near an anchor point (re-chosen when it drifts away), and the proof at the
+anchor covers every position within the drift; the nearest segments are sought among those of the list
+that can be nearest to a corner (bounded by the corner's distance to a few probe segments).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from trajeglish_env.env.batch_geometry import nearest_segments_near, selection_d2, signed_distances_to
+from trajeglish_env.sampler.config import OFFROAD_MARGIN
+from trajeglish_env.sampler.rows import RowEdges, RowStates
+
+# A row-agent's list holds the segments within EDGE_REACH m of its anchor, re-chosen when the agent is
+# farther than EDGE_DRIFT m from it.
+EDGE_REACH, EDGE_DRIFT = 40.0, 6.0
+PROBES = 6  # segments nearest a vehicle that bound its candidates' corners' distances to the road edges
+_SLACK = 0.01  # metres of slack in the proofs, covering the reference's float32 rounding
+
+
+def segment_geometry(
+    columns: np.ndarray, rows: np.ndarray, index: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """2-D distances ``[n,K]`` from ``points [n,2]`` to the segments ``index [n,K]`` (-1: none, inf) of rows
+    ``rows [n]`` of the padded road edges ``columns [B,7,S]``, and the points' signed distances to the
+    segments' lines (negative on the left, the road side; -inf for none and for null segments)."""
+    safe = np.maximum(index, 0)
+    ax, ay, dx, dy = (columns[rows[:, None], k, safe].astype(np.float64) for k in (0, 1, 3, 4))
+    ux, uy = points[:, 0, None] - ax, points[:, 1, None] - ay
+    length2 = dx * dx + dy * dy
+    real = length2 > 0
+    unit = np.where(real, length2, 1.0)
+    t = np.clip(np.where(real, (ux * dx + uy * dy) / unit, 0.0), 0, 1)
+    distance = np.where(index >= 0, np.hypot(ux - t * dx, uy - t * dy), np.inf)
+    side = np.where((index >= 0) & real, (ux * dy - uy * dx) / np.sqrt(unit), -np.inf)
+    return distance, side
+
+
+def on_road_side(
+    distance: np.ndarray, side: np.ndarray, clearance: np.ndarray, radius: np.ndarray, cover: np.ndarray
+) -> np.ndarray:
+    """``[n]`` True where a disc of ``radius [n]`` around a point (at ``clearance [n]`` from the nearest
+    edge) lies on the road side of every segment that can be nearest to one of its points (those within
+    clearance + 2 radius of the centre, all among the listed ones if that is within ``cover [n]``): the
+    reference's distance is then <= 0 all over the disc (beyond a segment's end, the neighbour that gives
+    the sign is as near)."""
+    reach = clearance + 2 * radius + _SLACK
+    relevant = distance <= reach[:, None]
+    return (reach <= cover) & (~relevant | (side <= -(radius + _SLACK)[:, None])).all(axis=1)
+
+
+def is_flat(edges: RowEdges) -> bool:
+    """Every road-edge point of a row at z = 0 (the generated maps): the reference's choice of the nearest
+    segment is then the planar one, which the proofs above need."""
+    columns = edges[0]
+    return not (columns[2].any() or columns[5].any())
+
+
+class EdgeLists:
+    """Per row-agent: the road-edge segments near an anchor point, and whether every candidate box from
+    any position within EDGE_DRIFT of it is provably on the road (``sure``)."""
+
+    def __init__(self) -> None:
+        self.anchor = np.zeros((0, 0, 2))
+        self.lists = np.zeros((0, 0, 0), dtype=np.int32)
+        self.sure = np.zeros((0, 0), bool)
+        self.keys: list[object] = []
+        self.flat: dict[int, tuple[RowEdges, bool]] = {}
+
+    def row_flat(self, rs: RowStates, rows: np.ndarray) -> np.ndarray:
+        """``[n]`` whether the road edges of ``rows`` are flat (cached per edge set)."""
+        out = np.zeros(len(rows), bool)
+        for i, r in enumerate(rows.tolist()):
+            edges = rs.edges[r]
+            hit = self.flat.get(id(edges))
+            if hit is None or hit[0] is not edges:
+                hit = self.flat[id(edges)] = (edges, is_flat(edges))
+            out[i] = hit[1]
+        return out
+
+    def update(
+        self,
+        rs: RowStates,
+        columns: np.ndarray,
+        rr: np.ndarray,
+        who: np.ndarray,
+        origin: np.ndarray,
+        extent: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Lists ``[n,W]``, anchors ``[n,2]`` and ``sure [n]`` of agents ``who`` of rows ``rr`` at
+        ``origin [n,3]`` whose candidate corners lie within ``extent [n]`` of it; the lists of agents that
+        drifted away, or of rows now on another scene, are chosen anew (around the agent)."""
+        B, N = rs.B, rs.N
+        if self.anchor.shape[:2] != (B, N):
+            self.anchor = np.full((B, N, 2), np.inf)
+            self.lists = np.full((B, N, 1), -1, dtype=np.int32)
+            self.sure = np.zeros((B, N), bool)
+            self.keys = [None] * B
+        for r in range(B):
+            if self.keys[r] is not rs.edges[r]:
+                self.anchor[r], self.keys[r] = np.inf, rs.edges[r]
+        anchor = self.anchor[rr, who]
+        stale = np.flatnonzero(~(np.hypot(*(origin[:, :2] - anchor).T) <= EDGE_DRIFT))
+        if len(stale):
+            r, a = rr[stale], who[stale]
+            every = np.broadcast_to(np.arange(columns.shape[2]), (len(stale), columns.shape[2]))
+            real = every < np.array([e[0].shape[1] for e in rs.edges])[r, None]
+            distance, side = segment_geometry(columns, r, np.where(real, every, -1), origin[stale, :2])
+            lists = _compact(distance <= EDGE_REACH, every)
+            if lists.shape[1] > self.lists.shape[2]:
+                grown = np.full((B, N, lists.shape[1]), -1, dtype=np.int32)
+                grown[..., : self.lists.shape[2]] = self.lists
+                self.lists = grown
+            self.lists[r, a] = -1
+            self.lists[r, a, : lists.shape[1]] = lists
+            self.anchor[r, a] = origin[stale, :2]
+            radius = EDGE_DRIFT + extent[stale]
+            everywhere = np.full(len(stale), np.inf)  # every segment was scanned
+            proof = on_road_side(distance, side, distance.min(axis=1), radius, everywhere)
+            self.sure[r, a] = proof & self.row_flat(rs, r)
+        return self.lists[rr, who], self.anchor[rr, who], self.sure[rr, who]
+
+
+@dataclass(frozen=True)
+class RoadView:
+    """The road edges of a call's ``n`` pairs: ``road [n]`` where the road-edge rule applies (a vehicle on
+    the road that a candidate could take off it); each pair's listed segments ``segments [n,W]`` (-1
+    padding) with their distances to its origin ``distance [n,W]``, its distance to the nearest edge
+    ``clearance [n]`` and ``cover [n]`` (every segment that near its origin is listed); the rows' padded
+    road edges ``columns``/``links``/``count``."""
+
+    road: np.ndarray
+    segments: np.ndarray
+    distance: np.ndarray
+    clearance: np.ndarray
+    cover: np.ndarray
+    columns: np.ndarray
+    links: np.ndarray
+    count: np.ndarray
+
+    def beyond(
+        self, sel: np.ndarray, rows: np.ndarray, origin: np.ndarray, corners: np.ndarray
+    ) -> np.ndarray:
+        """``[m,c]`` True where a vehicle box (``corners [m,c,4,2]``; pairs ``sel [m]`` of rows ``rows [m]``,
+        boxes starting from ``origin [m,3]``) has a corner more than the margin beyond a road edge: the
+        env's rule, the nearest segment sought among those that can be nearest to one of the corners."""
+        m, c = corners.shape[:2]
+        points = corners.reshape(m, c * 4, 2)
+        centre = origin[:, :2]
+        # an upper bound on each corner's distance to its nearest segment (in the reference's z-stretched
+        # metric, never below the planar one): its distance to the PROBES listed segments nearest the origin
+        distance, segments = self.distance[sel], self.segments[sel]
+        k = min(PROBES, segments.shape[1])
+        probes = np.take_along_axis(segments, np.argpartition(distance, k - 1, axis=1)[:, :k], 1)
+        cols = self.columns[rows[:, None, None], np.arange(7)[None, :, None], np.maximum(probes, 0)[:, None]]
+        d2 = np.where((probes >= 0)[:, None], selection_d2(cols, points[..., 0], points[..., 1]), np.inf)
+        bound = np.sqrt(d2.min(axis=-1).astype(np.float64))  # [m, 4c]
+        away = np.hypot(points[..., 0] - centre[:, None, 0], points[..., 1] - centre[:, None, 1])
+        # so each corner's nearest segment lies within away + bound of the origin (1 m to spare for float32
+        # rounding); past the list's cover, nearest_segments_near scans every segment
+        reach = np.minimum((away + bound).max(axis=1) + 1.0, self.cover[sel])
+        near = _compact(distance <= reach[:, None], segments)
+        nearest = nearest_segments_near(self.columns, self.count, rows, points, near, centre, reach[:, None])
+        signed = signed_distances_to(self.columns, self.links, rows, points, nearest)
+        return (signed.reshape(m, c, 4) > OFFROAD_MARGIN).any(axis=-1)
+
+
+def road_view(
+    lists: EdgeLists,
+    rs: RowStates,
+    rr: np.ndarray,
+    who: np.ndarray,
+    origin: np.ndarray,
+    corners: np.ndarray,
+    extent: np.ndarray,
+    vehicle: np.ndarray,
+    padded: tuple[np.ndarray, np.ndarray, np.ndarray],
+) -> RoadView:
+    """The road edges of pairs (agents ``who`` of rows ``rr`` at ``origin [n,3]``, their boxes there
+    ``corners [n,4,2]``, their candidates' corners within ``extent [n]``; ``vehicle [n]``) given the rows'
+    padded road edges ``padded = (columns, links, count)``: the rule applies to a vehicle unless its
+    candidates are provably on the road, or it is off the road already."""
+    columns, links, count = padded
+    n = len(rr)
+    road, clearance, cover = np.zeros(n, bool), np.full(n, np.inf), np.zeros(n)
+    segments, distance = np.full((n, 1), -1, dtype=np.int64), np.full((n, 1), np.inf)
+    view = RoadView(road, segments, distance, clearance, cover, columns, links, count)
+    v = np.flatnonzero(vehicle & (count[rr] > 0))
+    if not len(v):
+        return view
+    listed, anchor, sure = lists.update(rs, columns, rr[v], who[v], origin[v], extent[v])
+    c, listed, anchor = v[~sure], listed[~sure], anchor[~sure]
+    if not len(c):
+        return view
+    dist, side = segment_geometry(columns, rr[c], listed, origin[c, :2])
+    cover[c] = EDGE_REACH - np.hypot(*(origin[c, :2] - anchor).T)  # every segment this near is listed
+    clearance[c] = np.minimum(dist.min(axis=1), cover[c])  # exact when below the cover
+    proof = on_road_side(dist, side, clearance[c], extent[c], cover[c]) & lists.row_flat(rs, rr[c])
+    segments = np.full((n, listed.shape[1]), -1, dtype=np.int64)
+    distance = np.full((n, listed.shape[1]), np.inf)
+    segments[c], distance[c] = listed, dist
+    view = RoadView(road, segments, distance, clearance, cover, columns, links, count)
+    check = c[~proof]
+    if len(check):
+        road[check] = ~view.beyond(check, rr[check], origin[check], corners[check][:, None])[:, 0]
+    return view
+
+
+def _compact(keep: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Rows of ``index [n,K]`` reduced to their kept entries (ascending order kept), -1 padding."""
+    width = max(int(keep.sum(axis=1).max(initial=0)), 1)
+    out = np.full((len(keep), width), -1, dtype=np.int64)
+    i, j = np.nonzero(keep)
+    out[i, (np.cumsum(keep, axis=1) - 1)[i, j]] = index[i, j]
+    return out

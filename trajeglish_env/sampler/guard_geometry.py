@@ -1,0 +1,135 @@
+"""Geometry of guarded sampling (:mod:`~trajeglish_env.sampler.guard`): for the (row, agent) pairs sampled
+in one model call, the obstacles near each agent and the road edges near each vehicle
+(:mod:`~trajeglish_env.sampler.guard_edges`), and which candidate tokens would overlap an obstacle or put
+the vehicle off the road.
+
+Vectorized over pairs, candidates and neighbours, with the env's own functions
+(:mod:`~trajeglish_env.env.batch_geometry`): boxes overlap by the separating-axis test the env's collision
+flag uses, and off-road is the env's rule. Every number of a pair depends on its own row only, never on
+the rows sampled with it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from trajeglish_env.env.batch_geometry import PaddedRows, latest_states, nearest_first
+from trajeglish_env.geometry import box_corners, to_global
+from trajeglish_env.metrics.boxes import box_collisions
+from trajeglish_env.sampler.guard_edges import EdgeLists, RoadView, road_view
+from trajeglish_env.sampler.rows import RowStates
+from trajeglish_env.scenario import AgentKind
+
+
+@dataclass(frozen=True)
+class Pairs:
+    """The ``n`` pairs of a model call as the guard sees them: ``rows``/``agents [n]``; ``origin [n,3]``
+    the model's state the candidates start from, ``size [n,2]``, ``kind [n]``; the obstacles near each
+    agent ``near_xyh [n,K,3]``, ``near_size [n,K,2]``, ``near_real [n,K]``; its road ``edges``."""
+
+    rows: np.ndarray
+    agents: np.ndarray
+    origin: np.ndarray
+    size: np.ndarray
+    kind: np.ndarray
+    near_xyh: np.ndarray
+    near_size: np.ndarray
+    near_real: np.ndarray
+    edges: RoadView
+
+    @property
+    def guarded(self) -> np.ndarray:
+        """``[n]`` pairs some candidate of which could be masked (an obstacle near, or a road edge)."""
+        return self.near_real.any(axis=1) | self.edges.road
+
+
+def half_diagonal(size: np.ndarray) -> np.ndarray:
+    """Radius ``[...]`` of the circle around a box of ``size [...,2]``."""
+    return np.hypot(size[..., 0], size[..., 1]) / 2
+
+
+class GuardGeometry:
+    """Obstacles and road edges of the sampled pairs of an engine's rows (``templates [classes,V,3]``:
+    the motion tokens), with each row-agent's road-edge list kept between steps."""
+
+    def __init__(self, templates: np.ndarray):
+        self.templates = np.asarray(templates, dtype=np.float64)
+        self.move = np.hypot(self.templates[..., 0], self.templates[..., 1]).max(axis=1)  # per class
+        self._columns = PaddedRows(0.0, last=True)
+        self._links = PaddedRows(-1, last=True)
+        self._lists = EdgeLists()
+
+    def pairs(self, rs: RowStates, rr: np.ndarray, who: np.ndarray, tt: np.ndarray) -> Pairs:
+        """The guard's view of agents ``who`` of rows ``rr`` about to be sampled at steps ``tt``."""
+        origin, size, kind = rs.mxyh[rr, who, tt], rs.size[rr, who], rs.kind[rr, who]
+        extent = self.move[kind] + half_diagonal(size)  # candidate corners lie within this of the origin
+        near = self._neighbours(rs, rr, who, tt, origin, size, extent)
+        padded = (
+            self._columns.sync(rs.edges, lambda e: e[0]),  # type: ignore[index]
+            self._links.sync(rs.edges, lambda e: e[1]),  # type: ignore[index]
+            np.array([e[0].shape[1] for e in rs.edges]),
+        )
+        corners = box_corners(origin, size)
+        vehicle = kind == AgentKind.VEHICLE
+        edges = road_view(self._lists, rs, rr, who, origin, corners, extent, vehicle, padded)
+        return Pairs(rr, who, origin, size, kind, *near, edges)
+
+    def _neighbours(
+        self,
+        rs: RowStates,
+        rr: np.ndarray,
+        who: np.ndarray,
+        tt: np.ndarray,
+        origin: np.ndarray,
+        size: np.ndarray,
+        extent: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The boxes a candidate could overlap: the next state of each agent of the row that has moved in
+        this step, the current one of each that has not, within reach of some candidate; agents the
+        agent's box overlaps already are left out (no move can undo that overlap)."""
+        n = len(rr)
+        t1 = tt + 1
+        now, after = rs.xyh[rr, :, tt], rs.xyh[rr, :, t1]
+        valid_now = rs.valid[rr, :, tt]
+        moved, valid_after = rs.known[rr, :, tt], rs.valid[rr, :, t1]
+        state, present, _ = latest_states(
+            now, after, now, valid_now, valid_after, np.zeros_like(valid_now), moved, np.ones((n, 1))
+        )
+        sizes = rs.size[rr]
+        d = np.hypot(state[..., 0] - origin[:, None, 0], state[..., 1] - origin[:, None, 1])
+        near = present & (d < extent[:, None] + half_diagonal(sizes))
+        near[np.arange(n), who] = False
+        i, j = np.nonzero(near)
+        if len(i):
+            near[i, j] = ~box_collisions(origin[i], size[i], state[i, j], sizes[i, j])
+        k = int(near.sum(axis=1).max(initial=0))
+        if k == 0:
+            return np.zeros((n, 0, 3)), np.ones((n, 0, 2)), np.zeros((n, 0), bool)
+        idx, real = nearest_first(np.where(near, d, np.inf), k)
+        rows = np.arange(n)[:, None]
+        return state[rows, idx], sizes[rows, idx], real
+
+    def blocked(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For pairs ``sel [m]`` and their candidate ``tokens [m,c]``: which would overlap an obstacle, and
+        which would take the vehicle off the road (where the road-edge rule applies) ``[m,c]``."""
+        kind, size = p.kind[sel], p.size[sel]
+        cand = to_global(p.origin[sel][:, None], self.templates[kind[:, None], tokens])  # [m,c,3]
+        collide = np.zeros(tokens.shape, bool)
+        if p.near_xyh.shape[1]:
+            nx, ns, real = p.near_xyh[sel], p.near_size[sel], p.near_real[sel]
+            dx = cand[:, :, None, 0] - nx[:, None, :, 0]
+            dy = cand[:, :, None, 1] - nx[:, None, :, 1]
+            limit = half_diagonal(size)[:, None] + half_diagonal(ns)  # [m,K]: circles apart, boxes apart
+            i, v, k = np.nonzero(real[:, None] & (dx * dx + dy * dy < (limit * limit)[:, None]))
+            if len(i):
+                hit = box_collisions(cand[i, v], size[i], nx[i, k], ns[i, k])
+                collide[i[hit], v[hit]] = True
+        off = np.zeros(tokens.shape, bool)
+        q = np.flatnonzero(p.edges.road[sel])
+        if len(q):
+            pick = sel[q]
+            corners = box_corners(cand[q], size[q][:, None])
+            off[q] = p.edges.beyond(pick, p.rows[pick], p.origin[pick], corners)
+        return collide, off
