@@ -165,9 +165,10 @@ class RoadView:
         d2 = np.where((probes >= 0)[:, None], selection_d2(cols, points[..., 0], points[..., 1]), np.inf)
         bound = np.sqrt(d2.min(axis=-1).astype(np.float64))  # [m, 4c]
         away = np.hypot(points[..., 0] - centre[:, None, 0], points[..., 1] - centre[:, None, 1])
-        # so each corner's nearest segment lies within away + bound of the origin (1 m to spare for float32
-        # rounding); past the list's cover, nearest_segments_near scans every segment
-        reach = np.minimum((away + bound).max(axis=1) + 1.0, self.cover[sel])
+        # so each corner's nearest segment lies within away + bound of the origin; nearest_segments_near
+        # keeps 1 m of its reach for float32 rounding (the reach gives it that, and 0.1 m more, so that the
+        # farthest corner is decided by the list too); past the list's cover it scans every segment
+        reach = np.minimum((away + bound).max(axis=1) + 1.1, self.cover[sel])
         near = _compact(distance <= reach[:, None], segments)
         nearest = nearest_segments_near(self.columns, self.count, rows, points, near, centre, reach[:, None])
         signed = signed_distances_to(self.columns, self.links, rows, points, nearest)
