@@ -64,7 +64,8 @@ def _npc_logits(monkeypatch: pytest.MonkeyPatch, order: str, action: list[float]
         return original(logits, *args, **kwargs)
 
     monkeypatch.setattr(engine_module, "sample_with_uniform", spy)
-    unguarded = TrajeglishNPC(tiny(), SamplingConfig(guard=False))  # the spy sits on the engine's own draw
+    # the spy sits on the engine's own draw, one call per sampled agent when decoding sequentially
+    unguarded = TrajeglishNPC(tiny(), SamplingConfig(guard=False, intra_step="sequential"))
     e = raw_env([bundle_scene(MERGE)], npc=unguarded, order=order, max_cycles=3, reward=KEEP_GOING)
     e.reset(seed=0)
     for _ in range(2):

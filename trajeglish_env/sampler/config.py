@@ -16,6 +16,9 @@ DEFAULT_TEMPERATURE = 0.75
 # ``RewardConfig.offroad_margin`` default, and the margin of guarded sampling's road-edge rule.
 OFFROAD_MARGIN = 0.5
 DEFAULT_GUARD = True
+# How the agents of a step are decoded (see :mod:`~trajeglish_env.sampler.parallel`): "parallel" (fixed-point
+# iteration over a whole run of agents per model call) or "sequential" (one model call per sampled agent).
+INTRA_STEP_MODES = ("parallel", "sequential")
 
 
 @dataclass(frozen=True)
@@ -33,7 +36,14 @@ class SamplingConfig:
     box would overlap one of them (or the current box of an agent that has not moved yet), or that would
     put a vehicle's box more than :data:`OFFROAD_MARGIN` m beyond a road edge (unless it is off the road
     already), are masked before the token is drawn; when that leaves nothing, the road-edge rule is
-    dropped, then the guard altogether."""
+    dropped, then the guard altogether.
+
+    ``intra_step``: how the agents of a timestep are decoded (:data:`INTRA_STEP_MODES`). Both draw each
+    agent's token from the model's conditional given the tokens of the agents before it, with the agent's
+    own counter-based number; "parallel" needs about 2 model calls a step instead of one per agent. The two
+    agree token for token but where the float rounding of a multi-query attention call differs from a
+    single-query one by enough to move a draw across a token boundary (about one draw in 10^4 with the
+    shipped model; docs/architecture.md)."""
 
     temperature: float = DEFAULT_TEMPERATURE
     top_p: float = 1.0
@@ -43,6 +53,7 @@ class SamplingConfig:
     recompute_every: int | None = None
     seed: int = 0
     guard: bool = DEFAULT_GUARD
+    intra_step: str = "parallel"
 
     def __post_init__(self) -> None:
         if not isinstance(self.guard, bool):
@@ -54,6 +65,10 @@ class SamplingConfig:
         if self.cache_dtype not in CACHE_DTYPES:
             raise ValueError(
                 f"SamplingConfig.cache_dtype must be one of {CACHE_DTYPES}, got {self.cache_dtype!r}"
+            )
+        if self.intra_step not in INTRA_STEP_MODES:
+            raise ValueError(
+                f"SamplingConfig.intra_step must be one of {INTRA_STEP_MODES}, got {self.intra_step!r}"
             )
         if self.subsets not in SUBSET_RULES:
             raise ValueError(f"SamplingConfig.subsets must be one of {SUBSET_RULES}, got {self.subsets!r}")

@@ -39,6 +39,7 @@ from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.geometry import to_global
 from trajeglish_env.model.config import Variant
 from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.parallel import accepted, guard_view, previous_tokens
 from trajeglish_env.sampler.rows import RowSpec
 from trajeglish_env.sampler.sampling import counter_uniform, sample_with_uniform, stream_seed
 from trajeglish_env.sampler.windows import Window, WindowedRows
@@ -86,6 +87,7 @@ class BatchEngine(WindowedRows):
             self.guard = SamplingGuard(GuardGeometry(self.vocab.templates))
             self.with_edges = True
         self._slot = np.zeros(self.B, dtype=np.int64)  # per row: next slot of that rank to decode
+        self.model_calls = 0  # decoding calls made (a measure of the cost of a step)
 
     # ------------------------------------------------------------------ stepping
     def advance(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -104,7 +106,9 @@ class BatchEngine(WindowedRows):
         Each row runs through the slots of subset rank 0, 1, ... with its own cursor: a model call decodes,
         per row, the run of positions up to its next *blocker* (an agent to sample, or an external agent
         not supplied yet) in one chunk, since the inputs of all of them are known. Known agents (forced,
-        padding, supplied externals) therefore cost no extra calls."""
+        padding, supplied externals) therefore cost no extra calls. Decoding in parallel
+        (:mod:`~trajeglish_env.sampler.parallel`), the chunk runs to the next external agent not supplied
+        yet, and the cursor moves past the pairs the call decided exactly."""
         stepping = self.stepping
         if not stepping.any():
             raise RuntimeError("no row has steps left (start rows, or the horizon is reached)")
@@ -117,6 +121,8 @@ class BatchEngine(WindowedRows):
             self._in_step = True
             self._rank = 0
             self._slot = np.where(self.num_subsets > 0, 0, self.cfg.max_agents)
+            parallel = self.config.intra_step == "parallel"
+            self._draft = previous_tokens(self) if parallel else None
         A = self.cfg.max_agents
         ranks = int(self.num_subsets[stepping].max(initial=0))
         t_safe = np.minimum(self.now, self.T - 2)
@@ -137,12 +143,14 @@ class BatchEngine(WindowedRows):
                 self._rank += 1
                 self._slot = np.where(self.num_subsets > self._rank, 0, A)
                 continue
-            blocker = (sample | wait) if self.cfg.variant is Variant.TRAJEGLISH else np.zeros_like(sample)
+            if self.cfg.variant is not Variant.TRAJEGLISH:
+                blocker = np.zeros_like(sample)
+            else:
+                blocker = wait if self._draft is not None else sample | wait
             blocker &= np.arange(A)[None] >= self._slot[:, None]
             stop = np.where(blocker.any(1), np.argmax(blocker, axis=1), A - 1)
             count = np.where(active, stop - self._slot + 1, 0)
-            self._decode_chunk(w, count, sample, stepping, t_safe)
-            self._slot = self._slot + count
+            self._slot = self._slot + self._decode_chunk(w, count, sample, stepping, t_safe)
         late = self._pending_external(stepping, t_safe)
         if late is not None:
             return late
@@ -150,6 +158,7 @@ class BatchEngine(WindowedRows):
         self.known[rows, :, self.now[rows]] = True  # undecided tokens are unobserved from now on
         self.now[rows] += 1
         self._in_step = False
+        self._draft = None
         return None
 
     def _hand_over(self, rows: np.ndarray) -> None:
@@ -167,9 +176,10 @@ class BatchEngine(WindowedRows):
 
     def _decode_chunk(
         self, w: Window, count: np.ndarray, sample: np.ndarray, stepping: np.ndarray, t: np.ndarray
-    ) -> None:
+    ) -> np.ndarray:
         """Decode ``count[b]`` positions of window ``w`` from each row's cursor; sample the agents to
-        sample among them."""
+        sample among them. Returns how many positions of each row are decided (all ``count`` of them,
+        but for a parallel call: up to its first drawn token that differs from its draft)."""
         A = self.cfg.max_agents
         n = max(self._min_queries, int(count.max()))
         tau = self.now - w.start
@@ -179,10 +189,11 @@ class BatchEngine(WindowedRows):
         positions = np.where(inside, start[:, None] + offsets, start[:, None])
         carried, own = self._inputs(np.arange(self.B), w.slots, w.start, positions)
         hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, count)
+        self.model_calls += 1
         slots = positions % A
         todo = inside & np.take_along_axis(sample, slots, 1)
         if not todo.any():
-            return
+            return count
         rr, cc = np.nonzero(todo)
         who = w.slots[rr, slots[rr, cc]]
         rows_t = torch.from_numpy(rr).to(self.device)
@@ -191,10 +202,24 @@ class BatchEngine(WindowedRows):
         tt = self.now[rr]
         u = counter_uniform(self.seed[rr], tt, who)
         temperature, top_p = self.config.temperature, self.config.top_p
+        drafts = None if self._draft is None else self._draft[rr, who]
         if self.guard is None:
             tok = sample_with_uniform(logits, temperature, top_p, u)
         else:
-            tok = self.guard.sample(self, logits, rr, who, tt, u, temperature, top_p)
+            view = None if drafts is None else guard_view(self, rr, who, drafts)
+            tok = self.guard.sample(self, logits, rr, who, tt, u, temperature, top_p, view)
+        done = count
+        if drafts is not None:  # keep the exact pairs; the others are drafted anew from their tokens
+            last = accepted(rr, cc, tok, drafts, self.B)
+            done = np.where(last >= 0, last + 1, count)
+            self._draft[rr, who] = tok
+            keep = cc <= last[rr]
+            rr, who, tt, tok = rr[keep], who[keep], tt[keep], tok[keep]
+        self._finish(rr, who, tt, tok)
+        return done
+
+    def _finish(self, rr: np.ndarray, who: np.ndarray, tt: np.ndarray, tok: np.ndarray) -> None:
+        """Record the drawn tokens ``tok`` of agents ``who`` of rows ``rr`` at steps ``tt`` and their states."""
         self.tokens[rr, who, tt] = tok
         self.known[rr, who, tt] = True
         nxt = to_global(self.mxyh[rr, who, tt], self.vocab.templates[self.kind[rr, who], tok])

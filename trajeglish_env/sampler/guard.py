@@ -72,11 +72,15 @@ class SamplingGuard:
         uniform: np.ndarray,
         temperature: float,
         top_p: float,
+        view: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """Tokens ``[n]`` of agents ``agents`` of rows ``rows`` at steps ``t`` from their class logits
-        ``[n,V]`` and numbers ``uniform [n]``: the draw of the guarded logits."""
+        ``[n,V]`` and numbers ``uniform [n]``: the draw of the guarded logits. ``view``: per pair, the
+        agents that moved before it ``[n,N]`` and their next states ``[n,N,3]`` (default: the rows'
+        state, i.e. one pair per row, as in sequential decoding; :func:`~trajeglish_env.sampler.parallel.
+        guard_view` for a parallel call)."""
         tokens = sample_with_uniform(logits, temperature, top_p, uniform)
-        pairs = self.geometry.pairs(rs, rows, agents, t)
+        pairs = self.geometry.pairs(rs, rows, agents, t, view)
         guarded = np.flatnonzero(pairs.guarded)
         self.stats.sampled += len(rows)
         self.stats.guarded += len(guarded)

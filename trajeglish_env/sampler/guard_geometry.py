@@ -61,11 +61,19 @@ class GuardGeometry:
         self._links = PaddedRows(-1, last=True)
         self._lists = EdgeLists()
 
-    def pairs(self, rs: RowStates, rr: np.ndarray, who: np.ndarray, tt: np.ndarray) -> Pairs:
-        """The guard's view of agents ``who`` of rows ``rr`` about to be sampled at steps ``tt``."""
+    def pairs(
+        self,
+        rs: RowStates,
+        rr: np.ndarray,
+        who: np.ndarray,
+        tt: np.ndarray,
+        view: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> Pairs:
+        """The guard's view of agents ``who`` of rows ``rr`` about to be sampled at steps ``tt``; ``view``:
+        which agents moved before each pair and their next states (default: as the rows say)."""
         origin, size, kind = rs.mxyh[rr, who, tt], rs.size[rr, who], rs.kind[rr, who]
         extent = self.move[kind] + half_diagonal(size)  # candidate corners lie within this of the origin
-        near = self._neighbours(rs, rr, who, tt, origin, size, extent)
+        near = self._neighbours(rs, rr, who, tt, origin, size, extent, view)
         padded = (
             self._columns.sync(rs.edges, lambda e: e[0]),  # type: ignore[index]
             self._links.sync(rs.edges, lambda e: e[1]),  # type: ignore[index]
@@ -85,15 +93,15 @@ class GuardGeometry:
         origin: np.ndarray,
         size: np.ndarray,
         extent: np.ndarray,
+        view: tuple[np.ndarray, np.ndarray] | None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The boxes a candidate could overlap: the next state of each agent of the row that has moved in
         this step, the current one of each that has not, within reach of some candidate; agents the
         agent's box overlaps already are left out (no move can undo that overlap)."""
         n = len(rr)
         t1 = tt + 1
-        now, after = rs.xyh[rr, :, tt], rs.xyh[rr, :, t1]
-        valid_now = rs.valid[rr, :, tt]
-        moved, valid_after = rs.known[rr, :, tt], rs.valid[rr, :, t1]
+        now, valid_now, valid_after = rs.xyh[rr, :, tt], rs.valid[rr, :, tt], rs.valid[rr, :, t1]
+        moved, after = (rs.known[rr, :, tt], rs.xyh[rr, :, t1]) if view is None else view
         state, present, _ = latest_states(
             now, after, now, valid_now, valid_after, np.zeros_like(valid_now), moved, np.ones((n, 1))
         )

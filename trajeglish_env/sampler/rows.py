@@ -59,6 +59,8 @@ class RowStates:
         self._edge_cache: dict[int, tuple[Scenario, RowEdges]] = {}
         self._in_step = False  # a step has begun and is not finished (see cancel_step)
         self._supplied: list[tuple[np.ndarray, ...]] = []  # supplies whose tokens are not computed yet
+        # drafted tokens [B,N] of the step being decoded in parallel (None: sequential decoding)
+        self._draft: np.ndarray | None = None
 
     def _allocate(self, n: int, t: int) -> None:
         """Grow the per-row arrays to ``n`` agents and ``t`` steps (padding: absent, decided)."""
@@ -92,6 +94,7 @@ class RowStates:
         the other rows is undone, see :meth:`cancel_step`)."""
         self.cancel_step()
         self._tokenize_supplied()
+        self._draft = None
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)
         if len(rows) != len(seeds) or ((rows < 0) | (rows >= self.B)).any():
@@ -194,6 +197,7 @@ class RowStates:
         if not self._in_step:
             return
         self._supplied = []
+        self._draft = None
         rows = np.flatnonzero(self.stepping)
         r, a = np.nonzero(self.row_controlled[rows] | self.row_external[rows])
         rr, t = rows[r], self.now[rows[r]]

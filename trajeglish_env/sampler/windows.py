@@ -183,11 +183,17 @@ class WindowedRows(RowStates):
         )
 
     def _joint(self, rows: np.ndarray, agents: np.ndarray, steps: np.ndarray) -> np.ndarray:
-        """Joint ids of the tokens of ``agents [r,n]`` (-1 padding) at ``steps [r,n]`` (-1: unknown)."""
+        """Joint ids of the tokens of ``agents [r,n]`` (-1 padding) at ``steps [r,n]`` (-1: unknown; the
+        draft of an undecided token of the step being decoded in parallel)."""
         safe = np.maximum(agents, 0)
         r_ix = rows[:, None]
         tok = self.tokens[r_ix, safe, steps]
-        ok = (agents >= 0) & self.known[r_ix, safe, steps] & (tok >= 0)
+        known = self.known[r_ix, safe, steps]
+        ok = (agents >= 0) & known & (tok >= 0)
+        if self._draft is not None:
+            draft = self._draft[r_ix, safe]
+            use = (agents >= 0) & ~known & (steps == self.now[r_ix]) & (draft >= 0)
+            tok, ok = np.where(use, draft, tok), ok | use
         return np.where(ok, tok + self.kind[r_ix, safe] * self.cfg.vocab_size, -1)
 
     def _inputs(

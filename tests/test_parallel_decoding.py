@@ -1,0 +1,122 @@
+"""Parallel (fixed-point) decoding of the agents of a step draws the tokens sequential decoding draws, in
+far fewer model calls (trajeglish_env.sampler.parallel)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import straight_road_scene, tiny_checkpoint, womd_tfrecord
+
+from trajeglish_env.sampler import RolloutEngine, SamplingConfig
+from trajeglish_env.sampler.parallel import accepted, guard_view
+from trajeglish_env.sampler.rows import RowSpec
+from trajeglish_env.sampler.engine import BatchEngine
+
+
+def _run(sc, mode: str, guard: bool, rollouts: int = 2, horizon: int = 8, external=None):  # type: ignore[no-untyped-def]
+    """Tokens and model calls of a rollout whose external agent (if any) replays its log."""
+    live = sc.valid[:, sc.current_index]
+    ext = np.zeros(sc.num_agents, bool) if external is None else external
+    cfg = SamplingConfig(seed=5, guard=guard, intra_step=mode)
+    eng = RolloutEngine(tiny_checkpoint(), sc, rollouts, horizon, live & ~ext, external=ext, config=cfg)
+    while eng.stepping.any():
+        agent = eng.advance()
+        if agent is not None:
+            eng.supply(agent, np.broadcast_to(sc.xyh[agent, eng.t + 1], (rollouts, 3)))
+    return eng.tokens.copy(), eng.xyh.copy(), eng.model_calls
+
+
+@pytest.mark.parametrize("guard", [False, True])
+def test_parallel_decoding_draws_the_sequential_tokens_in_fewer_calls(guard: bool) -> None:
+    sc = straight_road_scene(num_agents=6, steps=40)
+    seq_tokens, seq_xyh, seq_calls = _run(sc, "sequential", guard)
+    par_tokens, par_xyh, par_calls = _run(sc, "parallel", guard)
+    np.testing.assert_array_equal(par_tokens, seq_tokens)
+    np.testing.assert_array_equal(par_xyh, seq_xyh)
+    # 5 sampled agents a step (the last enters late): 5 calls a step sequentially; in parallel, about 2
+    assert seq_calls == 8 * 5
+    assert par_calls <= 0.6 * seq_calls
+
+
+def test_parallel_decoding_waits_for_an_external_agent_in_the_middle() -> None:
+    sc = straight_road_scene(num_agents=6, steps=40)
+    external = np.zeros(6, bool)
+    external[2] = True  # acts third (slot order follows the sdc-first plan)
+    seq = _run(sc, "sequential", True, external=external)
+    par = _run(sc, "parallel", True, external=external)
+    np.testing.assert_array_equal(par[0], seq[0])
+    end = sc.current_index + 9
+    np.testing.assert_array_equal(par[1][:, 2, :end], np.broadcast_to(sc.xyh[2, :end], (2, end, 3)))
+
+
+def test_parallel_decoding_of_a_real_womd_scene_in_a_batch() -> None:
+    """50 agents (several contexts of the tiny model) in rows of a batch: parallel = sequential, per row."""
+    from trajeglish_env.sources.womd import read_womd
+
+    sc = next(read_womd(womd_tfrecord()))
+    live = sc.valid[:, sc.current_index]
+    out = {}
+    for mode in ("sequential", "parallel"):
+        eng = BatchEngine(tiny_checkpoint(), 3, SamplingConfig(intra_step=mode, prime_steps=3))
+        eng.start_rows([0, 1, 2], RowSpec(sc, 6, live), [11, 12, 13])
+        eng.run()
+        out[mode] = (eng.tokens.copy(), eng.model_calls)
+    np.testing.assert_array_equal(out["parallel"][0], out["sequential"][0])
+    assert out["parallel"][1] < out["sequential"][1]
+
+
+def test_the_shipped_model_decodes_a_24_agent_step_in_about_two_calls() -> None:
+    from trajeglish_env.benchmark.measure import benchmark_scenes
+    from trajeglish_env.checkpoint import load_pretrained
+
+    sc = benchmark_scenes(24)[0]
+    live = sc.valid[:, sc.current_index]
+    assert live.sum() == 24
+    out = {}
+    for mode in ("sequential", "parallel"):
+        eng = RolloutEngine(load_pretrained(), sc, 1, 6, live, config=SamplingConfig(intra_step=mode))
+        eng.run()
+        out[mode] = (eng.tokens.copy(), eng.model_calls)
+    np.testing.assert_array_equal(out["parallel"][0], out["sequential"][0])
+    assert out["sequential"][1] == 6 * 24
+    assert out["parallel"][1] <= 6 * 3
+
+
+def test_acceptance_stops_at_the_first_token_that_differs_from_its_draft() -> None:
+    rr = np.array([0, 0, 0, 2, 2])
+    cc = np.array([1, 3, 4, 0, 2])
+    tokens = np.array([7, 8, 9, 1, 2])
+    draft = np.array([7, 5, 9, 1, 2])
+    # row 0: offset 3 differs (its inputs were right, so it is exact); row 1 sampled nothing; row 2 all
+    np.testing.assert_array_equal(accepted(rr, cc, tokens, draft, 3), [3, -1, 2])
+
+
+def test_the_guard_sees_the_drafted_states_of_the_predecessors_only() -> None:
+    sc = straight_road_scene(num_agents=6, steps=40)
+    eng = BatchEngine(tiny_checkpoint(), 2, SamplingConfig(guard=True))
+    live = sc.valid[:, sc.current_index]
+    eng.start_rows([0, 1], RowSpec(sc, 5, live), [1, 2])
+    t = sc.current_index
+    rr = np.array([0, 0, 0, 1, 1])
+    who = np.array([0, 3, 1, 2, 4])  # acting order within each row
+    draft = np.array([4, -1, 6, 9, 3])  # agent 3 of row 0 has no draft: it has not moved for anyone
+    moved, after = guard_view(eng, rr, who, draft)
+    known = eng.known[rr, :, t]
+    np.testing.assert_array_equal(moved & ~known, _expected(rr, who, draft))
+    # a predecessor's next state is its draft applied to its model state
+    templates = eng.vocab.templates
+    from trajeglish_env.geometry import to_global
+
+    expect = to_global(eng.mxyh[0, 0, t], templates[eng.kind[0, 0], 4])
+    np.testing.assert_allclose(after[1, 0], expect)  # pair 1 (agent 3) sees agent 0 moved
+    np.testing.assert_allclose(after[4, 2], to_global(eng.mxyh[1, 2, t], templates[eng.kind[1, 2], 9]))
+
+
+def _expected(rr: np.ndarray, who: np.ndarray, draft: np.ndarray) -> np.ndarray:
+    """Per pair, the drafted agents that act before it in its row."""
+    out = np.zeros((len(rr), 6), bool)
+    for p in range(len(rr)):
+        for q in range(p):
+            if rr[q] == rr[p] and draft[q] >= 0:
+                out[p, who[q]] = True
+    return out

@@ -1,0 +1,80 @@
+"""Parallel decoding of the agents of a timestep by fixed-point (Jacobi) iteration, exact.
+
+The trajeglish decoder makes the agents of a step sequential: agent ``a``'s input carries the token that
+agent ``a - 1`` chose this step. Sequential decoding therefore costs one model call per sampled agent.
+Every token, though, is a deterministic function of its inputs and of the agent's own counter-based
+number (:func:`~trajeglish_env.sampler.sampling.counter_uniform`): the draw inverts the CDF of the (guarded)
+conditional at that number. So a whole run of agents can be decoded in one call from *drafted* tokens of
+the agents before each one; where the drafts were right, the tokens are the ones sequential decoding
+draws. A call is exact up to and including the first agent whose new token differs from its draft (its
+inputs were all right); the agents after it are decoded again from the new tokens, which become their
+drafts. The result is bit for bit the sequential one, whatever the drafts; good drafts (an agent's token
+of the previous step) only make the iteration end sooner.
+
+Guarded sampling (:mod:`~trajeglish_env.sampler.guard`) reads, for each agent, the next states of the
+agents that moved before it: in a parallel call those are the drafted states of its predecessors in the
+run, which :func:`guard_view` supplies per agent.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from trajeglish_env.geometry import to_global
+from trajeglish_env.sampler.rows import RowStates
+
+
+def previous_tokens(rs: RowStates) -> np.ndarray:
+    """Drafts ``[B,N]`` for the step each row is at: each agent's token of the step before (-1: none)."""
+    t = np.maximum(rs.now - 1, 0)
+    r = np.arange(rs.B)[:, None]
+    tok = rs.tokens[r, :, t[:, None]][:, 0] if rs.tokens.shape[2] else np.full((rs.B, rs.N), -1)
+    ok = rs.known[r, :, t[:, None]][:, 0] & (rs.now > 0)[:, None]
+    return np.where(ok, tok, -1)
+
+
+def draft_states(rs: RowStates, rows: np.ndarray, agents: np.ndarray, draft: np.ndarray) -> np.ndarray:
+    """Next states ``[n,3]`` the drafted tokens ``draft [n]`` (>= 0) give agents ``agents`` of ``rows``."""
+    t = rs.now[rows]
+    return to_global(rs.mxyh[rows, agents, t], rs.vocab.templates[rs.kind[rows, agents], draft])
+
+
+def guard_view(
+    rs: RowStates, rr: np.ndarray, who: np.ndarray, draft: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """What the guard sees of each pair ``(rr, who)`` of a parallel call (pairs sorted by row, then acting
+    order): ``moved [n,N]``, the agents that moved before it (those that had moved when the call began,
+    and its drafted predecessors in the call), and ``after [n,N,3]``, their next states (drafted ones for
+    the predecessors). ``draft [n]``: the drafts the call's inputs carried (-1: none, i.e. not moved)."""
+    n, N = len(rr), rs.N
+    t = rs.now[rr]
+    moved = rs.known[rr, :, t].copy()
+    after = rs.xyh[rr, :, t + 1].copy()
+    drafted = np.flatnonzero(draft >= 0)
+    if not len(drafted):
+        return moved, after
+    # pair q moves before pair p when both are of one row and q comes first: an exclusive prefix per row
+    mark = np.zeros((n, N), np.int32)
+    mark[drafted, who[drafted]] = 1
+    prefix = np.cumsum(mark, axis=0) - mark
+    start = np.r_[0, np.flatnonzero(np.diff(rr)) + 1]
+    first = np.repeat(start, np.diff(np.r_[start, n]))
+    moved |= (prefix - prefix[first]) > 0
+    # each row's drafted next states, read by the pairs of that row (only where they count as moved)
+    rows, inverse = np.unique(rr, return_inverse=True)
+    row_after = rs.xyh[rows, :, rs.now[rows] + 1].copy()
+    row_after[inverse[drafted], who[drafted]] = draft_states(rs, rr[drafted], who[drafted], draft[drafted])
+    after = np.where(moved[..., None], row_after[inverse], after)
+    return moved, after
+
+
+def accepted(rr: np.ndarray, cc: np.ndarray, tokens: np.ndarray, draft: np.ndarray, rows: int) -> np.ndarray:
+    """Per row, the chunk offset ``[rows]`` of the last exact pair of a parallel call (pairs ``rr``/``cc``
+    sorted by row then offset; ``tokens`` drawn, ``draft`` carried): its first pair whose token differs from
+    its draft, or its last pair when none does (-1: the row sampled nothing in the call)."""
+    last = np.full(rows, -1)
+    np.maximum.at(last, rr, cc)
+    differ = tokens != draft
+    first_miss = np.full(rows, np.iinfo(np.int64).max)
+    np.minimum.at(first_miss, rr[differ], cc[differ])
+    return np.where(first_miss < np.iinfo(np.int64).max, first_miss, last)
