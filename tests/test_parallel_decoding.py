@@ -8,9 +8,9 @@ import pytest
 from helpers import straight_road_scene, tiny_checkpoint, womd_tfrecord
 
 from trajeglish_env.sampler import RolloutEngine, SamplingConfig
+from trajeglish_env.sampler.engine import BatchEngine
 from trajeglish_env.sampler.parallel import accepted, guard_view
 from trajeglish_env.sampler.rows import RowSpec
-from trajeglish_env.sampler.engine import BatchEngine
 
 
 def _run(sc, mode: str, guard: bool, rollouts: int = 2, horizon: int = 8, external=None):  # type: ignore[no-untyped-def]

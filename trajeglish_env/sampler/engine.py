@@ -219,7 +219,7 @@ class BatchEngine(WindowedRows):
         return done
 
     def _finish(self, rr: np.ndarray, who: np.ndarray, tt: np.ndarray, tok: np.ndarray) -> None:
-        """Record the drawn tokens ``tok`` of agents ``who`` of rows ``rr`` at steps ``tt`` and their states."""
+        """Record the drawn tokens ``tok`` of agents ``who`` of rows ``rr`` at steps ``tt`` and states."""
         self.tokens[rr, who, tt] = tok
         self.known[rr, who, tt] = True
         nxt = to_global(self.mxyh[rr, who, tt], self.vocab.templates[self.kind[rr, who], tok])
