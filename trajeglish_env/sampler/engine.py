@@ -38,8 +38,9 @@ import torch
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.geometry import to_global
 from trajeglish_env.model.config import Variant
+from trajeglish_env.model.layers import MIN_GEMM_ROWS
 from trajeglish_env.sampler.config import SamplingConfig
-from trajeglish_env.sampler.parallel import accepted, guard_view, previous_tokens
+from trajeglish_env.sampler.parallel import accepted, guard_view, look_ahead_rows, previous_tokens
 from trajeglish_env.sampler.rows import RowSpec
 from trajeglish_env.sampler.sampling import counter_uniform, sample_with_uniform, stream_seed
 from trajeglish_env.sampler.windows import Window, WindowedRows
@@ -121,8 +122,12 @@ class BatchEngine(WindowedRows):
             self._in_step = True
             self._rank = 0
             self._slot = np.where(self.num_subsets > 0, 0, self.cfg.max_agents)
-            parallel = self.config.intra_step == "parallel"
-            self._draft = previous_tokens(self) if parallel else None
+            self._draft = None
+            if self.config.intra_step == "parallel":  # drafts: the look-ahead of the last step, else repeats
+                ahead = self._ahead if self._ahead is not None else np.full((self.B, self.N), -1)
+                self._draft = np.where(ahead >= 0, ahead, previous_tokens(self))
+                self._ahead = np.full((self.B, self.N), -1)
+                self._ahead_rank = np.full((self.B, self.N), np.iinfo(np.int64).max)
         A = self.cfg.max_agents
         ranks = int(self.num_subsets[stepping].max(initial=0))
         t_safe = np.minimum(self.now, self.T - 2)
@@ -181,16 +186,32 @@ class BatchEngine(WindowedRows):
         sample among them. Returns how many positions of each row are decided (all ``count`` of them,
         but for a parallel call: up to its first drawn token that differs from its draft)."""
         A = self.cfg.max_agents
-        n = max(self._min_queries, int(count.max()))
         tau = self.now - w.start
+        ahead = np.zeros(self.B, bool)
+        if self._draft is not None:  # chunks that end the step look one step ahead (see parallel.look_ahead)
+            ahead = look_ahead_rows(count, self._slot, tau, self.now, self.end, A, self.cfg.steps)
+        extent = count + A * ahead
+        n = max(self._min_queries, int(extent.max()))
+        if self._draft is not None:  # at least MIN_GEMM_ROWS rows x queries: the linear layers then take the
+            # inputs as they are instead of padding each one (the same numbers: padding is never stored)
+            n = max(n, -(-MIN_GEMM_ROWS // self.B))
         start = np.where(count > 0, tau * A + self._slot, 0)
         offsets = np.arange(n)
         inside = offsets[None] < count[:, None]
-        positions = np.where(inside, start[:, None] + offsets, start[:, None])
+        decoded = offsets[None] < extent[:, None]
+        positions = np.where(decoded, start[:, None] + offsets, start[:, None])
         carried, own = self._inputs(np.arange(self.B), w.slots, w.start, positions)
-        hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, count)
+        if ahead.any():  # a look-ahead position carries its predecessor's token of this step instead
+            guess = decoded & ~inside & (positions % A > 0)
+            carried_now, _ = self._inputs(
+                np.arange(self.B), w.slots, w.start, np.where(guess, positions - A, 0)
+            )
+            carried = torch.where(torch.from_numpy(guess).to(self.device), carried_now, carried)
+        hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, extent)
         self.model_calls += 1
         slots = positions % A
+        if ahead.any():
+            self._draw_ahead(w, hidden, decoded & ~inside, slots)
         todo = inside & np.take_along_axis(sample, slots, 1)
         if not todo.any():
             return count
@@ -202,21 +223,51 @@ class BatchEngine(WindowedRows):
         tt = self.now[rr]
         u = counter_uniform(self.seed[rr], tt, who)
         temperature, top_p = self.config.temperature, self.config.top_p
-        drafts = None if self._draft is None else self._draft[rr, who]
-        if self.guard is None:
-            tok = sample_with_uniform(logits, temperature, top_p, u)
+        if self._draft is None:
+            if self.guard is None:
+                tok = sample_with_uniform(logits, temperature, top_p, u)
+            else:
+                tok = self.guard.sample(self, logits, rr, who, tt, u, temperature, top_p)
+            self._finish(rr, who, tt, tok)
+            return count
+        # parallel: keep the exact pairs; the others are drafted anew from the tokens drawn for them
+        drafts = self._draft[rr, who]
+        tok = sample_with_uniform(logits, temperature, top_p, u)
+        if self.guard is not None:
+            # guarding only changes a draw now and then: guard the pairs up to each row's first unguarded
+            # draw that differs from its draft (the later ones are decoded again anyway)
+            check = np.flatnonzero(cc <= accepted(rr, cc, tok, drafts, self.B)[rr])
+            view = guard_view(self, rr[check], who[check], drafts[check])
+            sel = torch.from_numpy(check)
+            tok[check] = self.guard.sample(
+                self, logits[sel], rr[check], who[check], tt[check], u[check], temperature, top_p, view
+            )
+            rr_c, cc_c, tok_c, drafts_c = rr[check], cc[check], tok[check], drafts[check]
         else:
-            view = None if drafts is None else guard_view(self, rr, who, drafts)
-            tok = self.guard.sample(self, logits, rr, who, tt, u, temperature, top_p, view)
-        done = count
-        if drafts is not None:  # keep the exact pairs; the others are drafted anew from their tokens
-            last = accepted(rr, cc, tok, drafts, self.B)
-            done = np.where(last >= 0, last + 1, count)
-            self._draft[rr, who] = tok
-            keep = cc <= last[rr]
-            rr, who, tt, tok = rr[keep], who[keep], tt[keep], tok[keep]
-        self._finish(rr, who, tt, tok)
-        return done
+            rr_c, cc_c, tok_c, drafts_c = rr, cc, tok, drafts
+        last = accepted(rr_c, cc_c, tok_c, drafts_c, self.B)
+        self._draft[rr, who] = tok
+        keep = cc <= last[rr]
+        self._finish(rr[keep], who[keep], tt[keep], tok[keep])
+        return np.where(last >= 0, last + 1, count)
+
+    def _draw_ahead(self, w: Window, hidden: torch.Tensor, where: np.ndarray, slots: np.ndarray) -> None:
+        """Draw next-step drafts (unguarded, each with its own number of the next step) for the controlled
+        agents at the look-ahead positions ``where [B,n]``; a later call of the same context redraws them
+        (from better inputs), a later context keeps those of an earlier one (where the agent acts)."""
+        rr, cc = np.nonzero(where & (np.take_along_axis(w.slots, slots, 1) >= 0))
+        who = w.slots[rr, slots[rr, cc]]
+        t1 = self.now[rr] + 1
+        pick = self.row_controlled[rr, who] & (self._ahead_rank[rr, who] >= self._rank) & (t1 < self.end[rr])
+        pick &= ~self.known[rr, who, np.minimum(t1, self.T - 2)]
+        rr, cc, who, t1 = rr[pick], cc[pick], who[pick], t1[pick]
+        if not len(rr):
+            return
+        sel = (torch.from_numpy(rr).to(self.device), torch.from_numpy(cc).to(self.device))
+        logits = self.model.class_logits_by_kind(hidden[sel], self.kind[rr, who]).cpu()
+        u = counter_uniform(self.seed[rr], t1, who)
+        self._ahead[rr, who] = sample_with_uniform(logits, self.config.temperature, self.config.top_p, u)
+        self._ahead_rank[rr, who] = self._rank
 
     def _finish(self, rr: np.ndarray, who: np.ndarray, tt: np.ndarray, tok: np.ndarray) -> None:
         """Record the drawn tokens ``tok`` of agents ``who`` of rows ``rr`` at steps ``tt`` and states."""

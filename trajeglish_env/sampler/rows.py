@@ -61,6 +61,8 @@ class RowStates:
         self._supplied: list[tuple[np.ndarray, ...]] = []  # supplies whose tokens are not computed yet
         # drafted tokens [B,N] of the step being decoded in parallel (None: sequential decoding)
         self._draft: np.ndarray | None = None
+        self._ahead: np.ndarray | None = None  # drafts [B,N] for the next step, drawn looking ahead
+        self._ahead_rank = np.zeros((0, 0), np.int64)  # [B,N] the subset rank that drew each of them
 
     def _allocate(self, n: int, t: int) -> None:
         """Grow the per-row arrays to ``n`` agents and ``t`` steps (padding: absent, decided)."""
@@ -94,7 +96,7 @@ class RowStates:
         the other rows is undone, see :meth:`cancel_step`)."""
         self.cancel_step()
         self._tokenize_supplied()
-        self._draft = None
+        self._draft = self._ahead = None
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)
         if len(rows) != len(seeds) or ((rows < 0) | (rows >= self.B)).any():
@@ -197,7 +199,7 @@ class RowStates:
         if not self._in_step:
             return
         self._supplied = []
-        self._draft = None
+        self._draft = self._ahead = None
         rows = np.flatnonzero(self.stepping)
         r, a = np.nonzero(self.row_controlled[rows] | self.row_external[rows])
         rr, t = rows[r], self.now[rows[r]]
