@@ -40,7 +40,13 @@ from trajeglish_env.geometry import to_global
 from trajeglish_env.model.config import Variant
 from trajeglish_env.model.layers import MIN_GEMM_ROWS
 from trajeglish_env.sampler.config import SamplingConfig
-from trajeglish_env.sampler.parallel import accepted, guard_view, look_ahead_rows, previous_tokens
+from trajeglish_env.sampler.parallel import (
+    LOOK_AHEAD_MAX_POSITIONS,
+    accepted,
+    guard_view,
+    look_ahead_rows,
+    previous_tokens,
+)
 from trajeglish_env.sampler.rows import RowSpec
 from trajeglish_env.sampler.sampling import counter_uniform, sample_with_uniform, stream_seed
 from trajeglish_env.sampler.windows import Window, WindowedRows
@@ -188,7 +194,8 @@ class BatchEngine(WindowedRows):
         A = self.cfg.max_agents
         tau = self.now - w.start
         ahead = np.zeros(self.B, bool)
-        if self._draft is not None:  # chunks that end the step look one step ahead (see parallel.look_ahead)
+        if self._draft is not None and int((count > 0).sum()) * A <= LOOK_AHEAD_MAX_POSITIONS:
+            # chunks that end the step look one step ahead (parallel.look_ahead_rows)
             ahead = look_ahead_rows(count, self._slot, tau, self.now, self.end, A, self.cfg.steps)
         extent = count + A * ahead
         n = max(self._min_queries, int(extent.max()))
