@@ -3,14 +3,29 @@
 from __future__ import annotations
 
 import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from helpers import womd_tfrecord
 
+from trajeglish_env.benchmark import suite, womd
+from trajeglish_env.benchmark.busy import busy_process, busy_section
 from trajeglish_env.benchmark.measure import env_speed
-from trajeglish_env.benchmark.suite import BenchConfig, guard_cost, ratios, run_suite, summary_lines
+from trajeglish_env.benchmark.suite import (
+    SCHEMA_VERSION,
+    BenchConfig,
+    guard_cost,
+    ratios,
+    run_suite,
+    summary_lines,
+)
 from trajeglish_env.benchmark.workloads import benchmark_scenes
 from trajeglish_env.cli import main
+from trajeglish_env.sources.womd import read_womd
 
 
 def test_benchmark_scenes_have_exactly_the_requested_agents() -> None:
@@ -66,13 +81,13 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == 3
+    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 4
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
 
 
 def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> None:
     result = run_suite(BenchConfig(sections=("env",), batches=(2,), quick=True), progress=False)
-    assert result["schema_version"] == 3
+    assert result["schema_version"] == SCHEMA_VERSION
     for key in ("highway_env", "highway_env_highway"):
         runs = result[key]["runs"]
         assert len(runs) == 2 and all(r["agent_steps_per_s"] > 0 for r in runs)
@@ -90,3 +105,112 @@ def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> Non
     assert cost["slowdown"] == pytest.approx(
         learned["agent_steps_per_s"] / guarded["agent_steps_per_s"], rel=1e-2
     )
+
+
+# ------------------------------------------------------------------------------------- womd section
+def test_womd_section_times_the_shared_scenario_with_all_its_agents() -> None:
+    path = womd_tfrecord()
+    scene = next(read_womd(path))
+    present = int(scene.valid[:, scene.current_index].sum())
+    result = run_suite(BenchConfig(sections=("womd",), quick=True, womd=str(path)), progress=False)
+    w = result["womd"]
+    assert w["file"] == str(path) and w["scenario_id"] == scene.scenario_id and w["agents"] == present
+    r = w["rollouts"]
+    assert (r["rollouts"], r["horizon"], r["agents"]) == (2, 5, present)
+    assert r["seconds"] > 0 and r["agent_steps_per_s"] == pytest.approx(present * 10 / r["seconds"], rel=0.02)
+    e = w["env"]
+    assert e["api"] == "aec" and e["agents"] == present and e["timed_steps"] == 3 and e["torch_threads"] == 1
+    assert e["env_steps_per_s"] > 0 and e["agent_steps_per_s"] == pytest.approx(
+        e["env_steps_per_s"] * present, rel=0.01
+    )
+    assert w["highway_env"]["env"] == "intersection-v0" and w["highway_env"]["steps_per_s"] > 0
+    ratio = e["env_steps_per_s"] / w["highway_env"]["steps_per_s"]
+    assert result["ratios"]["womd_env_to_highway_env"] == pytest.approx(ratio, rel=0.01)
+    assert any(
+        line.startswith(f"womd {scene.scenario_id} ({present} agents)") for line in summary_lines(result)
+    )
+
+
+def test_womd_file_defaults_to_the_shared_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    path = womd_tfrecord()
+    monkeypatch.setenv("TRAJEGLISH_SHARED", str(path.parents[2]))
+    assert womd.candidate_paths()[0] == path and womd.locate_womd() == path
+
+
+def test_womd_section_is_skipped_without_a_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    missing = tmp_path / "none.tfrecord"
+    result = run_suite(BenchConfig(sections=("womd",), quick=True, womd=str(missing)), progress=False)
+    assert result["womd"] == {"skipped": f"no WOMD scenario file at {missing} (--womd)"}
+    assert result["ratios"] == {} and "womd: skipped" in "\n".join(summary_lines(result))
+    monkeypatch.delenv("TRAJEGLISH_SHARED", raising=False)
+    monkeypatch.setattr(womd, "candidate_paths", lambda: [missing])
+    reason = run_suite(BenchConfig(sections=("womd",), quick=True), progress=False)["womd"]["skipped"]
+    assert str(missing) in reason and "TRAJEGLISH_SHARED is unset" in reason and "--womd FILE" in reason
+    (tmp_path / "empty.tfrecord").write_bytes(b"")
+    with pytest.raises(ValueError, match="holds no scenario"):  # a bad file fails before anything is timed
+        run_suite(BenchConfig(sections=("womd",), womd=str(tmp_path / "empty.tfrecord")), progress=False)
+
+
+# ------------------------------------------------------------------------------------- busy section
+def _gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def _children() -> set[int]:
+    """This process's live child processes (Linux: the children its main thread started)."""
+    me = os.getpid()
+    return {int(p) for p in Path(f"/proc/{me}/task/{me}/children").read_text().split()}
+
+
+def test_busy_process_spins_and_is_reaped_even_on_error() -> None:
+    with busy_process() as spinner:
+        time.sleep(0.5)
+        assert spinner.pid in _children() and not _gone(spinner.pid)
+        assert spinner.cpu_seconds() > 0.05  # it spins (a share of a core on a loaded machine)
+    assert _gone(spinner.pid)
+    with pytest.raises(RuntimeError, match="boom"), busy_process() as spinner:
+        raise RuntimeError("boom")
+    assert _gone(spinner.pid)
+
+
+def test_busy_section_runs_each_batch_idle_then_beside_the_spinner() -> None:
+    seen: list[set[int]] = []
+
+    def run(batch: int) -> dict[str, float]:
+        seen.append(_children())
+        return {"agent_steps_per_s": 100.0 if len(seen) % 2 else 80.0, "torch_threads": 1}
+
+    before = _children()
+    out = busy_section((1, 8), run)
+    assert list(out) == ["1", "8"] and len(seen) == 4
+    assert seen[0] == seen[2] == before  # idle runs: no spinner
+    spinners = [seen[1] - before, seen[3] - before]
+    assert all(len(s) == 1 for s in spinners) and all(_gone(pid) for s in spinners for pid in s)
+    assert out["8"]["busy_to_idle"] == 0.8 and out["8"]["idle_agent_steps_per_s"] == 100.0
+    assert out["8"]["spinner_cpu_share"] is not None
+    assert "skipped" in busy_section((), run)
+
+
+def test_busy_section_of_the_suite_runs_the_env_job_at_auto_threads(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[tuple[object, str, int, bool]] = []
+
+    def env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str, object]]:
+        calls.append((config.torch_threads, npc, batch, config.quick))
+        rate = 50.0 if len(calls) % 2 else 45.0
+        return lambda: {"agent_steps_per_s": rate, "torch_threads": 1}
+
+    monkeypatch.setattr(suite, "_env_job", env_job)
+    config = BenchConfig(sections=("busy",), batches=(1, 8, 32), quick=True, torch_threads=2)
+    result = run_suite(config, progress=False)
+    assert calls == [("auto", "trajeglish_guard", 1, True)] * 2  # quick: B = 1 only; default NPCs
+    assert result["busy"]["1"]["busy_to_idle"] == 0.9 and result["ratios"] == {"busy_B1_to_idle": 0.9}
+    assert any(line.startswith("busy machine B=   1: 50.0") for line in summary_lines(result))
+    calls.clear()
+    full = run_suite(replace(config, quick=False), progress=False)
+    assert [c[2] for c in calls] == [1, 1, 8, 8] and list(full["busy"]) == ["1", "8"]
+    none = run_suite(replace(config, batches=(32,), quick=False), progress=False)
+    assert "skipped" in none["busy"] and "busy: skipped" in "\n".join(summary_lines(none))

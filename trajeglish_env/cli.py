@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from trajeglish_env.benchmark.suite import SECTIONS
 from trajeglish_env.cli_args import (
     EXIT_BAD_INPUT,
     NON_NEGATIVE,
@@ -195,6 +196,7 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
         sections=tuple(args.sections),
         quick=args.quick,
         guards=GUARD_CHOICES[args.guard],
+        womd=args.womd,
     )
     result = run_suite(config, progress=not args.quiet)
     if args.out:
@@ -207,7 +209,6 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------- parser
-SECTIONS = ("tokenizer", "dataset", "training", "decoding", "metrics", "env")  # see benchmark.suite
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -369,6 +370,11 @@ def build_parser() -> argparse.ArgumentParser:
         choices=GUARD_CHOICES,
         default="both",
         help="Trajeglish NPCs of the env runs without (off) and/or with (on) guarded sampling",
+    )
+    p.add_argument(
+        "--womd",
+        help="the womd section's WOMD scenario file (default: data/womd/motion_data_one_scenario.tfrecord "
+        "of the shared folder: $TRAJEGLISH_SHARED, else shared/ beside the checkout; none: skipped)",
     )
     p.add_argument("--out", help="also write the JSON document here (atomically)")
     return parser

@@ -315,9 +315,15 @@ def env_speed(
 
 def _log_action(env: Any) -> np.ndarray:
     """The continuous action bringing a batched env scene's ego closest to its logged next state."""
-    i = env.agent_index(env.agent)
+    return log_action(env, env.agent)
+
+
+def log_action(env: Any, agent: str) -> np.ndarray:
+    """The continuous action bringing external ``agent`` of an env (AEC or one batched scene) closest to
+    its logged next state (its last logged state past the log's end)."""
+    i = env.agent_index(agent)
     sc = env.scenario
-    return np.asarray(env.action_towards(env.agent, sc.xyh[i, min(env.sim.t + 1, sc.num_steps - 1)]))
+    return np.asarray(env.action_towards(agent, sc.xyh[i, min(env.sim.t + 1, sc.num_steps - 1)]))
 
 
 def highway_env_speed(vehicles: int = 40, steps: int = 300, kind: str = "intersection") -> dict[str, Any]:

@@ -2,11 +2,12 @@
 
 Sections: tokenization agent-steps/s, dataset windows/s, training tokens/s, decoding tokens/s with and
 without the key/value cache, closed-loop rollout agent-steps/s (a bundled scene of about 24 agents and a
-200-agent grid scene), realism-metric scoring time, the batched ego env (Trajeglish and replay
-NPCs) for each batch size, each in a fresh process so that its peak memory is its own, and highway-env's
-own stepping speed measured in the same run, before and after the batched envs (their mean is the
-baseline). Ratios to highway-env make the figures comparable across noisy runs. JSON layout: see the
-README ("Benchmarks").
+200-agent grid scene), realism-metric scoring time, a real WOMD scene with all its agents (rollouts and
+the AEC env, :mod:`~trajeglish_env.benchmark.womd`), the batched ego env (Trajeglish and replay NPCs) for
+each batch size, each in a fresh process so that its peak memory is its own, and highway-env's own
+stepping speed measured in the same run, before and after the batched envs (their mean is the baseline),
+and the batched env idle and beside one busy process (:mod:`~trajeglish_env.benchmark.busy`). Ratios to
+highway-env make the figures comparable across noisy runs. JSON layout: see the README ("Benchmarks").
 """
 
 from __future__ import annotations
@@ -16,13 +17,15 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 from typing import Any
 
 # 2: env figures over a whole window cycle; highway-env measured before and after; 3: guarded sampling's
-# env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section
-SCHEMA_VERSION = 3
-SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "env")
+# env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section; 4: the womd and busy
+# sections and their ratios
+SCHEMA_VERSION = 4
+SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "womd", "env", "busy")
 
 
 @dataclass(frozen=True)
@@ -31,7 +34,9 @@ class BenchConfig:
     scene, timed env steps per run (after ``warmup``), highway-env steps, torch threads for the batched
     env (``"auto"``: see :class:`trajeglish_env.env.threads.AdaptiveThreads`), the NPC cache dtype, the
     Trajeglish NPCs' ``guards`` (guarded sampling off and/or on: env runs ``trajeglish`` and
-    ``trajeglish_guard``) and the sections to run (``quick`` shrinks every workload for a smoke run)."""
+    ``trajeglish_guard``), the sections to run (``quick`` shrinks every workload for a smoke run) and the
+    ``womd`` section's scenario file (None: the shared one, see :func:`~trajeglish_env.benchmark.womd.
+    locate_womd`)."""
 
     batches: tuple[int, ...] = (1, 8, 32, 128, 256)
     agents: int = 24
@@ -43,6 +48,7 @@ class BenchConfig:
     sections: tuple[str, ...] = SECTIONS
     quick: bool = False
     guards: tuple[bool, ...] = (False, True)
+    womd: str | None = None
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.sections) - set(SECTIONS))
@@ -81,6 +87,8 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
         jobs.append(("rollout", lambda: _threads(1, _rollouts, 2 if q else 8, 10 if q else 40)))
     if "metrics" in config.sections:
         jobs.append(("metrics", lambda: measure.metrics_time(32 if q else 128, 8 if q else 32, (8,), 1)))
+    if "womd" in config.sections:
+        jobs.append(("womd", _womd_job(config)))
     if "env" in config.sections:
         hw_steps = 60 if q else config.highway_steps
         baselines = [
@@ -93,6 +101,8 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
             for b in config.batches:
                 jobs.append((f"env/{npc}/{b}", _env_job(config, npc, b)))
         jobs += [(f"{name}/after", job) for name, job in baselines]  # the machine's load drifts
+    if "busy" in config.sections:
+        jobs.append(("busy", lambda: _busy(config)))
     result: dict[str, Any] = {
         "schema_version": SCHEMA_VERSION,
         "machine": measure.machine(),
@@ -182,6 +192,29 @@ def _dataset(windows: int) -> dict[str, Any]:
     return dataset_speed([bundle.get(i) for i in range(len(bundle))], windows, workers=0)  # type: ignore[arg-type]
 
 
+def _womd_job(config: BenchConfig) -> Callable[[], dict[str, Any]]:
+    """The womd section's job; the scenario is located and read now, so that a corrupt file fails the
+    run before anything is timed. No file found: the section reports ``{"skipped": reason}``."""
+    from trajeglish_env.benchmark.womd import load_womd, locate_womd, womd_section
+
+    found = locate_womd(config.womd)
+    if not isinstance(found, Path):
+        return lambda: {"skipped": found}
+    scene = load_womd(found)
+    return lambda: womd_section(found, scene, config.quick)
+
+
+def _busy(config: BenchConfig) -> dict[str, Any]:
+    """The busy section: the batched env with the env's default NPCs (default sampling) at the default
+    thread setting, idle and beside one busy process, through the env worker process."""
+    from trajeglish_env.benchmark.busy import busy_batches, busy_section
+    from trajeglish_env.sampler.config import SamplingConfig
+
+    npc = "trajeglish_guard" if SamplingConfig().guard else "trajeglish"
+    auto = replace(config, torch_threads="auto")
+    return busy_section(busy_batches(config.batches, config.quick), lambda b: _env_job(auto, npc, b)())
+
+
 def _env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str, Any]]:
     """Run one batched-env measurement in a fresh Python process (its own peak memory)."""
 
@@ -209,7 +242,10 @@ def _env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str
 def ratios(result: dict[str, Any]) -> dict[str, Any]:
     """Simulated agent-steps/s of each batched-env run divided by highway-env's (same run): the
     intersection env (``..._to_highway_env``) and highway-v0 at the same agent count
-    (``..._to_highway_env_highway``)."""
+    (``..._to_highway_env_highway``); the WOMD scene's AEC env steps/s over ``intersection-v0``'s
+    (``womd_env_to_highway_env``); busy over idle agent-steps/s per batch size (``busy_B{B}_to_idle``)."""
+    from trajeglish_env.benchmark.womd import womd_ratio
+
     out: dict[str, Any] = {}
     for key in ("highway_env", "highway_env_highway"):
         base = result.get(key, {}).get("agent_steps_per_s")
@@ -218,6 +254,11 @@ def ratios(result: dict[str, Any]) -> dict[str, Any]:
         for npc, runs in result.get("env", {}).items():
             for b, run in runs.items():
                 out[f"{npc}_B{b}_to_{key}"] = round(run["agent_steps_per_s"] / base, 3)
+    if (womd := womd_ratio(result.get("womd", {}))) is not None:
+        out["womd_env_to_highway_env"] = womd
+    for b, run in result.get("busy", {}).items():
+        if isinstance(run, dict):
+            out[f"busy_B{b}_to_idle"] = run["busy_to_idle"]
     return out
 
 
@@ -268,5 +309,36 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
             )
     for b, cost in result.get("guard_cost", {}).items():
         lines.append(f"guarded sampling B={b:>4}: {cost['slowdown']}x slower ({cost['off']} -> {cost['on']})")
+    lines += _womd_lines(result) + _busy_lines(result)
     lines.append(f"total {result['seconds']} s")
     return lines
+
+
+def _womd_lines(result: dict[str, Any]) -> list[str]:
+    """The womd section's digest: rollout time and rate, the AEC env's steps/s and its ratio."""
+    if "womd" not in result:
+        return []
+    w = result["womd"]
+    if "skipped" in w:
+        return [f"womd: skipped ({w['skipped']})"]
+    r, e = w["rollouts"], w["env"]
+    return [
+        f"womd {w['scenario_id']} ({w['agents']} agents): {r['rollouts']} rollouts x {r['horizon']} steps "
+        f"in {r['seconds']} s = {r['agent_steps_per_s']} agent-steps/s",
+        f"womd AEC env (sdc replays its log): {e['env_steps_per_s']} steps/s "
+        f"({result['ratios'].get('womd_env_to_highway_env')}x intersection-v0 at "
+        f"{w['highway_env']['steps_per_s']} steps/s)",
+    ]
+
+
+def _busy_lines(result: dict[str, Any]) -> list[str]:
+    """The busy section's digest: idle and busy agent-steps/s and their ratio per batch size."""
+    busy = result.get("busy", {})
+    if "skipped" in busy:
+        return [f"busy: skipped ({busy['skipped']})"]
+    return [
+        f"busy machine B={b:>4}: {run['idle_agent_steps_per_s']} agent-steps/s idle, "
+        f"{run['busy_agent_steps_per_s']} beside one busy process ({run['busy_to_idle']}x; "
+        f"threads {run['idle']['torch_threads']} -> {run['busy']['torch_threads']})"
+        for b, run in busy.items()
+    ]
