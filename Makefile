@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 PIP_FLAGS ?= -q --disable-pip-version-check
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test lint format bench clean
+.PHONY: venv demo test lint format bench clean device-wheels device-sumo-scenes device-keep
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -34,3 +34,34 @@ bench: $(STAMP)
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache
+
+# ---- training on a lent GPU machine (scripts/device_train.sh; README "Training on a GPU machine")
+# The machine has Python 3.12 (x86-64) with torch, numpy, pandas, matplotlib and tqdm, no network: these
+# wheels are what generation and `import trajeglish_env` need besides (pygame-ce: highway-env imports it).
+DEVICE_WHEELS ?= gymnasium==1.4.0 farama-notifications==0.0.6 pettingzoo==1.27.0 highway-env==1.12.1 \
+	pygame-ce==2.5.8
+DEVICE_PLATFORMS := $(foreach n,2_28 2_27 2_17,--platform manylinux_$(n)_x86_64) \
+	--platform manylinux2014_x86_64 --platform manylinux1_x86_64
+device-wheels:
+	rm -rf .whl && mkdir -p .whl
+	$(PYTHON) -m pip download $(PIP_FLAGS) --no-deps --only-binary=:all: --python-version 3.12 \
+		--implementation cp $(DEVICE_PLATFORMS) -d .whl $(DEVICE_WHEELS)
+	@ls -l .whl && du -sh .whl
+
+# SUMO's wheel (about 150 MB) cannot travel: SUMO scenes are made here and carried as DATA_IN=.devdata.
+DEVICE_SUMO_SCENES ?= 80
+device-sumo-scenes: $(STAMP)
+	rm -rf .devdata/train/sumo .devdata/val/sumo
+	$(VENV)/bin/trajeglish generate --quiet --source sumo --scenes $(DEVICE_SUMO_SCENES) --seed 2000 \
+		--workers $$(nproc) --out .devdata/train/sumo
+	$(VENV)/bin/trajeglish generate --quiet --source sumo --scenes 8 --seed 90002 --workers $$(nproc) \
+		--out .devdata/val/sumo
+	@du -sh .devdata
+
+# After a call: `make device-keep FROM=<the call's files_at>` keeps the results in runs/device/ and the
+# folder the next call resumes from in .devrun/ (carry: [".whl", ".devrun"], RUN_IN=.devrun).
+device-keep:
+	@test -n "$(FROM)" && test -d "$(FROM)/resume" || { echo "usage: make device-keep FROM=<files_at of the call>"; exit 2; }
+	rm -rf .devrun && cp -r "$(FROM)/resume" .devrun && chmod -R u+w .devrun
+	mkdir -p runs/device && cp "$(FROM)"/*.* runs/device/ && chmod -R u+w runs/device
+	@python3 -c 'import json; s = json.load(open("runs/device/summary.json")); print("step", s.get("step"), "of", s.get("steps_total"), "val_nll", s.get("val_nll"))'

@@ -135,6 +135,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         args.resume,
         not args.quiet,
         init=init,
+        time_limit=None if args.minutes is None else args.minutes * 60.0,
     )
     result["_silent"] = not ranks.main  # under torchrun the main rank prints the run's result
     return result
@@ -297,6 +298,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=POSITIVE, default=200)
     p.add_argument("--no-noise", action="store_true", help="argmin input tokens (no noisy tokenization)")
     p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
+    p.add_argument(
+        "--minutes",
+        type=positive_float,
+        help="wall-clock budget: no step after M minutes; the last step is checkpointed (--resume goes on)",
+    )
     p.add_argument(
         "--shard-cache",
         type=NON_NEGATIVE,

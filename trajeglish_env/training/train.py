@@ -151,12 +151,17 @@ def train(
     resume: bool = False,
     progress: bool = True,
     init: str | os.PathLike[str] | Checkpoint | None = None,
+    time_limit: float | None = None,
 ) -> dict[str, Any]:
     """Train (or resume) a model on scene shards; writes ``last.pt``, ``model.pt`` and ``metrics.csv``.
 
     ``init``: a trained checkpoint to start from (fine-tuning, e.g. adapting a model to WOMD); its config
     and vocabulary must be the run's (:func:`check_init`). A ``resume`` from ``last.pt`` takes precedence.
+    ``time_limit``: seconds after this call starts when no further step is taken (a wall-clock budget,
+    e.g. a lent machine's): the step reached is validated and checkpointed like the last one, and a later
+    ``resume`` continues the same schedule (``config.steps``, which the limit does not change).
     """
+    deadline = None if time_limit is None else time.perf_counter() + time_limit
     out = Path(out)
     device = rank_device()
     dd = init_ranks(device)
@@ -189,6 +194,9 @@ def train(
             )
         trainer = ckpt.trainer or {}
         saved = {**dataclasses.asdict(TrainConfig()), **trainer.get("train_config", {})}  # older runs
+        # loader processes do not change the batches (items are pure functions of seed and index), so a run
+        # may go on on a machine with another number of cores
+        saved["num_workers"] = config.num_workers
         if saved != dataclasses.asdict(config):
             raise CheckpointError(f"{last}: it was trained with {trainer.get('train_config')}, not {config}")
         model.load_state_dict(ckpt.model.state_dict())
@@ -239,6 +247,7 @@ def train(
     step, t0, tokens_seen, last_log = start_step, time.perf_counter(), 0, time.perf_counter()
     unstable = 0  # consecutive steps whose gradients were not finite
     window_tokens, window_loss = 0.0, 0.0
+    stopped = False  # the time limit ended the run before config.steps
     for batch in loader:
         batch = _batch_to(batch, device)
         for group in optimizer.param_groups:
@@ -273,9 +282,11 @@ def train(
             window_loss += float(batch_loss[0])
             window_tokens += float(batch_loss[1])
         tokens_seen += int(batch_loss[1])
+        stopped = _out_of_time(deadline, device, dd.world) and step < config.steps
+        final = step == config.steps or stopped
         if dd.main:
             row: dict[str, Any] = {}
-            if step % config.log_every == 0 or step == config.steps:
+            if step % config.log_every == 0 or final:
                 now = time.perf_counter()
                 row = {
                     "step": step,
@@ -285,7 +296,7 @@ def train(
                     "tokens_per_s": window_tokens / max(now - last_log, 1e-9),
                 }
                 window_loss, window_tokens, last_log = 0.0, 0.0, now
-            if val_scenes and (step % config.val_every == 0 or step == config.steps):
+            if val_scenes and (step % config.val_every == 0 or final):
                 row.setdefault("step", step)
                 row["val_nll"] = validation_nll(
                     model, val_scenes, vocabulary, config.val_windows, config.seed, device
@@ -296,7 +307,7 @@ def train(
                 bar.set_postfix(
                     {k: f"{v:.3g}" for k, v in row.items() if k in ("loss", "val_nll", "tokens_per_s")}
                 )
-            if step % config.checkpoint_every == 0 or step == config.steps:
+            if step % config.checkpoint_every == 0 or final:
                 _save(
                     last,
                     model,
@@ -308,9 +319,13 @@ def train(
                     facts,
                 )
         bar.update(1)
+        if stopped:
+            break
     bar.close()
     elapsed = time.perf_counter() - t0
     result: dict[str, Any] = {"out": str(out), "steps": step, "resumed_from": start_step}
+    if time_limit is not None:
+        result["stopped_by_time_limit"] = stopped
     if dd.main:
         final = out / "model.pt"
         info = _training_info(config, step, history, facts)
@@ -330,6 +345,18 @@ def train(
     if dd.world > 1:
         dist.barrier()
     return result
+
+
+def _out_of_time(deadline: float | None, device: torch.device, world: int) -> bool:
+    """Whether the wall-clock budget is spent; under torchrun every rank takes rank 0's answer."""
+    if deadline is None:
+        return False
+    late = time.perf_counter() >= deadline
+    if world > 1:
+        flag = torch.tensor([float(late)], device=device)
+        dist.broadcast(flag, src=0)
+        late = bool(flag.item())
+    return late
 
 
 @dataclass(frozen=True)

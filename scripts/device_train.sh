@@ -1,0 +1,240 @@
+#!/usr/bin/env bash
+# Train Trajeglish on a lent GPU machine within one call of the device tool, and bring the checkpoint back.
+#
+# Run from the repository root. In order: install the wheels carried in .whl/ (`make device-wheels`) into
+# /tmp/site when a package is missing; print Python, torch, CUDA and the GPU (and stop with one clear line
+# when the job cannot run: no CUDA, a missing package and which wheel to carry); generate highway-env
+# scenes (and SUMO scenes where SUMO is installed) with every core for at most GEN_MINUTES; train with
+# `trajeglish train` on CUDA until the call's budget is nearly spent, checkpointing often, resuming the
+# run carried in RUN_IN when there is one; and write into $OUT what the device tool brings back:
+#   $OUT/model.pt            the trained checkpoint (trajeglish_env.checkpoint.load_checkpoint)
+#   $OUT/summary.json        held-out NLL, step, training curve, one record per call, files
+#   $OUT/metrics.csv, $OUT/training_curve.png, $OUT/log.txt
+#   $OUT/resume/             last.pt (weights + optimizer) in 15 MiB parts and run.json: copy it to
+#                            .devrun/ and carry it with RUN_IN=.devrun to continue in the next call
+#
+# Settings (environment variables; defaults in brackets):
+#   OUT            where the results go [required; the device tool sets it]
+#   DEVICE         cuda | cpu [cuda]; cpu is a dry run here (CUDA is then hidden even where present)
+#   MINUTES        wall-clock budget of the whole job, set-up to packing [9: inside one 10-minute call]
+#   TRAIN_MINUTES  training budget [what MINUTES leaves after generation, less MARGIN_S]
+#   MARGIN_S       seconds kept for starting train, the last validation, saving and packing
+#                  [MINUTES*15 within 15..45]
+#   PRESET         model size: tiny | small [small]; paper's checkpoint is too big to come back
+#   SCENES         highway-env training scenes to generate at most (0: none) [4000]
+#   GEN_MINUTES    generation stops after this, keeping the finished shards [1.5]
+#   SUMO_SCENES    SUMO scenes to generate: auto (SCENES/4 where SUMO is installed, else none) | N [auto]
+#   VAL_SCENES     held-out highway-env scenes (fixed seed VAL_SEED, the same in every call) [SCENES/20
+#                  within 8..64]; 0: hold out every 20th training scene instead
+#   DATA_IN        carried scenes: DATA_IN/train/** is trained on, DATA_IN/val/** held out
+#                  [.devdata when it exists; `make device-sumo-scenes` fills it with SUMO scenes]
+#   RUN_IN         a previous call's $OUT/resume folder (carried) to continue [none: a new run]
+#   GEN_SEED       seed of this call's scenes [1000 + the number of earlier calls of the run]
+#   STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY   the run's schedule [10000 32 5e-4 200 0 500 250];
+#                  kept from RUN_IN when resuming (setting another value is an error)
+#   GEN_WORKERS TRAIN_WORKERS   processes generating / loading batches [cores, cores - 1]
+#   WHEELS SITE WORK PYTHON     [.whl, /tmp/site, /tmp/trajeglish_device, python3]
+#
+# The project builds, tests and runs without this script or a GPU; see README "Training on a GPU machine".
+set -euo pipefail
+
+die() {
+    echo "device_train: ERROR: $*" >&2
+    exit 2
+}
+say() { echo "device_train: [$(printf '%4d' "$SECONDS") s] $*" >&2; }
+calc() { awk "BEGIN { print $* }"; }
+
+[ -n "${OUT:-}" ] || die "OUT is not set: give the folder whose files come back (the device tool sets \$OUT)"
+[ -f scripts/device_train.sh ] && [ -d trajeglish_env ] || die "run me from the repository root"
+REPO=$PWD
+command -v timeout >/dev/null || die "coreutils' timeout is missing"
+
+# user-set schedule values (checked against a resumed run's before defaults fill the rest)
+declare -A GIVEN=()
+for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY; do
+    if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
+done
+
+DEVICE=${DEVICE:-cuda}
+MINUTES=${MINUTES:-9}
+SCENES=${SCENES:-4000}
+GEN_MINUTES=${GEN_MINUTES:-1.5}
+SUMO_SCENES=${SUMO_SCENES:-auto}
+VAL_SEED=${VAL_SEED:-90001}
+WHEELS=${WHEELS:-.whl}
+SITE=${SITE:-/tmp/site}
+WORK=${WORK:-/tmp/trajeglish_device}
+PYTHON=${PYTHON:-python3}
+RUN_IN=${RUN_IN:-}
+if [ -z "${DATA_IN+x}" ] && [ -d .devdata ]; then DATA_IN=.devdata; fi
+DATA_IN=${DATA_IN:-}
+MARGIN_S=${MARGIN_S:-$(calc "int(($MINUTES * 15 < 15) ? 15 : (($MINUTES * 15 > 45) ? 45 : $MINUTES * 15))")}
+case $DEVICE in
+cuda) ;;
+cpu) export CUDA_VISIBLE_DEVICES="" ;;
+*) die "DEVICE=$DEVICE: expected cuda or cpu" ;;
+esac
+
+mkdir -p "$OUT" "$WORK"
+LOG=$WORK/log.txt
+: >"$LOG"
+exec > >(tee -a "$LOG") 2>&1
+export PYTHONUNBUFFERED=1 PYGAME_HIDE_SUPPORT_PROMPT=1
+export PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}"
+say "job: DEVICE=$DEVICE MINUTES=$MINUTES SCENES=$SCENES OUT=$OUT WORK=$WORK RUN_IN=${RUN_IN:-none} DATA_IN=${DATA_IN:-none}"
+
+# ---- 1. the run: new, or carried in RUN_IN (its settings are checked before anything slow)
+RUN=$WORK/run
+rm -rf "$RUN"
+CALL=0
+RESUME=()
+if [ -n "$RUN_IN" ]; then
+    SAVED=$("$PYTHON" trajeglish_env/device_job.py saved "$RUN_IN") || exit 2
+    eval "$SAVED"
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY; do
+        s=SAVED_$v
+        [ -n "${!s:-}" ] || continue
+        if [ -n "${GIVEN[$v]:-}" ] && [ "${GIVEN[$v]}" != "${!s}" ]; then
+            die "$v=${GIVEN[$v]} but the run in RUN_IN was started with $v=${!s}: a resumed run keeps its schedule (unset $v, or start a new run without RUN_IN)"
+        fi
+        printf -v "$v" '%s' "${!s}"
+    done
+    RESUME=(--resume)
+fi
+PRESET=${PRESET:-small}
+STEPS=${STEPS:-10000}
+BATCH=${BATCH:-32}
+LR=${LR:-5e-4}
+WARMUP=${WARMUP:-200}
+SEED=${SEED:-0}
+VAL_EVERY=${VAL_EVERY:-500}
+CKPT_EVERY=${CKPT_EVERY:-250}
+GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
+[ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED, scenes seed $GEN_SEED"
+
+# ---- 2. packages: the carried wheels, installed only when something is missing
+if ! "$PYTHON" -c 'import gymnasium, pettingzoo, highway_env, pygame' 2>/dev/null; then
+    if compgen -G "$WHEELS/*.whl" >/dev/null; then
+        say "installing $(ls "$WHEELS"/*.whl | wc -l) wheels from $WHEELS into $SITE"
+        "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+            --target "$SITE" "$WHEELS"/*.whl || die "pip could not install the wheels of $WHEELS"
+        export PYTHONPATH="$PYTHONPATH:$SITE"
+    else
+        say "no wheels in $WHEELS (run \`make device-wheels\` and carry .whl if a package is missing)"
+    fi
+fi
+
+# ---- 3. the machine (and the carried run's checkpoint, rebuilt from its parts)
+REBUILD=()
+[ -z "$RUN_IN" ] || REBUILD=(--resume "$RUN_IN" "$RUN")
+CHECK=$("$PYTHON" trajeglish_env/device_job.py check --device "$DEVICE" --sumo "$SUMO_SCENES" "${REBUILD[@]}") ||
+    exit 2
+eval "$CHECK"
+[ "$DEVICE" = cuda ] && command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | sed 's/^/device_train: nvidia-smi: /' || true
+GEN_WORKERS=${GEN_WORKERS:-$CORES}
+TRAIN_WORKERS=${TRAIN_WORKERS:-$((CORES > 1 ? CORES - 1 : 0))}
+
+# ---- 4. scenes: highway-env (and SUMO) on every core, for at most GEN_MINUTES
+DATA=$WORK/data
+[ -z "$DATA_IN" ] || [ -d "$DATA_IN" ] || die "DATA_IN=$DATA_IN: no such folder (carry it: carry [\"$DATA_IN\"])"
+VAL_SCENES=${VAL_SCENES:-$(calc "int(($SCENES / 20 < 8) ? 8 : (($SCENES / 20 > 64) ? 64 : $SCENES / 20))")}
+gen() { # source scenes seed out workers seconds: finished shards stay when the time is up
+    local rc=0
+    timeout --kill-after=15 "$6" "$PYTHON" -m trajeglish_env.cli generate --quiet --source "$1" \
+        --scenes "$2" --seed "$3" --out "$4" --workers "$5" >/dev/null || rc=$?
+    [ "$rc" = 0 ] || [ "$rc" = 124 ] || die "generate --source $1 --out $4 failed (exit code $rc)"
+    [ "$rc" = 0 ] || say "$(basename "$4"): time is up after $6 s; keeping the finished shards"
+}
+shards() { find "$@" -name '*.scn.npz' ! -name '.*' | wc -l; } # shard files under folders
+if [ "$SUMO_SCENES" = auto ]; then
+    SUMO_SCENES=$((SUMO_OK ? SCENES / 4 : 0))
+    [ "$SUMO_OK" = 1 ] || say "SUMO is not installed here: no SUMO scenes generated (carry some in DATA_IN: make device-sumo-scenes)"
+fi
+# generation may take GEN_MINUTES, and at most half of what the budget leaves
+GEN_S=$(calc "int(($GEN_MINUTES * 60 < ($MINUTES * 60 - $SECONDS - $MARGIN_S) / 2) ? $GEN_MINUTES * 60 : ($MINUTES * 60 - $SECONDS - $MARGIN_S) / 2)")
+[ "$GEN_S" -ge 5 ] || GEN_S=5
+T_GEN=$SECONDS
+TRAIN_DIRS=()
+VAL_DIR=
+PIDS=()
+if [ "$VAL_SCENES" -gt 0 ]; then # the same held-out scenes in every call of a run (fixed seed)
+    VAL_GEN=$DATA/val-highway-s$VAL_SEED-n$VAL_SCENES
+    gen highway "$VAL_SCENES" "$VAL_SEED" "$VAL_GEN" "$(((GEN_WORKERS + 3) / 4))" "$GEN_S" &
+    PIDS+=($!)
+fi
+if [ "$SCENES" -gt 0 ]; then
+    TRAIN_DIRS+=("$DATA/highway-s$GEN_SEED-n$SCENES")
+    HW_WORKERS=$((SUMO_SCENES > 0 ? (GEN_WORKERS * 3 + 3) / 4 : GEN_WORKERS))
+    gen highway "$SCENES" "$GEN_SEED" "${TRAIN_DIRS[-1]}" "$HW_WORKERS" "$GEN_S" &
+    PIDS+=($!)
+fi
+if [ "$SUMO_SCENES" -gt 0 ]; then
+    TRAIN_DIRS+=("$DATA/sumo-s$GEN_SEED-n$SUMO_SCENES")
+    gen sumo "$SUMO_SCENES" "$GEN_SEED" "${TRAIN_DIRS[-1]}" "$(((GEN_WORKERS + 3) / 4))" "$GEN_S" &
+    PIDS+=($!)
+fi
+for pid in "${PIDS[@]}"; do wait "$pid" || exit 2; done
+if [ "$VAL_SCENES" -gt 0 ]; then
+    VAL_DIR=$WORK/val
+    rm -rf "$VAL_DIR"
+    mkdir -p "$VAL_DIR" && cp -r "$VAL_GEN" "$VAL_DIR/highway"
+    [ -z "$DATA_IN" ] || [ ! -d "$DATA_IN/val" ] || cp -r "$DATA_IN/val" "$VAL_DIR/carried"
+fi
+[ -z "$DATA_IN" ] || [ ! -d "$DATA_IN/train" ] || TRAIN_DIRS+=("$DATA_IN/train")
+HAVE=()
+for d in "${TRAIN_DIRS[@]}"; do if [ -d "$d" ]; then HAVE+=("$d"); fi; done
+[ "${#HAVE[@]}" -gt 0 ] || die "no training scenes: raise SCENES or GEN_MINUTES, or carry DATA_IN"
+N_TRAIN=$(shards "${HAVE[@]}")
+[ "$N_TRAIN" -gt 0 ] || die "no training scene was finished in the $GEN_S s given to generation: raise MINUTES or GEN_MINUTES, or carry DATA_IN"
+N_VAL=0
+[ -z "$VAL_DIR" ] || N_VAL=$(shards "$VAL_DIR")
+if [ -n "$VAL_DIR" ] && [ "$N_VAL" = 0 ]; then
+    say "no held-out scene was finished in time: holding out every 20th training scene instead"
+    VAL_DIR=
+fi
+GEN_TOOK=$((SECONDS - T_GEN))
+say "scene shards: $N_TRAIN for training (${HAVE[*]}), $N_VAL held out; $GEN_TOOK s"
+
+# ---- 5. train until the budget is spent
+if [ -n "${TRAIN_MINUTES:-}" ]; then
+    TRAIN_S=$(calc "$TRAIN_MINUTES * 60")
+    [ "$(calc "($TRAIN_S > 0) ? 1 : 0")" = 1 ] || die "TRAIN_MINUTES=$TRAIN_MINUTES: expected a positive number"
+else
+    TRAIN_S=$(calc "$MINUTES * 60 - $SECONDS - $MARGIN_S")
+fi
+[ -n "${TRAIN_MINUTES:-}" ] || [ "$(calc "($TRAIN_S >= 5) ? 1 : 0")" = 1 ] || die "only $TRAIN_S s left to train after $SECONDS s of set-up and generation: raise MINUTES or lower GEN_MINUTES"
+say "training for $TRAIN_S s on $DEVICE with $TRAIN_WORKERS loader processes"
+VAL_ARGS=()
+[ -z "$VAL_DIR" ] || VAL_ARGS=(--val-data "$VAL_DIR")
+T_TRAIN=$SECONDS
+rc=0
+"$PYTHON" -m trajeglish_env.cli train --json --quiet --data "${HAVE[@]}" --out "$RUN" --preset "$PRESET" \
+    --steps "$STEPS" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --seed "$SEED" \
+    --workers "$TRAIN_WORKERS" --val-every "$VAL_EVERY" --checkpoint-every "$CKPT_EVERY" \
+    --minutes "$(calc "$TRAIN_S / 60")" "${VAL_ARGS[@]}" "${RESUME[@]}" >"$WORK/train.json" || rc=$?
+[ "$rc" = 0 ] || say "train failed (exit code $rc); packing what was checkpointed"
+cat "$WORK/train.json"
+
+# ---- 6. what comes back
+{
+    echo "call=$CALL"
+    echo "device=$DEVICE"
+    echo "gpu=$GPU"
+    echo "torch=$TORCH"
+    echo "python=$PY_VERSION"
+    echo "cores=$CORES"
+    echo "gen_seed=$GEN_SEED"
+    echo "train_shards=$N_TRAIN"
+    echo "val_shards=$N_VAL"
+    echo "gen_seconds=$GEN_TOOK"
+    echo "train_seconds=$((SECONDS - T_TRAIN))"
+    echo "train_workers=$TRAIN_WORKERS"
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY; do echo "param.$v=${!v}"; done
+} >"$WORK/call.env"
+say "packing into $OUT"
+"$PYTHON" trajeglish_env/device_job.py pack "$RUN" "$OUT" --facts "$WORK/call.env" \
+    --train-json "$WORK/train.json" --log "$LOG" || exit 2
+say "done in $SECONDS s"
+exit "$rc"

@@ -1,0 +1,141 @@
+"""The GPU-machine job (scripts/device_train.sh, trajeglish_env/device_job.py) on the CPU with tiny settings:
+it generates, trains, brings back a checkpoint that loads and a summary, and a second call resumes the
+first; bad set-ups fail with one clear line; ``train``'s wall-clock budget stops and resumes exactly."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from helpers import REPO, grid_vocabulary, straight_road_scene, tiny_checkpoint, tiny_config
+
+from trajeglish_env import device_job
+from trajeglish_env.checkpoint import load_checkpoint, save_checkpoint
+from trajeglish_env.scenario_io import save_scenarios
+from trajeglish_env.training.train import TrainConfig, train
+
+BASH = shutil.which("bash")
+SCRIPT = REPO / "scripts" / "device_train.sh"
+
+
+def _job(tmp: Path, name: str, **env: str) -> subprocess.CompletedProcess[str]:
+    """One call of the script: DEVICE=cpu, tiny model, a few seconds of training."""
+    settings = dict(
+        DEVICE="cpu",
+        PRESET="tiny",
+        MINUTES="5",
+        TRAIN_MINUTES="0.05",
+        SCENES="0",
+        SUMO_SCENES="0",
+        VAL_SCENES="0",
+        BATCH="4",
+        STEPS="100000",
+        GEN_WORKERS="1",
+        TRAIN_WORKERS="0",
+        DATA_IN=str(tmp / "carried"),
+        WHEELS=str(tmp / "no-wheels"),
+        WORK=str(tmp / f"work-{name}"),
+        OUT=str(tmp / f"out-{name}"),
+        PYTHON=sys.executable,
+        OMP_NUM_THREADS="1",
+    )
+    settings.update(env)
+    full = {k: v for k, v in os.environ.items() if k not in settings and k != "RUN_IN"}
+    return subprocess.run(  # the script logs everything on stdout (and into its log)
+        [BASH, str(SCRIPT)],
+        cwd=REPO,
+        env={**full, **settings},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=300,
+    )
+
+
+@pytest.mark.skipif(BASH is None, reason="needs bash")
+def test_a_call_trains_and_a_second_call_resumes(tmp_path: Path) -> None:
+    carried = tmp_path / "carried" / "train"
+    carried.mkdir(parents=True)
+    save_scenarios(
+        carried / "s.scn.npz", [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(6)]
+    )
+
+    first = _job(tmp_path, "1", SCENES="2")  # two highway-env scenes generated, six carried
+    assert first.returncode == 0, first.stdout[-3000:]
+    out1 = tmp_path / "out-1"
+    summary1 = json.loads((out1 / "summary.json").read_text())
+    assert summary1["step"] >= 1 and summary1["params"]["PRESET"] == "tiny"
+    assert summary1["train_scenes"] == 8 - 1  # every 20th scene (the first) held out
+    assert "highway" in summary1["sources"]
+    ckpt = load_checkpoint(out1 / "model.pt")
+    assert ckpt.config.d_model == tiny_config().d_model and ckpt.training["step"] == summary1["step"]
+    assert (out1 / "resume" / "last.pt.000").is_file() and (out1 / "log.txt").is_file()
+    assert len([p for p in out1.rglob("*") if p.is_file()]) <= device_job.MAX_FILES
+
+    second = _job(tmp_path, "2", RUN_IN=str(out1 / "resume"))
+    assert second.returncode == 0, second.stdout[-3000:]
+    summary2 = json.loads((tmp_path / "out-2" / "summary.json").read_text())
+    assert summary2["step"] > summary1["step"]  # it went on from the first call's step
+    assert [c["call"] for c in summary2["calls"]] == [0, 1]
+    assert summary2["calls"][1]["train"]["resumed_from"] == summary1["step"]
+    assert load_checkpoint(tmp_path / "out-2" / "model.pt").training["step"] == summary2["step"]
+
+    # a resumed run keeps its schedule: another STEPS is refused with one clear line
+    third = _job(tmp_path, "3", RUN_IN=str(out1 / "resume"), STEPS="50")
+    assert third.returncode == 2
+    assert "STEPS=50 but the run in RUN_IN was started with STEPS=100000" in third.stdout
+
+
+@pytest.mark.skipif(BASH is None, reason="needs bash")
+def test_bad_setups_fail_with_one_clear_line(tmp_path: Path) -> None:
+    no_out = _job(tmp_path, "x", OUT="")
+    assert no_out.returncode == 2 and "OUT is not set" in no_out.stdout
+    if not torch.cuda.is_available():
+        no_cuda = _job(tmp_path, "y", DEVICE="cuda")
+        assert no_cuda.returncode == 2 and "DEVICE=cuda but torch" in no_cuda.stdout
+
+
+def test_pack_splits_the_checkpoint_and_resume_rebuilds_it(tmp_path: Path, monkeypatch) -> None:
+    run = tmp_path / "run"
+    ckpt = tiny_checkpoint()
+    save_checkpoint(run / "last.pt", ckpt.model, ckpt.vocabulary, trainer={"step": 7, "history": []})
+    save_checkpoint(run / "model.pt", ckpt.model, ckpt.vocabulary, training={"step": 7})
+    monkeypatch.setattr(device_job, "PART_BYTES", 200_000)
+    facts = {"call": 0, "params": {"PRESET": "tiny", "STEPS": "9"}}
+    summary = device_job.pack(run, tmp_path / "out", facts, None)
+    parts = sorted((tmp_path / "out" / "resume").glob("last.pt.*"))
+    assert len(parts) > 1 and summary["files"]["model.pt"] > 0
+    rebuilt = device_job.resume(tmp_path / "out" / "resume", tmp_path / "again")
+    assert (tmp_path / "again" / "last.pt").read_bytes() == (run / "last.pt").read_bytes()
+    assert rebuilt["RESUME_STEP"] == "7" and rebuilt["SAVED_STEPS"] == "9" and rebuilt["CALL"] == "1"
+    parts[-1].unlink()  # an incomplete series does not load: a clear error, not a crash
+    with pytest.raises(device_job.JobError, match="does not load"):
+        device_job.resume(tmp_path / "out" / "resume", tmp_path / "again2")
+
+
+def test_time_limit_stops_and_the_resume_is_exact(tmp_path: Path) -> None:
+    scenes = tmp_path / "scenes"
+    save_scenarios(
+        scenes / "a.scn.npz", [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)]
+    )
+    cfg = dict(steps=5, batch_size=4, warmup_steps=2, val_every=100, log_every=1, checkpoint_every=100)
+    quick = TrainConfig(**cfg, num_workers=0, val_fraction=0.0)
+    kw = dict(vocabulary=grid_vocabulary(), progress=False)
+    straight = train(scenes, tmp_path / "a", tiny_config(), quick, **kw)
+    cut = train(scenes, tmp_path / "b", tiny_config(), quick, time_limit=0.0, **kw)
+    assert cut["steps"] == 1 and cut["stopped_by_time_limit"]
+    assert load_checkpoint(tmp_path / "b" / "last.pt").trainer["step"] == 1  # checkpointed where it stopped
+    # another number of loader processes (another machine) may resume: batches do not depend on it
+    more = TrainConfig(**cfg, num_workers=1, val_fraction=0.0)
+    resumed = train(scenes, tmp_path / "b", tiny_config(), more, resume=True, **kw)
+    assert resumed["resumed_from"] == 1 and resumed["steps"] == straight["steps"] == 5
+    a = load_checkpoint(tmp_path / "a" / "model.pt").model.state_dict()
+    b = load_checkpoint(tmp_path / "b" / "model.pt").model.state_dict()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=f"{k} differs after a timed stop")
