@@ -13,7 +13,9 @@ from trajeglish_env.evaluation import (
     collisions_over_time,
     constant_velocity_method,
     evaluate,
+    evaluate_methods,
     log_method,
+    scene_kind,
 )
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.sources.highway import generate_scene
@@ -41,6 +43,25 @@ def test_log_and_constant_velocity_rollouts(scenes) -> None:
     assert curve[0, 39] == 0.0 and curve[0, 40] == pytest.approx(2 / len(sim))
 
 
+def test_collision_curves_by_scene_kind(scenes) -> None:
+    """Curves per scene kind: constant velocity drives through an intersection's conflict point (highway-env
+    spawns the crossing cars 1-2 s from it), the two-way road stays clear; the overall curve is their mean."""
+    crossing = generate_scene("intersection", seed=3710967259)
+    chosen = [scenes[0], crossing, scenes[1]]
+    assert [scene_kind(s) for s in chosen] == ["highway/two-way", "highway/intersection", "highway/two-way"]
+    methods = {"log": log_method, "constant_velocity": constant_velocity_method}
+    raw = evaluate_methods(chosen, methods, EvalConfig(rollouts=1, scenes=3), progress=False)
+    cv = raw["constant_velocity"]
+    by_kind = {k: np.asarray(v) for k, v in cv["collision_rate_over_time_by_kind"].items()}
+    assert set(by_kind) == {"highway/two-way", "highway/intersection"}
+    assert by_kind["highway/two-way"].max() == 0.0
+    onset = (np.flatnonzero(by_kind["highway/intersection"] > 0)[0] + 1) * crossing.dt
+    assert 1.0 <= onset <= 2.0
+    overall = (2 * by_kind["highway/two-way"] + by_kind["highway/intersection"]) / 3
+    np.testing.assert_allclose(cv["collision_rate_over_time"], overall)
+    assert max(max(v) for v in raw["log"]["collision_rate_over_time_by_kind"].values()) == 0.0
+
+
 def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
     save_scenarios(tmp_path / "held.scn.npz", scenes)
     ckpt = tiny_checkpoint()
@@ -62,7 +83,11 @@ def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
     assert json.loads((tmp_path / "eval" / "evaluation.json").read_text())["scenes"] == 2
     assert all(
         (tmp_path / "eval" / n).stat().st_size > 1000
-        for n in ("collision_rate_over_time.png", "kinematics_histograms.png")
+        for n in (
+            "collision_rate_over_time.png",
+            "collision_rate_over_time_by_kind.png",
+            "kinematics_histograms.png",
+        )
     )
 
 

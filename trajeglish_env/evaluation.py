@@ -11,6 +11,7 @@ the log, with the controlled agent placed first versus last in the intra-timeste
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import sys
@@ -130,6 +131,17 @@ def submission_method(path: str | os.PathLike[str], scenario_ids: Sequence[str])
     return run
 
 
+def scene_kind(scene: Scenario) -> str:
+    """The scene's kind for per-kind breakdowns: ``source/kind`` for generated scenes (their ids read
+    ``source-kind-seed[-...]``, the kind possibly with dashes), else the source (WOMD: ``womd``)."""
+    parts = scene.scenario_id.split("-")
+    if scene.source in ("highway", "sumo") and parts[0] == scene.source:
+        words = list(itertools.takewhile(lambda w: not w.isdigit(), parts[1:]))
+        if words and len(words) < len(parts) - 1:
+            return f"{scene.source}/{'-'.join(words)}"
+    return scene.source
+
+
 def collisions_over_time(scene: Scenario, fut: np.ndarray) -> np.ndarray:
     """Per rollout and future step, the fraction of simulated agents overlapping another agent ``[R,H]``.
 
@@ -185,11 +197,16 @@ def evaluate_methods(
     results: dict[str, Any] = {}
     for name in methods:
         per_scene = sorted((row for part in merged for row in part[name]), key=lambda row: row[0])
-        _, scores, curves, speeds, accels = (list(x) for x in zip(*per_scene, strict=True))
+        index, scores, curves, speeds, accels = (list(x) for x in zip(*per_scene, strict=True))
         mean = mean_scores(scores)
+        kinds = [scene_kind(scenes[k]) for k in index]
         results[name] = {
             "scores": mean.to_dict(),
             "collision_rate_over_time": np.mean(curves, axis=0).tolist(),
+            "collision_rate_over_time_by_kind": {
+                kind: np.mean([c for c, g in zip(curves, kinds, strict=True) if g == kind], axis=0).tolist()
+                for kind in sorted(set(kinds))
+            },
             "_speed": np.concatenate(speeds),
             "_accel": np.concatenate(accels),
         }
@@ -382,6 +399,7 @@ def _plot(raw: dict[str, Any], dt: float, out: Path) -> list[str]:
     ax.legend(fontsize=7)
     fig.tight_layout()
     paths.append(_save(fig, out / "collision_rate_over_time.png"))
+    paths.append(_plot_by_kind(raw, dt, out))
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     for name, r in raw.items():
         axes[0].hist(r["_speed"], bins=60, range=(0, 35), histtype="step", density=True, label=name)
@@ -393,6 +411,30 @@ def _plot(raw: dict[str, Any], dt: float, out: Path) -> list[str]:
     paths.append(_save(fig, out / "kinematics_histograms.png"))
     plt.close("all")
     return paths
+
+
+def _plot_by_kind(raw: dict[str, Any], dt: float, out: Path) -> str:
+    """The collision curves, one panel per scene kind: in which kind of scene and when agents collide."""
+    import matplotlib.pyplot as plt
+
+    kinds = sorted({kind for r in raw.values() for kind in r["collision_rate_over_time_by_kind"]})
+    cols = min(4, len(kinds))
+    rows = -(-len(kinds) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False, sharex=True)
+    for ax, kind in zip(axes.flat, kinds, strict=False):
+        for name, r in raw.items():
+            curve = np.asarray(r["collision_rate_over_time_by_kind"].get(kind, []))
+            ax.plot((np.arange(len(curve)) + 1) * dt, curve, label=name, lw=2 if name == "log" else 1)
+        ax.set_title(kind, fontsize=9)
+        ax.grid(alpha=0.3)
+    for ax in axes.flat[len(kinds) :]:
+        ax.axis("off")
+    for ax in axes[-1]:
+        ax.set_xlabel("time after the current step (s)", fontsize=8)
+    axes[0][0].set_ylabel("fraction in collision", fontsize=8)
+    axes[0][0].legend(fontsize=6)
+    fig.tight_layout()
+    return _save(fig, out / "collision_rate_over_time_by_kind.png")
 
 
 def _save(fig: Any, path: Path) -> str:
