@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from trajeglish_env.scenario import AgentKind
-from trajeglish_env.tokenizer.coverage import DEFAULT_ENVELOPES, envelope_cover, envelope_error
 from trajeglish_env.tokenizer.baselines import kmeans_templates, xy_grid_templates, xyh_grid_templates
+from trajeglish_env.tokenizer.coverage import DEFAULT_ENVELOPES, envelope_cover, envelope_error
 from trajeglish_env.tokenizer.data import TrajectorySet, load_trajectories
 from trajeglish_env.tokenizer.discretization import collision_rates, evaluate_vocabulary, plot_error_vs_length
 from trajeglish_env.tokenizer.kdisks import default_epsilon, sample_kdisks
