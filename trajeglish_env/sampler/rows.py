@@ -284,8 +284,8 @@ class RowStates:
             track = sc.track_id[a] if sc is not None and a < sc.num_agents else "?"
             warnings.warn(
                 f"external agent {a} (track {track}) of row {b}: its tokenized state is {e:.2f} m from its "
-                f"true state at step {step + 1} (> {self.drift_tolerance} m); it moves beyond what the motion "
-                "vocabulary can follow (e.g. faster than its templates), so the NPCs see it where it is not",
+                f"true state at step {step + 1} (> {self.drift_tolerance} m); it moves beyond what the "
+                "motion vocabulary can follow (faster than its templates?); the NPCs see it where it is not",
                 stacklevel=2,
             )
 
