@@ -159,6 +159,9 @@ def lattice_templates(env: Envelope, dt: float, radius: float) -> np.ndarray:
     arc = np.linspace(lo + (hi - lo) / rows / 2, hi - (hi - lo) / rows / 2, rows)
     mag = np.maximum(np.abs(arc), 1e-9)
     limit = np.minimum(mag / env.min_turn_radius, env.max_lateral_accel * dt * dt / mag)
+    # Half a cell beyond the limit on each side puts the outermost templates on the limit itself: a track
+    # turning at its limit would otherwise lag (tokenized from a lagging state, with nothing to catch up).
+    limit = limit + dhs / 2
     count = np.maximum(1, np.ceil(2 * limit / dhs)).astype(np.int64)
     row = np.repeat(np.arange(rows), count)
     pos = np.arange(len(row)) - np.repeat(np.cumsum(count) - count, count)  # index within the row

@@ -37,7 +37,7 @@ MIN_TRANSITIONS_PER_TEMPLATE = 10
 EPSILON_SCALES = (0.75, 1.0, 1.5, 2.0)
 MAX_FIT_TRANSITIONS = 400_000  # per class; a deterministic subsample above this keeps fitting to minutes
 COVERED_METHODS = ("k-disks", "k-means")  # the sampled methods reserve templates for the motion envelope
-MIN_DATA_SHARE = 0.125  # at least this share of V stays for templates sampled from data
+MIN_DATA_SHARE = 0.02  # at least this share of V (8 of 384) stays for templates sampled from data
 
 
 def _log(msg: str) -> None:
