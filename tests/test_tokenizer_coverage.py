@@ -29,6 +29,7 @@ from trajeglish_env.tokenizer.discretization import evaluate_vocabulary
 DT = 0.1
 CAR = np.array([4.8, 2.0])
 VEHICLE = DEFAULT_ENVELOPES[AgentKind.VEHICLE]
+FULL = {"min_data_share": 0.02}  # the whole envelope at its 4.5 cm radius (374 of 384 vehicle templates)
 
 
 def _track(speed: np.ndarray, curvature: np.ndarray | float) -> np.ndarray:
@@ -72,7 +73,7 @@ def small_fit() -> TrajectorySet:
 def covered(small_fit: TrajectorySet) -> MotionVocabulary:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the other classes borrow the vehicle templates
-        return fit_vocabulary("k-disks", 384, small_fit, seed=0, trials=1, epsilon_scales=(1.0,))
+        return fit_vocabulary("k-disks", 384, small_fit, seed=0, trials=1, epsilon_scales=(1.0,), **FULL)
 
 
 def test_envelope_cover_reaches_every_envelope_transition() -> None:
@@ -118,10 +119,21 @@ def test_shipped_vocabulary_cannot_follow_40_mps() -> None:
     assert envelope_error(shipped.for_kind(AgentKind.VEHICLE), AgentKind.VEHICLE, DT) > 0.5
 
 
+def test_default_share_leaves_half_for_data(small_fit: TrajectorySet) -> None:
+    with pytest.warns(UserWarning, match="class 'vehicle' needs more than 192 of 384 templates"):
+        vocab = fit_vocabulary("k-disks", 384, small_fit, seed=0, trials=1, epsilon_scales=(1.0,))
+    cov = vocab.metadata["coverage"]["vehicle"]
+    assert cov["templates"] <= 192 and 0.045 < cov["radius_m"] < 0.07 and cov["max_error_m"] < 0.07
+    # one step within 7 cm, but along 5 s at 40 m/s the coarser cover lags (measured 0.38 m; shipped: far more)
+    assert _max_error(vocab, _envelope_tracks()["40 m/s straight"]) < 0.5
+    with pytest.raises(ValueError, match="min_data_share"):
+        fit_vocabulary("k-disks", 384, small_fit, trials=1, epsilon_scales=(1.0,), min_data_share=1.0)
+
+
 def test_fitting_with_coverage_is_deterministic(small_fit: TrajectorySet, covered: MotionVocabulary) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        again = fit_vocabulary("k-disks", 384, small_fit, seed=0, trials=1, epsilon_scales=(1.0,))
+        again = fit_vocabulary("k-disks", 384, small_fit, seed=0, trials=1, epsilon_scales=(1.0,), **FULL)
         plain = fit_vocabulary(
             "k-disks", 384, small_fit, seed=0, trials=1, epsilon_scales=(1.0,), coverage=False
         )

@@ -37,7 +37,7 @@ MIN_TRANSITIONS_PER_TEMPLATE = 10
 EPSILON_SCALES = (0.75, 1.0, 1.5, 2.0)
 MAX_FIT_TRANSITIONS = 400_000  # per class; a deterministic subsample above this keeps fitting to minutes
 COVERED_METHODS = ("k-disks", "k-means")  # the sampled methods reserve templates for the motion envelope
-MIN_DATA_SHARE = 0.02  # at least this share of V (8 of 384) stays for templates sampled from data
+MIN_DATA_SHARE = 0.5  # at least this share of V stays for templates sampled from data
 
 
 def _log(msg: str) -> None:
@@ -83,6 +83,7 @@ def fit_vocabulary(
     epsilon: float | None = None,
     epsilon_scales: Sequence[float] = EPSILON_SCALES,
     coverage: bool = True,
+    min_data_share: float = MIN_DATA_SHARE,
 ) -> MotionVocabulary:
     """Fit a vocabulary by ``method`` (one of METHODS) of nominal size ``vocab_size`` on ``fit``.
 
@@ -90,7 +91,11 @@ def fit_vocabulary(
     :func:`envelope_cover` for the class (every transition of the class's motion envelope, up to the env's
     40 m/s, reversing and tight turns, within the envelope's radius) and samples the rest from data; the
     metadata's ``coverage`` records per class the envelope, the reserved templates and the max one-step
-    error on the envelope. The result depends only on the inputs (deterministic).
+    error on the envelope. At least ``min_data_share`` of the templates stay for data: a cover that does
+    not fit is made at a wider radius (recorded, with a warning). The envelope templates all lie on the
+    unicycle surface, so on their own they cannot correct a tokenized state that is off it (lateral slip,
+    noise): with a small data share, real tracks tokenize worse (README, "Motion vocabulary coverage").
+    The result depends only on the inputs (deterministic).
 
     k-disks draws ``trials`` candidate sets for each epsilon in ``epsilon * epsilon_scales`` (``epsilon``
     defaults to the paper's value for ``vocab_size``; ``epsilon_scales=(1.0,)`` is exactly the paper's
@@ -137,7 +142,9 @@ def fit_vocabulary(
         elif method == "xy-grid":
             templates[kind] = xy_grid_templates(vocab_size, transitions)
         else:
-            reserved = _reserve(kind, vocab_size, fit.dt, metadata) if covered else np.zeros((0, 3))
+            reserved = (
+                _reserve(kind, vocab_size, fit.dt, metadata, min_data_share) if covered else np.zeros((0, 3))
+            )
             best, errors = _best_candidate(
                 method, transitions, int(kind), vocab_size, heldout, seed, trials, epsilons, reserved
             )
@@ -163,11 +170,15 @@ def fit_vocabulary(
     return MotionVocabulary(np.stack(templates), method=method, metadata=metadata)  # type: ignore[arg-type]
 
 
-def _reserve(kind: AgentKind, vocab_size: int, dt: float, metadata: dict[str, Any]) -> np.ndarray:
+def _reserve(
+    kind: AgentKind, vocab_size: int, dt: float, metadata: dict[str, Any], min_data_share: float
+) -> np.ndarray:
     """The envelope cover of ``kind`` (radius widened by 15 % steps, with a warning, until at least
-    ``MIN_DATA_SHARE`` of the vocabulary is left for data); records it in ``metadata["coverage"]``."""
+    ``min_data_share`` of the vocabulary is left for data); records it in ``metadata["coverage"]``."""
+    if not 0.0 < min_data_share < 1.0:
+        raise ValueError(f"min_data_share: expected a share in (0, 1), got {min_data_share}")
     env = DEFAULT_ENVELOPES[kind]
-    room = vocab_size - max(1, int(np.ceil(MIN_DATA_SHARE * vocab_size)))
+    room = vocab_size - max(1, int(np.ceil(min_data_share * vocab_size)))
     radius = env.radius
     cover = envelope_cover(kind, dt, env, radius)
     while len(cover) > room:
@@ -184,6 +195,7 @@ def _reserve(kind: AgentKind, vocab_size: int, dt: float, metadata: dict[str, An
         "envelope": env.to_json(),
         "templates": len(cover),
         "radius_m": round(radius, 5),
+        "min_data_share": min_data_share,
         "max_error_m": round(envelope_error(cover, kind, dt, env), 5),
     }
     return cover
