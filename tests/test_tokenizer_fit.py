@@ -217,6 +217,7 @@ def test_fit_and_evaluate_directory(tmp_path: Path) -> None:
         out_dir=tmp_path / "ev",
         trials=1,
         heldout_every=2,
+        coverage=False,  # the paper's procedure (coverage: tests/test_tokenizer_coverage.py)
     )
     json.dumps(summary)
     assert set(summary["table_cm"]) == {"xyh-grid", "k-disks"}
