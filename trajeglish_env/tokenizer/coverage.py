@@ -53,8 +53,9 @@ class Envelope:
         if self.max_accel < 0 or self.max_brake < 0 or self.curvatures < 1:
             raise ValueError("Envelope: max_accel, max_brake must be >= 0 and curvatures >= 1")
 
-    def to_json(self) -> dict[str, float]:
-        return {k: float(v) for k, v in self.__dict__.items()}
+    def to_json(self) -> dict[str, float | int]:
+        """The fields as a JSON-able dict (for vocabulary metadata)."""
+        return {k: (int(v) if isinstance(v, int) else float(v)) for k, v in self.__dict__.items()}
 
 
 def vehicle_envelope(limits: VehicleLimits | None = None, reverse_speed: float = 4.0) -> Envelope:
