@@ -117,7 +117,7 @@ def test_error_ordering_kdisks_best(vehicle_set: TrajectorySet) -> None:
     for method in ("xyh-grid", "xy-grid", "k-means", "k-disks"):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            vocab = fit_vocabulary(method, 128, fit, heldout, seed=0, trials=2)
+            vocab = fit_vocabulary(method, 128, fit, heldout, seed=0, trials=2, coverage=False)
         errors[method] = evaluate_vocabulary(vocab, heldout, collisions=False)["mean_cm"]
     assert errors["k-disks"] == min(errors.values()), errors
     assert errors["k-disks"] < 0.6 * min(v for k, v in errors.items() if k != "k-disks"), errors
@@ -125,7 +125,9 @@ def test_error_ordering_kdisks_best(vehicle_set: TrajectorySet) -> None:
 
 def test_class_without_data_borrows_vehicle_templates(vehicle_set: TrajectorySet) -> None:
     with pytest.warns(UserWarning) as record:
-        vocab = fit_vocabulary("k-disks", 128, vehicle_set, None, seed=0, trials=1, epsilon_scales=(1.0,))
+        vocab = fit_vocabulary(
+            "k-disks", 128, vehicle_set, None, seed=0, trials=1, epsilon_scales=(1.0,), coverage=False
+        )
     messages = sorted(str(w.message) for w in record)
     assert len(messages) == 2 and "class 'cyclist' has only 0 transitions" in messages[0]
     assert (
@@ -215,6 +217,7 @@ def test_fit_and_evaluate_directory(tmp_path: Path) -> None:
         out_dir=tmp_path / "ev",
         trials=1,
         heldout_every=2,
+        coverage=False,  # the paper's procedure (coverage: tests/test_tokenizer_coverage.py)
     )
     json.dumps(summary)
     assert set(summary["table_cm"]) == {"xyh-grid", "k-disks"}

@@ -77,12 +77,17 @@ def cmd_tokenizer_fit(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.tokenizer.fit import fit_from_directory
 
     return fit_from_directory(
-        args.data, vocab_size=args.vocab, seed=args.seed, out=args.out, trials=args.trials
+        args.data,
+        vocab_size=args.vocab,
+        seed=args.seed,
+        out=args.out,
+        trials=args.trials,
+        coverage=not args.no_coverage,
     )
 
 
 def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.tokenizer.fit import evaluate_directory
+    from trajeglish_env.tokenizer.fit import METHODS, evaluate_directory
 
     return evaluate_directory(
         args.data,
@@ -91,6 +96,8 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
         out_dir=output_dir(args.out),
         seed=args.seed,
         trials=args.trials,
+        methods=tuple(args.methods or METHODS),
+        coverage=not args.no_coverage,
     )
 
 
@@ -258,6 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--trials", type=POSITIVE, default=8, help="k-disks trials (the best on held-out data is kept)"
     )
+    no_cov = "do not reserve templates covering each class's motion envelope (40 m/s, reversing, tight turns)"
+    p.add_argument("--no-coverage", action="store_true", help=no_cov)
     p = add("eval", cmd_tokenizer_eval, "discretization error of k-disks and the baselines", tsub)
     p.add_argument("--data", nargs="+", required=True, help="held-out scenes to evaluate on")
     p.add_argument(
@@ -267,6 +276,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vocab", type=int, nargs="*", choices=(128, 256, 384, 512))
     p.add_argument("--out", default="out/tokenizer_eval", help="directory for plots")
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument(
+        "--methods", nargs="*", choices=("xyh-grid", "xy-grid", "k-means", "k-disks"), help="default: all"
+    )
+    p.add_argument("--no-coverage", action="store_true", help=no_cov)
 
     p = add("train", cmd_train, "train a Trajeglish model on scene shards (torchrun for several processes)")
     p.add_argument("--data", nargs="+", required=True, help="scene directories")

@@ -4,6 +4,7 @@ exact and tokenized states, and how rows are (re)started, stopped and fed the st
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,6 +17,9 @@ from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 # (float32) and links [3,S] (int64); S = 0 for a row without road edges (or not started).
 RowEdges = tuple[np.ndarray, np.ndarray]
 NO_EDGES: RowEdges = (np.zeros((7, 0), np.float32), np.zeros((3, 0), np.int64))
+# An external agent whose tokenized state (the model's view of it) is farther than this (m, mean corner
+# distance) from its true state moves beyond what the vocabulary can follow: warned once per row start.
+DRIFT_WARN_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,8 @@ class RowStates:
         self._edge_cache: dict[int, tuple[Scenario, RowEdges]] = {}
         self._in_step = False  # a step has begun and is not finished (see cancel_step)
         self._supplied: list[tuple[np.ndarray, ...]] = []  # supplies whose tokens are not computed yet
+        self.drift_tolerance = DRIFT_WARN_M
+        self._drift_warned: set[tuple[int, int]] = set()  # (row, agent) warned since the row's start
         # drafted tokens [B,N] of the step being decoded in parallel (None: sequential decoding)
         self._draft: np.ndarray | None = None
         self._ahead: np.ndarray | None = None  # drafts [B,N] for the next step, drawn looking ahead
@@ -103,6 +109,8 @@ class RowStates:
             raise ValueError(
                 f"start_rows: {len(rows)} rows in 0..{self.B - 1} need as many seeds, got {seeds}"
             )
+        restarted = set(rows.tolist())
+        self._drift_warned = {k for k in self._drift_warned if k[0] not in restarted}
         sc = spec.scenario
         n = sc.num_agents
         cur = sc.current_index if spec.current_index is None else int(spec.current_index)
@@ -262,6 +270,24 @@ class RowStates:
         )
         self.tokens[rows, agents, t] = np.where(ok, tok.tokens[:, 0, 0], -1)
         self.mxyh[rows, agents, t + 1] = np.where(ok[:, None], np.nan_to_num(tok.xyh[:, 0, 1]), 0.0)
+        drift = ok & (np.nan_to_num(tok.error[:, 0, 1]) > self.drift_tolerance)
+        if drift.any():
+            self._warn_drift(rows[drift], agents[drift], tok.error[drift, 0, 1], t[drift])
+
+    def _warn_drift(self, rows: np.ndarray, agents: np.ndarray, error: np.ndarray, t: np.ndarray) -> None:
+        """Warn once per row start and agent whose tokenized state drifts beyond ``drift_tolerance``."""
+        for b, a, e, step in zip(rows.tolist(), agents.tolist(), error.tolist(), t.tolist(), strict=True):
+            if (b, a) in self._drift_warned:
+                continue
+            self._drift_warned.add((b, a))
+            sc = self.scenes[b]
+            track = sc.track_id[a] if sc is not None and a < sc.num_agents else "?"
+            warnings.warn(
+                f"external agent {a} (track {track}) of row {b}: its tokenized state is {e:.2f} m from its "
+                f"true state at step {step + 1} (> {self.drift_tolerance} m); it moves beyond what the "
+                "motion vocabulary can follow (faster than its templates?); the NPCs see it where it is not",
+                stacklevel=2,
+            )
 
 
 def _agent_mask(mask: np.ndarray, n: int, name: str) -> np.ndarray:

@@ -14,6 +14,7 @@ import numpy as np
 
 from trajeglish_env.scenario import AgentKind
 from trajeglish_env.tokenizer.collisions import collision_flags
+from trajeglish_env.tokenizer.coverage import DRIFT_TOLERANCE_M, drift_report, envelope_error
 from trajeglish_env.tokenizer.data import TrajectorySet
 from trajeglish_env.tokenizer.tokenize import TokenizedTrajectories, tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
@@ -86,14 +87,27 @@ def evaluate_vocabulary(
     collisions: bool = True,
     max_steps: int | None = None,
     raw_collisions: dict[str, Any] | None = None,
+    drift_tolerance: float = DRIFT_TOLERANCE_M,
+    warn_drift: bool = True,
 ) -> dict[str, Any]:
     """Tokenize ``data`` with ``vocab``; report errors, error vs length and (optionally) collision rates.
 
     ``raw_collisions`` (:func:`collision_rates` of the logged states) saves recomputing them per vocabulary.
+    ``drift`` reports per class the max error and the share of tracks whose tokenized state drifts beyond
+    ``drift_tolerance`` m (a warning names the worst of them, by scene and agent index, unless
+    ``warn_drift`` is False); ``envelope_max_cm`` the max one-step error on each class's motion envelope.
     """
     tok = tokenize(vocab, data.xyh, data.valid, data.size, data.kind)
     result: dict[str, Any] = {"method": vocab.method, "templates": vocab.size, "dt": data.dt}
     result.update(error_summary(tok, data.kind))
+    first = np.searchsorted(data.scene, data.scene)  # rows are grouped by scene
+    names = [f"scene {s} agent {i - f}" for i, (s, f) in enumerate(zip(data.scene, first, strict=True))]
+    result["drift"] = drift_report(
+        tok.error, tok.valid & ~tok.anchored, data.kind, names, drift_tolerance, warn=warn_drift
+    )
+    result["envelope_max_cm"] = {
+        k.name.lower(): round(envelope_error(vocab.for_kind(k), k, data.dt) * 100, 3) for k in AgentKind
+    }
     result["error_vs_length"] = error_vs_length(tok, max_steps)
     if collisions:
         raw = raw_collisions if raw_collisions is not None else collision_rates(data, data.xyh, data.valid)

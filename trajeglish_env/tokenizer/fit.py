@@ -23,6 +23,7 @@ import numpy as np
 
 from trajeglish_env.scenario import AgentKind
 from trajeglish_env.tokenizer.baselines import kmeans_templates, xy_grid_templates, xyh_grid_templates
+from trajeglish_env.tokenizer.coverage import DEFAULT_ENVELOPES, envelope_cover, envelope_error
 from trajeglish_env.tokenizer.data import TrajectorySet, load_trajectories
 from trajeglish_env.tokenizer.discretization import collision_rates, evaluate_vocabulary, plot_error_vs_length
 from trajeglish_env.tokenizer.kdisks import default_epsilon, sample_kdisks
@@ -35,6 +36,8 @@ MIN_TRANSITIONS_PER_TEMPLATE = 10
 # k-disks tries the paper's epsilon and these multiples of it (data unlike WOMD may want another radius).
 EPSILON_SCALES = (0.75, 1.0, 1.5, 2.0)
 MAX_FIT_TRANSITIONS = 400_000  # per class; a deterministic subsample above this keeps fitting to minutes
+COVERED_METHODS = ("k-disks", "k-means")  # the sampled methods reserve templates for the motion envelope
+MIN_DATA_SHARE = 0.5  # at least this share of V stays for templates sampled from data
 
 
 def _log(msg: str) -> None:
@@ -79,8 +82,20 @@ def fit_vocabulary(
     trials: int = 8,
     epsilon: float | None = None,
     epsilon_scales: Sequence[float] = EPSILON_SCALES,
+    coverage: bool = True,
+    min_data_share: float = MIN_DATA_SHARE,
 ) -> MotionVocabulary:
     """Fit a vocabulary by ``method`` (one of METHODS) of nominal size ``vocab_size`` on ``fit``.
+
+    With ``coverage`` (k-disks and k-means), every candidate set starts with the templates of
+    :func:`envelope_cover` for the class (every transition of the class's motion envelope, up to the env's
+    40 m/s, reversing and tight turns, within the envelope's radius) and samples the rest from data; the
+    metadata's ``coverage`` records per class the envelope, the reserved templates and the max one-step
+    error on the envelope. At least ``min_data_share`` of the templates stay for data: a cover that does
+    not fit is made at a wider radius (recorded, with a warning). The envelope templates all lie on the
+    unicycle surface, so on their own they cannot correct a tokenized state that is off it (lateral slip,
+    noise): with a small data share, real tracks tokenize worse (README, "Motion vocabulary coverage").
+    The result depends only on the inputs (deterministic).
 
     k-disks draws ``trials`` candidate sets for each epsilon in ``epsilon * epsilon_scales`` (``epsilon``
     defaults to the paper's value for ``vocab_size``; ``epsilon_scales=(1.0,)`` is exactly the paper's
@@ -109,6 +124,9 @@ def fit_vocabulary(
     if method in ("k-disks", "k-means"):
         metadata["trials"] = trials
         metadata["heldout_error_cm"] = {}
+    covered = coverage and method in COVERED_METHODS
+    if covered:
+        metadata["coverage"] = {}
     if method == "k-disks":
         metadata["epsilon_candidates_m"] = epsilons
         metadata["epsilon_m"] = {}
@@ -124,8 +142,11 @@ def fit_vocabulary(
         elif method == "xy-grid":
             templates[kind] = xy_grid_templates(vocab_size, transitions)
         else:
+            reserved = (
+                _reserve(kind, vocab_size, fit.dt, metadata, min_data_share) if covered else np.zeros((0, 3))
+            )
             best, errors = _best_candidate(
-                method, transitions, int(kind), vocab_size, heldout, seed, trials, epsilons
+                method, transitions, int(kind), vocab_size, heldout, seed, trials, epsilons, reserved
             )
             templates[kind] = best
             metadata["heldout_error_cm"][name] = errors
@@ -141,7 +162,43 @@ def fit_vocabulary(
             )
             metadata["borrowed"][name] = "vehicle"
             templates[kind] = templates[AgentKind.VEHICLE]
+            if covered:
+                metadata["coverage"][name] = {
+                    "borrowed": "vehicle",
+                    "max_error_m": round(envelope_error(templates[kind], kind, fit.dt), 5),
+                }
     return MotionVocabulary(np.stack(templates), method=method, metadata=metadata)  # type: ignore[arg-type]
+
+
+def _reserve(
+    kind: AgentKind, vocab_size: int, dt: float, metadata: dict[str, Any], min_data_share: float
+) -> np.ndarray:
+    """The envelope cover of ``kind`` (radius widened by 15 % steps, with a warning, until at least
+    ``min_data_share`` of the vocabulary is left for data); records it in ``metadata["coverage"]``."""
+    if not 0.0 < min_data_share < 1.0:
+        raise ValueError(f"min_data_share: expected a share in (0, 1), got {min_data_share}")
+    env = DEFAULT_ENVELOPES[kind]
+    room = vocab_size - max(1, int(np.ceil(min_data_share * vocab_size)))
+    radius = env.radius
+    cover = envelope_cover(kind, dt, env, radius)
+    while len(cover) > room:
+        radius *= 1.15
+        cover = envelope_cover(kind, dt, env, radius)
+    name = kind.name.lower()
+    if radius > env.radius:
+        warnings.warn(
+            f"tokenizer coverage: class '{name}' needs more than {room} of {vocab_size} templates to cover "
+            f"its motion envelope within {env.radius} m; covered within {radius:.4f} m instead",
+            stacklevel=3,
+        )
+    metadata["coverage"][name] = {
+        "envelope": env.to_json(),
+        "templates": len(cover),
+        "radius_m": round(radius, 5),
+        "min_data_share": min_data_share,
+        "max_error_m": round(envelope_error(cover, kind, dt, env), 5),
+    }
+    return cover
 
 
 def _best_candidate(
@@ -153,11 +210,16 @@ def _best_candidate(
     seed: int,
     trials: int,
     epsilons: Sequence[float],
+    reserved: np.ndarray | None = None,
 ) -> tuple[np.ndarray, list[list[float]]]:
     """Draw candidate template sets (k-disks per epsilon, or k-means seeds); keep the best on ``heldout``.
 
+    Every candidate starts with the ``reserved`` templates (the envelope cover) and samples the rest.
+
     Returns the best set and ``[epsilon_m, trial, heldout_error_cm]`` for every candidate.
     """
+    reserved = np.zeros((0, 3)) if reserved is None else reserved
+    sampled = vocab_size - len(reserved)
     best, best_err, errors = None, np.inf, []
     for eps in epsilons:
         for trial in range(trials):
@@ -165,9 +227,10 @@ def _best_candidate(
                 np.random.SeedSequence([seed, kind, vocab_size, trial, int(eps * 1e6)])
             )
             if method == "k-disks":
-                candidate = sample_kdisks(transitions, vocab_size, eps, rng)
+                candidate = sample_kdisks(transitions, sampled, eps, rng)
             else:
-                candidate = kmeans_templates(_subsample(transitions, 100_000, rng), vocab_size, rng)
+                candidate = kmeans_templates(_subsample(transitions, 100_000, rng), sampled, rng)
+            candidate = np.concatenate([reserved, candidate])
             err = _heldout_error(candidate, kind, heldout, transitions[:20000])
             errors.append([eps, trial, round(err * 100, 4)])
             if err < best_err:
@@ -218,8 +281,11 @@ def fit_from_directory(
     epsilon_scales: Sequence[float] = EPSILON_SCALES,
     heldout_every: int = 5,
     max_scenes: int | None = None,
+    coverage: bool = True,
 ) -> dict[str, Any]:
     """Fit a vocabulary on the scenes of ``data_dir`` (one or several directories), save it to ``out``.
+
+    ``coverage`` reserves templates for every class's motion envelope (see :func:`fit_vocabulary`).
 
     Every ``heldout_every``-th scene is held out to choose among trials and to report the error.
     """
@@ -230,7 +296,14 @@ def fit_from_directory(
         f"fitting {method} V={vocab_size} on {fit.num_scenes} scenes ({fit.transition_counts()} transitions)"
     )
     vocab = fit_vocabulary(
-        method, vocab_size, fit, heldout, seed=seed, trials=trials, epsilon_scales=epsilon_scales
+        method,
+        vocab_size,
+        fit,
+        heldout,
+        seed=seed,
+        trials=trials,
+        epsilon_scales=epsilon_scales,
+        coverage=coverage,
     )
     sources = [str(data_dir)] if isinstance(data_dir, (str, os.PathLike)) else [str(p) for p in data_dir]
     vocab.metadata["data"] = sources
@@ -245,6 +318,7 @@ def fit_from_directory(
         "heldout_scenes": heldout.num_scenes,
         "transitions": fit.transition_counts(),
         "borrowed": vocab.metadata["borrowed"],
+        "coverage": vocab.metadata.get("coverage"),
         "heldout": report,
         "seconds": round(time.perf_counter() - start, 2),
     }
@@ -266,13 +340,16 @@ def evaluate_directory(
     heldout_every: int = 5,
     collisions: bool = True,
     max_scenes: int | None = None,
+    coverage: bool = True,
 ) -> dict[str, Any]:
     """Fit every method at every size and evaluate on held-out trajectories (the paper's comparison table).
 
     Without ``fit_data``, ``data_dir`` is split by scene (every ``heldout_every``-th scene held out for
     evaluation; the rest fit, with its own inner split for choosing trials). With ``fit_data``, vocabularies
     are fitted there and all of ``data_dir`` is evaluated. Writes ``tokenizer_error_vs_length.png`` and the
-    fitted vocabularies into ``out_dir`` when given.
+    fitted vocabularies into ``out_dir`` when given. ``coverage`` as in :func:`fit_vocabulary`; each
+    result's ``drift`` reports per class the max error and the share of tracks drifting beyond 5 cm (with
+    a warning naming the worst tracks).
     """
     start = time.perf_counter()
     data = _load(data_dir, max_scenes)
@@ -288,12 +365,20 @@ def evaluate_directory(
         for method in methods:
             t0 = time.perf_counter()
             vocab = fit_vocabulary(
-                method, vocab_size, fit, choose, seed=seed, trials=trials, epsilon_scales=epsilon_scales
+                method,
+                vocab_size,
+                fit,
+                choose,
+                seed=seed,
+                trials=trials,
+                epsilon_scales=epsilon_scales,
+                coverage=coverage,
             )
             res = evaluate_vocabulary(vocab, evaluation, collisions=collisions, raw_collisions=raw)
             res.update(
                 vocab_size=vocab_size,
                 borrowed=vocab.metadata["borrowed"],
+                coverage=vocab.metadata.get("coverage"),
                 seconds=round(time.perf_counter() - t0, 2),
             )
             results.append(res)
