@@ -7,8 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trajeglish_env.env import EgoEnv, RewardConfig
-from trajeglish_env.env.batch_geometry import (
+from trajeglish_env.batch_geometry import (
     NearbyItems,
     PaddedRows,
     edge_rows,
@@ -19,6 +18,7 @@ from trajeglish_env.env.batch_geometry import (
     point_segment_distances,
     road_edge_distances,
 )
+from trajeglish_env.env import EgoEnv, RewardConfig
 from trajeglish_env.env.batch_outcomes import BatchGeometry
 from trajeglish_env.env.rewards import road_edges
 from trajeglish_env.env.routes import logged_paths, stack_paths

@@ -9,7 +9,7 @@ import pytest
 import torch
 from helpers import bundle_scene, queue_scene, straight_road_scene, tiny
 
-from trajeglish_env.env.batch_geometry import collision_flags
+from trajeglish_env.batch_geometry import collision_flags
 from trajeglish_env.env.rewards import offroad, road_edges
 from trajeglish_env.geometry import to_global
 from trajeglish_env.metrics.boxes import box_collisions

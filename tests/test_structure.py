@@ -75,6 +75,25 @@ def test_no_import_cycle_in_the_package() -> None:
     assert cycle is None, f"import cycle: {' -> '.join(cycle or [])}"
 
 
+def test_data_flows_one_way() -> None:
+    """Scenario data -> tokenizer -> model -> sampler -> environment: no stage imports a later one on
+    import (the tokenizer's motion envelope reads the vehicle limits from ``kinematics``, not the env)."""
+    later = {
+        "trajeglish_env.tokenizer": ("trajeglish_env.model", "trajeglish_env.sampler", "trajeglish_env.env"),
+        "trajeglish_env.model": ("trajeglish_env.sampler", "trajeglish_env.env"),
+        "trajeglish_env.sampler": ("trajeglish_env.env",),
+    }
+    wrong = sorted(
+        f"{m} imports {n}"
+        for m, imports in import_graph().items()
+        for stage, banned in later.items()
+        if m == stage or m.startswith(stage + ".")
+        for n in imports
+        if any(n == b or n.startswith(b + ".") for b in banned)
+    )
+    assert not wrong, wrong
+
+
 def test_no_module_over_500_lines() -> None:
     long = {
         str(p.relative_to(PACKAGE)): n

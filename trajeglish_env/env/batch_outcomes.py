@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trajeglish_env.env.batch_geometry import (
+from trajeglish_env.batch_geometry import (
     OTHER,
     NearbyItems,
     PaddedRows,

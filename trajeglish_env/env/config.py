@@ -7,8 +7,7 @@ import os
 from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
+from trajeglish_env.kinematics import VehicleLimits
 from trajeglish_env.sampler.config import OFFROAD_MARGIN, SamplingConfig
 
 if TYPE_CHECKING:
@@ -61,33 +60,6 @@ class TrajeglishNPC:
     def torch_cache_dtype(self) -> Any:
         """The torch dtype of the decoder caches."""
         return self.sampling.torch_cache_dtype
-
-
-@dataclass(frozen=True)
-class VehicleLimits:
-    """Kinematic bicycle limits of the ``continuous`` action: action[0] in [-1, 1] maps to
-    [-max_brake, max_accel] m/s^2 (linearly on each side of 0), action[1] to the front-wheel angle in
-    [-s, s] with s = min(max_steer, atan(max_lateral_accel x wheelbase / v^2)) at speed v (tyre grip:
-    full steering is a turn at ``max_lateral_accel`` at most); the speed stays in [0, max_speed] m/s (no
-    reversing); the wheelbase is ``wheelbase_ratio`` times the agent's length."""
-
-    max_accel: float = 4.0
-    max_brake: float = 6.0
-    max_steer: float = 0.5
-    max_lateral_accel: float = 8.0
-    max_speed: float = 40.0
-    wheelbase_ratio: float = 0.6
-
-    def steer_limit(self, speed: np.ndarray | float, length: np.ndarray | float) -> np.ndarray:
-        """Largest front-wheel angle (rad) at ``speed`` for an agent of ``length``."""
-        base = self.wheelbase_ratio * np.asarray(length, dtype=np.float64)
-        v2 = np.maximum(np.asarray(speed, dtype=np.float64), 1.0) ** 2
-        return np.minimum(self.max_steer, np.arctan(self.max_lateral_accel * base / v2))
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            if not getattr(self, f.name) > 0:
-                raise ValueError(f"VehicleLimits.{f.name} must be > 0, got {getattr(self, f.name)}")
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from gymnasium import spaces
 
-from trajeglish_env.env.batch_geometry import EDGE, LANE, LINE, OTHER
+from trajeglish_env.batch_geometry import EDGE, LANE, LINE, OTHER
 from trajeglish_env.env.batch_outcomes import Pictures
 from trajeglish_env.env.config import ObservationConfig
 from trajeglish_env.geometry import transform_points
@@ -81,7 +81,7 @@ def sample_map_points(scenario: Scenario, spacing: float) -> tuple[np.ndarray, n
 class VectorObserver:
     """The ``vector`` observation (layout in the module docstring): this scene's map points and the space;
     the observations themselves are computed for many agents and scenes at once by
-    :func:`~trajeglish_env.env.batch_geometry.vector_observations`."""
+    :func:`~trajeglish_env.batch_geometry.vector_observations`."""
 
     def __init__(self, scenario: Scenario, config: ObservationConfig):
         self.sc, self.cfg = scenario, config

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trajeglish_env.env.batch_geometry import collision_flags
+from trajeglish_env.batch_geometry import collision_flags
 from trajeglish_env.env.config import RewardConfig
 from trajeglish_env.geometry import box_corners
 from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road_edges

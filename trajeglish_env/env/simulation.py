@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from trajeglish_env.batch_geometry import edge_rows
 from trajeglish_env.env.actions import action_towards, bicycle_step, delta_step, token_step
-from trajeglish_env.env.batch_geometry import edge_rows
 from trajeglish_env.env.config import EnvConfig, RandomAgents
 from trajeglish_env.env.drivers import RowView
 from trajeglish_env.env.lane_routes import extended_routes

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trajeglish_env.env.batch_geometry import latest_states as batch_latest_states
+from trajeglish_env.batch_geometry import latest_states as batch_latest_states
 from trajeglish_env.scenario import Scenario
 
 
@@ -42,7 +42,7 @@ def latest_states(
     xyh: np.ndarray, valid: np.ndarray, t: int, moved: np.ndarray, dt: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """See :meth:`WorldView.latest` (vectorized over agents; the formula of
-    :func:`~trajeglish_env.env.batch_geometry.latest_states`)."""
+    :func:`~trajeglish_env.batch_geometry.latest_states`)."""
     last = valid.shape[1] - 1
     return batch_latest_states(
         xyh[:, t],

@@ -1,6 +1,6 @@
 """Road edges of guarded sampling: which sampled vehicles a candidate could take off the road, and the env's
 off-road rule for their candidate boxes (a corner more than the margin beyond a road edge, the edge chosen
-and signed as the WOSAC reference does: :mod:`~trajeglish_env.env.batch_geometry`).
+and signed as the WOSAC reference does: :mod:`~trajeglish_env.batch_geometry`).
 
 A vehicle is left unchecked only where no candidate can be off the road, which is proved, not assumed: on
 a flat map, every segment that can be nearest to a point of a disc holding all its candidates' corners has
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trajeglish_env.env.batch_geometry import nearest_segments_near, selection_d2, signed_distances_to
+from trajeglish_env.batch_geometry import nearest_segments_near, selection_d2, signed_distances_to
 from trajeglish_env.sampler.config import OFFROAD_MARGIN
 from trajeglish_env.sampler.rows import RowEdges, RowStates
 

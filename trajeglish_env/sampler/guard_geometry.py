@@ -4,7 +4,7 @@ in one model call, the obstacles near each agent and the road edges near each ve
 the vehicle off the road.
 
 Vectorized over pairs, candidates and neighbours, with the env's own functions
-(:mod:`~trajeglish_env.env.batch_geometry`): boxes overlap by the separating-axis test the env's collision
+(:mod:`~trajeglish_env.batch_geometry`): boxes overlap by the separating-axis test the env's collision
 flag uses, and off-road is the env's rule. Every number of a pair depends on its own row only, never on
 the rows sampled with it.
 """
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trajeglish_env.env.batch_geometry import PaddedRows, latest_states, nearest_first
+from trajeglish_env.batch_geometry import PaddedRows, latest_states, nearest_first
 from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.sampler.guard_edges import EdgeLists, RoadView, road_view

@@ -13,7 +13,7 @@ from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
-# A row's road edges as :func:`~trajeglish_env.env.batch_geometry.edge_rows` gives them: columns [7,S]
+# A row's road edges as :func:`~trajeglish_env.batch_geometry.edge_rows` gives them: columns [7,S]
 # (float32) and links [3,S] (int64); S = 0 for a row without road edges (or not started).
 RowEdges = tuple[np.ndarray, np.ndarray]
 NO_EDGES: RowEdges = (np.zeros((7, 0), np.float32), np.zeros((3, 0), np.int64))
@@ -185,7 +185,7 @@ class RowStates:
         """The scene's road-edge segments (computed once per scene object, like the map chunks)."""
         hit = self._edge_cache.get(id(sc))
         if hit is None or hit[0] is not sc:
-            from trajeglish_env.env.batch_geometry import edge_rows
+            from trajeglish_env.batch_geometry import edge_rows
             from trajeglish_env.env.rewards import road_edges
 
             if len(self._edge_cache) > 4 * self.B + 64:

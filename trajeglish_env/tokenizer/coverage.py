@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from trajeglish_env.env.config import VehicleLimits
+from trajeglish_env.kinematics import VehicleLimits
 from trajeglish_env.scenario import AgentKind
 from trajeglish_env.tokenizer.distance import corner_distance
 
