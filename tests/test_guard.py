@@ -10,12 +10,14 @@ import torch
 from helpers import bundle_scene, queue_scene, straight_road_scene, tiny
 
 from trajeglish_env.batch_geometry import collision_flags
-from trajeglish_env.env.rewards import offroad, road_edges
-from trajeglish_env.geometry import to_global
+from trajeglish_env.env.rewards import road_edges
+from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
+from trajeglish_env.metrics.road_edges import signed_distance_to_road_edges
 from trajeglish_env.sampler import guard as guard_module
-from trajeglish_env.sampler.config import OFFROAD_MARGIN, SamplingConfig
+from trajeglish_env.sampler.config import GUARD_ROAD_MARGIN, SamplingConfig
 from trajeglish_env.sampler.engine import BatchEngine, RolloutEngine, RowSpec
+from trajeglish_env.scenario import AgentKind
 
 
 def test_the_guard_option_is_a_bool() -> None:
@@ -34,11 +36,16 @@ def brute_force_masks(engine: RolloutEngine, agent: int) -> tuple[np.ndarray, np
     others = np.flatnonzero((moved | still) & (np.arange(sc.num_agents) != agent))
     boxes = np.where(moved[others, None], engine.xyh[0, others, t + 1], engine.xyh[0, others, t])
     collide = box_collisions(cand[:, None], sc.size[agent], boxes[None], sc.size[others][None]).any(axis=1)
+    if sc.kind[agent] != AgentKind.VEHICLE:
+        return collide, np.zeros(len(cand), bool)
     edges = road_edges(sc)
-    size, kind = np.broadcast_to(sc.size[agent], (len(cand), 2)), np.full(len(cand), sc.kind[agent])
-    off = offroad(cand, size, kind, edges, OFFROAD_MARGIN)
-    off_now = offroad(engine.mxyh[0, agent, t][None], sc.size[agent][None], sc.kind[agent][None], edges, 0.5)
-    return collide, off & ~off_now[0]
+    now = excess(engine.mxyh[0, agent, t][None], sc.size[agent], edges)[0]
+    return collide, excess(cand, sc.size[agent], edges) > max(GUARD_ROAD_MARGIN, now)
+
+
+def excess(xyh: np.ndarray, size: np.ndarray, edges: object) -> np.ndarray:
+    """``[k]`` how far (m) the most off-road corner of each box ``xyh [k,3]`` lies beyond a road edge."""
+    return signed_distance_to_road_edges(box_corners(xyh, size), edges).max(axis=-1)
 
 
 @pytest.mark.parametrize("name", ["straight", "queue", "highway-roundabout-999001"])
@@ -75,8 +82,9 @@ def test_masks_are_the_envs_rules_over_every_candidate(name: str) -> None:
 
 
 def new_events(engine: RolloutEngine) -> tuple[int, int]:
-    """Collisions that were not there a step before (among the agents sampled), and vehicles on the road
-    (env rule) that are off it a step later, summed over rollouts and steps."""
+    """Collisions that were not there a step before (among the agents sampled), and vehicles that go
+    beyond a road edge or farther beyond it (the guard's rule) a step later, summed over rollouts and
+    steps."""
     sc = engine.sc
     agents = np.flatnonzero(engine.controlled)
     edges = road_edges(sc)
@@ -90,11 +98,9 @@ def new_events(engine: RolloutEngine) -> tuple[int, int]:
                 for k in (0, 1)
             )
             hits += int((now & ~was).sum())
-            out = [
-                offroad(xyh[agents, k], sc.size[agents], sc.kind[agents], edges, OFFROAD_MARGIN)
-                for k in (0, 1)
-            ]
-            off += int((out[1] & ~out[0]).sum())
+            vehicles = agents[(sc.kind[agents] == AgentKind.VEHICLE) & valid[agents].all(axis=1)]
+            before, after = (excess(xyh[vehicles, k], sc.size[vehicles], edges) for k in (0, 1))
+            off += int((after > np.maximum(before, GUARD_ROAD_MARGIN) + 1e-6).sum())
     return hits, off
 
 

@@ -15,7 +15,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["RED_STATES", "TrafficSignals", "red_light_violations"]
+__all__ = [
+    "RED_STATES",
+    "SignalFences",
+    "TrafficSignals",
+    "has_signals",
+    "on_signal_lane",
+    "red_light_violations",
+]
 
 RED_STATES = (1, 4)  # SignalState ARROW_STOP and STOP (FLASHING_STOP does not count)
 _PAIRS = 1 << 20
@@ -125,6 +132,46 @@ def _current_lane(signals: TrafficSignals, q: np.ndarray, hint: np.ndarray) -> n
     return out
 
 
+@dataclass(frozen=True)
+class SignalFences:
+    """The stop fence of every (step, signal) of a scene (spec §2.5 step 4): the fence line ``origin [T, L,
+    2]`` and ``direction [T, L, 2]``, the stop point's coordinate along it ``stop_at [T, L]``, whether the
+    signal is red with its lane among the lanes ``red [T, L]``, and the signals' lanes ``lane [L]`` (index
+    into the lanes)."""
+
+    origin: np.ndarray
+    direction: np.ndarray
+    stop_at: np.ndarray
+    red: np.ndarray
+    lane: np.ndarray
+
+    @classmethod
+    def of(cls, signals: TrafficSignals, steps: np.ndarray) -> SignalFences:
+        """The fences of scene steps ``steps [T]``."""
+        state, stop = signals.state[steps], signals.stop[steps]  # [T, L], [T, L, 2]
+        match = signals.lane_id[None, :] == signals.signal_lane[:, None]  # [L, nl]
+        lane_ok = match.any(axis=1)
+        lane = np.where(lane_ok, np.argmax(match, axis=1), 0)
+        start, end, usable = signals.segments()
+        # Fence of each (step, signal): the segment of its lane ranked nearest to the stop point.
+        metric = _lane_metric(stop[:, :, None, :], start[lane][None], end[lane][None])  # [T, L, M-1]
+        fence = np.argmin(np.where(usable[lane][None], metric, np.inf), axis=2)
+        origin = np.take_along_axis(start[lane][None], fence[..., None, None], axis=2)[:, :, 0]  # [T, L, 2]
+        direction = np.take_along_axis(end[lane][None], fence[..., None, None], axis=2)[:, :, 0] - origin
+        red = np.isin(state, RED_STATES) & lane_ok[None, :]
+        return cls(origin, direction, _project(stop, origin, direction), red, lane)
+
+    def along(self, xy: np.ndarray, step: np.ndarray | slice) -> np.ndarray:
+        """Unclipped coordinates ``[..., L]`` of points ``xy [..., 2]`` along the fences of ``step`` (its
+        shape broadcasting against ``[...]``)."""
+        return _project(np.asarray(xy, np.float32)[..., None, :], self.origin[step], self.direction[step])
+
+
+def has_signals(signals: TrafficSignals) -> bool:
+    """Whether any violation is possible at all (a surface-street lane and a signal)."""
+    return len(signals.lane_id) > 0 and len(signals.signal_lane) > 0
+
+
 def red_light_violations(
     signals: TrafficSignals, xy: np.ndarray, valid: np.ndarray, first_step: int
 ) -> np.ndarray:
@@ -135,30 +182,27 @@ def red_light_violations(
     """
     b, n, t = valid.shape
     out = np.zeros((b, n, t - 1), dtype=bool)
-    if len(signals.lane_id) == 0 or len(signals.signal_lane) == 0 or t < 2:
+    if not has_signals(signals) or t < 2:
         return out
-    steps = np.arange(first_step, first_step + t)
-    state, stop = signals.state[steps], signals.stop[steps]  # [T, L], [T, L, 2]
-    match = signals.lane_id[None, :] == signals.signal_lane[:, None]  # [L, nl]
-    lane_ok = match.any(axis=1)
-    lane = np.where(lane_ok, np.argmax(match, axis=1), 0)
-    start, end, usable = signals.segments()
-    # Fence of each (step, signal): the segment of its lane ranked nearest to the stop point.
-    metric = _lane_metric(stop[:, :, None, :], start[lane][None], end[lane][None])  # [T, L, M-1]
-    fence = np.argmin(np.where(usable[lane][None], metric, np.inf), axis=2)
-    origin = np.take_along_axis(start[lane][None], fence[..., None, None], axis=2)[:, :, 0]  # [T, L, 2]
-    direction = np.take_along_axis(end[lane][None], fence[..., None, None], axis=2)[:, :, 0] - origin
-    stop_at = _project(stop, origin, direction)  # [T, L]
-    along = _project(np.asarray(xy, np.float32)[:, :, :, None, :], origin, direction)  # [B, E, T, L]
-    crossed = (along[:, :, :-1] < stop_at[:-1]) & (along[:, :, 1:] > stop_at[1:])
-    red = np.isin(state[1:], RED_STATES) & lane_ok[None, :]
-    candidate = crossed & red & valid[:, :, 1:, None]  # [B, E, T-1, L]
+    fences = SignalFences.of(signals, np.arange(first_step, first_step + t))
+    along = fences.along(xy, slice(None))  # [B, E, T, L]
+    crossed = (along[:, :, :-1] < fences.stop_at[:-1]) & (along[:, :, 1:] > fences.stop_at[1:])
+    candidate = crossed & fences.red[1:] & valid[:, :, 1:, None]  # [B, E, T-1, L]
     where = np.flatnonzero(candidate.any(axis=3))
     if len(where) == 0:
         return out
     bi, ei, ti = np.unravel_index(where, (b, n, t - 1))
-    hint = lane[np.argmax(candidate[bi, ei, ti], axis=1)]  # the lane of a signal crossed there
-    current = _current_lane(signals, np.asarray(xy, np.float32)[bi, ei, ti + 1], hint)
-    hit = candidate[bi, ei, ti] & (current[:, None] == signals.signal_lane[None, :])
-    out[bi, ei, ti] = hit.any(axis=1)
+    out[bi, ei, ti] = on_signal_lane(
+        signals, fences, np.asarray(xy, np.float32)[bi, ei, ti + 1], candidate[bi, ei, ti]
+    )
     return out
+
+
+def on_signal_lane(
+    signals: TrafficSignals, fences: SignalFences, xy: np.ndarray, crossed: np.ndarray
+) -> np.ndarray:
+    """``[P]`` whether points ``xy [P, 2]``, each past the fences of the red signals ``crossed [P, L]``,
+    lie on the lane of one of them (the reference's current lane): the violations among crossings."""
+    hint = fences.lane[np.argmax(crossed, axis=1)]  # the lane of a signal crossed there
+    current = _current_lane(signals, np.asarray(xy, np.float32), hint)
+    return (crossed & (current[:, None] == signals.signal_lane[None, :])).any(axis=1)

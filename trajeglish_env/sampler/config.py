@@ -16,6 +16,9 @@ DEFAULT_TEMPERATURE = 0.75
 # ``RewardConfig.offroad_margin`` default, and the margin of guarded sampling's road-edge rule.
 OFFROAD_MARGIN = 0.5
 DEFAULT_GUARD = True
+# Metres a guarded vehicle's box corner may reach beyond a road edge: 0, the WOSAC off-road threshold (a
+# corner beyond the edge at all is off the road), stricter than the env's reward margin above.
+GUARD_ROAD_MARGIN = 0.0
 # How the agents of a step are decoded (see :mod:`~trajeglish_env.sampler.parallel`): "parallel" (fixed-point
 # iteration over a whole run of agents per model call) or "sequential" (one model call per sampled agent).
 INTRA_STEP_MODES = ("parallel", "sequential")
@@ -34,9 +37,10 @@ class SamplingConfig:
     ``guard``: guarded sampling (:mod:`~trajeglish_env.sampler.guard`). When an agent is sampled, the
     next states of the agents that moved before it in the step are known, so the candidate tokens whose
     box would overlap one of them (or the current box of an agent that has not moved yet), or that would
-    put a vehicle's box more than :data:`OFFROAD_MARGIN` m beyond a road edge (unless it is off the road
-    already), are masked before the token is drawn; when that leaves nothing, the road-edge rule is
-    dropped, then the guard altogether.
+    put a corner of a vehicle's box more than ``guard_road_margin`` m beyond a road edge (default
+    :data:`GUARD_ROAD_MARGIN`; a vehicle off the road already may not go farther off), are masked before
+    the token is drawn; when that leaves nothing, the road-edge rule is dropped, then the guard
+    altogether.
 
     ``intra_step``: how the agents of a timestep are decoded (:data:`INTRA_STEP_MODES`). Both draw each
     agent's token from the model's conditional given the tokens of the agents before it, with the agent's
@@ -53,11 +57,16 @@ class SamplingConfig:
     recompute_every: int | None = None
     seed: int = 0
     guard: bool = DEFAULT_GUARD
+    guard_road_margin: float = GUARD_ROAD_MARGIN
     intra_step: str = "parallel"
 
     def __post_init__(self) -> None:
         if not isinstance(self.guard, bool):
             raise TypeError(f"SamplingConfig.guard must be a bool, got {self.guard!r}")
+        if not (self.guard_road_margin >= 0):
+            raise ValueError(
+                f"SamplingConfig.guard_road_margin must be >= 0 (m), got {self.guard_road_margin}"
+            )
         if not (self.temperature >= 0):
             raise ValueError(f"SamplingConfig.temperature must be >= 0, got {self.temperature}")
         if not (0 < self.top_p <= 1):

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from trajeglish_env.batch_geometry import nearest_segments_near, selection_d2, signed_distances_to
-from trajeglish_env.sampler.config import OFFROAD_MARGIN
 from trajeglish_env.sampler.rows import RowEdges, RowStates
 
 # A row-agent's list holds the segments within EDGE_REACH m of its anchor, re-chosen when the agent is
@@ -132,13 +131,15 @@ class EdgeLists:
 
 @dataclass(frozen=True)
 class RoadView:
-    """The road edges of a call's ``n`` pairs: ``road [n]`` where the road-edge rule applies (a vehicle on
-    the road that a candidate could take off it); each pair's listed segments ``segments [n,W]`` (-1
+    """The road edges of a call's ``n`` pairs: ``road [n]`` where the road-edge rule applies (a vehicle
+    that a candidate could take off the road, or farther off it) and ``limit [n]`` how far (m) a candidate
+    box's corner may then lie beyond a road edge; each pair's listed segments ``segments [n,W]`` (-1
     padding) with their distances to its origin ``distance [n,W]``, its distance to the nearest edge
     ``clearance [n]`` and ``cover [n]`` (every segment that near its origin is listed); the rows' padded
     road edges ``columns``/``links``/``count``."""
 
     road: np.ndarray
+    limit: np.ndarray
     segments: np.ndarray
     distance: np.ndarray
     clearance: np.ndarray
@@ -147,12 +148,13 @@ class RoadView:
     links: np.ndarray
     count: np.ndarray
 
-    def beyond(
+    def excess(
         self, sel: np.ndarray, rows: np.ndarray, origin: np.ndarray, corners: np.ndarray
     ) -> np.ndarray:
-        """``[m,c]`` True where a vehicle box (``corners [m,c,4,2]``; pairs ``sel [m]`` of rows ``rows [m]``,
-        boxes starting from ``origin [m,3]``) has a corner more than the margin beyond a road edge: the
-        env's rule, the nearest segment sought among those that can be nearest to one of the corners."""
+        """``[m,c]`` how far (m) the most off-road corner of a vehicle box lies beyond a road edge (``corners
+        [m,c,4,2]``; pairs ``sel [m]`` of rows ``rows [m]``, boxes starting from ``origin [m,3]``; negative:
+        on the road): the env's signed distance, the nearest segment sought among those that can be
+        nearest to one of the corners."""
         m, c = corners.shape[:2]
         points = corners.reshape(m, c * 4, 2)
         centre = origin[:, :2]
@@ -172,7 +174,14 @@ class RoadView:
         near = _compact(distance <= reach[:, None], segments)
         nearest = nearest_segments_near(self.columns, self.count, rows, points, near, centre, reach[:, None])
         signed = signed_distances_to(self.columns, self.links, rows, points, nearest)
-        return (signed.reshape(m, c, 4) > OFFROAD_MARGIN).any(axis=-1)
+        return signed.reshape(m, c, 4).max(axis=-1)
+
+    def beyond(
+        self, sel: np.ndarray, rows: np.ndarray, origin: np.ndarray, corners: np.ndarray
+    ) -> np.ndarray:
+        """``[m,c]`` True where a candidate box (as in :meth:`excess`) has a corner more than its pair's
+        ``limit`` beyond a road edge."""
+        return self.excess(sel, rows, origin, corners) > self.limit[sel][:, None]
 
 
 def road_view(
@@ -185,16 +194,20 @@ def road_view(
     extent: np.ndarray,
     vehicle: np.ndarray,
     padded: tuple[np.ndarray, np.ndarray, np.ndarray],
+    margin: float,
 ) -> RoadView:
     """The road edges of pairs (agents ``who`` of rows ``rr`` at ``origin [n,3]``, their boxes there
     ``corners [n,4,2]``, their candidates' corners within ``extent [n]``; ``vehicle [n]``) given the rows'
     padded road edges ``padded = (columns, links, count)``: the rule applies to a vehicle unless its
-    candidates are provably on the road, or it is off the road already."""
+    candidates are provably on the road; a candidate corner may lie ``margin`` m beyond a road edge, or as
+    far as the vehicle's box lies already if that is farther (a vehicle off the road may not go farther
+    off)."""
     columns, links, count = padded
     n = len(rr)
     road, clearance, cover = np.zeros(n, bool), np.full(n, np.inf), np.zeros(n)
+    limit = np.full(n, float(margin))
     segments, distance = np.full((n, 1), -1, dtype=np.int64), np.full((n, 1), np.inf)
-    view = RoadView(road, segments, distance, clearance, cover, columns, links, count)
+    view = RoadView(road, limit, segments, distance, clearance, cover, columns, links, count)
     v = np.flatnonzero(vehicle & (count[rr] > 0))
     if not len(v):
         return view
@@ -209,10 +222,12 @@ def road_view(
     segments = np.full((n, listed.shape[1]), -1, dtype=np.int64)
     distance = np.full((n, listed.shape[1]), np.inf)
     segments[c], distance[c] = listed, dist
-    view = RoadView(road, segments, distance, clearance, cover, columns, links, count)
+    view = RoadView(road, limit, segments, distance, clearance, cover, columns, links, count)
     check = c[~proof]
     if len(check):
-        road[check] = ~view.beyond(check, rr[check], origin[check], corners[check][:, None])[:, 0]
+        now = view.excess(check, rr[check], origin[check], corners[check][:, None])[:, 0]
+        road[check] = True
+        limit[check] = np.maximum(limit[check], now)
     return view
 
 

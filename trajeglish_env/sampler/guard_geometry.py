@@ -1,7 +1,8 @@
 """Geometry of guarded sampling (:mod:`~trajeglish_env.sampler.guard`): for the (row, agent) pairs sampled
-in one model call, the obstacles near each agent and the road edges near each vehicle
-(:mod:`~trajeglish_env.sampler.guard_edges`), and which candidate tokens would overlap an obstacle or put
-the vehicle off the road.
+in one model call, the obstacles near each agent, the road edges near each vehicle
+(:mod:`~trajeglish_env.sampler.guard_edges`) and the red lights ahead of it
+(:mod:`~trajeglish_env.sampler.guard_signals`), and which candidate tokens would overlap an obstacle, or
+put the vehicle off the road or across a red stop line.
 
 Vectorized over pairs, candidates and neighbours, with the env's own functions
 (:mod:`~trajeglish_env.batch_geometry`): boxes overlap by the separating-axis test the env's collision
@@ -19,6 +20,7 @@ from trajeglish_env.batch_geometry import PaddedRows, latest_states, nearest_fir
 from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.sampler.guard_edges import EdgeLists, RoadView, road_view
+from trajeglish_env.sampler.guard_signals import SceneSignals, SignalCache
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.scenario import AgentKind
 
@@ -26,23 +28,30 @@ from trajeglish_env.scenario import AgentKind
 @dataclass(frozen=True)
 class Pairs:
     """The ``n`` pairs of a model call as the guard sees them: ``rows``/``agents [n]``; ``origin [n,3]``
-    the model's state the candidates start from, ``size [n,2]``, ``kind [n]``; the obstacles near each
-    agent ``near_xyh [n,K,3]``, ``near_size [n,K,2]``, ``near_real [n,K]``; its road ``edges``."""
+    the model's state the candidates start from at steps ``t [n]``, ``size [n,2]``, ``kind [n]``,
+    ``extent [n]`` the reach of its candidates' corners; the obstacles near each agent ``near_xyh [n,K,3]``,
+    ``near_size [n,K,2]``, ``near_real [n,K]``; its road ``edges``; ``red [n]`` vehicles and cyclists with a
+    red light within reach, and the ``signals`` of their rows."""
 
     rows: np.ndarray
     agents: np.ndarray
+    t: np.ndarray
     origin: np.ndarray
     size: np.ndarray
     kind: np.ndarray
+    extent: np.ndarray
     near_xyh: np.ndarray
     near_size: np.ndarray
     near_real: np.ndarray
     edges: RoadView
+    red: np.ndarray
+    signals: dict[int, SceneSignals]
 
     @property
     def guarded(self) -> np.ndarray:
-        """``[n]`` pairs some candidate of which could be masked (an obstacle near, or a road edge)."""
-        return self.near_real.any(axis=1) | self.edges.road
+        """``[n]`` pairs some candidate of which could be masked (an obstacle near, a road edge, a red
+        light)."""
+        return self.near_real.any(axis=1) | self.edges.road | self.red
 
 
 def half_diagonal(size: np.ndarray) -> np.ndarray:
@@ -52,14 +61,17 @@ def half_diagonal(size: np.ndarray) -> np.ndarray:
 
 class GuardGeometry:
     """Obstacles and road edges of the sampled pairs of an engine's rows (``templates [classes,V,3]``:
-    the motion tokens), with each row-agent's road-edge list kept between steps."""
+    the motion tokens; ``road_margin``: how far a candidate corner may lie beyond a road edge), with each
+    row-agent's road-edge list kept between steps."""
 
-    def __init__(self, templates: np.ndarray):
+    def __init__(self, templates: np.ndarray, road_margin: float = 0.0):
         self.templates = np.asarray(templates, dtype=np.float64)
+        self.road_margin = float(road_margin)
         self.move = np.hypot(self.templates[..., 0], self.templates[..., 1]).max(axis=1)  # per class
         self._columns = PaddedRows(0.0, last=True)
         self._links = PaddedRows(-1, last=True)
         self._lists = EdgeLists()
+        self._signals = SignalCache()
 
     def pairs(
         self,
@@ -81,8 +93,33 @@ class GuardGeometry:
         )
         corners = box_corners(origin, size)
         vehicle = kind == AgentKind.VEHICLE
-        edges = road_view(self._lists, rs, rr, who, origin, corners, extent, vehicle, padded)
-        return Pairs(rr, who, origin, size, kind, *near, edges)
+        edges = road_view(
+            self._lists, rs, rr, who, origin, corners, extent, vehicle, padded, self.road_margin
+        )
+        red, signals = self._red_lights(rs, rr, tt, origin, extent, kind != AgentKind.PEDESTRIAN)
+        return Pairs(rr, who, tt, origin, size, kind, extent, *near, edges, red, signals)
+
+    def _red_lights(
+        self,
+        rs: RowStates,
+        rr: np.ndarray,
+        tt: np.ndarray,
+        origin: np.ndarray,
+        extent: np.ndarray,
+        riders: np.ndarray,
+    ) -> tuple[np.ndarray, dict[int, SceneSignals]]:
+        """``[n]`` the vehicles and cyclists (``riders [n]``) with a red stop point within reach of a
+        candidate, and their rows' signals."""
+        red, signals = np.zeros(len(rr), bool), {}
+        for row in np.unique(rr[riders]).tolist():
+            sc = rs.scenes[row]
+            ss = None if sc is None else self._signals.get(sc)
+            if ss is None:
+                continue
+            q = np.flatnonzero(riders & (rr == row))
+            red[q] = ss.near_red(origin[q, :2], tt[q], extent[q]).any(axis=1)
+            signals[row] = ss
+        return red, signals
 
     def _neighbours(
         self,
@@ -121,7 +158,8 @@ class GuardGeometry:
 
     def blocked(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For pairs ``sel [m]`` and their candidate ``tokens [m,c]``: which would overlap an obstacle, and
-        which would take the vehicle off the road (where the road-edge rule applies) ``[m,c]``."""
+        which would break a map rule ``[m,c]`` (take the vehicle off the road where the road-edge rule
+        applies, or across the stop line of a red light on its lane)."""
         kind, size = p.kind[sel], p.size[sel]
         cand = to_global(p.origin[sel][:, None], self.templates[kind[:, None], tokens])  # [m,c,3]
         collide = np.zeros(tokens.shape, bool)
@@ -140,4 +178,10 @@ class GuardGeometry:
             pick = sel[q]
             corners = box_corners(cand[q], size[q][:, None])
             off[q] = p.edges.beyond(pick, p.rows[pick], p.origin[pick], corners)
+        red = p.red[sel]
+        for row in np.unique(p.rows[sel][red]).tolist():  # the rows' signals differ: one pass per row
+            q = np.flatnonzero(red & (p.rows[sel] == row))
+            pick, ss = sel[q], p.signals[row]
+            near = ss.near_red(p.origin[pick, :2], p.t[pick], p.extent[pick])
+            off[q] |= ss.violations(p.origin[pick, :2], cand[q, :, :2], p.t[pick], near)
         return collide, off
