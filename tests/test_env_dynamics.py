@@ -14,6 +14,7 @@ from trajeglish_env.env.npc import IDMNPC, ConstantVelocityNPC
 from trajeglish_env.env.observations import BEV_CHANNELS, EGO_FEATURES, NEIGHBOUR_FEATURES, sample_map_points
 from trajeglish_env.env.routes import logged_paths
 from trajeglish_env.env.scenes import SceneFiles, scene_set
+from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario
 from trajeglish_env.scenario_io import save_scenarios
 
@@ -111,6 +112,53 @@ def test_idm_follower_stops_behind_a_stopped_leader_and_speeds_up_on_a_free_road
             driver.supply(a, free.xyh[a, driver.t + 1])
     speed = np.hypot(*(driver.xyh[1, -1, :2] - driver.xyh[1, -2, :2])) / 0.1
     assert 12.0 < speed < 20.0  # accelerating towards 20 m/s at under 1.5 m/s^2
+
+
+def crossing_scene() -> Scenario:
+    """An IDM car (agent 1) driving east along y = 0 at 8 m/s and a car (agent 0, external) crossing its
+    path northwards along x = 30 at 8 m/s, in the log both at the crossing at about the same time."""
+    steps = 91
+    t = np.arange(steps) * 0.1
+    xyh = np.zeros((2, steps, 3))
+    xyh[0, :, 0], xyh[0, :, 1], xyh[0, :, 2] = 30.0, -30.0 + 8.0 * t, np.pi / 2
+    xyh[1, :, 0] = 2.0 + 8.0 * t
+    xs = np.arange(-50.0, 150.0, 1.0)
+    return Scenario.from_arrays(
+        xyh, np.ones((2, steps), dtype=bool), np.tile([4.5, 2.0], (2, 1)), np.full(2, AgentKind.VEHICLE),
+        sdc=0, polylines=[np.stack([xs, np.zeros_like(xs)], -1), np.stack([np.full_like(xs, 30.0), xs], -1)],
+        polyline_kinds=[MapKind.LANE_SURFACE_STREET] * 2, scenario_id="crossing",
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("yield_horizon", [3.0, 0.0])
+def test_idm_yields_to_crossing_traffic(yield_horizon: float) -> None:
+    scene = crossing_scene()
+    external = np.array([True, False])
+    driver = OrderedDriver(
+        IDMNPC(IDMParams(yield_horizon=yield_horizon)), scene, external, 80, np.array([-1.0, 0.0]), seed=0
+    )
+    overlap = []
+    for _ in range(80):
+        assert driver.advance() == 0
+        driver.supply(0, scene.xyh[0, driver.t + 1])
+        assert driver.advance() is None
+        t = driver.t
+        overlap.append(box_collisions(driver.xyh[1, t], scene.size[1], driver.xyh[0, t], scene.size[0]))
+    if yield_horizon:  # it brakes for the crossing car, lets it pass, then goes on
+        assert not any(overlap) and driver.xyh[1, -1, 0] > 40.0  # through the crossing
+    else:  # seen only once its box is on the path ahead: too late to stop
+        assert any(overlap)
+
+
+def test_continuous_action_towards_covers_the_distance_ahead_and_ignores_lateral_offsets() -> None:
+    start = np.zeros(3)
+    for speed, ahead in ((10.0, 0.98), (10.0, 1.01), (2.0, 0.19)):  # braking, speeding up, slowing
+        action = action_towards("continuous", start, speed, np.array([ahead, 0.0, 0.0]), 4.5, LIMITS, 0.1)
+        nxt, _ = bicycle_step(start, np.float64(speed), action, np.float64(4.5), LIMITS, 0.1)
+        assert nxt[0] == pytest.approx(ahead, abs=1e-5)
+    # a target beside a stopped car is for the steering to reach, never a reason to speed up
+    action = action_towards("continuous", start, 0.0, np.array([0.0, 0.5, 0.0]), 4.5, LIMITS, 0.1)
+    assert action[0] <= 0.0
 
 
 def test_constant_velocity_npcs_keep_their_last_step() -> None:

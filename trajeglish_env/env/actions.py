@@ -123,10 +123,11 @@ def action_towards(
         if templates is None:
             raise ValueError("action_towards: token actions need the agent's templates")
         return int(np.argmin(_corner_gap(templates, local, length)))
-    # continuous: the acceleration to the speed that covers the displacement, then the steering (searched
-    # on a grid) whose next state is nearest in position and heading (which also corrects lateral drift)
-    dist = float(np.hypot(local[0], local[1])) * (1.0 if local[0] >= 0 else -1.0)
-    v_target = float(np.clip(dist / dt, 0.0, limits.max_speed))
+    # continuous: the acceleration whose step (at the mean of the two speeds, as bicycle_step moves) covers
+    # the displacement ahead -- a lateral offset is the steering's to correct: counted in the speed, it
+    # would speed up a car that should stop -- then the steering (searched on a grid) whose next state is
+    # nearest in position and heading
+    v_target = float(np.clip(2 * local[0] / dt - speed, 0.0, limits.max_speed))
     a = (v_target - speed) / dt
     a_cmd = float(np.clip(a / limits.max_accel if a >= 0 else a / limits.max_brake, -1.0, 1.0))
     steering = np.linspace(-1.0, 1.0, STEERING_CANDIDATES)

@@ -29,6 +29,7 @@ import numpy as np
 
 from trajeglish_env.env.routes import Paths, logged_paths
 from trajeglish_env.env.world import WorldView
+from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.scenario import Scenario
 
 
@@ -89,8 +90,11 @@ class IDMParams:
     The desired speed is the agent's highest logged speed (at least ``min_desired_speed``); a path whose
     log ends slower than ``stop_speed`` ends with a stopped obstacle (the agent stops where the log
     stopped), otherwise it is extended straight by ``path_extension`` m. Another agent is a leader when its
-    centre is ahead on the path within ``lookahead`` m and closer to it than half the two widths plus
-    ``lateral_margin``.
+    box would touch this agent's box (widened by ``lateral_margin`` on each side) somewhere ahead on its path
+    within ``lookahead`` m; the gap is the path length free before that place. An agent yields to crossing
+    traffic: another agent whose constant-velocity motion over the next ``yield_horizon`` s
+    enters the path ahead (at an angle of more than 30 degrees to it) before this agent can be there plus
+    ``yield_margin`` s is a stopped obstacle where it enters (0 s: no yielding).
     """
 
     accel: float = 1.5
@@ -101,6 +105,8 @@ class IDMParams:
     delta: float = 4.0
     lookahead: float = 50.0
     lateral_margin: float = 0.5
+    yield_horizon: float = 3.0
+    yield_margin: float = 1.0
     min_desired_speed: float = 1.0
     stop_speed: float = 1.0
     path_extension: float = 100.0
@@ -154,16 +160,69 @@ class IDMNPC:
             np.floor(s[gi] / p.spacing).astype(np.int64)[:, None] + np.arange(width),
             (paths.count[i] - 1)[:, None],
         )
-        d2 = ((paths.points[i[:, None], idx] - state[j, None, :2]) ** 2).sum(-1)  # [pairs, W]
-        best = np.argmin(d2, axis=1)
-        at = idx[np.arange(len(gi)), best]
-        s_other = at * p.spacing
-        reach = (sc.size[i, 1] + sc.size[j, 1]) / 2 + p.lateral_margin
-        lead = (d2[np.arange(len(gi)), best] <= reach**2) & (s_other > s[gi])
-        heading = paths.heading[i, at]
-        gap[gi, j] = np.where(lead, s_other - s[gi] - (sc.size[i, 0] + sc.size[j, 0]) / 2, np.inf)
-        v_lead[gi, j] = np.maximum(velocity[j, 0] * np.cos(heading) + velocity[j, 1] * np.sin(heading), 0.0)
+        # the first place along i's path where its box (widened by the lateral margin) would touch j's box
+        points = paths.points[i[:, None], idx]  # [pairs, W, 2]
+        radius = np.hypot(sc.size[:, 0], sc.size[:, 1]) / 2
+        d = np.hypot(points[..., 0] - state[j, None, 0], points[..., 1] - state[j, None, 1])
+        maybe = d < (radius[i] + radius[j] + p.lateral_margin)[:, None]
+        pk, wk = np.nonzero(maybe)
+        touch = np.zeros(maybe.shape, bool)
+        if len(pk):
+            box = np.column_stack([points[pk, wk], paths.heading[i[pk], idx[pk, wk]]])
+            wide = sc.size[i[pk]] + np.array([0.0, 2 * p.lateral_margin])
+            touch[pk, wk] = box_collisions(box, wide, state[j[pk]], sc.size[j[pk]])
+        first = np.argmax(touch, axis=1)
+        lead = touch.any(axis=1)  # first == 0: within the margin already, no room to go on
+        pair = np.arange(len(gi))
+        before = idx[pair, np.maximum(first - 1, 0)]
+        gap[gi, j] = np.where(lead, np.maximum(before * p.spacing - s[gi], 0.0), np.inf)
+        heading = paths.heading[i, idx[pair, first]]
+        v_along = np.maximum(velocity[j, 0] * np.cos(heading) + velocity[j, 1] * np.sin(heading), 0.0)
+        cross = self._crossing_gaps(i, j, s[gi], idx, points, state, velocity)
+        yields = cross < gap[gi, j]
+        gap[gi, j] = np.where(yields, cross, gap[gi, j])
+        v_lead[gi, j] = np.where(yields, 0.0, v_along)
         return gap, v_lead
+
+    def _crossing_gaps(
+        self,
+        i: np.ndarray,
+        j: np.ndarray,
+        s: np.ndarray,
+        idx: np.ndarray,
+        points: np.ndarray,
+        state: np.ndarray,
+        velocity: np.ndarray,
+    ) -> np.ndarray:
+        """Per pair (agent ``i`` at ``s`` on its path, whose next path points are ``points [P,W,2]`` at
+        indices ``idx [P,W]``; agent ``j``): the gap (m) to where ``j`` will cross ``i``'s path, where ``i``
+        must yield to it (see :class:`IDMParams`), else inf."""
+        p, sc = self.params, self.scenario
+        out = np.full(len(i), np.inf)
+        moving = np.hypot(velocity[j, 0], velocity[j, 1]) > 0.5
+        if p.yield_horizon <= 0 or not moving.any():
+            return out
+        q = np.flatnonzero(moving)
+        tau = np.arange(1, int(round(p.yield_horizon / 0.25)) + 1) * 0.25  # [K] s
+        pred = state[j[q], None, :2] + velocity[j[q], None, :] * tau[None, :, None]  # [Q,K,2]
+        d2 = ((points[q][:, None] - pred[:, :, None]) ** 2).sum(-1)  # [Q,K,W]
+        best = np.argmin(d2, axis=2)
+        rows = np.arange(len(q))[:, None]
+        near = d2[rows, np.arange(len(tau))[None, :], best]
+        at = idx[q][rows, best]  # [Q,K]
+        s_at = at * p.spacing
+        reach = sc.size[i[q], 1] / 2 + sc.size[j[q], 0] / 2 + p.lateral_margin
+        motion = np.arctan2(velocity[j[q], 1], velocity[j[q], 0])
+        across = np.abs(np.cos(motion[:, None] - self.paths.heading[i[q, None], at])) < np.cos(np.pi / 6)
+        enters = (near <= reach[:, None] ** 2) & across & (s_at > s[q, None])
+        hit = enters.any(axis=1)
+        k = np.argmax(enters, axis=1)
+        conflict = s_at[np.arange(len(q)), k]
+        gap = conflict - s[q] - (sc.size[i[q], 0] + sc.size[j[q], 1]) / 2
+        arrive = np.maximum(gap, 0.0) / np.maximum(self.v[i[q]], 1.0)  # s until i's front is there
+        must = hit & (tau[k] < arrive + p.yield_margin)
+        out[q[must]] = gap[must]
+        return out
 
     def act(self, view: WorldView, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Next states and validity of ``agents`` (see the NPC interface)."""
@@ -193,9 +252,33 @@ class IDMNPC:
         s_next = np.minimum(s + (v + v_next) / 2 * dt, paths.length[agents])
         v_next = np.where(s_next >= paths.length[agents], np.minimum(v_next, (s_next - s) / dt), v_next)
         xy, h = paths.at(agents, s_next)
-        self.s[agents], self.v[agents] = s_next, v_next
         nxt = np.concatenate([xy, h[:, None]], axis=1)
+        # never drive into a box: a move that would overlap an agent it is clear of now is not made
+        hold = self._blocked(agents, state[agents], nxt, state, present)
+        nxt[hold] = state[agents[hold]]
+        s_next, v_next = np.where(hold, s, s_next), np.where(hold, 0.0, v_next)
+        self.s[agents], self.v[agents] = s_next, v_next
         return nxt, np.ones(len(agents), dtype=bool)
+
+    def _blocked(
+        self, agents: np.ndarray, now: np.ndarray, nxt: np.ndarray, state: np.ndarray, present: np.ndarray
+    ) -> np.ndarray:
+        """``[G]`` agents whose box at ``nxt [G,3]`` would overlap another present agent's latest box
+        ``state [N,3]`` that their box at ``now [G,3]`` does not overlap."""
+        size = self.scenario.size
+        radius = np.hypot(size[:, 0], size[:, 1]) / 2
+        reach = radius[agents][:, None] + radius[None, :] + np.hypot(*(nxt[:, :2] - now[:, :2]).T)[:, None]
+        close = present[None, :] & (np.arange(len(size))[None, :] != agents[:, None])
+        close &= np.hypot(*(now[:, None, :2] - state[None, :, :2]).transpose(2, 0, 1)) < reach
+        g, j = np.nonzero(close)
+        out = np.zeros(len(agents), bool)
+        if len(g):
+            a = agents[g]
+            hit = box_collisions(nxt[g], size[a], state[j], size[j]) & ~box_collisions(
+                now[g], size[a], state[j], size[j]
+            )
+            out[g[hit]] = True
+        return out
 
 
 RULE_BASED = {"replay": ReplayNPC, "constant_velocity": ConstantVelocityNPC, "idm": IDMNPC}
