@@ -90,6 +90,38 @@ def cmd_brake_test(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def cmd_long_rollouts(args: argparse.Namespace) -> dict[str, Any]:
+    import json
+
+    from trajeglish_env.long_rollouts import LongRolloutConfig, long_rollout_rates, markdown_table, plot_rates
+    from trajeglish_env.sampler.config import SamplingConfig
+    from trajeglish_env.scenario_io import atomic_path
+    from trajeglish_env.training.dataset import SceneStore
+
+    every = SceneStore(args.data).scenes
+    scenes = list(every)[:: max(1, len(every) // args.scenes)][: args.scenes]
+    config = LongRolloutConfig(
+        seconds=args.seconds,
+        rollouts=args.rollouts,
+        split_s=args.split,
+        guards=GUARD_CHOICES[args.guard],
+        sampling=SamplingConfig(args.temperature, args.top_p, args.cache_dtype),
+        seed=args.seed,
+    )
+    ckpt = next(iter(checkpoints([args.ckpt] if args.ckpt else None).values()))
+    result = long_rollout_rates(ckpt, scenes, config, progress=not args.quiet)
+    out = output_dir(args.out)
+    result["plot"] = plot_rates(result, out / "long_rollout_rates.png")
+    table = markdown_table(result)
+    for name, text in (("long_rollouts.json", json.dumps(result, indent=2)), ("long_rollouts.md", table)):
+        with atomic_path(out / name) as tmp:
+            tmp.write_text(text)
+    if not args.json:
+        print(table, end="")
+        return {"plot": result["plot"], "table": str(out / "long_rollouts.md")}
+    return result
+
+
 def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.render import RenderConfig, save_render
     from trajeglish_env.sampler import rollout
@@ -161,6 +193,26 @@ def add_eval_commands(add: AddCommand) -> None:
     p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out/brake_test", help="directory for the JSON, table and plot")
+
+    p = add(
+        "long-rollouts",
+        cmd_long_rollouts,
+        "rollouts far past the log: collision and off-road onsets per agent-second before/after 8 s",
+    )
+    p.add_argument("--data", nargs="+", required=True, help="scene directories or files")
+    p.add_argument("--scenes", type=POSITIVE, default=16, help="scenes, spread over the data")
+    p.add_argument(
+        "--seconds", type=positive_float, default=30.0, help="rollout length after the current step"
+    )
+    p.add_argument("--split", type=positive_float, default=8.0, help="window boundary (s)")
+    p.add_argument("--rollouts", type=POSITIVE, default=2, help="rollouts per scene")
+    p.add_argument("--guard", choices=("off", "on", "both"), default="both", help="guarded sampling")
+    p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
+    p.add_argument("--temperature", type=positive_float, default=DEFAULT_TEMPERATURE)
+    p.add_argument("--top-p", type=probability, default=1.0)
+    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument("--out", default="out/long_rollouts", help="directory for the JSON, table and plot")
 
     p = add("rollout", cmd_rollout, "sample one rollout of a scene and render it")
     p.add_argument("--scenario", required=True, help="scenario file (*.scn.npz)")
