@@ -207,23 +207,24 @@ def add_eval_commands(add: AddCommand) -> None:
     p.add_argument("--split", type=positive_float, default=8.0, help="window boundary (s)")
     p.add_argument("--rollouts", type=POSITIVE, default=2, help="rollouts per scene")
     p.add_argument("--guard", choices=("off", "on", "both"), default="both", help="guarded sampling")
-    p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
-    p.add_argument("--temperature", type=positive_float, default=DEFAULT_TEMPERATURE)
-    p.add_argument("--top-p", type=probability, default=1.0)
-    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    add_sampling_args(p)
     p.add_argument("--out", default="out/long_rollouts", help="directory for the JSON, table and plot")
 
     p = add("rollout", cmd_rollout, "sample one rollout of a scene and render it")
     p.add_argument("--scenario", required=True, help="scenario file (*.scn.npz)")
     p.add_argument("--index", type=NON_NEGATIVE, default=0)
-    p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
     p.add_argument("--out", required=True, help="output .gif, .mp4 or .png")
     p.add_argument(
         "--horizon", type=POSITIVE, help="steps after the current one (default: to the end of the log)"
     )
+    add_sampling_args(p)
+    p.add_argument("--follow-sdc", action="store_true")
+
+
+def add_sampling_args(p: argparse.ArgumentParser) -> None:
+    """The checkpoint and sampling options of a command that samples one model."""
+    p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
     p.add_argument("--temperature", type=positive_float, default=DEFAULT_TEMPERATURE)
     p.add_argument("--top-p", type=probability, default=1.0)
     p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
-    p.add_argument("--follow-sdc", action="store_true")
