@@ -44,6 +44,29 @@ def test_an_episode_runs_past_the_log_and_its_agents_drive_on(npc: str) -> None:
     assert (moved > 1.0).any()  # and they keep driving after it
 
 
+@pytest.mark.parametrize("drive", [True, False])
+def test_agents_entering_later_enter_as_logged_then_the_model_drives_them(drive: bool) -> None:
+    env = raw_env(npc=TrajeglishNPC(tiny(), drive_entering=drive), reward=KEEP_GOING)
+    env.reset(seed=0, options={"scene": CROSSING})
+    sc, sim = env.scenario, env.sim
+    play(env)
+    xyh, valid = sim.driver.xyh, sim.driver.valid
+    cur = sc.current_index
+    late = np.flatnonzero(~sc.valid[:, cur] & sc.valid[:, cur + 1 :].any(axis=1))
+    entry = np.argmax(sc.valid[late], axis=1)
+    assert len(late) == 4 and (entry > cur).all()
+    rows = np.arange(len(late))
+    assert not valid[late, cur].any()  # absent before they enter
+    np.testing.assert_allclose(xyh[late, entry], sc.xyh[late, entry])  # they enter where the log has them
+    after = entry + 5
+    ok = after < sc.num_steps
+    gap = np.linalg.norm(xyh[late[ok], after[ok], :2] - sc.xyh[late[ok], after[ok], :2], axis=-1)
+    if drive:  # the untrained model, not the log, drives them after that
+        assert (gap > 0.05).all() and valid[late[rows], -1].all()
+    else:
+        assert (gap == 0).all()
+
+
 @pytest.mark.parametrize("npc", ["replay", "idm"])
 def test_log_bound_npcs_refuse_episodes_longer_than_the_log(npc: str) -> None:
     env = raw_env(npc=npc, max_cycles=81)

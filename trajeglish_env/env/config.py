@@ -35,16 +35,21 @@ class TrajeglishNPC:
     """NPCs driven by a Trajeglish model: ``checkpoint`` (a path or a loaded ``Checkpoint``; None: the
     shipped model) sampled with ``sampling`` (:class:`~trajeglish_env.sampler.config.SamplingConfig`: the
     one sampling configuration of the project, with the same defaults everywhere; its ``seed`` is unused
-    here, since every episode draws its own)."""
+    here, since every episode draws its own). ``drive_entering``: the agents the log brings in after the
+    episode's first step are NPCs too, driven by the model from their first logged step (False: they replay
+    the log, which cannot react and runs into NPCs that did not drive as the log did)."""
 
     checkpoint: Any = None
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    drive_entering: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.sampling, SamplingConfig):
             raise TypeError(
                 f"TrajeglishNPC.sampling must be a SamplingConfig, got {type(self.sampling).__name__}"
             )
+        if not isinstance(self.drive_entering, bool):
+            raise TypeError(f"TrajeglishNPC.drive_entering must be a bool, got {self.drive_entering!r}")
         ok = self.checkpoint is None or isinstance(self.checkpoint, (str, os.PathLike))
         if not ok and not hasattr(self.checkpoint, "vocabulary"):
             raise TypeError(

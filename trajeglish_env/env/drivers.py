@@ -276,15 +276,17 @@ class EngineRows:
     """Trajeglish NPCs of B scenes through one :class:`~trajeglish_env.sampler.engine.BatchEngine` (row i =
     scene i). With ``externals_first`` every external agent is asked for, in priority order, before any NPC
     decodes, so NPCs of every model context condition on them; otherwise external agents act at their place
-    in the engine's acting order (priorities, then distance, per model context)."""
+    in the engine's acting order (priorities, then distance, per model context). With ``entering`` the
+    agents the log brings in later are driven by the model from their first logged step."""
 
-    def __init__(self, engine: object, externals_first: bool):
+    def __init__(self, engine: object, externals_first: bool, entering: bool = False):
         from trajeglish_env.model.config import Variant
         from trajeglish_env.sampler.engine import BatchEngine
 
         assert isinstance(engine, BatchEngine)
         self.engine = engine
         self.externals_first = externals_first
+        self.entering = entering
         self.ordered_in_slots = engine.cfg.variant is Variant.TRAJEGLISH and not externals_first
         self.views: list[EngineRow | None] = [None] * engine.B
 
@@ -308,6 +310,7 @@ class EngineRows:
             external,
             priority=priority,
             first=first_agent(priority, active),  # the first model context: the agent acting first
+            entering=self.entering,
         )
         self.engine.start_rows([row], spec, [seed])
         view = self.views[row] = EngineRow(self, row, scenario, external, horizon)

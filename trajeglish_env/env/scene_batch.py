@@ -117,7 +117,9 @@ class SceneBatch:
             self.settings.sampling,
             self.settings.torch_cache_dtype,
         )
-        return EngineRows(engine, externals_first=self.config.order == "first")
+        return EngineRows(
+            engine, externals_first=self.config.order == "first", entering=self.settings.drive_entering
+        )
 
     # ------------------------------------------------------------------ scenes
     def start(self, scene: int, scenario: Scenario, rng: np.random.Generator) -> Simulation:

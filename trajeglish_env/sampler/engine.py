@@ -122,6 +122,7 @@ class BatchEngine(WindowedRows):
         self._tokenize_supplied()
         if not self._in_step:
             self._hand_over(np.flatnonzero(stepping & (self.now == self.handover_step)))
+            self._hand_over_entering(stepping)
             rebuild = self._needs_windows()
             if rebuild.any():
                 self._build_windows(np.flatnonzero(rebuild))
@@ -184,6 +185,24 @@ class BatchEngine(WindowedRows):
                 self.valid[r, agents, t + 1 : end + 1] = True
                 self.window_step[r] = -1
             self.handover[r] = False
+
+    def _hand_over_entering(self, stepping: np.ndarray) -> None:
+        """Agents of ``entering`` rows at their first logged step become controlled (the model drives them
+        from this step on, as at the log's end)."""
+        rows = np.flatnonzero(stepping)
+        now = self.now[rows]
+        arrived = self.entering[rows] & self.valid[rows, :, now]
+        r, a = np.nonzero(arrived)
+        if not len(r):
+            return
+        rows = rows[r]
+        self.entering[rows, a] = False
+        self.row_controlled[rows, a] = True
+        span = np.arange(self.T)[None, :]
+        future = (span >= self.now[rows, None]) & (span <= self.end[rows, None])
+        self.known[rows, a] &= ~future[:, : self.T - 1]
+        self.valid[rows, a] |= future & (span > self.now[rows, None])
+        self.window_step[rows] = -1  # plan the windows anew to hold them
 
     def _decode_chunk(
         self, w: Window, count: np.ndarray, sample: np.ndarray, stepping: np.ndarray, t: np.ndarray

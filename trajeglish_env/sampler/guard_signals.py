@@ -1,10 +1,10 @@
 """Red lights of guarded sampling: a vehicle's or cyclist's candidate that would cross the stop fence of a
-red signal of the lane it is on -- the WOSAC violation rule (:mod:`~trajeglish_env.metrics.traffic_lights`), the
-fence and the lane chosen as the reference chooses them -- is masked with the road-edge rule (and dropped
-with it when nothing else is left: a vehicle too fast to stop before the line goes on).
+red signal of the lane it is on -- the WOSAC violation rule (:mod:`~trajeglish_env.metrics.traffic_lights`),
+the fence and the lane chosen as the reference chooses them -- is masked with the road-edge rule (and
+dropped with it when nothing else is left: a vehicle too fast to stop before the line goes on).
 
-The model reads no signal states; the guard makes its vehicles and cyclists stop at red without changing any other
-draw (a vehicle with no red stop point within reach of its candidates is not checked)."""
+The model reads no signal states; the guard makes its vehicles and cyclists stop at red without changing
+any other draw (a vehicle with no red stop point within reach of its candidates is not checked)."""
 
 from __future__ import annotations
 

@@ -27,7 +27,9 @@ class RowSpec:
     """What one row simulates: ``controlled [N]`` agents the model drives, ``external [N]`` agents whose
     states are supplied from outside (others replay the log), ``horizon`` steps after ``current_index``
     (default: the scene's), acting ``priority [N]`` (lower first), and ``first``: the agent whose model
-    context goes first (default: the sdc)."""
+    context goes first (default: the sdc). ``entering``: the agents the log brings in after the current
+    step are driven by the model from their first logged step on (they enter where and as the log has
+    them) instead of replaying the log, which cannot react to the agents around them."""
 
     scenario: Scenario
     horizon: int
@@ -36,6 +38,7 @@ class RowSpec:
     current_index: int | None = None
     priority: np.ndarray | None = None
     first: int | None = None
+    entering: bool = False
 
 
 class RowStates:
@@ -93,6 +96,7 @@ class RowStates:
         self.row_external = grow(get("row_external"), (B, n), False, bool)
         self.row_priority = grow(get("row_priority"), (B, n), 0.0, np.float64)
         self.handover = grow(get("handover"), (B, n), False, bool)
+        self.entering = grow(get("entering"), (B, n), False, bool)
         self.size = grow(get("size"), (B, n, 2), 1.0, np.float64)
         self.kind = grow(get("kind"), (B, n), 0, np.int64)
         self.N, self.T = n, t
@@ -168,6 +172,11 @@ class RowStates:
         if T > sc.num_steps:
             self.handover[rows, :n] = replay & sc.valid[:, -1]
         self.handover_step[rows] = sc.num_steps - 1 if T > sc.num_steps else -1
+        # agents the log brings in later: handed to the model at their first logged step (spec.entering)
+        self.entering[rows] = False
+        if spec.entering:
+            later = lvalid[:, cur + 1 : T - 1].any(axis=1) & ~lvalid[:, cur]
+            self.entering[rows, :n] = replay & later
         self.size[rows] = 1.0
         self.size[rows, :n] = sc.size
         self.kind[rows] = 0
