@@ -263,11 +263,14 @@ def export_submission(
         for j in range(len(ids[k]))
         if not _part(out, shard, j).is_file()
     ]
-    barrier(ranks)  # every rank has listed the pending scenarios before any is written
+    unassembled = [k for k in range(len(shards)) if not (out / shards[k]).is_file()]
+    barrier(ranks)  # every rank has listed the pending scenarios and shards before any is written
     sampled = _sample_parts(my_share(pending, ranks), files, shards, ckpt, config, out, progress)
     barrier(ranks)
     head = metadata.encode()
-    for k in my_share([k for k in range(len(shards)) if not (out / shards[k]).is_file()], ranks):
+    # the list of every rank, taken before anything was written: one rank's finished shard must not
+    # shift the shares of the others (a shard nobody assembles)
+    for k in my_share(unassembled, ranks):
         _assemble(out, shards[k], len(ids[k]), head)
     barrier(ranks)
     archive = out / f"{config.prefix}.tar.gz"
