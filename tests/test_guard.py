@@ -24,6 +24,9 @@ def test_the_guard_option_is_a_bool() -> None:
     assert SamplingConfig(guard=True).guard is True
     with pytest.raises(TypeError, match="SamplingConfig.guard"):
         SamplingConfig(guard=1)  # type: ignore[arg-type]
+    assert SamplingConfig().guard_road_margin == GUARD_ROAD_MARGIN == 0.0  # WOSAC's off-road threshold
+    with pytest.raises(ValueError, match="guard_road_margin must be >= 0"):
+        SamplingConfig(guard_road_margin=-0.1)
 
 
 def brute_force_masks(engine: RolloutEngine, agent: int) -> tuple[np.ndarray, np.ndarray]:
