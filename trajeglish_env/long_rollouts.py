@@ -171,7 +171,7 @@ def plot_rates(result: dict[str, Any], path: Path) -> str:
             rates = m[event]["per_second"]
             ax.plot(np.arange(1, len(rates) + 1), rates, marker=".", label=name)
         ax.axvline(result["split_s"], color="grey", linestyle="--", linewidth=1)
-        ax.set_title(f"{event} onsets per agent-second")
+        ax.set_title(f"{'off-road' if event == 'offroad' else event} onsets per agent-second")
         ax.set_xlabel("second of rollout")
     axes[0].legend()
     fig.tight_layout()
