@@ -150,6 +150,25 @@ def test_idm_yields_to_crossing_traffic(yield_horizon: float) -> None:
         assert any(overlap)
 
 
+def test_idm_is_not_stopped_by_a_tailgater() -> None:
+    scene = two_car_scene(gap=300.0, leader_speed=10.0)
+    xyh = scene.xyh.copy()
+    xyh[0, :, 0] = xyh[1, :, 0] - 4.5 - 0.3  # the external car 0.3 m behind the IDM car's rear bumper
+    tailgated = Scenario.from_arrays(
+        xyh, scene.valid, scene.size, scene.kind, sdc=0, polylines=scene.polylines(),
+        polyline_kinds=scene.map_kind, scenario_id="tailgated",
+    )  # fmt: skip
+    driver = OrderedDriver(
+        IDMNPC(IDMParams()), tailgated, np.array([True, False, False]), 20, np.zeros(3), seed=0
+    )
+    for _ in range(20):
+        assert driver.advance() == 0
+        driver.supply(0, tailgated.xyh[0, driver.t + 1])
+        assert driver.advance() is None
+    speed = np.hypot(*(driver.xyh[1, -1, :2] - driver.xyh[1, -2, :2])) / 0.1
+    assert speed > 9.0  # it drives on at its speed (a follower within the margin is no leader)
+
+
 def test_continuous_action_towards_covers_the_distance_ahead_and_ignores_lateral_offsets() -> None:
     start = np.zeros(3)
     for speed, ahead in ((10.0, 0.98), (10.0, 1.01), (2.0, 0.19)):  # braking, speeding up, slowing

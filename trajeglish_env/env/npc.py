@@ -172,8 +172,12 @@ class IDMNPC:
             wide = sc.size[i[pk]] + np.array([0.0, 2 * p.lateral_margin])
             touch[pk, wk] = box_collisions(box, wide, state[j[pk]], sc.size[j[pk]])
         first = np.argmax(touch, axis=1)
-        lead = touch.any(axis=1)  # first == 0: within the margin already, no room to go on
         pair = np.arange(len(gi))
+        # only agents ahead lead (a follower within the margin of the rear bumper never stops the agent):
+        # first == 0 is one within the margin ahead already, no room to go on
+        h0 = paths.heading[i, idx[:, 0]]
+        ahead = (state[j, 0] - here[gi, 0]) * np.cos(h0) + (state[j, 1] - here[gi, 1]) * np.sin(h0) > 0
+        lead = touch.any(axis=1) & ahead
         before = idx[pair, np.maximum(first - 1, 0)]
         gap[gi, j] = np.where(lead, np.maximum(before * p.spacing - s[gi], 0.0), np.inf)
         heading = paths.heading[i, idx[pair, first]]
