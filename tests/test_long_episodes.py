@@ -67,6 +67,37 @@ def test_agents_entering_later_enter_as_logged_then_the_model_drives_them(drive:
         assert (gap == 0).all()
 
 
+@pytest.mark.parametrize("leaves", [20, None])
+def test_an_agent_entering_onto_another_waits_until_its_place_is_clear(leaves: int | None) -> None:
+    from trajeglish_env.sampler.config import SamplingConfig
+    from trajeglish_env.sampler.engine import BatchEngine, RowSpec
+    from trajeglish_env.scenario import AgentKind, Scenario
+
+    steps, cur = 40, 10
+    xyh = np.zeros((3, steps, 3))
+    valid = np.zeros((3, steps), bool)
+    valid[0, : leaves or steps] = True  # a parked car (replayed) at x = 0, gone at step `leaves`
+    xyh[1, :, 0] = 8.0 * (np.arange(steps) - 15) * 0.1  # enters at step 15 at x = 0, onto the parked car
+    valid[1, 15:] = True
+    xyh[2, :, 1] = 20.0  # a car the model drives, far away
+    xyh[2, :, 0] = np.arange(steps) * 0.5
+    valid[2] = True
+    sc = Scenario.from_arrays(
+        xyh, valid, np.tile([4.5, 2.0], (3, 1)), np.full(3, AgentKind.VEHICLE), sdc=2, current_index=cur,
+        scenario_id="entering",
+    )  # fmt: skip
+    engine = BatchEngine(tiny(), 1, SamplingConfig(seed=0))
+    engine.start_rows([0], RowSpec(sc, steps - cur - 1, np.array([False, False, True]), entering=True), [0])
+    engine.run()
+    v = engine.valid[0, 1]
+    if leaves is None:  # never clear: it never enters
+        assert not v.any()
+    else:  # it enters where the log brought it in, once the parked car has gone, then the model drives it
+        assert np.flatnonzero(v)[0] == leaves and v[leaves:].all()
+        np.testing.assert_allclose(engine.xyh[0, 1, leaves], sc.xyh[1, 15])
+        assert engine.row_controlled[0, 1]
+
+
 @pytest.mark.parametrize("npc", ["replay", "idm"])
 def test_log_bound_npcs_refuse_episodes_longer_than_the_log(npc: str) -> None:
     env = raw_env(npc=npc, max_cycles=81)

@@ -167,6 +167,7 @@ class BatchEngine(WindowedRows):
         if late is not None:
             return late
         rows = np.flatnonzero(stepping)
+        self._delay_blocked_entries(rows)
         self.known[rows, :, self.now[rows]] = True  # undecided tokens are unobserved from now on
         self.now[rows] += 1
         self._in_step = False
@@ -203,6 +204,42 @@ class BatchEngine(WindowedRows):
         self.known[rows, a] &= ~future[:, : self.T - 1]
         self.valid[rows, a] |= future & (span > self.now[rows, None])
         self.window_step[rows] = -1  # plan the windows anew to hold them
+
+    def _delay_blocked_entries(self, rows: np.ndarray) -> None:
+        """Entering agents whose box, where the log brings them in at the next step, would overlap an agent
+        there enter a step later (at the same place; again until it is clear; not at all if the rollout
+        ends first)."""
+        t1 = self.now[rows] + 1
+        live = t1 < self.T
+        rows, t1 = rows[live], t1[live]
+        if not len(rows):
+            return
+        entry = self.entering[rows] & self.valid[rows, :, t1] & ~self.valid[rows, :, t1 - 1]
+        r, a = np.nonzero(entry)
+        if not len(r):
+            return
+        from trajeglish_env.metrics.boxes import box_collisions
+
+        rr, tt = rows[r], t1[r]
+        others = self.valid[rr, :, tt].copy()  # [k, N] every agent present there, the agent itself not
+        others[np.arange(len(r)), a] = False
+        k, b = np.nonzero(others)
+        hit = box_collisions(
+            self.xyh[rr[k], a[k], tt[k]],
+            self.size[rr[k], a[k]],
+            self.xyh[rr[k], b, tt[k]],
+            self.size[rr[k], b],
+        )
+        blocked = np.zeros(len(r), bool)
+        blocked[k[hit]] = True
+        rr, a, tt = rr[blocked], a[blocked], tt[blocked]
+        later = tt + 1 < self.T  # at the rollout's last step a blocked agent does not enter at all
+        for arr in (self.xyh, self.mxyh):
+            arr[rr[later], a[later], tt[later] + 1] = arr[rr[later], a[later], tt[later]]
+            arr[rr, a, tt] = 0.0
+        self.valid[rr[later], a[later], tt[later] + 1] = True
+        self.valid[rr, a, tt] = False
+        self.tokens[rr[later], a[later], tt[later]] = -1
 
     def _decode_chunk(
         self, w: Window, count: np.ndarray, sample: np.ndarray, stepping: np.ndarray, t: np.ndarray
