@@ -16,9 +16,13 @@ from trajeglish_env.evaluation import (
     evaluate_methods,
     log_method,
     scene_kind,
+    tokenized_log_method,
+    tokenized_log_methods,
 )
+from trajeglish_env.metrics import score_rollouts
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.sources.highway import generate_scene
+from trajeglish_env.tokenizer.vocabulary import load_default_tokenizer
 
 
 @pytest.fixture(scope="module")
@@ -41,6 +45,30 @@ def test_log_and_constant_velocity_rollouts(scenes) -> None:
     crash[:, 1, 40:] = crash[:, 0, 40:]  # agent 1 teleports onto agent 0
     curve = collisions_over_time(sc, crash)
     assert curve[0, 39] == 0.0 and curve[0, 40] == pytest.approx(2 / len(sim))
+
+
+def test_tokenized_log_is_the_vocabularys_ceiling(scenes) -> None:
+    """The log snapped to the shipped vocabulary stays within centimetres of it, yet its accelerations (the
+    templates' quantization, differenced twice) already cost kinematic realism: what no model of these
+    tokens can win back."""
+    sc = scenes[0]
+    sim = np.flatnonzero(sc.valid[:, sc.current_index])
+    log, tok = log_method(sc, 2, 0), tokenized_log_method(load_default_tokenizer())(sc, 2, 0)
+    assert tok.shape == log.shape and np.isfinite(tok).all()
+    np.testing.assert_array_equal(tok[0], tok[1])
+    err = np.linalg.norm(tok[..., :2] - log[..., :2], axis=-1)
+    assert 0.0 < err.mean() < 0.05 and err.max() < 0.5
+    ids = sc.track_id[sim]
+    exact, snapped = score_rollouts(sc, log, ids, "2025"), score_rollouts(sc, tok, ids, "2025")
+    assert snapped.linear_acceleration < exact.linear_acceleration - 0.05
+    assert snapped.collision_rate == 0.0 and abs(snapped.interactive - exact.interactive) < 0.02
+
+
+def test_one_tokenized_log_row_per_vocabulary() -> None:
+    a, b = tiny_checkpoint(), tiny_checkpoint(vocab_size=256)
+    assert list(tokenized_log_methods({"x": a, "y": a})) == ["tokenized_log"]
+    assert list(tokenized_log_methods({"x": a, "y": b})) == ["tokenized_log[x]", "tokenized_log[y]"]
+    assert tokenized_log_methods({}) == {}
 
 
 def test_collision_curves_by_scene_kind(scenes) -> None:
@@ -69,7 +97,8 @@ def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
     result = evaluate(tmp_path, {"tiny": ckpt}, cfg, tmp_path / "eval", partial="tiny", progress=False)
     methods = result["methods"]
     models = ["tiny@T=1", "tiny+guard@T=1", "tiny@T=0.5", "tiny+guard@T=0.5"]
-    assert list(methods) == ["log", "constant_velocity", *models] and result["guards"] == [False, True]
+    assert list(methods) == ["log", "constant_velocity", "tokenized_log", *models]
+    assert result["guards"] == [False, True]
     plain, guarded = methods["tiny@T=1"]["scores"], methods["tiny+guard@T=1"]["scores"]
     assert guarded["collision_rate"] < plain["collision_rate"]  # the untrained model crashes unguarded
     log, cv = methods["log"]["scores"], methods["constant_velocity"]["scores"]

@@ -1,12 +1,14 @@
 """Realism evaluation of traffic models on held-out scenes (``trajeglish evaluate``).
 
-Methods compared on the same scenes and seeds: the log itself (upper bound), constant velocity, and any
-number of model checkpoints (e.g. the marginal, no-intra and trajeglish variants) at one or more sampling
-temperatures, each without and with guarded sampling (``NAME@T=t`` and ``NAME+guard@T=t``). Every
-scene's rollouts are scored with the WOSAC-style metrics; results are averaged over scenes and written as
-JSON, a Markdown table and plots (collision rate over time, speed/acceleration histograms of log vs
-rollouts). Partial control: one agent driven by the model, everyone else replaying
-the log, with the controlled agent placed first versus last in the intra-timestep order.
+Methods compared on the same scenes and seeds: the log itself (upper bound), constant velocity, the log
+snapped to each model's motion vocabulary (``tokenized_log``: the realism a perfect model of those tokens
+would reach, so the vocabulary's own cost shows), and any number of model checkpoints (e.g. the
+marginal, no-intra and trajeglish variants) at one or more sampling temperatures, each without and with
+guarded sampling (``NAME@T=t`` and ``NAME+guard@T=t``). Every scene's rollouts are scored with the
+WOSAC-style metrics; results are averaged over scenes and written as JSON, a Markdown table and plots
+(collision rate over time, speed/acceleration histograms of log vs rollouts). Partial control: one agent
+driven by the model, everyone else replaying the log, with the controlled agent placed first versus last
+in the intra-timestep order.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ from trajeglish_env.sampler import rollout
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.tokenizer.tokenize import tokenize_scenario
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 from trajeglish_env.training.dataset import SceneStore
 
 # (scene, rollouts, seed) -> [R, N_sim, H, 3], or with the rollouts' z [R, N_sim, H] (submissions)
@@ -81,6 +85,35 @@ def log_method(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
     xyh = np.take_along_axis(xyh, last[..., None], axis=1)
     fut = xyh[:, scene.current_index + 1 :]
     return np.broadcast_to(fut, (rollouts, *fut.shape)).copy()
+
+
+def tokenized_log_method(vocab: MotionVocabulary) -> Method:
+    """The log as the vocabulary's argmin tokens render it (the model's training targets): every simulated
+    agent's logged future snapped to the templates, held at its last valid state after it leaves, as in
+    :func:`log_method`. Its scores are the ceiling of any model that speaks this vocabulary."""
+
+    def run(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
+        sim = simulated(scene)
+        tok = tokenize_scenario(vocab, scene)
+        valid = tok.valid[sim]
+        last = np.maximum.accumulate(np.where(valid, np.arange(scene.num_steps), 0), axis=1)
+        xyh = np.take_along_axis(tok.xyh[sim], last[..., None], axis=1)
+        fut = xyh[:, scene.current_index + 1 :]
+        return np.broadcast_to(fut, (rollouts, *fut.shape)).copy()
+
+    return run
+
+
+def tokenized_log_methods(checkpoints: dict[str, Checkpoint]) -> dict[str, Method]:
+    """One :func:`tokenized_log_method` per distinct vocabulary of ``checkpoints``: ``tokenized_log`` when
+    they all share one, else ``tokenized_log[NAME]`` for the first checkpoint of each vocabulary."""
+    distinct: dict[str, MotionVocabulary] = {}
+    for name, ckpt in checkpoints.items():
+        if not any(np.array_equal(v.templates, ckpt.vocabulary.templates) for v in distinct.values()):
+            distinct[name] = ckpt.vocabulary
+    if len(distinct) == 1:
+        return {"tokenized_log": tokenized_log_method(next(iter(distinct.values())))}
+    return {f"tokenized_log[{name}]": tokenized_log_method(v) for name, v in distinct.items()}
 
 
 def constant_velocity_method(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
@@ -303,6 +336,7 @@ def evaluate(
     methods: dict[str, Method] = {"log": log_method, "constant_velocity": constant_velocity_method}
     if submission is not None:
         methods["submission"] = submission_method(submission, [s.scenario_id for s in scenes])
+    methods.update(tokenized_log_methods(checkpoints))
     for name, ckpt in checkpoints.items():
         for temp in config.temperatures:
             for guard in config.guards:
