@@ -29,6 +29,8 @@
 #   DATA_IN        carried scenes: DATA_IN/train/** is trained on, DATA_IN/val/** held out
 #                  [.devdata when it exists; `make device-sumo-scenes` fills it with SUMO scenes]
 #   RUN_IN         a previous call's $OUT/resume folder (carried) to continue [none: a new run]
+#   INIT           a new run starts from this checkpoint ('shipped': the shipped model; fine-tuning, its
+#                  config and vocabulary) [none: random weights]; a resumed run keeps its own start
 #   GEN_SEED       seed of this call's scenes [1000 + the number of earlier calls of the run]
 #   STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY   the run's schedule [10000 32 5e-4 200 0 500 250];
 #                  kept from RUN_IN when resuming (setting another value is an error)
@@ -82,7 +84,7 @@ LOG=$WORK/log.txt
 exec > >(tee -a "$LOG") 2>&1
 export PYTHONUNBUFFERED=1 PYGAME_HIDE_SUPPORT_PROMPT=1
 export PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}"
-say "job: DEVICE=$DEVICE MINUTES=$MINUTES SCENES=$SCENES OUT=$OUT WORK=$WORK RUN_IN=${RUN_IN:-none} DATA_IN=${DATA_IN:-none}"
+say "job: DEVICE=$DEVICE MINUTES=$MINUTES SCENES=$SCENES OUT=$OUT WORK=$WORK RUN_IN=${RUN_IN:-none} DATA_IN=${DATA_IN:-none} INIT=${INIT:-none}"
 
 # ---- 1. the run: new, or carried in RUN_IN (its settings are checked before anything slow)
 RUN=$WORK/run
@@ -101,6 +103,16 @@ if [ -n "$RUN_IN" ]; then
         printf -v "$v" '%s' "${!s}"
     done
     RESUME=(--resume)
+fi
+INIT_ARGS=()
+if [ -n "${INIT:-}" ]; then
+    if [ -n "$RUN_IN" ]; then
+        say "INIT=$INIT ignored: the run in RUN_IN goes on from its own checkpoint"
+    elif [ "$INIT" != shipped ] && [ ! -f "$INIT" ]; then
+        die "INIT=$INIT: no such checkpoint file (carry it, or use INIT=shipped)"
+    else
+        INIT_ARGS=(--init "$INIT")
+    fi
 fi
 PRESET=${PRESET:-small}
 STEPS=${STEPS:-10000}
@@ -213,7 +225,7 @@ rc=0
 "$PYTHON" -m trajeglish_env.cli train --json --quiet --data "${HAVE[@]}" --out "$RUN" --preset "$PRESET" \
     --steps "$STEPS" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --seed "$SEED" \
     --workers "$TRAIN_WORKERS" --val-every "$VAL_EVERY" --checkpoint-every "$CKPT_EVERY" \
-    --minutes "$(calc "$TRAIN_S / 60")" "${VAL_ARGS[@]}" "${RESUME[@]}" >"$WORK/train.json" || rc=$?
+    --minutes "$(calc "$TRAIN_S / 60")" "${VAL_ARGS[@]}" "${RESUME[@]}" "${INIT_ARGS[@]}" >"$WORK/train.json" || rc=$?
 [ "$rc" = 0 ] || say "train failed (exit code $rc); packing what was checkpointed"
 cat "$WORK/train.json"
 

@@ -16,7 +16,7 @@ import torch
 from helpers import REPO, grid_vocabulary, straight_road_scene, tiny_checkpoint, tiny_config
 
 from trajeglish_env import device_job
-from trajeglish_env.checkpoint import load_checkpoint, save_checkpoint
+from trajeglish_env.checkpoint import load_checkpoint, pretrained_path, save_checkpoint
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.training.train import TrainConfig, train
 
@@ -90,6 +90,21 @@ def test_a_call_trains_and_a_second_call_resumes(tmp_path: Path) -> None:
     third = _job(tmp_path, "3", RUN_IN=str(out1 / "resume"), STEPS="50")
     assert third.returncode == 2
     assert "STEPS=50 but the run in RUN_IN was started with STEPS=100000" in third.stdout
+
+
+@pytest.mark.skipif(BASH is None, reason="needs bash")
+def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
+    carried = tmp_path / "carried" / "train"
+    carried.mkdir(parents=True)
+    save_scenarios(
+        carried / "s.scn.npz", [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)]
+    )
+    job = _job(tmp_path, "init", PRESET="small", INIT="shipped", STEPS="3", BATCH="2")
+    assert job.returncode == 0, job.stdout[-3000:]
+    tuned = load_checkpoint(tmp_path / "out-init" / "model.pt")
+    assert tuned.training["init"] == str(pretrained_path()) and tuned.training["step"] >= 1
+    missing = _job(tmp_path, "noinit", INIT=str(tmp_path / "absent.pt"))
+    assert missing.returncode == 2 and "INIT=" in missing.stdout and "no such checkpoint" in missing.stdout
 
 
 @pytest.mark.skipif(BASH is None, reason="needs bash")
