@@ -116,8 +116,10 @@ def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
             "collision_rate_over_time.png",
             "collision_rate_over_time_by_kind.png",
             "kinematics_histograms.png",
+            "feature_scores.png",
         )
     )
+    assert str(tmp_path / "eval" / "feature_scores.png") in result["plots"]
 
 
 @pytest.mark.parametrize("variant", ["trajeglish", "no-intra"])

@@ -6,9 +6,9 @@ would reach, so the vocabulary's own cost shows), and any number of model checkp
 marginal, no-intra and trajeglish variants) at one or more sampling temperatures, each without and with
 guarded sampling (``NAME@T=t`` and ``NAME+guard@T=t``). Every scene's rollouts are scored with the
 WOSAC-style metrics; results are averaged over scenes and written as JSON, a Markdown table and plots
-(collision rate over time, speed/acceleration histograms of log vs rollouts). Partial control: one agent
-driven by the model, everyone else replaying the log, with the controlled agent placed first versus last
-in the intra-timestep order.
+(collision rate over time, speed/acceleration histograms of log vs rollouts, per-feature scores).
+Partial control: one agent driven by the model, everyone else replaying the log, with the controlled agent
+placed first versus last in the intra-timestep order.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import itertools
 import json
 import os
 import sys
+import textwrap
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -28,6 +29,7 @@ from tqdm import tqdm
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.distributed import Ranks, gather, my_share
 from trajeglish_env.metrics import LogDetails, RealismScores, box_collisions, mean_scores, score_rollouts
+from trajeglish_env.metrics.config import FEATURE_NAMES, get_config
 from trajeglish_env.metrics.log_details_io import details_for_files
 from trajeglish_env.metrics.submission import iter_submission
 from trajeglish_env.sampler import rollout
@@ -351,6 +353,7 @@ def evaluate(
     out.mkdir(parents=True, exist_ok=True)
     plots = _plot(raw, scenes[0].dt, out)
     table = {name: {k: v for k, v in r.items() if not k.startswith("_")} for name, r in raw.items()}
+    plots.append(plot_feature_scores(table, out / "feature_scores.png", config.metrics))
     best = {}
     for name in checkpoints:
         for guard in config.guards:
@@ -469,6 +472,37 @@ def _plot_by_kind(raw: dict[str, Any], dt: float, out: Path) -> str:
     axes[0][0].legend(fontsize=6)
     fig.tight_layout()
     return _save(fig, out / "collision_rate_over_time_by_kind.png")
+
+
+def plot_feature_scores(methods: dict[str, Any], path: Path, metrics: str = "2025", title: str = "") -> str:
+    """Grouped bars of every method's per-feature likelihood score (``methods``: the ``methods`` of an
+    evaluation's JSON), each feature labelled with its meta-metric weight: where a model loses realism."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cfg = get_config(metrics)
+    names = [f for f in FEATURE_NAMES if cfg.feature(f).weight > 0]
+    x = np.arange(len(names))
+    width = 0.8 / max(1, len(methods))
+    fig, ax = plt.subplots(figsize=(max(8.0, 1.1 * len(names)), 4.2))
+    for k, (method, r) in enumerate(methods.items()):
+        scores = [r["scores"][f] for f in names]
+        meta = r["scores"]["metametric"]
+        ax.bar(x + (k - (len(methods) - 1) / 2) * width, scores, width, label=f"{method} ({meta:.3f})")
+    labels = [f"{textwrap.fill(f.replace('_', ' '), 14)}\n(w {cfg.feature(f).weight:g})" for f in names]
+    ax.set_xticks(x, labels, fontsize=7)
+    ax.set_ylabel("likelihood score")
+    ax.set_ylim(0, 1.05)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2, title="method (meta-metric)", title_fontsize=7)
+    if title:
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    saved = _save(fig, path)
+    plt.close(fig)
+    return saved
 
 
 def _save(fig: Any, path: Path) -> str:
