@@ -58,13 +58,18 @@ def _job(tmp: Path, name: str, **env: str) -> subprocess.CompletedProcess[str]:
     )
 
 
-@pytest.mark.skipif(BASH is None, reason="needs bash")
-def test_a_call_trains_and_a_second_call_resumes(tmp_path: Path) -> None:
-    carried = tmp_path / "carried" / "train"
+def _carry_scenes(tmp: Path, n: int) -> None:
+    """``n`` small straight-road scenes in the carried training folder (DATA_IN/train) of ``_job``."""
+    carried = tmp / "carried" / "train"
     carried.mkdir(parents=True)
     save_scenarios(
-        carried / "s.scn.npz", [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(6)]
+        carried / "s.scn.npz", [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(n)]
     )
+
+
+@pytest.mark.skipif(BASH is None, reason="needs bash")
+def test_a_call_trains_and_a_second_call_resumes(tmp_path: Path) -> None:
+    _carry_scenes(tmp_path, 6)
 
     first = _job(tmp_path, "1", SCENES="2")  # two highway-env scenes generated, six carried
     assert first.returncode == 0, first.stdout[-3000:]
@@ -94,11 +99,7 @@ def test_a_call_trains_and_a_second_call_resumes(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(BASH is None, reason="needs bash")
 def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
-    carried = tmp_path / "carried" / "train"
-    carried.mkdir(parents=True)
-    save_scenarios(
-        carried / "s.scn.npz", [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)]
-    )
+    _carry_scenes(tmp_path, 4)
     job = _job(tmp_path, "init", PRESET="small", INIT="shipped", STEPS="3", BATCH="2")
     assert job.returncode == 0, job.stdout[-3000:]
     tuned = load_checkpoint(tmp_path / "out-init" / "model.pt")
