@@ -17,7 +17,6 @@ import itertools
 import json
 import os
 import sys
-import textwrap
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -28,8 +27,8 @@ from tqdm import tqdm
 
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.distributed import Ranks, gather, my_share
+from trajeglish_env.evaluation_plots import plot_evaluation, plot_feature_scores
 from trajeglish_env.metrics import LogDetails, RealismScores, box_collisions, mean_scores, score_rollouts
-from trajeglish_env.metrics.config import FEATURE_NAMES, get_config
 from trajeglish_env.metrics.log_details_io import details_for_files
 from trajeglish_env.metrics.submission import iter_submission
 from trajeglish_env.sampler import rollout
@@ -351,7 +350,7 @@ def evaluate(
         return {"scenes": len(scenes), "rank": ranks.rank}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    plots = _plot(raw, scenes[0].dt, out)
+    plots = plot_evaluation(raw, scenes[0].dt, out)
     table = {name: {k: v for k, v in r.items() if not k.startswith("_")} for name, r in raw.items()}
     plots.append(plot_feature_scores(table, out / "feature_scores.png", config.metrics))
     best = {}
@@ -417,95 +416,3 @@ def markdown_table(result: dict[str, Any]) -> str:
         for place in ("first", "last"):
             lines.append(f"| {place} | {pc[place]['ade']:.3f} | {pc[place]['collision_rate']:.4f} |")
     return "\n".join(lines) + "\n"
-
-
-def _plot(raw: dict[str, Any], dt: float, out: Path) -> list[str]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    paths = []
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for name, r in raw.items():
-        curve = np.asarray(r["collision_rate_over_time"])
-        ax.plot((np.arange(len(curve)) + 1) * dt, curve, label=name, lw=2 if name == "log" else 1)
-    ax.set_xlabel("time after the current step (s)")
-    ax.set_ylabel("fraction of agents in collision")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    paths.append(_save(fig, out / "collision_rate_over_time.png"))
-    paths.append(_plot_by_kind(raw, dt, out))
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-    for name, r in raw.items():
-        axes[0].hist(r["_speed"], bins=60, range=(0, 35), histtype="step", density=True, label=name)
-        axes[1].hist(r["_accel"], bins=60, range=(-10, 10), histtype="step", density=True, label=name)
-    axes[0].set_xlabel("speed (m/s)")
-    axes[1].set_xlabel("acceleration (m/s²)")
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    paths.append(_save(fig, out / "kinematics_histograms.png"))
-    plt.close("all")
-    return paths
-
-
-def _plot_by_kind(raw: dict[str, Any], dt: float, out: Path) -> str:
-    """The collision curves, one panel per scene kind: in which kind of scene and when agents collide."""
-    import matplotlib.pyplot as plt
-
-    kinds = sorted({kind for r in raw.values() for kind in r["collision_rate_over_time_by_kind"]})
-    cols = min(4, len(kinds))
-    rows = -(-len(kinds) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False, sharex=True)
-    for ax, kind in zip(axes.flat, kinds, strict=False):
-        for name, r in raw.items():
-            curve = np.asarray(r["collision_rate_over_time_by_kind"].get(kind, []))
-            ax.plot((np.arange(len(curve)) + 1) * dt, curve, label=name, lw=2 if name == "log" else 1)
-        ax.set_title(kind, fontsize=9)
-        ax.grid(alpha=0.3)
-    for ax in axes.flat[len(kinds) :]:
-        ax.axis("off")
-    for ax in axes[-1]:
-        ax.set_xlabel("time after the current step (s)", fontsize=8)
-    axes[0][0].set_ylabel("fraction in collision", fontsize=8)
-    axes[0][0].legend(fontsize=6)
-    fig.tight_layout()
-    return _save(fig, out / "collision_rate_over_time_by_kind.png")
-
-
-def plot_feature_scores(methods: dict[str, Any], path: Path, metrics: str = "2025", title: str = "") -> str:
-    """Grouped bars of every method's per-feature likelihood score (``methods``: the ``methods`` of an
-    evaluation's JSON), each feature labelled with its meta-metric weight: where a model loses realism."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    cfg = get_config(metrics)
-    names = [f for f in FEATURE_NAMES if cfg.feature(f).weight > 0]
-    x = np.arange(len(names))
-    width = 0.8 / max(1, len(methods))
-    fig, ax = plt.subplots(figsize=(max(8.0, 1.1 * len(names)), 4.2))
-    for k, (method, r) in enumerate(methods.items()):
-        scores = [r["scores"][f] for f in names]
-        meta = r["scores"]["metametric"]
-        ax.bar(x + (k - (len(methods) - 1) / 2) * width, scores, width, label=f"{method} ({meta:.3f})")
-    labels = [f"{textwrap.fill(f.replace('_', ' '), 14)}\n(w {cfg.feature(f).weight:g})" for f in names]
-    ax.set_xticks(x, labels, fontsize=7)
-    ax.set_ylabel("likelihood score")
-    ax.set_ylim(0, 1.05)
-    ax.grid(axis="y", alpha=0.3)
-    ax.legend(fontsize=7, ncol=2, title="method (meta-metric)", title_fontsize=7)
-    if title:
-        ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    saved = _save(fig, path)
-    plt.close(fig)
-    return saved
-
-
-def _save(fig: Any, path: Path) -> str:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    return str(path)
