@@ -17,6 +17,7 @@ from trajeglish_env.batch_geometry import (
     pad_stack,
     point_segment_distances,
     road_edge_distances,
+    selection_d2,
 )
 from trajeglish_env.env import EgoEnv, RewardConfig
 from trajeglish_env.env.batch_outcomes import BatchGeometry
@@ -24,7 +25,7 @@ from trajeglish_env.env.rewards import road_edges
 from trajeglish_env.env.routes import logged_paths, stack_paths
 from trajeglish_env.env.scenes import load_bundle
 from trajeglish_env.geometry import box_corners
-from trajeglish_env.metrics.road_edges import signed_distance_to_road_edges
+from trajeglish_env.metrics.road_edges import Z_STRETCH, RoadEdges, signed_distance_to_road_edges
 from trajeglish_env.scenario import ROAD_EDGE_KINDS, MapKind, Scenario
 
 
@@ -205,3 +206,24 @@ def test_scanning_only_nearby_items_gives_the_full_scan(monkeypatch: pytest.Monk
             assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
         assert np.array_equal(got[1], want[1])
     assert near._near_edges.version > 1 and near._near_points is not None and near._near_points.version > 1
+
+
+@pytest.mark.parametrize("hilly", [False, True])
+def test_selection_distances_are_the_reference_formula_on_flat_and_hilly_maps(hilly: bool) -> None:
+    """The in-place (and, on a flat map, z-free) form gives exactly the reference's float32 numbers."""
+    rng = np.random.default_rng(3)
+    lines = [np.cumsum(rng.normal(0, 4, (12, 3)), axis=0) for _ in range(3)]
+    if not hilly:
+        lines = [line[:, :2] for line in lines]
+    cols = RoadEdges.from_polylines(lines).columns  # [7,S] float32
+    x, y = (rng.uniform(-20, 20, (5, 8)).astype(np.float32) for _ in range(2))
+    got = selection_d2(np.broadcast_to(cols, (5, *cols.shape)), x, y)
+    f32 = np.float32
+    ax, ay, az, dx, dy, dz, inverse = (c[None, None] for c in cols)
+    ux, uy = x[..., None] - ax, y[..., None] - ay
+    t = np.clip((ux * dx + uy * dy) * inverse, 0, 1)
+    rz = Z_STRETCH * (f32(0) - az - t * dz)
+    want = (ux - t * dx) ** 2 + (uy - t * dy) ** 2 + rz * rz
+    assert got.dtype == np.float32 and got.shape == (5, 8, cols.shape[1])
+    assert np.array_equal(got, want)
+    assert (rz != 0).any() == hilly

@@ -104,10 +104,19 @@ def selection_d2(cols: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     cols = cols[:, :, None, :]
     ax, ay, az, dx, dy, dz, inverse = (cols[:, k] for k in range(7))
     ux, uy = x[..., None] - ax, y[..., None] - ay
-    t = np.clip((ux * dx + uy * dy) * inverse, 0, 1)
-    rx, ry = ux - t * dx, uy - t * dy
+    t = ux * dx
+    t += uy * dy
+    t *= inverse
+    np.clip(t, 0, 1, out=t)
+    ux -= t * dx  # rx, ry: in place (the same numbers, fewer temporaries on this hot path)
+    uy -= t * dy
+    if not (az.any() or dz.any()):  # a flat map: the z term is +0, which changes no number
+        ux *= ux
+        uy *= uy
+        ux += uy
+        return ux
     rz = Z_STRETCH * (f32(0) - az - t * dz)
-    return rx * rx + ry * ry + rz * rz
+    return ux * ux + uy * uy + rz * rz
 
 
 def nearest_segments(

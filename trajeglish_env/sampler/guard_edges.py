@@ -16,12 +16,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trajeglish_env.batch_geometry import nearest_segments_near, selection_d2, signed_distances_to
+from trajeglish_env.batch_geometry import (
+    nearest_segments_near,
+    pad_stack,
+    point_segment_distances,
+    selection_d2,
+    signed_distances_to,
+)
 from trajeglish_env.sampler.rows import RowEdges, RowStates
 
 # A row-agent's list holds the segments within EDGE_REACH m of its anchor, re-chosen when the agent is
 # farther than EDGE_DRIFT m from it.
 EDGE_REACH, EDGE_DRIFT = 40.0, 6.0
+# A list is chosen among the segments within GRID_REACH m of the square grid cell (GRID_CELL m) of its
+# anchor, found once per cell, instead of among every segment of the scene (the shared WOMD scene has
+# 5,251). The list's proof (see EdgeLists) sees those segments: enough for a vehicle up to about 17 m from
+# the nearest edge (one farther away is proved at each call instead, see road_view).
+GRID_CELL, GRID_REACH = 10.0, EDGE_REACH
 PROBES = 6  # segments nearest a vehicle that bound its candidates' corners' distances to the road edges
 _SLACK = 0.01  # metres of slack in the proofs, covering the reference's float32 rounding
 
@@ -64,6 +75,27 @@ def is_flat(edges: RowEdges) -> bool:
     return not (columns[2].any() or columns[5].any())
 
 
+class SegmentGrid:
+    """The road-edge segments (``columns [7,S]``) near each square cell of ``cell`` m: every segment within
+    ``reach`` m of some point of the cell is among them (they are those within ``reach`` plus half the
+    cell's diagonal of its centre), found when the cell is first asked for."""
+
+    def __init__(self, columns: np.ndarray, reach: float, cell: float = GRID_CELL):
+        self.columns, self.cell = columns, float(cell)
+        self.radius = float(reach) + self.cell * np.sqrt(0.5) + _SLACK
+        self.cells: dict[tuple[int, int], np.ndarray] = {}
+
+    def near(self, point: np.ndarray) -> np.ndarray:
+        """Ascending indices of the segments near the cell of ``point [2]``."""
+        key = (int(np.floor(point[0] / self.cell)), int(np.floor(point[1] / self.cell)))
+        hit = self.cells.get(key)
+        if hit is None:
+            centre = (np.array(key, dtype=np.float64) + 0.5) * self.cell
+            distances = point_segment_distances(self.columns, centre)
+            hit = self.cells[key] = np.flatnonzero(distances <= self.radius)
+        return hit
+
+
 class EdgeLists:
     """Per row-agent: the road-edge segments near an anchor point, and whether every candidate box from
     any position within EDGE_DRIFT of it is provably on the road (``sure``)."""
@@ -74,6 +106,16 @@ class EdgeLists:
         self.sure = np.zeros((0, 0), bool)
         self.keys: list[object] = []
         self.flat: dict[int, tuple[RowEdges, bool]] = {}
+        self.grids: dict[int, tuple[RowEdges, SegmentGrid]] = {}
+
+    def grid(self, edges: RowEdges) -> SegmentGrid:
+        """The :class:`SegmentGrid` of a row's road edges (cached per edge set)."""
+        hit = self.grids.get(id(edges))
+        if hit is None or hit[0] is not edges:
+            if len(self.grids) > 256:
+                self.grids.clear()
+            hit = self.grids[id(edges)] = (edges, SegmentGrid(edges[0], GRID_REACH))
+        return hit[1]
 
     def row_flat(self, rs: RowStates, rows: np.ndarray) -> np.ndarray:
         """``[n]`` whether the road edges of ``rows`` are flat (cached per edge set)."""
@@ -111,10 +153,13 @@ class EdgeLists:
         stale = np.flatnonzero(~(np.hypot(*(origin[:, :2] - anchor).T) <= EDGE_DRIFT))
         if len(stale):
             r, a = rr[stale], who[stale]
-            every = np.broadcast_to(np.arange(columns.shape[2]), (len(stale), columns.shape[2]))
-            real = every < np.array([e[0].shape[1] for e in rs.edges])[r, None]
-            distance, side = segment_geometry(columns, r, np.where(real, every, -1), origin[stale, :2])
-            lists = _compact(distance <= EDGE_REACH, every)
+            # every segment within GRID_REACH of an anchor is near its grid cell
+            near = pad_stack(
+                [self.grid(rs.edges[i]).near(p) for i, p in zip(r.tolist(), origin[stale, :2], strict=True)],
+                -1,
+            )
+            distance, side = segment_geometry(columns, r, near, origin[stale, :2])
+            lists = _compact(distance <= EDGE_REACH, near)
             if lists.shape[1] > self.lists.shape[2]:
                 grown = np.full((B, N, lists.shape[1]), -1, dtype=np.int32)
                 grown[..., : self.lists.shape[2]] = self.lists
@@ -123,8 +168,9 @@ class EdgeLists:
             self.lists[r, a, : lists.shape[1]] = lists
             self.anchor[r, a] = origin[stale, :2]
             radius = EDGE_DRIFT + extent[stale]
-            everywhere = np.full(len(stale), np.inf)  # every segment was scanned
-            proof = on_road_side(distance, side, distance.min(axis=1), radius, everywhere)
+            cover = np.full(len(stale), GRID_REACH)  # every segment this near was scanned
+            clearance = np.minimum(distance.min(axis=1, initial=np.inf), cover)
+            proof = on_road_side(distance, side, clearance, radius, cover)
             self.sure[r, a] = proof & self.row_flat(rs, r)
         return self.lists[rr, who], self.anchor[rr, who], self.sure[rr, who]
 
