@@ -76,7 +76,7 @@ def test_chunking_covers_every_point_once_per_chunk_boundary() -> None:
     np.testing.assert_array_equal(first[1, 0], first[0, -1])  # consecutive chunks share an end point
     last_mask = chunks.mask[chunks.polyline == 0][-1]
     assert last_mask.sum() == 449 - 23 * 19 + 1
-    pts, pmask, kind, mask = nearest_chunks(chunks, np.array([0.0, 0.0, np.pi / 2]), 3, 100.0)
+    pts, pmask, kind, mask, _ = nearest_chunks(chunks, np.array([0.0, 0.0, np.pi / 2]), 3, 100.0)
     assert mask.all() and kind.shape == (3,)
     # in a frame rotated by +90 degrees, global +x points along local -y
     nearest = pts[0][pmask[0]]

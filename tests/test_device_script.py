@@ -100,10 +100,13 @@ def test_a_call_trains_and_a_second_call_resumes(tmp_path: Path) -> None:
 @pytest.mark.skipif(BASH is None, reason="needs bash")
 def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
     _carry_scenes(tmp_path, 4)
-    job = _job(tmp_path, "init", PRESET="small", INIT="shipped", STEPS="3", BATCH="2")
+    job = _job(tmp_path, "init", PRESET="small", INIT="shipped", STEPS="3", BATCH="2", SIGNAL_INPUT="1")
     assert job.returncode == 0, job.stdout[-3000:]
     tuned = load_checkpoint(tmp_path / "out-init" / "model.pt")
     assert tuned.training["init"] == str(pretrained_path()) and tuned.training["step"] >= 1
+    assert tuned.config.signal_input  # the shipped model, extended with the signal input
+    summary = json.loads((tmp_path / "out-init" / "summary.json").read_text())
+    assert summary["params"]["SIGNAL_INPUT"] == "1"  # kept for a resumed call
     missing = _job(tmp_path, "noinit", INIT=str(tmp_path / "absent.pt"))
     assert missing.returncode == 2 and "INIT=" in missing.stdout and "no such checkpoint" in missing.stdout
 
@@ -112,6 +115,8 @@ def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
 def test_bad_setups_fail_with_one_clear_line(tmp_path: Path) -> None:
     no_out = _job(tmp_path, "x", OUT="")
     assert no_out.returncode == 2 and "OUT is not set" in no_out.stdout
+    bad_signal = _job(tmp_path, "s", SIGNAL_INPUT="yes")
+    assert bad_signal.returncode == 2 and "SIGNAL_INPUT=yes: expected 0 or 1" in bad_signal.stdout
     if not torch.cuda.is_available():
         no_cuda = _job(tmp_path, "y", DEVICE="cuda")
         assert no_cuda.returncode == 2 and "DEVICE=cuda but torch" in no_cuda.stdout

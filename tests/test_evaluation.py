@@ -15,11 +15,15 @@ from trajeglish_env.evaluation import (
     evaluate,
     evaluate_methods,
     log_method,
+    red_light_runs,
     scene_kind,
     tokenized_log_method,
     tokenized_log_methods,
 )
 from trajeglish_env.metrics import score_rollouts
+from trajeglish_env.metrics.features import prepare_scene
+from trajeglish_env.metrics.traffic_lights import red_light_violations
+from trajeglish_env.scenario import AgentKind
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.sources.highway import generate_scene
 from trajeglish_env.tokenizer.vocabulary import load_default_tokenizer
@@ -120,6 +124,40 @@ def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
         )
     )
     assert str(tmp_path / "eval" / "feature_scores.png") in result["plots"]
+    red = methods["constant_velocity"]["red_light_runs_by_kind"]  # highway-env scenes: no signals
+    assert set(red) == {"vehicle", "pedestrian", "cyclist"} and red["vehicle"]["agent_rollouts"] == 0
+    assert "Red lights run" not in md
+
+
+def test_red_light_runs_of_every_simulated_agent_by_class() -> None:
+    sumo = pytest.importorskip("trajeglish_env.sources.sumo")
+    try:
+        run = sumo.simulate_shard(("grid",), 3, 0, 4)
+    except sumo.SumoNotAvailableError as error:
+        pytest.skip(str(error))
+    totals = {"log": np.zeros((3, 2), int), "cv": np.zeros((3, 2), int)}
+    for k, sc in enumerate(sumo.cut_scenes(run, 3, 0, 4)):
+        sim = sc.valid[:, sc.current_index]
+        for name, method in (("log", log_method), ("cv", constant_velocity_method)):
+            fut = method(sc, 3, k)
+            got = red_light_runs(sc, fut)
+            # the metric's own signals (from the WOSAC feature code), trajectories from the current step
+            xy = np.concatenate(
+                [
+                    np.broadcast_to(sc.xyh[sim, None, sc.current_index, :2], (3, sim.sum(), 1, 2)),
+                    fut[..., :2],
+                ],
+                axis=2,
+            )
+            ran = red_light_violations(
+                prepare_scene(sc).signals, xy, np.ones(xy.shape[:3], bool), sc.current_index
+            ).any(-1)
+            for kind in AgentKind:
+                of_kind = sc.kind[sim] == kind
+                assert got[kind].tolist() == [int(ran[:, of_kind].sum()), 3 * int(of_kind.sum())]
+            totals[name] += got
+    assert totals["log"][AgentKind.VEHICLE, 0] == 0 and totals["log"][AgentKind.VEHICLE, 1] > 100
+    assert totals["cv"][AgentKind.VEHICLE, 0] > 0  # driving on at constant speed runs red lights
 
 
 @pytest.mark.parametrize("variant", ["trajeglish", "no-intra"])

@@ -24,6 +24,7 @@ def random_scene(cfg, b: int = 2, seed: int = 0, padded: int = 1) -> tuple[Scene
         map_point_mask=torch.rand(b, m, p, generator=g) > 0.2,
         map_kind=torch.randint(0, 20, (b, m), generator=g),
         map_mask=torch.rand(b, m, generator=g) > 0.3,
+        map_signal=torch.randint(0, 4, (b, m), generator=g),
     )
     tokens = torch.randint(0, cfg.vocab_size, (b, a, cfg.steps), generator=g)
     tokens[:, a - padded :] = -1

@@ -112,6 +112,7 @@ def test_chunked_decoding_equals_the_full_forward_pass() -> None:
         map_point_mask=torch.ones(b, cfg.max_polylines, cfg.points_per_polyline, dtype=torch.bool),
         map_kind=torch.randint(0, 20, (b, cfg.max_polylines), generator=g),
         map_mask=torch.ones(b, cfg.max_polylines, dtype=torch.bool),
+        map_signal=torch.zeros(b, cfg.max_polylines, dtype=torch.long),
     )
     tokens = torch.randint(0, cfg.vocab_size, (b, a, t), generator=g)
     with torch.no_grad():

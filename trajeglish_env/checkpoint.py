@@ -104,10 +104,12 @@ def check_compatible(cfg: ModelConfig, vocabulary: MotionVocabulary, where: str)
 
 
 def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary) -> None:
-    """A run started from ``ckpt`` (fine-tuning) must keep its config, vocabulary and finite weights;
-    otherwise raise a :class:`CheckpointError` naming what differs."""
+    """A run started from ``ckpt`` (fine-tuning) must keep its config (but may add the signal input),
+    vocabulary and finite weights; otherwise raise a :class:`CheckpointError` naming what differs."""
     where = f"--init {ckpt.path or 'checkpoint'}"
     theirs_cfg, ours_cfg = _plain_config(ckpt.config), _plain_config(cfg)
+    if cfg.signal_input and not ckpt.config.signal_input:
+        theirs_cfg["signal_input"] = True  # an added input (its weights start at zero): see extends_with
     diffs = [
         f"{name} {theirs_cfg[name]} (checkpoint) vs {ours_cfg[name]} (requested)"
         for name in theirs_cfg
@@ -128,6 +130,18 @@ def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary)
     bad = [name for name, p in ckpt.model.named_parameters() if not torch.isfinite(p).all()]
     if bad:
         raise CheckpointError(f"{where}: weights {bad[:3]} are not finite")
+
+
+def load_into(model: TrajeglishModel, ckpt: Checkpoint) -> None:
+    """Load ``ckpt``'s weights into ``model``, whose config is ``ckpt``'s or extends it with the signal
+    input (:func:`check_init`): the added weights keep their initial values (zeros)."""
+    missing, unexpected = model.load_state_dict(ckpt.model.state_dict(), strict=False)
+    added = [k for k in missing if k.startswith("encoder.polylines.signal.")]
+    if unexpected or len(added) != len(missing) or (added and not model.cfg.signal_input):
+        raise CheckpointError(
+            f"--init {ckpt.path or 'checkpoint'}: weights do not fit the model (missing {missing[:3]}, "
+            f"unexpected {unexpected[:3]})"
+        )
 
 
 def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> Checkpoint:

@@ -6,6 +6,7 @@ Progress bars and logs go to stderr; with ``--json`` the only thing on stdout is
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Callable, Sequence
@@ -119,6 +120,8 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         model_config = init.config  # fine-tuning: the checkpoint's model unless asked otherwise
     else:
         model_config = preset(args.preset or "small", **overrides)
+    if args.signal_input:
+        model_config = dataclasses.replace(model_config, signal_input=True)
     config = TrainConfig(
         steps=args.steps,
         batch_size=args.batch_size,
@@ -299,6 +302,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--init",
         help="start from this trained checkpoint, or 'shipped' for the shipped model (fine-tuning; same "
         "config and vocabulary)",
+    )
+    p.add_argument(
+        "--signal-input",
+        action="store_true",
+        help="the model reads the traffic signals' states (ModelConfig.signal_input); with --init, the "
+        "checkpoint's model is extended with it",
     )
     p.add_argument("--steps", type=POSITIVE, default=2000, help="optimisation steps")
     p.add_argument("--batch-size", type=POSITIVE, default=16, help="global batch size (split over processes)")

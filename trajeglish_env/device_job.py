@@ -52,7 +52,7 @@ NEEDED = {
     "cloudpickle": "cloudpickle",
 }
 # settings that fix a run's model and schedule: a resumed call must keep them (train refuses otherwise)
-SAVED = ("PRESET", "STEPS", "BATCH", "LR", "WARMUP", "SEED", "VAL_EVERY", "CKPT_EVERY")
+SAVED = ("PRESET", "STEPS", "BATCH", "LR", "WARMUP", "SEED", "VAL_EVERY", "CKPT_EVERY", "SIGNAL_INPUT")
 
 
 class JobError(RuntimeError):

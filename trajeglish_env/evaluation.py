@@ -31,9 +31,11 @@ from trajeglish_env.evaluation_plots import plot_evaluation, plot_feature_scores
 from trajeglish_env.metrics import LogDetails, RealismScores, box_collisions, mean_scores, score_rollouts
 from trajeglish_env.metrics.log_details_io import details_for_files
 from trajeglish_env.metrics.submission import iter_submission
+from trajeglish_env.metrics.traffic_lights import red_light_violations
 from trajeglish_env.sampler import rollout
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
-from trajeglish_env.scenario import Scenario
+from trajeglish_env.sampler.guard_signals import SceneSignals
+from trajeglish_env.scenario import AgentKind, Scenario
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.tokenizer.tokenize import tokenize_scenario
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
@@ -199,6 +201,24 @@ def collisions_over_time(scene: Scenario, fut: np.ndarray) -> np.ndarray:
     return agent_hit.mean(axis=1)
 
 
+def red_light_runs(scene: Scenario, fut: np.ndarray) -> np.ndarray:
+    """``[K, 2]`` per agent class (AgentKind order): simulated agent-rollouts that cross the stop fence of a
+    red signal on their lane at least once (WOSAC's rule, applied to every simulated agent, not only the
+    evaluated ones), and all simulated agent-rollouts of scenes with signals (zeros without)."""
+    out = np.zeros((len(AgentKind), 2), dtype=np.int64)
+    signals = SceneSignals.of(scene)
+    if signals is None:
+        return out
+    sim = simulated(scene)
+    now = np.broadcast_to(scene.xyh[sim, scene.current_index, None, :2], (fut.shape[0], len(sim), 1, 2))
+    xy = np.concatenate([now, fut[..., :2]], axis=2)
+    ran = red_light_violations(signals.signals, xy, np.ones(xy.shape[:3], bool), scene.current_index).any(-1)
+    kind = scene.kind[sim]
+    for k in AgentKind:
+        out[k] = ran[:, kind == k].sum(), ran.shape[0] * int((kind == k).sum())
+    return out
+
+
 def _kinematics(scene: Scenario, fut: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     speed = np.linalg.norm(np.diff(fut[..., :2], axis=2), axis=-1) / scene.dt
     accel = np.diff(speed, axis=2) / scene.dt
@@ -231,7 +251,7 @@ def evaluate_methods(
     results: dict[str, Any] = {}
     for name in methods:
         per_scene = sorted((row for part in merged for row in part[name]), key=lambda row: row[0])
-        index, scores, curves, speeds, accels = (list(x) for x in zip(*per_scene, strict=True))
+        index, scores, curves, speeds, accels, red = (list(x) for x in zip(*per_scene, strict=True))
         mean = mean_scores(scores)
         kinds = [scene_kind(scenes[k]) for k in index]
         results[name] = {
@@ -241,22 +261,32 @@ def evaluate_methods(
                 kind: np.mean([c for c, g in zip(curves, kinds, strict=True) if g == kind], axis=0).tolist()
                 for kind in sorted(set(kinds))
             },
+            "red_light_runs_by_kind": _red_light_table(np.sum(red, axis=0)),
             "_speed": np.concatenate(speeds),
             "_accel": np.concatenate(accels),
         }
     return results
 
 
+def _red_light_table(counts: np.ndarray) -> dict[str, dict[str, float]]:
+    """``{class: {runs, agent_rollouts, rate}}`` from :func:`red_light_runs` counts summed over scenes."""
+    return {
+        k.name.lower(): {"runs": int(c[0]), "agent_rollouts": int(c[1]), "rate": float(c[0] / max(c[1], 1))}
+        for k, c in zip(AgentKind, counts, strict=True)
+    }
+
+
 def _score_scene(
     scene: Scenario, k: int, method: Method, config: EvalConfig, details: Sequence[LogDetails | None] | None
-) -> tuple[int, RealismScores, np.ndarray, np.ndarray, np.ndarray]:
-    """(index, scores, collision curve, speeds, accelerations) of one method on scene ``k``."""
+) -> tuple[int, RealismScores, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(index, scores, collision curve, speeds, accelerations, red-light runs) of one method on scene
+    ``k``."""
     fut, z = _split(method(scene, config.rollouts, config.seed + k))
     ids = scene.track_id[simulated(scene)]
     detail = details[k] if details is not None else None
     scores = score_rollouts(scene, fut, ids, config.metrics, rollouts_z=z, details=detail)
     speed, accel = _kinematics(scene, fut)
-    return k, scores, collisions_over_time(scene, fut).mean(0), speed, accel
+    return k, scores, collisions_over_time(scene, fut).mean(0), speed, accel, red_light_runs(scene, fut)
 
 
 def _split(out: np.ndarray | tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:
@@ -404,6 +434,19 @@ def markdown_table(result: dict[str, Any]) -> str:
     ]
     for name, r in result["methods"].items():
         lines.append(f"| {name} | " + " | ".join(f"{r['scores'][c]:.4f}" for c in cols) + " |")
+    red = {name: r["red_light_runs_by_kind"] for name, r in result["methods"].items()}
+    if any(c["agent_rollouts"] for r in red.values() for c in r.values()):
+        kinds = [k.name.lower() for k in AgentKind]
+        lines += [
+            "",
+            "Red lights run (share of simulated agent-rollouts crossing a red stop fence on their lane):",
+            "",
+            "| method | " + " | ".join(kinds) + " |",
+            "|---|" + "---|" * len(kinds),
+        ]
+        for name, r in red.items():
+            cells = [f"{r[k]['rate']:.4f} ({r[k]['runs']}/{r[k]['agent_rollouts']})" for k in kinds]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
     if "partial_control" in result:
         pc = result["partial_control"]
         lines += [

@@ -82,6 +82,7 @@ def random_inputs(cfg: ModelConfig, batch: int, seed: int = 0) -> tuple[SceneInp
         map_point_mask=torch.ones(batch, m, p, dtype=torch.bool),
         map_kind=torch.randint(0, 20, (batch, m), generator=g),
         map_mask=torch.ones(batch, m, dtype=torch.bool),
+        map_signal=torch.randint(0, 4, (batch, m), generator=g),
     )
     return scene, torch.randint(0, cfg.vocab_size, (batch, a, cfg.steps), generator=g)
 

@@ -21,7 +21,11 @@ class Variant(str, Enum):
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """Model hyper-parameters. ``steps`` is the number of future tokens per agent in a training window."""
+    """Model hyper-parameters. ``steps`` is the number of future tokens per agent in a training window.
+
+    ``signal_input``: map chunks of a signal-controlled lane carry the state of its signal (none, stop,
+    caution, go) at the window's first step, a learned embedding added to the chunk's; its weights start
+    at zero, so a model extended with it (``train --init CKPT --signal-input``) starts as ``CKPT`` did."""
 
     d_model: int = 512
     num_heads: int = 8
@@ -39,6 +43,7 @@ class ModelConfig:
     ff_mult: int = 4
     dropout: float = 0.0
     variant: Variant = Variant.TRAJEGLISH
+    signal_input: bool = False
 
     def __post_init__(self) -> None:
         if self.d_model % self.num_heads:
@@ -58,6 +63,8 @@ class ModelConfig:
                 raise ValueError(f"ModelConfig.{name} must be >= 1, got {getattr(self, name)}")
         if not isinstance(self.variant, Variant):
             object.__setattr__(self, "variant", Variant(self.variant))
+        if not isinstance(self.signal_input, bool):
+            raise TypeError(f"ModelConfig.signal_input must be a bool, got {self.signal_input!r}")
 
     @property
     def seq_len(self) -> int:

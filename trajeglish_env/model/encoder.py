@@ -17,6 +17,7 @@ from torch import nn
 
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.layers import EncoderBlock, Linear
+from trajeglish_env.model.map_chunks import SIGNAL_CLASSES
 
 POSITION_SCALE = 50.0  # metres -> network units
 SIZE_SCALE = 5.0
@@ -28,7 +29,8 @@ class SceneInputs:
 
     ``agent_xyh [B,A,3]`` initial states, ``agent_size [B,A,2]``, ``agent_kind [B,A]`` long,
     ``agent_mask [B,A]`` bool; ``map_points [B,M,P,2]``, ``map_point_mask [B,M,P]``, ``map_kind [B,M]``,
-    ``map_mask [B,M]``.
+    ``map_mask [B,M]``; ``map_signal [B,M]`` long, each chunk's signal class at the window's first step
+    (:func:`~trajeglish_env.model.map_chunks.signal_classes`; read when ``ModelConfig.signal_input``).
     """
 
     agent_xyh: torch.Tensor
@@ -39,6 +41,7 @@ class SceneInputs:
     map_point_mask: torch.Tensor
     map_kind: torch.Tensor
     map_mask: torch.Tensor
+    map_signal: torch.Tensor
 
     def rows(self, index: slice | torch.Tensor) -> SceneInputs:
         """The inputs of batch rows ``index``."""
@@ -56,6 +59,7 @@ class SceneInputs:
             map_point_mask=batch["map_point_mask"],
             map_kind=batch["map_kind"].long(),
             map_mask=batch["map_mask"],
+            map_signal=batch["map_signal"].long(),
         )
 
 
@@ -74,11 +78,23 @@ class PolylineEncoder(nn.Module):
         self.point = nn.Sequential(Linear(5, c), nn.LayerNorm(c), nn.GELU(), Linear(c, c))
         self.second = nn.Sequential(Linear(2 * c, c), nn.LayerNorm(c), nn.GELU(), Linear(c, c))
         self.kind = nn.Embedding(cfg.num_map_kinds, c)
+        self.signal = None
+        if cfg.signal_input:  # zeros: a model extended with it starts as it was (class 0 stays zero)
+            self.signal = nn.Embedding(SIGNAL_CLASSES, c, padding_idx=0)
+            nn.init.zeros_(self.signal.weight)
 
-    def forward(self, points: torch.Tensor, point_mask: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
-        """``points [B,M,P,2]``, ``point_mask [B,M,P]``, ``kind [B,M]`` -> ``[B,M,C]`` (padding polylines:
-        their kind embedding only)."""
+    def forward(
+        self,
+        points: torch.Tensor,
+        point_mask: torch.Tensor,
+        kind: torch.Tensor,
+        signal: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """``points [B,M,P,2]``, ``point_mask [B,M,P]``, ``kind [B,M]`` (and the signal classes ``signal
+        [B,M]``, read with ``signal_input``) -> ``[B,M,C]`` (padding polylines: their embeddings only)."""
         embedding = self.kind(kind.clamp(0, self.kind.num_embeddings - 1))
+        if self.signal is not None and signal is not None:
+            embedding = embedding + self.signal(signal.clamp(0, SIGNAL_CLASSES - 1))
         if torch.is_grad_enabled():
             return self._encode(points, point_mask) + embedding
         b, m, p, _ = points.shape
@@ -164,7 +180,7 @@ class SceneEncoder(nn.Module):
         b = agents.shape[0]
         context, context_mask = agents, scene.agent_mask
         if self.polylines is not None:
-            pl = self.polylines(scene.map_points, scene.map_point_mask, scene.map_kind)
+            pl = self.polylines(scene.map_points, scene.map_point_mask, scene.map_kind, scene.map_signal)
             pl_mask = scene.map_mask
             for layer in self.map_layers:
                 pl = layer(pl, mask=pl_mask[:, None, None, :] | _eye_like(pl_mask))

@@ -11,7 +11,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from trajeglish_env.geometry import transform_points
-from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario import Scenario, SignalState
+
+# The model's signal classes (ModelConfig.signal_input): 0 no signal (or unknown), 1 stop, 2 caution, 3 go,
+# indexed by SignalState (flashing stop acts as a stop sign, flashing caution as caution).
+SIGNAL_CLASSES = 4
+_SIGNAL_CLASS = np.zeros(max(SignalState) + 1, dtype=np.int64)
+for _state, _class in (
+    (SignalState.ARROW_STOP, 1),
+    (SignalState.STOP, 1),
+    (SignalState.FLASHING_STOP, 1),
+    (SignalState.ARROW_CAUTION, 2),
+    (SignalState.CAUTION, 2),
+    (SignalState.FLASHING_CAUTION, 2),
+    (SignalState.ARROW_GO, 3),
+    (SignalState.GO, 3),
+):
+    _SIGNAL_CLASS[_state] = _class
 
 
 @dataclass(frozen=True)
@@ -19,13 +35,15 @@ class MapChunks:
     """All polylines of a scene cut into chunks of at most ``P`` points.
 
     ``points [C,P,2]`` global coordinates (padding repeats the last point), ``mask [C,P]`` real points,
-    ``kind [C]`` MapKind of the source polyline, ``polyline [C]`` index of the source polyline.
+    ``kind [C]`` MapKind of the source polyline, ``polyline [C]`` index of the source polyline, ``signal
+    [C]`` the column of the scene's ``signal_state`` that controls the source lane (-1: none).
     """
 
     points: np.ndarray
     mask: np.ndarray
     kind: np.ndarray
     polyline: np.ndarray
+    signal: np.ndarray
 
     @property
     def num_chunks(self) -> int:
@@ -49,24 +67,57 @@ def chunk_map(scenario: Scenario, points_per_chunk: int) -> MapChunks:
     mask = idx < end[:, None]
     idx = np.minimum(idx, (end - 1)[:, None])
     pts = scenario.map_points[idx] if total else np.zeros((0, points_per_chunk, 2))
-    return MapChunks(points=pts, mask=mask, kind=scenario.map_kind[poly], polyline=poly)
+    return MapChunks(
+        points=pts, mask=mask, kind=scenario.map_kind[poly], polyline=poly, signal=_signals(scenario)[poly]
+    )
+
+
+def _signals(scenario: Scenario) -> np.ndarray:
+    """``[K]`` per polyline, the signal (column of ``signal_state``) controlling it, -1 for none (the first
+    signal listed for a lane, when several are)."""
+    out = np.full(scenario.num_polylines, -1, dtype=np.int64)
+    if scenario.signal_state is None or not len(scenario.signal_lane_id):
+        return out
+    order = np.argsort(scenario.signal_lane_id, kind="stable")  # equal ids: the first listed first
+    ids = scenario.signal_lane_id[order]
+    at = np.minimum(np.searchsorted(ids, scenario.map_id), len(ids) - 1)
+    found = ids[at] == scenario.map_id
+    out[found] = order[at[found]]
+    return out
+
+
+def signal_classes(scenario: Scenario, chunks: MapChunks, step: int) -> np.ndarray:
+    """``[C]`` the model's signal class (see :data:`SIGNAL_CLASSES`) of every chunk at ``step`` (past the
+    log's end: its last step)."""
+    out = np.zeros(chunks.num_chunks, dtype=np.int64)
+    controlled = np.flatnonzero(chunks.signal >= 0)
+    if len(controlled) and scenario.signal_state is not None:
+        t = min(max(int(step), 0), scenario.signal_state.shape[0] - 1)
+        out[controlled] = _SIGNAL_CLASS[scenario.signal_state[t, chunks.signal[controlled]].astype(np.int64)]
+    return out
 
 
 def nearest_chunks(
-    chunks: MapChunks, origin: np.ndarray, max_chunks: int, radius: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    chunks: MapChunks,
+    origin: np.ndarray,
+    max_chunks: int,
+    radius: float,
+    signal: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The ``max_chunks`` chunks with a point nearest to ``origin [3]`` within ``radius``, in its frame.
 
-    Returns ``points [M,P,2]`` float32, ``point_mask [M,P]``, ``kind [M]`` int64, ``mask [M]`` (padded
-    to ``max_chunks``, nearest first).
+    Returns ``points [M,P,2]`` float32, ``point_mask [M,P]``, ``kind [M]`` int64, ``mask [M]`` and their
+    signal classes ``[M]`` int64 (from ``signal [C]``, :func:`signal_classes`; zeros without it), padded
+    to ``max_chunks``, nearest first.
     """
     p = chunks.points.shape[1] if chunks.num_chunks else 1
     out_pts = np.zeros((max_chunks, p, 2), dtype=np.float32)
     out_pmask = np.zeros((max_chunks, p), dtype=bool)
     out_kind = np.zeros(max_chunks, dtype=np.int64)
     out_mask = np.zeros(max_chunks, dtype=bool)
+    out_signal = np.zeros(max_chunks, dtype=np.int64)
     if chunks.num_chunks == 0:
-        return out_pts, out_pmask, out_kind, out_mask
+        return out_pts, out_pmask, out_kind, out_mask, out_signal
     d2 = ((chunks.points - origin[:2]) ** 2).sum(-1)
     d2 = np.where(chunks.mask, d2, np.inf).min(-1)
     inside = np.flatnonzero(d2 <= radius * radius)
@@ -78,4 +129,6 @@ def nearest_chunks(
     out_pmask[:m] = chunks.mask[inside]
     out_kind[:m] = chunks.kind[inside]
     out_mask[:m] = True
-    return out_pts, out_pmask, out_kind, out_mask
+    if signal is not None:
+        out_signal[:m] = signal[inside]
+    return out_pts, out_pmask, out_kind, out_mask, out_signal

@@ -13,7 +13,7 @@ import torch
 
 from trajeglish_env.geometry import to_local
 from trajeglish_env.model.layers import DecoderCache
-from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks
+from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks, signal_classes
 from trajeglish_env.model.masks import START, input_shift
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.sampler.rows import RowSpec, RowStates
@@ -147,7 +147,8 @@ class WindowedRows(RowStates):
         self, rows: np.ndarray, slots: np.ndarray, s0: np.ndarray, centres: np.ndarray
     ) -> SceneInputs:
         """Encoder inputs of one subset per row: initial states at ``s0`` (or the first valid step after
-        it, for agents that appeared later) in the frame of the centre agent, and the nearest map."""
+        it, for agents that appeared later) in the frame of the centre agent, and the nearest map (with its
+        signals at ``s0``)."""
         c = self.cfg
         real = slots >= 0
         idx = np.where(real, slots, 0)
@@ -166,9 +167,13 @@ class WindowedRows(RowStates):
         pmask = np.zeros(pts.shape[:3], dtype=bool)
         mkind = np.zeros((m, c.max_polylines), dtype=np.int64)
         mmask = np.zeros((m, c.max_polylines), dtype=bool)
+        msignal = np.zeros((m, c.max_polylines), dtype=np.int64)
         for i, b in enumerate(rows):
-            pts[i], pmask[i], mkind[i], mmask[i] = nearest_chunks(
-                self.chunks[b], frames[i], c.max_polylines, MAP_RADIUS
+            chunks, sc = self.chunks[b], self.scenes[b]
+            # the signals at the window's first step, as in training (read only by models with signal_input)
+            signal = signal_classes(sc, chunks, int(s0[i])) if c.signal_input and sc is not None else None
+            pts[i], pmask[i], mkind[i], mmask[i], msignal[i] = nearest_chunks(
+                chunks, frames[i], c.max_polylines, MAP_RADIUS, signal
             )
         dev = self.device
         return SceneInputs(
@@ -180,6 +185,7 @@ class WindowedRows(RowStates):
             map_point_mask=torch.from_numpy(pmask).to(dev),
             map_kind=torch.from_numpy(mkind).to(dev),
             map_mask=torch.from_numpy(mmask).to(dev),
+            map_signal=torch.from_numpy(msignal).to(dev),
         )
 
     def _joint(self, rows: np.ndarray, agents: np.ndarray, steps: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ import torch
 from torch.utils.data import Dataset
 
 from trajeglish_env.geometry import to_local
-from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks
+from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks, signal_classes
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import list_scenario_files, load_scenarios
 
@@ -81,7 +81,8 @@ class WindowDataset(Dataset):
 
     Fields: ``agent_xyh [A,S,3]`` float32 in the frame, ``agent_valid [A,S]``, ``agent_size [A,2]``,
     ``agent_kind [A]`` int64, ``agent_mask [A]`` (real vs padding), ``map_points [M,P,2]`` float32,
-    ``map_point_mask [M,P]``, ``map_kind [M]`` int64, ``map_mask [M]``, ``frame [3]`` float64 (the
+    ``map_point_mask [M,P]``, ``map_kind [M]`` int64, ``map_mask [M]``, ``map_signal [M]`` int64 (signal
+    classes at the window's first step), ``frame [3]`` float64 (the
     global state defining the frame), ``scene [ ]`` and ``start [ ]`` int64. Padding agents come first
     (the order the sampler uses: padding, then agents in acting order).
     """
@@ -159,7 +160,8 @@ def make_window(
     track[real] = scene.track_id[chosen]
 
     chunks = _chunks_for(scene, c.points_per_polyline)
-    pts, pmask, mkind, mmask = nearest_chunks(chunks, frame, c.max_polylines, c.map_radius)
+    signal = signal_classes(scene, chunks, start)
+    pts, pmask, mkind, mmask, msignal = nearest_chunks(chunks, frame, c.max_polylines, c.map_radius, signal)
     return {
         "agent_xyh": xyh,
         "agent_valid": valid,
@@ -171,6 +173,7 @@ def make_window(
         "map_point_mask": pmask,
         "map_kind": mkind,
         "map_mask": mmask,
+        "map_signal": msignal,
         "frame": frame.astype(np.float64),
         "scene": np.int64(scene_index),
         "start": np.int64(start),

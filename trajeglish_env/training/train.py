@@ -33,6 +33,7 @@ from trajeglish_env.checkpoint import (
     check_compatible,
     check_init,
     load_checkpoint,
+    load_into,
     save_checkpoint,
 )
 from trajeglish_env.distributed import init_ranks, rank_device
@@ -207,7 +208,7 @@ def train(
         if resume and dd.main:
             print(f"train: no {last} to resume from; starting from scratch", file=sys.stderr)
         if start_ckpt is not None:
-            model.load_state_dict(start_ckpt.model.state_dict())
+            load_into(model, start_ckpt)
 
     loss_module: nn.Module = _LossModule(model)
     if dd.world > 1:
