@@ -67,3 +67,40 @@ def test_png_gif_and_mp4_outputs(tmp_path, straight_scene: Scenario) -> None:
 def test_wrong_rollout_shape_is_refused(straight_scene: Scenario) -> None:
     with pytest.raises(ValueError, match="with N = 6 agents"):
         SceneRenderer(straight_scene, xyh=np.zeros((5, 91, 3)), valid=np.ones((5, 91), bool))
+
+
+def test_traffic_signals_are_lamps_coloured_by_each_frames_state(straight_scene: Scenario) -> None:
+    import dataclasses
+
+    from trajeglish_env.render import SIGNAL_COLORS
+    from trajeglish_env.scenario import SignalState
+
+    t = straight_scene.num_steps
+    state = np.full((t, 1), SignalState.STOP, dtype=np.int8)
+    state[20:] = SignalState.GO
+    pts = straight_scene.xyh[..., :2][straight_scene.valid]
+    lamp = np.array([[(pts[:, 0].min() + pts[:, 0].max()) / 2, 14.0]])  # mid-view, beside the road
+    sc = dataclasses.replace(
+        straight_scene, signal_lane_id=straight_scene.map_id[:1].copy(), signal_xy=lamp, signal_state=state
+    )
+    sc.validate()
+    r = SceneRenderer(sc, config=RenderConfig(300, 300, view_radius=40.0, title=False))
+    try:
+        frames = {step: r.frame(step) for step in (5, 30)}
+        x, y = r.ax.transData.transform(lamp[0])  # after a draw: the equal-aspect layout is settled
+        row, col = int(round(300 - y)), int(round(x))
+        colours = {
+            step: img[row - 1 : row + 2, col - 1 : col + 2].reshape(-1, 3) for step, img in frames.items()
+        }
+        past_the_log = r.frame(t - 1)[row, col]
+    finally:
+        r.close()
+    red, green = _rgb(SIGNAL_COLORS[SignalState.STOP]), _rgb(SIGNAL_COLORS[SignalState.GO])
+    assert (np.abs(colours[5] - red).max(-1) <= 3).any() and not (
+        np.abs(colours[5] - green).max(-1) <= 3
+    ).any()
+    assert (np.abs(colours[30] - green).max(-1) <= 3).any()
+    assert np.abs(past_the_log - green).max() <= 3
+    plain = SceneRenderer(straight_scene, config=RenderConfig(100, 100, title=False))
+    assert plain._lamps is None
+    plain.close()

@@ -4,6 +4,7 @@ The map is drawn once per renderer; each frame only moves the agent boxes, so an
 hundred frames take seconds. Works for logged scenes and for rollouts (pass ``xyh``/``valid``); an env's
 episodes are drawn from the simulation's live arrays (:class:`EpisodeRenderer`, :class:`LiveRenderer`),
 external agents red, NPCs by class, log-replayed agents grey, with a window for ``human`` rendering.
+Traffic signals are lamps at their stop points, red / amber / green by their state at each frame's step.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from trajeglish_env.scenario import (  # noqa: E402
     AgentKind,
     MapKind,
     Scenario,
+    SignalState,
 )
 from trajeglish_env.scenario_io import atomic_path  # noqa: E402
 
@@ -35,6 +37,15 @@ KIND_COLORS = {
     AgentKind.CYCLIST: (0.20, 0.70, 0.30),
 }
 SDC_COLOR = (0.85, 0.10, 0.15)
+# traffic-signal lamps at their stop points, by SignalState (unknown: grey)
+SIGNAL_COLORS = np.full((max(SignalState) + 1, 3), 0.6)
+SIGNAL_COLORS[[SignalState.STOP, SignalState.ARROW_STOP, SignalState.FLASHING_STOP]] = (0.90, 0.05, 0.05)
+SIGNAL_COLORS[[SignalState.CAUTION, SignalState.ARROW_CAUTION, SignalState.FLASHING_CAUTION]] = (
+    1.0,
+    0.75,
+    0.0,
+)
+SIGNAL_COLORS[[SignalState.GO, SignalState.ARROW_GO]] = (0.05, 0.75, 0.15)
 _YELLOW = {8, 9, 10, 11, 12}
 _BROKEN = {5, 8, 9}
 
@@ -91,6 +102,10 @@ class SceneRenderer:
         self.ax.add_collection(self._heading)
         self._text = self.ax.text(0.01, 0.99, "", transform=self.ax.transAxes, va="top", fontsize=9, zorder=7)
         self._labels: list[plt.Text] = []
+        self._lamps = None
+        if scenario.signal_state is not None and len(scenario.signal_lane_id):
+            xy = scenario.signal_xy
+            self._lamps = self.ax.scatter(xy[:, 0], xy[:, 1], s=22, zorder=3, edgecolors="k", linewidths=0.4)
         self._set_view(scenario.current_index)
 
     def _draw_map(self) -> None:
@@ -169,6 +184,9 @@ class SceneRenderer:
         trails = [self.xyh[i, lo : step + 1, :2][self.valid[i, lo : step + 1]] for i in live]
         self._trails.set_segments([t for t in trails if len(t) > 1])
         self._trails.set_color([self.colors[i] for i, t in zip(live, trails, strict=True) if len(t) > 1])
+        if self._lamps is not None:  # each signal's state at this step (past the log: its last)
+            states = self.scenario.signal_state[min(step, self.scenario.signal_state.shape[0] - 1)]
+            self._lamps.set_facecolor(SIGNAL_COLORS[np.clip(states, 0, len(SIGNAL_COLORS) - 1)])
         for label in self._labels:
             label.remove()
         self._labels = []
