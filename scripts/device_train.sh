@@ -34,8 +34,9 @@
 #   GEN_SEED       seed of this call's scenes [1000 + the number of earlier calls of the run]
 #   SIGNAL_INPUT   1: the model reads traffic-signal states (`train --signal-input`; with INIT, the
 #                  checkpoint's model extended with that input) [0]
+#   SIGNAL_LR_SCALE  learning-rate multiplier of the signal embedding (`--signal-lr-scale`) [1]
 #   STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY   the run's schedule [10000 32 5e-4 200 0 500 250];
-#                  kept from RUN_IN when resuming (setting another value is an error), as SIGNAL_INPUT is
+#                  kept from RUN_IN when resuming (setting another value is an error), as the SIGNAL_ ones are
 #   GEN_WORKERS TRAIN_WORKERS   processes generating / loading batches [cores, cores - 1]
 #   WHEELS SITE WORK PYTHON     [.whl, /tmp/site, /tmp/trajeglish_device, python3]
 #
@@ -56,7 +57,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest)
 declare -A GIVEN=()
-for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT; do
+for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
 done
 
@@ -96,7 +97,7 @@ RESUME=()
 if [ -n "$RUN_IN" ]; then
     SAVED=$("$PYTHON" trajeglish_env/device_job.py saved "$RUN_IN") || exit 2
     eval "$SAVED"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT; do
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE; do
         s=SAVED_$v
         [ -n "${!s:-}" ] || continue
         if [ -n "${GIVEN[$v]:-}" ] && [ "${GIVEN[$v]}" != "${!s}" ]; then
@@ -125,14 +126,15 @@ SEED=${SEED:-0}
 VAL_EVERY=${VAL_EVERY:-500}
 CKPT_EVERY=${CKPT_EVERY:-250}
 SIGNAL_INPUT=${SIGNAL_INPUT:-0}
+SIGNAL_LR_SCALE=${SIGNAL_LR_SCALE:-1}
 case $SIGNAL_INPUT in
 0) SIGNAL_ARGS=() ;;
-1) SIGNAL_ARGS=(--signal-input) ;;
+1) SIGNAL_ARGS=(--signal-input --signal-lr-scale "$SIGNAL_LR_SCALE") ;;
 *) die "SIGNAL_INPUT=$SIGNAL_INPUT: expected 0 or 1" ;;
 esac
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 if ! "$PYTHON" -c 'import gymnasium, pettingzoo, highway_env, pygame' 2>/dev/null; then
@@ -251,7 +253,7 @@ cat "$WORK/train.json"
     echo "gen_seconds=$GEN_TOOK"
     echo "train_seconds=$((SECONDS - T_TRAIN))"
     echo "train_workers=$TRAIN_WORKERS"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT; do echo "param.$v=${!v}"; done
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE; do echo "param.$v=${!v}"; done
 } >"$WORK/call.env"
 say "packing into $OUT"
 "$PYTHON" trajeglish_env/device_job.py pack "$RUN" "$OUT" --facts "$WORK/call.env" \

@@ -163,3 +163,27 @@ def test_init_accepts_adding_the_signal_input_and_nothing_else(tmp_path: Path) -
         check_init(ckpt, dataclasses.replace(with_input, d_model=64), ckpt.vocabulary)
     with pytest.raises(TypeError, match="signal_input must be a bool"):
         dataclasses.replace(tiny_config(), signal_input=1)
+
+
+@pytest.mark.parametrize("scale", [1.0, 25.0])
+def test_the_signal_embedding_learns_at_its_own_rate(
+    grid_scene: Scenario, tmp_path: Path, scale: float
+) -> None:
+    """One AdamW step moves each element by about lr (its first update is m / sqrt(v) = +-1): the signal
+    embedding by ``lr * signal_lr_scale``, the others by ``lr``; class 0 (no signal) stays zero."""
+    save_scenarios(tmp_path / "grid.scn.npz", [grid_scene])
+    base = dataclasses.replace(tiny_config(), max_polylines=64)
+    cfg = dataclasses.replace(base, signal_input=True)
+    lr = 1e-4
+    quick = TrainConfig(
+        steps=1, batch_size=4, lr=lr, warmup_steps=1, val_fraction=0.0, num_workers=0, signal_lr_scale=scale
+    )
+    start = save_checkpoint(tmp_path / "start.pt", TrajeglishModel(base), tiny_checkpoint().vocabulary)
+    result = train(tmp_path / "grid.scn.npz", tmp_path / "run", cfg, quick, progress=False, init=start)
+    weights = load_checkpoint(result["checkpoint"]).model.encoder.polylines.signal.weight.detach()
+    assert weights[0].abs().max() == 0
+    moved = weights[1:].abs().amax(1)
+    assert (moved > 0).any()  # the windows saw signals
+    torch.testing.assert_close(moved[moved > 0].max(), torch.tensor(lr * scale), rtol=0.02, atol=0)
+    with pytest.raises(ValueError, match="signal_lr_scale must be > 0"):
+        TrainConfig(signal_lr_scale=0.0)

@@ -133,6 +133,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         checkpoint_every=args.checkpoint_every,
         noisy_inputs=not args.no_noise,
         shard_cache=args.shard_cache,
+        signal_lr_scale=args.signal_lr_scale,
     )
     ranks = init_ranks(rank_device())
     result = train(
@@ -308,6 +309,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the model reads the traffic signals' states (ModelConfig.signal_input); with --init, the "
         "checkpoint's model is extended with it",
+    )
+    p.add_argument(
+        "--signal-lr-scale",
+        type=positive_float,
+        default=1.0,
+        help="learning-rate multiplier of the signal embedding (it starts at zero inside an --init model)",
     )
     p.add_argument("--steps", type=POSITIVE, default=2000, help="optimisation steps")
     p.add_argument("--batch-size", type=POSITIVE, default=16, help="global batch size (split over processes)")

@@ -52,7 +52,18 @@ NEEDED = {
     "cloudpickle": "cloudpickle",
 }
 # settings that fix a run's model and schedule: a resumed call must keep them (train refuses otherwise)
-SAVED = ("PRESET", "STEPS", "BATCH", "LR", "WARMUP", "SEED", "VAL_EVERY", "CKPT_EVERY", "SIGNAL_INPUT")
+SAVED = (
+    "PRESET",
+    "STEPS",
+    "BATCH",
+    "LR",
+    "WARMUP",
+    "SEED",
+    "VAL_EVERY",
+    "CKPT_EVERY",
+    "SIGNAL_INPUT",
+    "SIGNAL_LR_SCALE",
+)
 
 
 class JobError(RuntimeError):

@@ -73,12 +73,36 @@ class TrainConfig:
     checkpoint_every: int = 200
     num_workers: int = 1
     shard_cache: int = 0  # 0: every scene in memory; K: at most K shards per loading process (shard_cache.py)
+    # learning-rate multiplier of the signal embedding (ModelConfig.signal_input): it starts at zero inside
+    # an already trained model (train --init CKPT --signal-input) and must catch up with the rest
+    signal_lr_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.signal_lr_scale > 0:
+            raise ValueError(f"TrainConfig.signal_lr_scale must be > 0, got {self.signal_lr_scale}")
 
     def lr_at(self, step: int) -> float:
         """Learning rate at ``step``: linear warmup, then linear decay to 0 at ``steps``."""
         if step < self.warmup_steps:
             return self.lr * (step + 1) / self.warmup_steps
         return self.lr * max(0.0, (self.steps - step) / max(1, self.steps - self.warmup_steps))
+
+
+SIGNAL_PARAMS = "encoder.polylines.signal."  # the signal embedding's parameters (ModelConfig.signal_input)
+
+
+def _param_groups(model: TrajeglishModel, config: TrainConfig) -> list[dict[str, Any]]:
+    """AdamW groups: matrices with weight decay, vectors without, and the signal embedding (when the model
+    has it) with its own learning-rate scale (``lr_scale``, read each step) and weight decay."""
+    groups: dict[str, dict[str, Any]] = {
+        "decay": {"params": [], "weight_decay": config.weight_decay},
+        "no_decay": {"params": [], "weight_decay": 0.0},
+        "signal": {"params": [], "weight_decay": config.weight_decay, "lr_scale": config.signal_lr_scale},
+    }
+    for name, p in model.named_parameters():
+        key = "signal" if name.startswith(SIGNAL_PARAMS) else "decay" if p.ndim >= 2 else "no_decay"
+        groups[key]["params"].append(p)
+    return [g for g in groups.values() if g["params"]]
 
 
 def window_config(cfg: ModelConfig) -> WindowConfig:
@@ -178,13 +202,7 @@ def train(
     facts = _run_facts(train_scenes, val_scenes, dd.world, start_ckpt)
     torch.manual_seed(config.seed)
     model = TrajeglishModel(model_config).to(device)
-    decay = [p for n, p in model.named_parameters() if p.ndim >= 2]
-    no_decay = [p for n, p in model.named_parameters() if p.ndim < 2]
-    optimizer = torch.optim.AdamW(
-        [{"params": decay, "weight_decay": config.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
-        lr=config.lr,
-        betas=(0.9, 0.95),
-    )
+    optimizer = torch.optim.AdamW(_param_groups(model, config), lr=config.lr, betas=(0.9, 0.95))
     start_step, history = 0, []
     last = out / "last.pt"
     if resume and last.is_file():
@@ -252,7 +270,7 @@ def train(
     for batch in loader:
         batch = _batch_to(batch, device)
         for group in optimizer.param_groups:
-            group["lr"] = config.lr_at(step)
+            group["lr"] = config.lr_at(step) * group.get("lr_scale", 1.0)
         with autocast:
             loss_sum, n = loss_module(batch)
         global_n = n.detach().clone()
