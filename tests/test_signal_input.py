@@ -187,3 +187,22 @@ def test_the_signal_embedding_learns_at_its_own_rate(
     torch.testing.assert_close(moved[moved > 0].max(), torch.tensor(lr * scale), rtol=0.02, atol=0)
     with pytest.raises(ValueError, match="signal_lr_scale must be > 0"):
         TrainConfig(signal_lr_scale=0.0)
+
+
+def test_nll_reports_what_the_signals_are_worth(grid_scene: Scenario, tmp_path: Path) -> None:
+    from trajeglish_env.training.density import evaluate_nll
+
+    save_scenarios(tmp_path / "grid.scn.npz", [grid_scene])
+    ckpt = tiny_checkpoint()
+    model = extended(ckpt.model)
+    with_input = dataclasses.replace(ckpt, model=model)
+    result = evaluate_nll({"plain": ckpt, "signals": with_input}, tmp_path, windows=8)
+    assert "without_signals" not in result["models"]["plain"]
+    off = result["models"]["signals"]["without_signals"]
+    assert off["nll"] == pytest.approx(result["models"]["signals"]["nll"], abs=1e-6)  # zero embedding: unused
+    assert off["red_windows"]["tokens"] > 0
+    with torch.no_grad():
+        model.encoder.polylines.signal.weight[1:] = 3 * torch.randn(3, model.cfg.d_model)
+    moved = evaluate_nll({"signals": with_input}, tmp_path, windows=8)["models"]["signals"]
+    assert abs(moved["nll"] - moved["without_signals"]["nll"]) > 1e-3
+    assert moved["without_signals"]["nll"] == pytest.approx(off["nll"], abs=1e-6)  # signals off: as before

@@ -16,6 +16,7 @@ from trajeglish_env.scenario import Scenario, SignalState
 # The model's signal classes (ModelConfig.signal_input): 0 no signal (or unknown), 1 stop, 2 caution, 3 go,
 # indexed by SignalState (flashing stop acts as a stop sign, flashing caution as caution).
 SIGNAL_CLASSES = 4
+RED_CLASS = 1
 _SIGNAL_CLASS = np.zeros(max(SignalState) + 1, dtype=np.int64)
 for _state, _class in (
     (SignalState.ARROW_STOP, 1),

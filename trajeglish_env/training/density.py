@@ -5,6 +5,7 @@ per-class unigram baseline.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Sequence
@@ -16,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from trajeglish_env.checkpoint import Checkpoint
+from trajeglish_env.model.map_chunks import RED_CLASS
 from trajeglish_env.model.masks import teacher_inputs
 from trajeglish_env.model.network import SceneInputs
 from trajeglish_env.scenario import AgentKind, Scenario
@@ -29,19 +31,29 @@ KIND_NAMES = [k.name.lower() for k in AgentKind]
 
 @torch.no_grad()
 def token_nll(
-    ckpt: Checkpoint, scenes: Sequence[Scenario], windows: int, seed: int = 0, batch_size: int = 16
+    ckpt: Checkpoint,
+    scenes: Sequence[Scenario],
+    windows: int,
+    seed: int = 0,
+    batch_size: int = 16,
+    signals: bool = True,
 ) -> dict[str, np.ndarray]:
-    """Per-token NLL on fixed held-out windows (argmin inputs).
+    """Per-token NLL on fixed held-out windows (argmin inputs); ``signals=False``: every map chunk's signal
+    class set to none (what a ``signal_input`` model makes of the scene without its signals).
 
     Returns flat arrays over observed targets: ``nll`` (nats), ``kind``, ``slot`` (agents before it in the
-    timestep), ``step`` (timestep in the window), ``token`` (target id).
+    timestep), ``step`` (timestep in the window), ``token`` (target id), ``red`` (the window's map shows a
+    red signal).
     """
     model = ckpt.model.eval()
     ds = TokenizedWindows(scenes, window_config(model.cfg), ckpt.vocabulary, None, seed + 1_000_003)
-    out: dict[str, list[np.ndarray]] = {k: [] for k in ("nll", "kind", "slot", "step", "token")}
+    out: dict[str, list[np.ndarray]] = {k: [] for k in ("nll", "kind", "slot", "step", "token", "red")}
     for first in range(0, windows, batch_size):
         batch = collate_windows([ds[g] for g in range(first, min(windows, first + batch_size))])
         scene = SceneInputs.from_batch(batch)
+        red = (scene.map_signal == RED_CLASS).any(-1)  # [B]
+        if not signals:
+            scene = dataclasses.replace(scene, map_signal=torch.zeros_like(scene.map_signal))
         logits = model(scene, batch["input_tokens"])  # [B,T,A,V]
         tgt = batch["tokens"].transpose(1, 2)  # [B,T,A]
         ok = (tgt >= 0) & scene.agent_mask[:, None, :]
@@ -54,6 +66,7 @@ def token_nll(
         out["slot"].append(before[ok].numpy())
         out["step"].append(torch.arange(t)[None, :, None].expand(b, t, a)[ok].numpy())
         out["token"].append(tgt[ok].numpy())
+        out["red"].append(red[:, None, None].expand(b, t, a)[ok].numpy())
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
@@ -126,6 +139,24 @@ def _by(values: np.ndarray, groups: np.ndarray, n: int) -> list[float | None]:
     return [float(s / c) if c else None for s, c in zip(sums, counts, strict=True)]
 
 
+def _without_signals(
+    ckpt: Checkpoint, scenes: Sequence[Scenario], windows: int, seed: int, tok: dict[str, np.ndarray]
+) -> dict[str, Any]:
+    """What a ``signal_input`` model gains from the signals: its NLL with every signal class set to none,
+    overall and per class, and on the tokens of windows whose map shows a red signal, with and without."""
+    off = token_nll(ckpt, scenes, windows, seed, signals=False)
+    red = tok["red"]
+    return {
+        "nll": float(off["nll"].mean()),
+        "nll_per_class": dict(zip(KIND_NAMES, _by(off["nll"], off["kind"], len(KIND_NAMES)), strict=True)),
+        "red_windows": {
+            "tokens": int(red.sum()),
+            "nll": float(tok["nll"][red].mean()) if red.any() else None,
+            "nll_without_signals": float(off["nll"][red].mean()) if red.any() else None,
+        },
+    }
+
+
 def summarize(tok: dict[str, np.ndarray], unigram: np.ndarray | None = None) -> dict[str, Any]:
     """Overall/per-class NLL and the two analysis curves, JSON-able."""
     kinds = len(AgentKind)
@@ -189,6 +220,8 @@ def evaluate_nll(
             summary["through_cache"] = {
                 d: cached_nll(ckpt, scenes, windows, getattr(torch, d), seed) for d in cache_dtypes
             }
+        if ckpt.config.signal_input:
+            summary["without_signals"] = _without_signals(ckpt, scenes, windows, seed, tok)
         result["models"][name] = summary
     any_model = next(iter(result["models"].values()))
     result["unigram_nll"] = any_model["unigram_nll"]
