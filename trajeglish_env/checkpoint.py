@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from trajeglish_env.model.config import ModelConfig, Variant
+from trajeglish_env.model.encoder import SIGNAL_PARAMS
 from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, VocabularyError
@@ -136,7 +137,7 @@ def load_into(model: TrajeglishModel, ckpt: Checkpoint) -> None:
     """Load ``ckpt``'s weights into ``model``, whose config is ``ckpt``'s or extends it with the signal
     input (:func:`check_init`): the added weights keep their initial values (zeros)."""
     missing, unexpected = model.load_state_dict(ckpt.model.state_dict(), strict=False)
-    added = [k for k in missing if k.startswith("encoder.polylines.signal.")]
+    added = [k for k in missing if k.startswith(SIGNAL_PARAMS)]
     if unexpected or len(added) != len(missing) or (added and not model.cfg.signal_input):
         raise CheckpointError(
             f"--init {ckpt.path or 'checkpoint'}: weights do not fit the model (missing {missing[:3]}, "

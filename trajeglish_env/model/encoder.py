@@ -20,6 +20,7 @@ from trajeglish_env.model.layers import EncoderBlock, Linear
 from trajeglish_env.model.map_chunks import SIGNAL_CLASSES
 
 POSITION_SCALE = 50.0  # metres -> network units
+SIGNAL_PARAMS = "encoder.polylines.signal."  # state-dict prefix of the signal embedding (signal_input)
 SIZE_SCALE = 5.0
 
 

@@ -38,6 +38,7 @@ from trajeglish_env.checkpoint import (
 )
 from trajeglish_env.distributed import init_ranks, rank_device
 from trajeglish_env.model.config import ModelConfig
+from trajeglish_env.model.encoder import SIGNAL_PARAMS
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import load_scenarios
@@ -86,9 +87,6 @@ class TrainConfig:
         if step < self.warmup_steps:
             return self.lr * (step + 1) / self.warmup_steps
         return self.lr * max(0.0, (self.steps - step) / max(1, self.steps - self.warmup_steps))
-
-
-SIGNAL_PARAMS = "encoder.polylines.signal."  # the signal embedding's parameters (ModelConfig.signal_input)
 
 
 def _param_groups(model: TrajeglishModel, config: TrainConfig) -> list[dict[str, Any]]:
