@@ -195,3 +195,36 @@ def test_logits_of_known_classes_equal_the_full_head() -> None:
             with torch.no_grad():
                 want = model.class_logits(hidden, kind)
                 assert torch.equal(model.class_logits_by_kind(hidden, kind.numpy()), want)
+
+
+def test_idle_rows_are_left_out_of_a_decoding_call_and_untouched() -> None:
+    """Rows with nothing to decode (count 0) are not computed: the busy rows' outputs and caches are the
+    ones a call with every row busy gives, bit for bit, and the idle rows' caches stay as they were."""
+    torch.manual_seed(2)
+    cfg = preset("tiny")
+    model = TrajeglishModel(cfg).eval()
+    b, a = 4, cfg.max_agents
+    scene, tokens = random_scene(cfg, b=b, padded=2)
+    ids = model.global_ids(tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, -1)
+    carried, own = teacher_inputs(cfg.variant, ids, a)
+    prefix = 2 * a + 3
+    caches = [model.empty_cache(b, torch.bfloat16) for _ in range(2)]
+    agents = [model.encode_into(cache, scene) for cache in caches]
+    for cache, emb in zip(caches, agents, strict=True):
+        model.prime(cache, emb, carried[:, :prefix], own[:, :prefix])
+    n = a  # rows 1 and 3 idle, rows 0 and 2 decode chunks of their own lengths from their own starts
+    start, count = np.array([prefix, 0, prefix - 2, 0]), np.array([a - 2, 0, a, 0])
+    window = [carried[r, s : s + n] for r, s in enumerate(start)]
+    own_window = [own[r, s : s + n] for r, s in enumerate(start)]
+    inputs = torch.stack(window), torch.stack(own_window)
+    before = [k.clone() for k in caches[0].self_k]
+    hidden = model.decode_at(caches[0], agents[0], *inputs, start, count)
+    every = np.where(count > 0, count, 1)  # the reference: every row busy (idle ones redo position 0)
+    ref = model.decode_at(caches[1], agents[1], *inputs, np.where(count > 0, start, 0), every)
+    for r in (0, 2):
+        assert torch.equal(hidden[r, : count[r]], ref[r, : count[r]])
+        for k in range(len(model.blocks)):
+            assert torch.equal(caches[0].self_k[k][r], caches[1].self_k[k][r])
+    for r in (1, 3):
+        assert not hidden[r].any()
+        assert all(torch.equal(caches[0].self_k[k][r], before[k][r]) for k in range(len(model.blocks)))

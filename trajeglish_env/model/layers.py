@@ -136,7 +136,8 @@ class RowGroup:
     """Rows of a batch (``rows`` None: every row) attending over the cached keys ``0 .. keys - 1`` under
     ``mask [g,1,n,keys]`` (boolean, or additive in the cache dtype); ``positions [w]`` are the cache
     positions of the new keys/values to store, taken from batch row ``writes[0]`` and input slot
-    ``writes[1]`` (padding inputs are not stored)."""
+    ``writes[1]`` (padding inputs are not stored). ``cache_of`` maps batch rows to cache rows when a call
+    computes only some rows of its cache (None: batch row ``b`` is cache row ``b``)."""
 
     rows: torch.Tensor | None
     keys: int
@@ -145,6 +146,7 @@ class RowGroup:
     writes: tuple[torch.Tensor, torch.Tensor]
     # set when every batch row stores its first ``span[1]`` inputs at positions ``span[0]`` onwards
     span: tuple[int, int] | None = None
+    cache_of: torch.Tensor | None = None
 
     def store(self, cache: torch.Tensor, new: torch.Tensor) -> None:
         """Write the group's new keys (or values) ``new [B,H,n,Dh]`` into ``cache [B,H,L,Dh]``."""
@@ -153,12 +155,20 @@ class RowGroup:
             cache[:, :, first : first + width] = new[:, :, :width].to(cache.dtype)
         else:
             batch_rows, slot = self.writes
-            cache[batch_rows, :, self.positions] = new[batch_rows, :, slot].to(cache.dtype)
+            cache_rows = batch_rows if self.cache_of is None else self.cache_of[batch_rows]
+            cache[cache_rows, :, self.positions] = new[batch_rows, :, slot].to(cache.dtype)
 
     @property
     def select(self) -> slice | torch.Tensor:
         """Index of the group's rows (a slice, i.e. views, when it is every row)."""
         return slice(None) if self.rows is None else self.rows
+
+    @property
+    def cache_select(self) -> slice | torch.Tensor:
+        """Index of the group's rows in the cache."""
+        if self.cache_of is None:
+            return self.select
+        return self.cache_of if self.rows is None else self.cache_of[self.rows]
 
 
 # one layer's cache in a decoding call: its keys and values [B,H,L,Dh] and the call's row groups
@@ -207,10 +217,10 @@ class DecoderBlock(nn.Module):
         whole = len(groups) == 1 and groups[0].rows is None  # every row in one group: no scatter needed
         attended = h if whole else torch.zeros_like(h)
         for g in groups:
-            rows = g.select
+            rows, in_cache = g.select, g.cache_select
             g.store(ck, k)
             g.store(cv, v)
-            keys, values = ck[rows, :, : g.keys], cv[rows, :, : g.keys]  # views when the group is every row
+            keys, values = ck[in_cache, :, : g.keys], cv[in_cache, :, : g.keys]  # views: every row
             out = self.self_attn.attend(h[rows], keys, values, g.mask)
             if whole:
                 attended = out

@@ -233,6 +233,16 @@ class TrajeglishModel(nn.Module):
                 f"({n}) >= count and must fit the cache ({cache.capacity})"
             )
         dev = carried_ids.device
+        batch, cache_of = len(count), None
+        cross_k, cross_v, memory_mask = cache.cross_k, cache.cross_v, cache.memory_mask
+        if busy.any() and not busy.all():  # compute the busy rows only (a row's numbers are the same)
+            rows_np = np.flatnonzero(busy)
+            cache_of = torch.from_numpy(rows_np).to(dev)
+            carried_ids, own_ids, agents = carried_ids[cache_of], own_ids[cache_of], agents[cache_of]
+            start, count, busy = start[rows_np], count[rows_np], busy[rows_np]
+            cross_k = [k[cache_of] for k in cross_k]
+            cross_v = [v[cache_of] for v in cross_v]
+            memory_mask = memory_mask[cache_of]
         step = (start + count - 1) // a  # the model step of each row's last position
         if busy.any():  # idle rows ride along with the largest group (nothing written), so it needs no copy
             values, counts = np.unique(step[busy], return_counts=True)
@@ -240,7 +250,7 @@ class TrajeglishModel(nn.Module):
         # every row stores the same positions: one strided copy per layer
         span = (
             (int(start[0]), int(count[0]))
-            if busy.all() and (start == start[0]).all() and (count == count[0]).all()
+            if cache_of is None and busy.all() and (start == start[0]).all() and (count == count[0]).all()
             else None
         )
         groups = []
@@ -254,17 +264,21 @@ class TrajeglishModel(nn.Module):
             local, slot = np.nonzero(count[rows][:, None] > np.arange(n))  # host side: no device sync
             writes = (torch.from_numpy(rows[local]).to(dev), torch.from_numpy(slot).to(dev))
             positions = queries[torch.from_numpy(local).to(dev), writes[1]]
-            groups.append(RowGroup(index, keys, mask, positions, writes, span))
+            groups.append(RowGroup(index, keys, mask, positions, writes, span, cache_of))
         index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
         index = index.clamp(max=cache.capacity - 1)
         x = self._decoder_inputs(carried_ids, own_ids) + self._positions(agents, index)
         # a memory with nothing masked needs no mask (the same numbers: SDPA adds zeros otherwise)
-        memory_mask = None if cache.memory_full else additive_mask(cache.memory_mask, cache.cross_k[0].dtype)
+        cross_mask = None if cache.memory_full else additive_mask(memory_mask, cross_k[0].dtype)
         last = len(self.blocks) - 1
         for i, block in enumerate(self.blocks):
             kv = (cache.self_k[i], cache.self_v[i], groups)
             if i == last and not outputs:
                 block.store_keys(x, kv)
                 return None
-            x = block.decode(x, kv, cache.cross_k[i], cache.cross_v[i], memory_mask)
-        return x
+            x = block.decode(x, kv, cross_k[i], cross_v[i], cross_mask)
+        if cache_of is None:
+            return x
+        out = x.new_zeros(batch, n, x.shape[-1])  # idle rows: zeros (never read)
+        out[cache_of] = x
+        return out
