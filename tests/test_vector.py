@@ -14,10 +14,10 @@ from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
 from trajeglish_env.env.sb3 import SB3VecEnv
 from trajeglish_env.env.scenes import load_bundle
 from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv, auto_threads
-from trajeglish_env.model.layers import MIN_GEMM_ROWS, invariant_linear
+from trajeglish_env.model.layers import MIN_GEMM_ROWS, Linear, invariant_linear, linear_compute
 from trajeglish_env.model.masks import teacher_inputs
 from trajeglish_env.sampler import windows as windows_module
-from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.config import SamplingConfig, native_bfloat16
 from trajeglish_env.sampler.engine import BatchEngine, RowSpec, _row_blocks
 from trajeglish_env.sampler.sampling import counter_uniform
 
@@ -36,10 +36,15 @@ def full_control(name: str, horizon: int = 12) -> RowSpec:
 
 
 def run_rows(
-    specs: list[RowSpec], seeds: list[int], dtype: torch.dtype, restart: tuple | None = None
+    specs: list[RowSpec],
+    seeds: list[int],
+    dtype: torch.dtype,
+    restart: tuple | None = None,
+    compute: str = "float32",
 ) -> BatchEngine:
     """Run one engine with a row per spec; ``restart = (step, row, spec, seed)`` restarts a row mid-run."""
-    config = SamplingConfig(temperature=1.0, guard=False)  # guarded rows: tests/test_guard.py
+    # guarded rows: tests/test_guard.py
+    config = SamplingConfig(temperature=1.0, guard=False, compute_dtype=compute)
     engine = BatchEngine(tiny(), len(specs), config, cache_dtype=dtype)
     for row, (spec, seed) in enumerate(zip(specs, seeds, strict=True)):
         engine.start_rows([row], spec, [seed])
@@ -57,19 +62,24 @@ def row_view(engine: BatchEngine, row: int, spec: RowSpec) -> tuple[np.ndarray, 
     return engine.tokens[row, :n, : T - 1].copy(), engine.xyh[row, :n, :T].copy()
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize(
+    ("dtype", "compute"),
+    [(torch.float32, "float32"), (torch.bfloat16, "float32"), (torch.bfloat16, "bfloat16")],
+)
 def test_engine_rows_of_different_scenes_equal_their_solo_runs(
-    dtype: torch.dtype, monkeypatch: pytest.MonkeyPatch
+    dtype: torch.dtype, compute: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(windows_module, "ROW_BLOCK", 2)  # windows of the batch built in blocks of 2 rows
     specs = [full_control(name) for name in SCENES]
     seeds = [11, 12, 13, 14]
     solo = [
-        row_view(run_rows([spec], [seed], dtype), 0, spec) for spec, seed in zip(specs, seeds, strict=True)
+        row_view(run_rows([spec], [seed], dtype, compute=compute), 0, spec)
+        for spec, seed in zip(specs, seeds, strict=True)
     ]
     # the same rows in another order, beside a duplicate of scene 0 with another seed
     order = [2, 0, 3, 1]
-    batch = run_rows([specs[i] for i in order] + [specs[0]], [seeds[i] for i in order] + [99], dtype)
+    rows, row_seeds = [specs[i] for i in order] + [specs[0]], [seeds[i] for i in order] + [99]
+    batch = run_rows(rows, row_seeds, dtype, compute=compute)
     for row, i in enumerate(order):
         tokens, xyh = row_view(batch, row, specs[i])
         assert np.array_equal(tokens, solo[i][0]), f"{SCENES[i]}: tokens differ in the batch"
@@ -136,6 +146,43 @@ def test_chunked_decoding_equals_the_full_forward_pass() -> None:
                     got = model.class_logits(hidden[row, : count[row]], kind)
                 np.testing.assert_allclose(got, full[row, done[row] : done[row] + count[row]], atol=2e-5)
         done += count
+
+
+def test_linear_layers_multiply_in_the_compute_dtype_at_inference_only() -> None:
+    """Inside linear_compute(bfloat16) a Linear rounds inputs and weight to bfloat16 (float32 bias), per row
+    whatever the rows beside it; with gradients on, or outside, it is the float32 layer; a changed weight
+    (a training step) is converted again."""
+    torch.manual_seed(0)
+    layer = Linear(48, 64)
+    x = torch.randn(200, 48)
+    want = torch.nn.functional.linear(x.bfloat16(), layer.weight.bfloat16()).float() + layer.bias
+    with torch.no_grad():
+        plain = layer(x)
+        with linear_compute(torch.bfloat16):
+            fast = layer(x)
+            alone = torch.cat([layer(x[i : i + 1]) for i in range(5)])
+            with torch.enable_grad():
+                trained = layer(x)
+        assert torch.equal(layer(x), plain)
+    assert torch.equal(fast, want) and torch.equal(alone, fast[:5]) and fast.dtype == torch.float32
+    assert not torch.equal(fast, plain) and (fast - plain).abs().max() < 0.05
+    assert torch.equal(trained.detach(), plain) and trained.requires_grad
+    with torch.no_grad():
+        layer.weight.mul_(2.0)
+        with linear_compute(torch.bfloat16):
+            doubled = layer(x)
+    want = torch.nn.functional.linear(x.bfloat16(), layer.weight.bfloat16()).float() + layer.bias
+    assert torch.equal(doubled, want)
+
+
+def test_compute_dtype_is_validated_and_resolved() -> None:
+    with pytest.raises(ValueError, match="compute_dtype must be one of"):
+        SamplingConfig(compute_dtype="float16")
+    assert SamplingConfig(compute_dtype="float32").torch_compute_dtype() == torch.float32
+    assert SamplingConfig(compute_dtype="bfloat16").torch_compute_dtype() == torch.bfloat16
+    auto = SamplingConfig().torch_compute_dtype()
+    assert auto == (torch.bfloat16 if native_bfloat16() else torch.float32)
+    assert SamplingConfig(compute_dtype="bfloat16").torch_compute_dtype("meta") == torch.float32
 
 
 def test_invariant_linear_and_counter_uniform() -> None:

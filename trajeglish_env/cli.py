@@ -27,6 +27,7 @@ from trajeglish_env.cli_args import (
 )
 from trajeglish_env.cli_eval import GUARD_CHOICES, add_eval_commands, checkpoints
 from trajeglish_env.cli_womd import add_womd_commands
+from trajeglish_env.sampler.config import COMPUTE_DTYPES
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
 
@@ -173,6 +174,7 @@ def cmd_nll(args: argparse.Namespace) -> dict[str, Any]:
         args.unigram_data,
         args.plots,
         cache_dtypes=tuple(args.cache_dtype or ()),
+        compute_dtypes=tuple(args.compute_dtype or ()),
     )
 
 
@@ -205,6 +207,7 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
         env_steps=args.env_steps,
         torch_threads=threads,
         cache_dtype=args.cache_dtype,
+        compute_dtype=args.compute_dtype,
         sections=tuple(args.sections),
         quick=args.quick,
         guards=GUARD_CHOICES[args.guard],
@@ -361,6 +364,12 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("float32", "bfloat16"),
         help="also compute the NLL through the decoding cache in these dtypes (what bfloat16 NPCs cost)",
     )
+    p.add_argument(
+        "--compute-dtype",
+        nargs="+",
+        choices=("float32", "bfloat16"),
+        help="also through each cache (default float32) with the linear layers multiplying in these dtypes",
+    )
 
     add_eval_commands(add)
     add_womd_commands(add)
@@ -398,6 +407,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--threads", default="auto", help="torch threads of the batched env (or 'auto')")
     p.add_argument("--cache-dtype", choices=("bfloat16", "float32"), default="bfloat16")
+    p.add_argument(
+        "--compute-dtype",
+        choices=COMPUTE_DTYPES,
+        default="auto",
+        help="dtype the NPC model's linear layers multiply in (auto: bfloat16 where the CPU has it natively)",
+    )
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure")
     p.add_argument("--quick", action="store_true", help="tiny workloads (a smoke run)")
     p.add_argument(

@@ -219,15 +219,22 @@ def metrics_time(
     return result
 
 
-def rollout_speed(ckpt: Any, scene: Any, rollouts: int, horizon: int) -> dict[str, float]:
+def dtype_name(dtype: Any) -> str:
+    """``torch.bfloat16`` -> ``"bfloat16"``."""
+    return str(dtype).rsplit(".", 1)[-1]
+
+
+def rollout_speed(ckpt: Any, scene: Any, rollouts: int, horizon: int) -> dict[str, Any]:
     """Simulated agent-steps/s of ``rollouts`` closed-loop rollouts of a scene (full control)."""
     from trajeglish_env.sampler import SamplingConfig, rollout
 
     agents = int(scene.valid[:, scene.current_index].sum())
+    config = SamplingConfig(seed=0)
     start = time.perf_counter()
-    rollout(ckpt, scene, rollouts, horizon, config=SamplingConfig(seed=0))
+    rollout(ckpt, scene, rollouts, horizon, config=config)
     seconds = time.perf_counter() - start
     return {
+        "compute_dtype": dtype_name(config.torch_compute_dtype()),
         "agents": agents,
         "seconds": round(seconds, 2),
         "agent_steps_per_s": round(agents * horizon * rollouts / seconds, 1),
@@ -243,6 +250,7 @@ def env_speed(
     torch_threads: int | str | None = "auto",
     cache_dtype: str = "bfloat16",
     subsets: str = "overlap",
+    compute_dtype: str = "auto",
 ) -> dict[str, Any]:
     """Stepping speed of the batched ego env: ``num_envs`` scenes of ``agents`` agents (the bundled
     SUMO scenes cut to the sdc and its nearest neighbours), one ego each replaying its log through
@@ -267,7 +275,9 @@ def env_speed(
     model = npc in GUARDED
     if model:
         ckpt = model_checkpoint()[0]
-        sampling = SamplingConfig(cache_dtype=cache_dtype, subsets=subsets, guard=GUARDED[npc])
+        sampling = SamplingConfig(
+            cache_dtype=cache_dtype, subsets=subsets, guard=GUARDED[npc], compute_dtype=compute_dtype
+        )
         npc_spec = TrajeglishNPC(ckpt, sampling)
         if steps is None:  # one window cycle
             steps = npc_spec.sampling.every(ckpt.model.cfg.steps)
@@ -300,6 +310,7 @@ def env_speed(
         "agents_per_scene": agents,
         "torch_threads": torch.get_num_threads(),
         "cache_dtype": cache_dtype if model else None,
+        "compute_dtype": dtype_name(sampling.torch_compute_dtype()) if model else None,
         "subsets": subsets if model else None,
         "guard": GUARDED[npc] if model else None,
         "timed_steps": steps,

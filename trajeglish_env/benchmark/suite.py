@@ -45,6 +45,7 @@ class BenchConfig:
     highway_steps: int = 300
     torch_threads: str | int = "auto"
     cache_dtype: str = "bfloat16"
+    compute_dtype: str = "auto"
     sections: tuple[str, ...] = SECTIONS
     quick: bool = False
     guards: tuple[bool, ...] = (False, True)
@@ -229,6 +230,7 @@ def _env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str
             "agents": config.agents,
             "torch_threads": config.torch_threads,
             "cache_dtype": config.cache_dtype,
+            "compute_dtype": config.compute_dtype,
         }
         cmd = [sys.executable, "-m", "trajeglish_env.benchmark.worker", json.dumps(spec)]
         done = subprocess.run(cmd, capture_output=True, text=True, check=False)

@@ -38,7 +38,7 @@ import torch
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.geometry import to_global
 from trajeglish_env.model.config import Variant
-from trajeglish_env.model.layers import MIN_GEMM_ROWS
+from trajeglish_env.model.layers import MIN_GEMM_ROWS, linear_compute
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.parallel import (
     LOOK_AHEAD_MAX_POSITIONS,
@@ -82,6 +82,7 @@ class BatchEngine(WindowedRows):
         every, prime = config.every(steps), config.prime(steps)
         super().__init__(model, ckpt.vocabulary, rows, prime, every, config.subsets, cache_dtype)
         self.config = config
+        self._compute_dtype = config.torch_compute_dtype(self.device)
         # the float32 single-query attention kernel rounds differently from the multi-query one: pad to 2
         # queries so that a row's result never depends on the chunk lengths of the other rows
         self._min_queries = 1 if cache_dtype == torch.bfloat16 else 2
@@ -101,8 +102,12 @@ class BatchEngine(WindowedRows):
         """See :meth:`_advance`."""
         return self._advance()
 
-    @torch.no_grad()
     def _advance(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """:meth:`_advance_step`, the model's linear layers multiplying in ``config.compute_dtype``."""
+        with torch.no_grad(), linear_compute(self._compute_dtype):
+            return self._advance_step()
+
+    def _advance_step(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Act the positions of the current step in order, for every stepping row. Returns
         ``(rows, agents)``: external agents whose next states are needed (supply them, then call again),
         or None when the step is complete (every stepping row is one step further). A waiting row holds

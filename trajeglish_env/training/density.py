@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from trajeglish_env.checkpoint import Checkpoint
+from trajeglish_env.model.layers import linear_compute
 from trajeglish_env.model.map_chunks import RED_CLASS
 from trajeglish_env.model.masks import teacher_inputs
 from trajeglish_env.model.network import SceneInputs
@@ -78,14 +79,29 @@ def cached_nll(
     cache_dtype: torch.dtype,
     seed: int = 0,
     batch_size: int = 16,
+    compute_dtype: torch.dtype = torch.float32,
 ) -> dict[str, float]:
     """Teacher-forced NLL of the held-out windows of :func:`token_nll`, computed through the decoding
     path (:meth:`~trajeglish_env.model.network.TrajeglishModel.decode_at`, key/value cache in
-    ``cache_dtype``, one timestep per call) instead of the full forward pass.
+    ``cache_dtype``, linear layers multiplying in ``compute_dtype``, one timestep per call) instead of the
+    full forward pass.
 
-    It measures what a reduced-precision cache costs in model quality. Returns ``nll`` (the cache path),
+    It measures what reduced precision costs in model quality. Returns ``nll`` (the cache path),
     ``reference_nll`` (the float32 full forward pass), ``max_logit_diff`` and ``tokens``.
     """
+    with linear_compute(compute_dtype):
+        return _cached_nll(ckpt, scenes, windows, cache_dtype, seed, batch_size)
+
+
+def _cached_nll(
+    ckpt: Checkpoint,
+    scenes: Sequence[Scenario],
+    windows: int,
+    cache_dtype: torch.dtype,
+    seed: int,
+    batch_size: int,
+) -> dict[str, float]:
+    """:func:`cached_nll` in the caller's compute dtype."""
     model = ckpt.model.eval()
     ds = TokenizedWindows(scenes, window_config(model.cfg), ckpt.vocabulary, None, seed + 1_000_003)
     sums = {"nll": 0.0, "reference_nll": 0.0, "max_logit_diff": 0.0, "tokens": 0.0}
@@ -192,16 +208,22 @@ def evaluate_nll(
     unigram_data: str | os.PathLike[str] | Sequence[str | os.PathLike[str]] | None = None,
     plot_dir: str | os.PathLike[str] | None = None,
     cache_dtypes: Sequence[str] = (),
+    compute_dtypes: Sequence[str] = (),
 ) -> dict[str, Any]:
     """NLL table for checkpoints (e.g. trajeglish / no-intra / marginal) plus the unigram baseline.
 
     The unigram is fitted on ``unigram_data`` (training scenes) when given, else on the held-out tokens
     themselves (an optimistic baseline; reported as such). ``cache_dtypes`` (``"float32"``,
-    ``"bfloat16"``): also each model's NLL through the decoding cache in that dtype (:func:`cached_nll`).
+    ``"bfloat16"``): also each model's NLL through the decoding cache in that dtype (:func:`cached_nll`);
+    ``compute_dtypes``: also through each of those caches with the linear layers multiplying in these
+    dtypes (``through_cache_by_compute[compute][cache]``).
     """
-    unknown = sorted(set(cache_dtypes) - {"float32", "bfloat16"})
-    if unknown:
-        raise ValueError(f"cache_dtypes: {unknown} not supported; expected 'float32' and/or 'bfloat16'")
+    for name, asked in (("cache_dtypes", cache_dtypes), ("compute_dtypes", compute_dtypes)):
+        unknown = sorted(set(asked) - {"float32", "bfloat16"})
+        if unknown:
+            raise ValueError(f"{name}: {unknown} not supported; expected 'float32' and/or 'bfloat16'")
+    if compute_dtypes and not cache_dtypes:
+        cache_dtypes = ("float32",)
     scenes = SceneStore(data).scenes
     result: dict[str, Any] = {"data": str(data), "windows": windows, "models": {}}
     first = next(iter(checkpoints.values()))
@@ -219,6 +241,16 @@ def evaluate_nll(
         if cache_dtypes:
             summary["through_cache"] = {
                 d: cached_nll(ckpt, scenes, windows, getattr(torch, d), seed) for d in cache_dtypes
+            }
+        if compute_dtypes:
+            summary["through_cache_by_compute"] = {
+                c: {
+                    d: cached_nll(
+                        ckpt, scenes, windows, getattr(torch, d), seed, compute_dtype=getattr(torch, c)
+                    )
+                    for d in cache_dtypes
+                }
+                for c in compute_dtypes
             }
         if ckpt.config.signal_input:
             summary["without_signals"] = _without_signals(ckpt, scenes, windows, seed, tok)
