@@ -99,13 +99,17 @@ def test_rollout_and_nll_commands_with_the_shipped_model(tmp_path, capsys) -> No
     assert main(args) == 0
     assert _json(capsys)["horizon"] == 6 and out.stat().st_size > 1000
     nll_args = ["nll", "--data", str(tmp_path / "d"), "--windows", "4", "--cache-dtype", "bfloat16"]
-    assert main([*nll_args, "--json", "--quiet"]) == 0
+    assert main([*nll_args, "--compute-dtype", "bfloat16", "--json", "--quiet"]) == 0
     result = _json(capsys)
     model = result["models"]["trajeglish"]
     assert model["tokens"] > 0 and 0 < model["nll"] < result["unigram_nll"] + 5
     bf16 = model["through_cache"]["bfloat16"]
     assert bf16["tokens"] == model["tokens"] and abs(bf16["reference_nll"] - model["nll"]) < 1e-5
     assert abs(bf16["nll"] - model["nll"]) < 0.01
+    # the linear layers multiplying in bfloat16 too: other logits, the same NLL within 0.01 nats
+    both = model["through_cache_by_compute"]["bfloat16"]["bfloat16"]
+    assert both["tokens"] == model["tokens"] and abs(both["nll"] - model["nll"]) < 0.01
+    assert both["max_logit_diff"] > bf16["max_logit_diff"] > 0
     assert (
         main(["rollout", "--scenario", str(path), "--out", str(out), "--ckpt", str(tmp_path / "no.pt")]) == 2
     )

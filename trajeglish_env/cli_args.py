@@ -9,6 +9,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
 
+from trajeglish_env.sampler.config import CACHE_DTYPES, COMPUTE_DTYPES
+
 # Errors that mean bad input (a wrong value, a missing, corrupt or misplaced file): one line on stderr and
 # exit code 2. ScenarioError, CheckpointError, WomdFormatError, UnknownSceneError and the validation errors
 # of the library are ValueErrors. Anything else is a bug and keeps its traceback.
@@ -95,3 +97,14 @@ def scene_at(path: str, index: int) -> Any:
             f"--index {index}: {path} holds {len(scenes)} scene(s) (indices 0..{len(scenes) - 1})"
         )
     return scenes[index]
+
+
+def add_dtype_args(p: argparse.ArgumentParser) -> None:
+    """The precision options of a command that samples a model: its cache and its linear layers."""
+    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    p.add_argument(
+        "--compute-dtype",
+        choices=COMPUTE_DTYPES,
+        default="auto",
+        help="dtype the linear layers multiply in (auto: bfloat16 where the CPU has it natively)",
+    )

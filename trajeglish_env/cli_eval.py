@@ -7,8 +7,16 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
-from trajeglish_env.cli_args import NON_NEGATIVE, POSITIVE, output_dir, positive_float, probability, scene_at
-from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
+from trajeglish_env.cli_args import (
+    NON_NEGATIVE,
+    POSITIVE,
+    add_dtype_args,
+    output_dir,
+    positive_float,
+    probability,
+    scene_at,
+)
+from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE
 
 GUARD_CHOICES = {"off": (False,), "on": (True,), "both": (False, True)}  # --guard: guarded sampling
 BRAKE_NPCS = ("trajeglish", "trajeglish+guard", "idm", "replay", "constant_velocity")  # see brake_test.NPCS
@@ -42,7 +50,9 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
         rollouts=args.rollouts,
         scenes=args.scenes,
         temperatures=tuple(args.temperature),
-        sampling=SamplingConfig(top_p=args.top_p, cache_dtype=args.cache_dtype),
+        sampling=SamplingConfig(
+            top_p=args.top_p, cache_dtype=args.cache_dtype, compute_dtype=args.compute_dtype
+        ),
         metrics=args.metrics,
         seed=args.seed,
         guards=GUARD_CHOICES[args.guard],
@@ -80,7 +90,9 @@ def cmd_brake_test(args: argparse.Namespace) -> dict[str, Any]:
         steps=args.steps,
         max_gap=args.max_gap,
         seed=args.seed,
-        sampling=SamplingConfig(args.temperature, args.top_p, args.cache_dtype),
+        sampling=SamplingConfig(
+            args.temperature, args.top_p, args.cache_dtype, compute_dtype=args.compute_dtype
+        ),
     )
     ckpt = next(iter(checkpoints([args.ckpt]).values())) if args.ckpt else None
     result = brake_test(scenes, config, ckpt, args.out, progress=not args.quiet)
@@ -105,7 +117,9 @@ def cmd_long_rollouts(args: argparse.Namespace) -> dict[str, Any]:
         rollouts=args.rollouts,
         split_s=args.split,
         guards=GUARD_CHOICES[args.guard],
-        sampling=SamplingConfig(args.temperature, args.top_p, args.cache_dtype),
+        sampling=SamplingConfig(
+            args.temperature, args.top_p, args.cache_dtype, compute_dtype=args.compute_dtype
+        ),
         seed=args.seed,
     )
     ckpt = next(iter(checkpoints([args.ckpt] if args.ckpt else None).values()))
@@ -135,7 +149,9 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
         scene,
         1,
         horizon,
-        config=SamplingConfig(args.temperature, args.top_p, args.cache_dtype, seed=args.seed),
+        config=SamplingConfig(
+            args.temperature, args.top_p, args.cache_dtype, seed=args.seed, compute_dtype=args.compute_dtype
+        ),
     )
     out = save_render(
         scene, args.out, xyh=res.xyh[0], valid=res.valid[0], config=RenderConfig(follow_sdc=args.follow_sdc)
@@ -160,7 +176,7 @@ def add_eval_commands(add: AddCommand) -> None:
         help="sampling temperatures to evaluate (default: the env's NPC default)",
     )
     p.add_argument("--top-p", type=probability, default=1.0)
-    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    add_dtype_args(p)
     p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
     p.add_argument(
         "--guard",
@@ -190,7 +206,7 @@ def add_eval_commands(add: AddCommand) -> None:
     p.add_argument("--ckpt", help="model of the Trajeglish NPCs (default: the shipped model)")
     p.add_argument("--temperature", type=float, default=DEFAULT_TEMPERATURE)
     p.add_argument("--top-p", type=float, default=1.0)
-    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    add_dtype_args(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out/brake_test", help="directory for the JSON, table and plot")
 
@@ -226,5 +242,5 @@ def add_sampling_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
     p.add_argument("--temperature", type=positive_float, default=DEFAULT_TEMPERATURE)
     p.add_argument("--top-p", type=probability, default=1.0)
-    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    add_dtype_args(p)
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)

@@ -8,8 +8,15 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
-from trajeglish_env.cli_args import NON_NEGATIVE, POSITIVE, output_dir, positive_float, probability
-from trajeglish_env.sampler.config import CACHE_DTYPES, DEFAULT_TEMPERATURE
+from trajeglish_env.cli_args import (
+    NON_NEGATIVE,
+    POSITIVE,
+    add_dtype_args,
+    output_dir,
+    positive_float,
+    probability,
+)
+from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
 AddCommand = Callable[..., argparse.ArgumentParser]  # build_parser's add(name, handler, help_text)
@@ -40,7 +47,9 @@ def cmd_export_submission(args: argparse.Namespace) -> dict[str, Any]:
         num_model_parameters=args.num_model_parameters or format_parameter_count(count),
         acknowledge_complies_with_closed_loop_requirement=True,  # the sampler is closed-loop at 10 Hz
     )
-    sampling = SamplingConfig(args.temperature, args.top_p, args.cache_dtype)
+    sampling = SamplingConfig(
+        args.temperature, args.top_p, args.cache_dtype, compute_dtype=args.compute_dtype
+    )
     config = ExportConfig(args.rollouts, args.steps, sampling, args.seed, args.prefix)
     result = export_submission(
         args.data, ckpt, output_dir(args.out), metadata, config, not args.quiet and ranks.main, ranks
@@ -78,7 +87,7 @@ def add_womd_commands(add: AddCommand) -> None:
     )
     p.add_argument("--temperature", type=positive_float, default=DEFAULT_TEMPERATURE)
     p.add_argument("--top-p", type=probability, default=1.0)
-    p.add_argument("--cache-dtype", choices=CACHE_DTYPES, default="bfloat16", help="decoder cache dtype")
+    add_dtype_args(p)
     p.add_argument(
         "--seed", type=NON_NEGATIVE, default=0, help="each scenario's seed derives from this and its id"
     )
