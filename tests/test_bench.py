@@ -25,6 +25,7 @@ from trajeglish_env.benchmark.suite import (
 )
 from trajeglish_env.benchmark.workloads import benchmark_scenes
 from trajeglish_env.cli import main
+from trajeglish_env.cores import usable_cores
 from trajeglish_env.sources.womd import read_womd
 
 
@@ -118,6 +119,12 @@ def test_womd_section_times_the_shared_scenario_with_all_its_agents() -> None:
     r = w["rollouts"]
     assert (r["rollouts"], r["horizon"], r["agents"]) == (2, 5, present)
     assert r["seconds"] > 0 and r["agent_steps_per_s"] == pytest.approx(present * 10 / r["seconds"], rel=0.02)
+    split = w["rollouts_split"]
+    if usable_cores() > 1:  # the same rollouts over one process per core
+        assert split["processes"] == usable_cores() and (split["rollouts"], split["horizon"]) == (2, 5)
+        assert split["agent_steps_per_s"] == pytest.approx(present * 10 / split["seconds"], rel=0.02)
+    else:
+        assert split == {"skipped": "one core"}
     e = w["env"]
     assert e["api"] == "aec" and e["agents"] == present and e["timed_steps"] == 3 and e["torch_threads"] == 1
     assert e["env_steps_per_s"] > 0 and e["agent_steps_per_s"] == pytest.approx(

@@ -87,6 +87,27 @@ def test_rollouts_are_deterministic_and_respect_control() -> None:
     np.testing.assert_allclose(step, a.xyh[:, 0, cur + 4], atol=1e-9)
 
 
+def test_rollouts_split_over_processes_are_the_rollouts_of_one_process() -> None:
+    """Rollouts 0..4 in chunks 0-2 (here) and 3-4 (a forked worker) are those of one engine, bit for bit;
+    the torch thread count is restored; a bad process count is refused."""
+    import torch
+
+    sc = straight_road_scene(num_agents=5, steps=40)
+    ckpt = tiny_checkpoint()
+    threads = torch.get_num_threads()
+    one = rollout(ckpt, sc, rollouts=5, horizon=12, config=SamplingConfig(seed=3))
+    split = rollout(ckpt, sc, rollouts=5, horizon=12, config=SamplingConfig(seed=3), processes=2)
+    for field in ("xyh", "valid", "tokens", "controlled"):
+        np.testing.assert_array_equal(getattr(split, field), getattr(one, field))
+    assert split.current_index == one.current_index and torch.get_num_threads() == threads
+    assert len({a.tobytes() for a in one.tokens}) == 5  # five different rollouts
+    auto = rollout(ckpt, sc, rollouts=5, horizon=12, config=SamplingConfig(seed=3), processes="auto")
+    np.testing.assert_array_equal(auto.xyh, one.xyh)
+    for bad in (0, -1, 1.5, "two", True):
+        with pytest.raises(ValueError, match="processes must be a positive int or 'auto'"):
+            rollout(ckpt, sc, rollouts=2, horizon=3, processes=bad)  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize(("variant", "agents"), [("trajeglish", 210), ("no-intra", 60)])
 def test_sliding_window_on_a_210_agent_scene_beyond_the_model_horizon(variant: str, agents: int) -> None:
     sc = crowd_scene(agents)

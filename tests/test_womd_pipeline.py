@@ -155,6 +155,10 @@ def test_tfrecords_to_a_scored_submission_and_two_ranks_write_the_same_files(roo
     shard = root / "one" / "shards" / "validation-00001-of-00002.scn.npz"
     (scene,), (details,) = load_scenarios(shard), load_log_details(details_path(shard))
     direct = sample_scenario(ckpt, scene, details, ExportConfig(rollouts=2))
+    split = sample_scenario(ckpt, scene, details, ExportConfig(rollouts=2, processes=2))
+    np.testing.assert_array_equal(split.xyz, direct.xyz)  # a rollout per process: the same files
+    with pytest.raises(ValueError, match="processes must be a positive int or 'auto'"):
+        ExportConfig(processes=0)
     np.testing.assert_array_equal(direct.xyz, rollouts[1].xyz)
     np.testing.assert_array_equal(direct.heading, rollouts[1].heading)
     assert np.all(direct.z == np.float32(details.xyz[scene.valid[:, 10], 10, 2])[None, :, None])

@@ -50,7 +50,9 @@ def cmd_export_submission(args: argparse.Namespace) -> dict[str, Any]:
     sampling = SamplingConfig(
         args.temperature, args.top_p, args.cache_dtype, compute_dtype=args.compute_dtype
     )
-    config = ExportConfig(args.rollouts, args.steps, sampling, args.seed, args.prefix)
+    # one process per free core, unless torchrun ranks share the machine's cores already
+    processes = args.processes or ("auto" if ranks.world == 1 else 1)
+    config = ExportConfig(args.rollouts, args.steps, sampling, args.seed, args.prefix, processes)
     result = export_submission(
         args.data, ckpt, output_dir(args.out), metadata, config, not args.quiet and ranks.main, ranks
     )
@@ -90,6 +92,12 @@ def add_womd_commands(add: AddCommand) -> None:
     add_dtype_args(p)
     p.add_argument(
         "--seed", type=NON_NEGATIVE, default=0, help="each scenario's seed derives from this and its id"
+    )
+    p.add_argument(
+        "--processes",
+        type=POSITIVE,
+        help="processes each scenario's rollouts are split over, the same rollouts (default: one per core "
+        "other processes leave free; 1 under torchrun)",
     )
     p.add_argument("--prefix", default="submission", help="file names: PREFIX.binproto-K-of-N, PREFIX.tar.gz")
     p.add_argument("--account-name", help="e-mail registered at waymo.com/open (required)")

@@ -64,11 +64,19 @@ class ExportConfig:
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     seed: int = 0
     prefix: str = "submission"
+    # processes each scenario's rollouts are split over (``rollout(..., processes=...)``: the same rollouts)
+    processes: int | str = 1
 
     def __post_init__(self) -> None:
         if self.rollouts < 1 or self.steps < 1:
             raise ValueError(
                 f"ExportConfig: rollouts and steps must be >= 1, got {self.rollouts}, {self.steps}"
+            )
+        if self.processes != "auto" and (
+            isinstance(self.processes, bool) or not isinstance(self.processes, int) or self.processes < 1
+        ):
+            raise ValueError(
+                f"ExportConfig: processes must be a positive int or 'auto', got {self.processes!r}"
             )
 
 
@@ -100,7 +108,9 @@ def sample_scenario(
     if len(sim) == 0:
         raise ValueError(f"scenario {scene.scenario_id!r}: no agent is valid at the current step")
     sampling = replace(config.sampling, seed=scenario_seed(config.seed, scene.scenario_id))
-    result = rollout(ckpt, history_only(scene), config.rollouts, config.steps, config=sampling)
+    result = rollout(
+        ckpt, history_only(scene), config.rollouts, config.steps, config=sampling, processes=config.processes
+    )
     future = result.xyh[:, sim, scene.current_index + 1 :]
     z = np.zeros(len(sim)) if details is None else details.xyz[sim, scene.current_index, 2]
     xyz = np.concatenate(

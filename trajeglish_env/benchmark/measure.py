@@ -224,14 +224,15 @@ def dtype_name(dtype: Any) -> str:
     return str(dtype).rsplit(".", 1)[-1]
 
 
-def rollout_speed(ckpt: Any, scene: Any, rollouts: int, horizon: int) -> dict[str, Any]:
-    """Simulated agent-steps/s of ``rollouts`` closed-loop rollouts of a scene (full control)."""
+def rollout_speed(ckpt: Any, scene: Any, rollouts: int, horizon: int, processes: int = 1) -> dict[str, Any]:
+    """Simulated agent-steps/s of ``rollouts`` closed-loop rollouts of a scene (full control), split over
+    ``processes`` processes (see :func:`~trajeglish_env.sampler.rollouts.rollout`)."""
     from trajeglish_env.sampler import SamplingConfig, rollout
 
     agents = int(scene.valid[:, scene.current_index].sum())
     config = SamplingConfig(seed=0)
     start = time.perf_counter()
-    rollout(ckpt, scene, rollouts, horizon, config=config)
+    rollout(ckpt, scene, rollouts, horizon, config=config, processes=processes)
     seconds = time.perf_counter() - start
     return {
         "compute_dtype": dtype_name(config.torch_compute_dtype()),

@@ -1,8 +1,10 @@
 """The ``womd`` section of ``trajeglish bench``: a real WOMD scene with all its agents, the size users run
 (issue 16). It times (a) full-control rollouts of every agent valid at the current step, as a Sim Agents
-submission needs them (32 rollouts x 80 steps), and (b) the AEC env (the README's lead API) on that
-scene: the sdc is the one external agent and replays its log, every other agent is a default Trajeglish
-NPC. highway-env's ``intersection-v0`` is timed right after, so the env's ratio to it comes from one run.
+submission needs them (32 rollouts x 80 steps), in one process and split over the usable cores'
+processes (``rollout(..., processes=...)``, the same rollouts), and (b) the AEC env (the README's lead
+API) on that scene: the sdc is the one external agent and replays its log, every other agent is a
+default Trajeglish NPC. highway-env's ``intersection-v0`` is timed right after, so the env's ratio to it
+comes from one run.
 
 The scenario file is never downloaded: ``--womd FILE``, else the shared data folder (see
 :func:`candidate_paths`); when none is found the section is skipped with the places it looked."""
@@ -14,6 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from trajeglish_env.cores import usable_cores
 from trajeglish_env.scenario import Scenario
 
 SHARED_FILE = "data/womd/motion_data_one_scenario.tfrecord"  # the shared real scenario, in `shared/`
@@ -74,7 +77,8 @@ def present_agents(scene: Scenario) -> int:
 
 def womd_section(path: Path, scene: Scenario | None = None, quick: bool = False) -> dict[str, Any]:
     """The section's figures for the scene in ``path`` (``scene``: that scene, already read):
-    ``rollouts`` (one torch thread, as the ``rollout`` section), ``env`` (the AEC env at its default
+    ``rollouts`` (one torch thread, as the ``rollout`` section), ``rollouts_split`` (the same over the usable
+    cores' processes, one thread each), ``env`` (the AEC env at its default
     settings) and ``highway_env`` (``intersection-v0`` timed right after the env)."""
     import torch
 
@@ -86,18 +90,22 @@ def womd_section(path: Path, scene: Scenario | None = None, quick: bool = False)
     rollouts, horizon = (QUICK_ROLLOUTS, QUICK_HORIZON) if quick else (ROLLOUTS, HORIZON)
     steps = QUICK_ENV_STEPS if quick else scene.num_steps - scene.current_index - 1 - ENV_WARMUP
     threads = torch.get_num_threads()  # the env sets its own: restore the suite's afterwards
+    cores = usable_cores()
     try:
         torch.set_num_threads(1)
         timed = rollout_speed(ckpt, scene, rollouts, horizon)
+        split = rollout_speed(ckpt, scene, rollouts, horizon, processes=cores) if cores > 1 else None
         env = aec_env_speed(scene, steps, 1 if quick else ENV_WARMUP)
     finally:
         torch.set_num_threads(threads)
+    each = {"rollouts": rollouts, "horizon": horizon, "torch_threads": 1}
     return {
         "file": str(path),
         "scenario_id": scene.scenario_id,
         "agents": present_agents(scene),
         "model": model,
-        "rollouts": {"rollouts": rollouts, "horizon": horizon, "torch_threads": 1, **timed},
+        "rollouts": {**each, **timed},
+        "rollouts_split": {**each, "processes": cores, **split} if split else {"skipped": "one core"},
         "env": env,
         "highway_env": highway_env_speed(40, 60 if quick else 300),
     }

@@ -6,40 +6,19 @@ The thread count never changes a sampled token (tested), so it may change betwee
 
 from __future__ import annotations
 
-import os
 import time
 
+from trajeglish_env.cores import cpu_seconds, threads_for, usable_cores
+
+__all__ = ["CHECK_EVERY_S", "AdaptiveThreads", "auto_threads", "cpu_seconds", "threads_for", "usable_cores"]
+
 CHECK_EVERY_S = 2.0  # seconds of stepping between two looks at the machine's load
-
-
-def usable_cores() -> int:
-    """Cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def auto_threads(num_scenes: int, cores: int | None = None) -> int:
     """Threads for a batch on an idle machine: 1 for a few scenes (small calls are fastest single-threaded),
     then one per 4 scenes up to the usable cores."""
     return max(1, min(cores or usable_cores(), num_scenes // 4))
-
-
-def cpu_seconds() -> tuple[float, float] | None:
-    """(CPU seconds used by every process of the machine, by this process) so far; None where the machine's
-    total is not readable (non-Linux)."""
-    try:
-        with open("/proc/stat") as f:
-            fields = [int(v) for v in f.readline().split()[1:9]]
-    except (OSError, ValueError):
-        return None
-    busy = sum(fields) - fields[3] - fields[4]  # all but idle and iowait
-    own = os.times()
-    return busy / os.sysconf("SC_CLK_TCK"), own.user + own.system
-
-
-def threads_for(others_busy: float, wanted: int, cores: int) -> int:
-    """Threads that fit beside ``others_busy`` cores kept busy by other processes."""
-    free = cores - others_busy
-    return max(1, min(wanted, int(free + 0.25)))
 
 
 class AdaptiveThreads:

@@ -375,8 +375,9 @@ class BatchEngine(WindowedRows):
 
 
 class RolloutEngine(BatchEngine):
-    """``R`` rollouts of one scene (rows ``0..R-1``; rollout ``r`` draws from sub-stream ``r`` of the
-    seed). Keeps the single-scene view: ``t``, ``T`` and ``N`` are ints, ``controlled``/``external``/
+    """``R`` rollouts of one scene (rows ``0..R-1``; rollout ``r`` draws from sub-stream
+    ``first_rollout + r`` of the seed, so rollouts split over engines are those of one engine). Keeps the
+    single-scene view: ``t``, ``T`` and ``N`` are ints, ``controlled``/``external``/
     ``replay`` are ``[N]``, :meth:`advance` returns one external agent and :meth:`supply` takes its
     states in every rollout."""
 
@@ -392,12 +393,14 @@ class RolloutEngine(BatchEngine):
         priority: np.ndarray | None = None,
         config: SamplingConfig | None = None,
         cache_dtype: torch.dtype | None = None,
+        first_rollout: int = 0,
     ):
         config = config or SamplingConfig()
         super().__init__(ckpt, rollouts, config, cache_dtype)
         self.sc = scenario
         spec = RowSpec(scenario, horizon, controlled, external, current_index, priority)
-        self.start_rows(np.arange(self.R), spec, stream_seed(config.seed, np.arange(self.R)))
+        streams = stream_seed(config.seed, first_rollout + np.arange(self.R))
+        self.start_rows(np.arange(self.R), spec, streams)
         self.controlled = self.row_controlled[0].copy()
         self.external = self.row_external[0].copy()
         self.replay = ~(self.controlled | self.external)

@@ -1,0 +1,42 @@
+"""The machine's cores as this package's parallel paths see them: how many this process may use, and how
+many other processes keep busy (the env's adaptive torch threads, multi-process rollouts)."""
+
+from __future__ import annotations
+
+import os
+import time
+
+
+def usable_cores() -> int:
+    """Cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def cpu_seconds() -> tuple[float, float] | None:
+    """(CPU seconds used by every process of the machine, by this process) so far; None where the machine's
+    total is not readable (non-Linux)."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(v) for v in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    busy = sum(fields) - fields[3] - fields[4]  # all but idle and iowait
+    own = os.times()
+    return busy / os.sysconf("SC_CLK_TCK"), own.user + own.system
+
+
+def threads_for(others_busy: float, wanted: int, cores: int) -> int:
+    """Threads that fit beside ``others_busy`` cores kept busy by other processes."""
+    free = cores - others_busy
+    return max(1, min(wanted, int(free + 0.25)))
+
+
+def others_busy_cores(window_s: float = 0.25) -> float:
+    """Cores other processes kept busy over the next ``window_s`` seconds (this process sleeps meanwhile;
+    0 where the machine's CPU time is not readable)."""
+    before, start = cpu_seconds(), time.perf_counter()
+    time.sleep(window_s)
+    after, elapsed = cpu_seconds(), time.perf_counter() - start
+    if before is None or after is None:
+        return 0.0
+    return max(0.0, ((after[0] - before[0]) - (after[1] - before[1])) / elapsed)
