@@ -182,7 +182,9 @@ class RoadView:
     box's corner may then lie beyond a road edge; each pair's listed segments ``segments [n,W]`` (-1
     padding) with their distances to its origin ``distance [n,W]``, its distance to the nearest edge
     ``clearance [n]`` and ``cover [n]`` (every segment that near its origin is listed); the rows' padded
-    road edges ``columns``/``links``/``count``."""
+    road edges ``columns``/``links``/``count``. Where ``pending [n]``, ``limit`` still waits for how far the
+    pair's current box ``box [n,4,2]`` lies beyond an edge: the first check of its candidates measures it
+    in the same pass (:meth:`beyond`)."""
 
     road: np.ndarray
     limit: np.ndarray
@@ -193,6 +195,8 @@ class RoadView:
     columns: np.ndarray
     links: np.ndarray
     count: np.ndarray
+    pending: np.ndarray | None = None
+    box: np.ndarray | None = None
 
     def excess(
         self, sel: np.ndarray, rows: np.ndarray, origin: np.ndarray, corners: np.ndarray
@@ -226,8 +230,14 @@ class RoadView:
         self, sel: np.ndarray, rows: np.ndarray, origin: np.ndarray, corners: np.ndarray
     ) -> np.ndarray:
         """``[m,c]`` True where a candidate box (as in :meth:`excess`) has a corner more than its pair's
-        ``limit`` beyond a road edge."""
-        return self.excess(sel, rows, origin, corners) > self.limit[sel][:, None]
+        ``limit`` beyond a road edge (a pending limit is measured first, with the candidates)."""
+        if self.pending is None or self.box is None or not self.pending[sel].any():
+            return self.excess(sel, rows, origin, corners) > self.limit[sel][:, None]
+        both = self.excess(sel, rows, origin, np.concatenate([self.box[sel][:, None], corners], axis=1))
+        wait = self.pending[sel]
+        self.limit[sel[wait]] = np.maximum(self.limit[sel[wait]], both[wait, 0])
+        self.pending[sel[wait]] = False
+        return both[:, 1:] > self.limit[sel][:, None]
 
 
 def road_view(
@@ -247,7 +257,7 @@ def road_view(
     padded road edges ``padded = (columns, links, count)``: the rule applies to a vehicle unless its
     candidates are provably on the road; a candidate corner may lie ``margin`` m beyond a road edge, or as
     far as the vehicle's box lies already if that is farther (a vehicle off the road may not go farther
-    off)."""
+    off; measured with its first candidates)."""
     columns, links, count = padded
     n = len(rr)
     road, clearance, cover = np.zeros(n, bool), np.full(n, np.inf), np.zeros(n)
@@ -268,13 +278,10 @@ def road_view(
     segments = np.full((n, listed.shape[1]), -1, dtype=np.int64)
     distance = np.full((n, listed.shape[1]), np.inf)
     segments[c], distance[c] = listed, dist
-    view = RoadView(road, limit, segments, distance, clearance, cover, columns, links, count)
-    check = c[~proof]
-    if len(check):
-        now = view.excess(check, rr[check], origin[check], corners[check][:, None])[:, 0]
-        road[check] = True
-        limit[check] = np.maximum(limit[check], now)
-    return view
+    road[c[~proof]] = True  # their limits are measured with their first candidates (RoadView.beyond)
+    return RoadView(
+        road, limit, segments, distance, clearance, cover, columns, links, count, road.copy(), corners
+    )
 
 
 def _compact(keep: np.ndarray, index: np.ndarray) -> np.ndarray:
