@@ -127,6 +127,13 @@ def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
     red = methods["constant_velocity"]["red_light_runs_by_kind"]  # highway-env scenes: no signals
     assert set(red) == {"vehicle", "pedestrian", "cyclist"} and red["vehicle"]["agent_rollouts"] == 0
     assert "Red lights run" not in md
+    # each scene's model rollouts over two processes: the same rollouts, so the same table
+    cfg2 = EvalConfig(rollouts=2, scenes=2, temperatures=(1.0, 0.5), rollout_processes=2)
+    split = evaluate(tmp_path, {"tiny": ckpt}, cfg2, tmp_path / "eval2", partial="tiny", progress=False)
+    assert split["rollout_processes"] == 2 and result["rollout_processes"] == 1
+    assert split["methods"] == methods and split["partial_control"] == pc
+    with pytest.raises(ValueError, match="rollout_processes must be a positive int"):
+        EvalConfig(rollout_processes=0)
 
 
 def test_red_light_runs_of_every_simulated_agent_by_class() -> None:

@@ -41,6 +41,32 @@ def test_the_policy_drops_to_one_thread_while_the_cores_are_busy(monkeypatch) ->
         torch.set_num_threads(before)
 
 
+def test_the_first_look_at_the_load_comes_after_a_quarter_second(monkeypatch) -> None:
+    """A batch that steps a whole window cycle in under 2 s must not spend it with too many threads beside a
+    busy process: the first check is due FIRST_CHECK_S after the start, the later ones every every_s."""
+    from trajeglish_env.env import threads as module
+
+    before = torch.get_num_threads()
+    clock = iter([0.0, 0.1, 0.3, 1.0, 2.4])
+    samples = iter([(100.0, 10.0), (100.55, 10.3), (102.65, 12.4)])  # others: 0.83 cores, then none
+    monkeypatch.setattr(module.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(module, "cpu_seconds", lambda: next(samples))
+    monkeypatch.setattr(module, "usable_cores", lambda: 2)
+    try:
+        policy = AdaptiveThreads(num_scenes=32)
+        assert module.FIRST_CHECK_S == 0.25 and policy.threads == 2
+        policy.tick()  # 0.1 s: not due yet
+        assert policy.threads == 2
+        policy.tick()  # 0.3 s: the first look finds a busy core
+        assert policy.threads == 1 and torch.get_num_threads() == 1
+        policy.tick()  # 1.0 s: the next look is 2 s after the first
+        assert policy.threads == 1
+        policy.tick()  # 2.4 s: the cores are free again
+        assert policy.threads == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_the_thread_count_never_changes_a_token() -> None:
     scene = bundle_scene("highway-exit-999001")  # 16 agents: several model contexts per step
     before = torch.get_num_threads()

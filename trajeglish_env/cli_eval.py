@@ -39,6 +39,7 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.distributed import init_ranks, rank_device
     from trajeglish_env.evaluation import EvalConfig, evaluate
     from trajeglish_env.sampler.config import SamplingConfig
+    from trajeglish_env.sampler.rollouts import auto_processes
 
     device = rank_device()
     ranks = init_ranks(device)
@@ -56,6 +57,8 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
         metrics=args.metrics,
         seed=args.seed,
         guards=GUARD_CHOICES[args.guard],
+        # one process per free core (looked at once), unless torchrun ranks share the cores already
+        rollout_processes=args.processes or (auto_processes(args.rollouts) if ranks.world == 1 else 1),
     )
     partial = args.partial or ("trajeglish" if "trajeglish" in ckpts else next(iter(ckpts), None))
     result = evaluate(
@@ -178,6 +181,12 @@ def add_eval_commands(add: AddCommand) -> None:
     p.add_argument("--top-p", type=probability, default=1.0)
     add_dtype_args(p)
     p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
+    p.add_argument(
+        "--processes",
+        type=POSITIVE,
+        help="processes each scene's model rollouts are split over, the same rollouts (default: one per "
+        "core other processes leave free; 1 under torchrun)",
+    )
     p.add_argument(
         "--guard",
         choices=("off", "on", "both"),

@@ -27,6 +27,7 @@ def cmd_export_submission(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.distributed import init_ranks, rank_device
     from trajeglish_env.metrics.submission_metadata import SubmissionMetadata, format_parameter_count
     from trajeglish_env.sampler.config import SamplingConfig
+    from trajeglish_env.sampler.rollouts import auto_processes
     from trajeglish_env.submission_export import ExportConfig, export_submission
 
     device = rank_device()
@@ -50,8 +51,8 @@ def cmd_export_submission(args: argparse.Namespace) -> dict[str, Any]:
     sampling = SamplingConfig(
         args.temperature, args.top_p, args.cache_dtype, compute_dtype=args.compute_dtype
     )
-    # one process per free core, unless torchrun ranks share the machine's cores already
-    processes = args.processes or ("auto" if ranks.world == 1 else 1)
+    # one process per free core (looked at once), unless torchrun ranks share the machine's cores already
+    processes = args.processes or (auto_processes(args.rollouts) if ranks.world == 1 else 1)
     config = ExportConfig(args.rollouts, args.steps, sampling, args.seed, args.prefix, processes)
     result = export_submission(
         args.data, ckpt, output_dir(args.out), metadata, config, not args.quiet and ranks.main, ranks

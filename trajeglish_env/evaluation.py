@@ -59,10 +59,18 @@ class EvalConfig:
     metrics: str = "2025"
     seed: int = 0
     guards: tuple[bool, ...] = (False, True)
+    # processes each scene's model rollouts are split over (rollout(..., processes=...): the same rollouts)
+    rollout_processes: int = 1
 
     def __post_init__(self) -> None:
         if not self.guards or not all(isinstance(g, bool) for g in self.guards):
             raise ValueError(f"EvalConfig.guards must be a non-empty tuple of bools, got {self.guards!r}")
+        if isinstance(self.rollout_processes, bool) or not (
+            isinstance(self.rollout_processes, int) and self.rollout_processes >= 1
+        ):
+            raise ValueError(
+                f"EvalConfig.rollout_processes must be a positive int, got {self.rollout_processes!r}"
+            )
 
 
 def method_name(model: str, temperature: float, guard: bool) -> str:
@@ -133,11 +141,13 @@ def constant_velocity_method(scene: Scenario, rollouts: int, seed: int) -> np.nd
     return np.broadcast_to(fut, (rollouts, *fut.shape)).copy()
 
 
-def model_method(ckpt: Checkpoint, sampling: SamplingConfig) -> Method:
-    """Full-control rollouts of a checkpoint (every simulated agent driven by the model)."""
+def model_method(ckpt: Checkpoint, sampling: SamplingConfig, processes: int = 1) -> Method:
+    """Full-control rollouts of a checkpoint (every simulated agent driven by the model), each scene's
+    split over ``processes`` processes."""
 
     def run(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
-        out = rollout(ckpt, scene, rollouts, horizon(scene), config=replace(sampling, seed=seed))
+        config = replace(sampling, seed=seed)
+        out = rollout(ckpt, scene, rollouts, horizon(scene), config=config, processes=processes)
         return out.xyh[:, simulated(scene), scene.current_index + 1 :]
 
     return run
@@ -322,6 +332,7 @@ def partial_control(
                 controlled,
                 priority=priority,
                 config=replace(config.sampling, temperature=config.temperatures[0], seed=config.seed + k),
+                processes=config.rollout_processes,
             )
             fut = slice(scene.current_index + 1, scene.num_steps)
             log_ok = scene.valid[scene.sdc, fut]
@@ -372,7 +383,9 @@ def evaluate(
         for temp in config.temperatures:
             for guard in config.guards:
                 sampling = replace(config.sampling, temperature=temp, guard=guard)
-                methods[method_name(name, temp, guard)] = model_method(ckpt, sampling)
+                methods[method_name(name, temp, guard)] = model_method(
+                    ckpt, sampling, config.rollout_processes
+                )
     raw = evaluate_methods(scenes, methods, config, progress and ranks.main, details, ranks)
     if partial is not None:
         pc = partial_control(checkpoints[partial], scenes, config, progress and ranks.main, ranks)
@@ -398,6 +411,7 @@ def evaluate(
         "metrics_config": config.metrics,
         "log_details": details is not None,
         "processes": ranks.world,
+        "rollout_processes": config.rollout_processes,
         "guards": list(config.guards),
         "methods": table,
         "best_temperature": best,
