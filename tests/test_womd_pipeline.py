@@ -93,10 +93,11 @@ def run_one_process(root: Path) -> dict[str, dict]:
     export_module.sample_scenario = crash_on_second
     try:
         with pytest.raises(KeyboardInterrupt):
-            main([*export, "--quiet"])
+            main([*export, "--processes", "2", "--quiet"])
     finally:
         export_module.sample_scenario = real
-    for command in (export, score, evaluate):
+    # resumed with another process count: it never changes the rollouts, so the settings still match
+    for command in ([*export, "--processes", "1"], score, evaluate):
         results[command[0]] = _run(command)
     return results
 

@@ -143,6 +143,7 @@ def _weights_digest(ckpt: Checkpoint) -> str:
 
 def _manifest(files: list[Path], ckpt: Checkpoint, config: ExportConfig, meta: SubmissionMetadata) -> dict:
     settings = dataclasses.asdict(config)
+    settings.pop("processes")  # how the rollouts are split never changes them: a resume may differ in it
     return {
         "format": "trajeglish_env.submission_export",
         "version": 1,
