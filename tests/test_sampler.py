@@ -87,16 +87,24 @@ def test_rollouts_are_deterministic_and_respect_control() -> None:
     np.testing.assert_allclose(step, a.xyh[:, 0, cur + 4], atol=1e-9)
 
 
-def test_rollouts_split_over_processes_are_the_rollouts_of_one_process() -> None:
+def test_rollouts_split_over_processes_are_the_rollouts_of_one_process(monkeypatch) -> None:
     """Rollouts 0..4 in chunks 0-2 (here) and 3-4 (a forked worker) are those of one engine, bit for bit;
     the torch thread count is restored; a bad process count is refused."""
+    import sys
+
     import torch
+
+    from trajeglish_env.sampler import rollouts as module
 
     sc = straight_road_scene(num_agents=5, steps=40)
     ckpt = tiny_checkpoint()
     threads = torch.get_num_threads()
     one = rollout(ckpt, sc, rollouts=5, horizon=12, config=SamplingConfig(seed=3))
+    splits = []
+    real = module._split_rollouts
+    monkeypatch.setattr(module, "_split_rollouts", lambda *a: splits.append(a[1:]) or real(*a))
     split = rollout(ckpt, sc, rollouts=5, horizon=12, config=SamplingConfig(seed=3), processes=2)
+    assert splits == ([(5, 2)] if sys.platform.startswith("linux") else [])  # really forked on Linux
     for field in ("xyh", "valid", "tokens", "controlled"):
         np.testing.assert_array_equal(getattr(split, field), getattr(one, field))
     assert split.current_index == one.current_index and torch.get_num_threads() == threads

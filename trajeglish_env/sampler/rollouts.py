@@ -10,6 +10,7 @@ per-call costs of the engine, NumPy's guard geometry and Python, do not share a 
 from __future__ import annotations
 
 import multiprocessing
+import sys
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,8 +55,8 @@ def rollout(
     ``controlled [N]`` bool: agents the model drives (default: every agent valid at the current step);
     all others replay the log. ``priority [N]``: lower acts earlier within a timestep (default: the sdc
     first, then by distance to each subset's centre agent). ``processes``: split the rollouts over this
-    many processes (``"auto"``: :func:`auto_processes`; forked, so only for a model on the CPU and where
-    the platform forks, else one); the result is the same. Same seed, same rollout.
+    many processes (``"auto"``: :func:`auto_processes`; forked, so only for a model on the CPU and on
+    Linux (:func:`can_fork`), else one); the result is the same. Same seed, same rollout.
     """
     scenario.validate()  # a user's scene enters here: fail on its field, not deep inside the engine
     current = scenario.current_index if current_index is None else int(current_index)
@@ -75,9 +76,15 @@ def rollout(
     )
     count = auto_processes(rollouts) if processes == "auto" else _checked_processes(processes)
     on_cpu = next(ckpt.model.parameters()).device.type == "cpu"  # never fork a CUDA context
-    if count > 1 and rollouts > 1 and on_cpu and "fork" in multiprocessing.get_all_start_methods():
+    if count > 1 and rollouts > 1 and on_cpu and can_fork():
         return _split_rollouts(job, rollouts, count)
     return _sample(job, 0, rollouts)
+
+
+def can_fork() -> bool:
+    """Whether rollouts may be split over forked processes: on Linux (macOS forks, but its system
+    libraries are not safe to use in a forked child)."""
+    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
 
 
 def auto_processes(rollouts: int) -> int:
