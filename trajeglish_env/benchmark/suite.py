@@ -323,10 +323,11 @@ def _womd_lines(result: dict[str, Any]) -> list[str]:
     w = result["womd"]
     if "skipped" in w:
         return [f"womd: skipped ({w['skipped']})"]
-    r, e = w["rollouts"], w["env"]
+    r, e, split = w["rollouts"], w["env"], w.get("rollouts_split", {})
+    over = f"; over {split['processes']} processes in {split['seconds']} s" if "seconds" in split else ""
     return [
         f"womd {w['scenario_id']} ({w['agents']} agents): {r['rollouts']} rollouts x {r['horizon']} steps "
-        f"in {r['seconds']} s = {r['agent_steps_per_s']} agent-steps/s",
+        f"in {r['seconds']} s = {r['agent_steps_per_s']} agent-steps/s{over}",
         f"womd AEC env (sdc replays its log): {e['env_steps_per_s']} steps/s "
         f"({result['ratios'].get('womd_env_to_highway_env')}x intersection-v0 at "
         f"{w['highway_env']['steps_per_s']} steps/s)",
