@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from helpers import womd_tfrecord
 
-from trajeglish_env.benchmark import suite, womd
+from trajeglish_env.benchmark import measure, suite, womd
 from trajeglish_env.benchmark.busy import busy_process, busy_section
 from trajeglish_env.benchmark.measure import env_speed
 from trajeglish_env.benchmark.suite import (
@@ -39,9 +39,13 @@ def test_benchmark_scenes_have_exactly_the_requested_agents() -> None:
 
 def test_env_speed_reports_rates_and_memory() -> None:
     run = env_speed(2, npc="replay", steps=2, warmup=1)
-    assert run["num_envs"] == 2 and run["agents_per_scene"] == 24
+    assert run["num_envs"] == 2 and run["agents_per_scene"] == 24 and run["processes"] == 1
     assert run["agent_steps_per_s"] == pytest.approx(run["env_steps_per_s"] * 48, rel=1e-2)
     assert run["peak_rss_mb"] > 50
+    # the scenes split over two worker processes: their threads and memory are reported with the caller's
+    split = env_speed(2, npc="replay", steps=2, warmup=1, processes=2, torch_threads=1)
+    assert split["processes"] == 2 and split["torch_threads"] == 1
+    assert split["peak_rss_mb"] > run["peak_rss_mb"] and split["agent_steps_per_s"] > 0
 
 
 def test_ratios_and_summary_of_a_result() -> None:
@@ -82,7 +86,7 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 4
+    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 5
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
 
 
@@ -205,19 +209,50 @@ def test_busy_section_runs_each_batch_idle_then_beside_the_spinner() -> None:
 def test_busy_section_of_the_suite_runs_the_env_job_at_auto_threads(monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[tuple[object, str, int, bool]] = []
 
-    def env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str, object]]:
-        calls.append((config.torch_threads, npc, batch, config.quick))
+    def env_job(
+        config: BenchConfig, npc: str, batch: int, processes: int | str = 1
+    ) -> Callable[[], dict[str, object]]:
+        calls.append((config.torch_threads, npc, batch, config.quick, processes))
         rate = 50.0 if len(calls) % 2 else 45.0
-        return lambda: {"agent_steps_per_s": rate, "torch_threads": 1}
+        return lambda: {"agent_steps_per_s": rate, "torch_threads": 1, "processes": 1}
 
     monkeypatch.setattr(suite, "_env_job", env_job)
     config = BenchConfig(sections=("busy",), batches=(1, 8, 32), quick=True, torch_threads=2)
     result = run_suite(config, progress=False)
-    assert calls == [("auto", "trajeglish_guard", 1, True)] * 2  # quick: B = 1 only; default NPCs
+    assert calls == [("auto", "trajeglish_guard", 1, True, 1)] * 2  # quick: B = 1 only; default NPCs
     assert result["busy"]["1"]["busy_to_idle"] == 0.9 and result["ratios"] == {"busy_B1_to_idle": 0.9}
     assert any(line.startswith("busy machine B=   1: 50.0") for line in summary_lines(result))
     calls.clear()
     full = run_suite(replace(config, quick=False), progress=False)
-    assert [c[2] for c in calls] == [1, 1, 8, 8] and list(full["busy"]) == ["1", "8"]
+    # B = 8 is also run with its scenes split over worker processes (B = 1 cannot split)
+    assert [(c[2], c[4]) for c in calls] == [(1, 1), (1, 1), (8, 1), (8, 1), (8, "auto"), (8, "auto")]
+    assert list(full["busy"]) == ["1", "8", "8_split"] and "busy_B8_split_to_idle" in full["ratios"]
+    calls.clear()
+    run_suite(replace(config, quick=False, split=False), progress=False)
+    assert [c[4] for c in calls] == [1] * 4
     none = run_suite(replace(config, batches=(32,), quick=False), progress=False)
     assert "skipped" in none["busy"] and "busy: skipped" in "\n".join(summary_lines(none))
+
+
+def test_env_section_also_runs_the_default_npcs_split_over_processes(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[tuple[str, int, int | str]] = []
+
+    def env_job(
+        config: BenchConfig, npc: str, batch: int, processes: int | str = 1
+    ) -> Callable[[], dict[str, object]]:
+        calls.append((npc, batch, processes))
+        rate = 300.0 if processes == "auto" else 200.0
+        return lambda: {"agent_steps_per_s": rate, "scene_steps_per_s": 1.0, "peak_rss_mb": 1.0}
+
+    monkeypatch.setattr(suite, "_env_job", env_job)
+    highway = {"env": "x", "steps_per_s": 1.0, "mean_vehicles": 100.0, "agent_steps_per_s": 100.0}
+    monkeypatch.setattr(measure, "highway_env_speed", lambda *a: highway)
+    config = BenchConfig(sections=("env",), batches=(4, 8), guards=(True,))
+    result = run_suite(config, progress=False)
+    split = [c for c in calls if c[2] == "auto"]
+    assert split == [("trajeglish_guard", 8, "auto")]  # B = 4 is too small to split
+    assert result["ratios"]["trajeglish_guard_split_B8_to_highway_env"] == 3.0
+    assert any("trajeglish_guard_split B=   8" in line for line in summary_lines(result))
+    calls.clear()
+    run_suite(replace(config, split=False), progress=False)
+    assert all(c[2] == 1 for c in calls)

@@ -212,6 +212,7 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
         quick=args.quick,
         guards=GUARD_CHOICES[args.guard],
         womd=args.womd,
+        split=not args.no_split,
     )
     result = run_suite(config, progress=not args.quiet)
     if args.out:
@@ -425,6 +426,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--womd",
         help="the womd section's WOMD scenario file (default: data/womd/motion_data_one_scenario.tfrecord "
         "of the shared folder: $TRAJEGLISH_SHARED, else shared/ beside the checkout; none: skipped)",
+    )
+    p.add_argument(
+        "--no-split",
+        action="store_true",
+        help="skip the env and busy runs whose scenes are split over worker processes (processes='auto')",
     )
     p.add_argument("--out", help="also write the JSON document here (atomically)")
     return parser

@@ -3,7 +3,9 @@ many other processes keep busy (the env's adaptive torch threads, multi-process 
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import sys
 import time
 
 
@@ -40,3 +42,9 @@ def others_busy_cores(window_s: float = 0.25) -> float:
     if before is None or after is None:
         return 0.0
     return max(0.0, ((after[0] - before[0]) - (after[1] - before[1])) / elapsed)
+
+
+def can_fork() -> bool:
+    """Whether work may be split over forked processes (rollouts, scenes of a batched env): on Linux
+    (macOS forks, but its system libraries are not safe to use in a forked child)."""
+    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()

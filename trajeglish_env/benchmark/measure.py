@@ -252,18 +252,21 @@ def env_speed(
     cache_dtype: str = "bfloat16",
     subsets: str = "overlap",
     compute_dtype: str = "auto",
+    processes: int | str = 1,
 ) -> dict[str, Any]:
     """Stepping speed of the batched ego env: ``num_envs`` scenes of ``agents`` agents (the bundled
     SUMO scenes cut to the sdc and its nearest neighbours), one ego each replaying its log through
     continuous actions, episodes that never end early. Times ``env.step`` only (the actions are
-    computed outside the timed region) and reports peak memory of the process. ``npc``: ``"replay"``,
-    ``"trajeglish"`` (unguarded sampling) or ``"trajeglish_guard"`` (guarded sampling).
+    computed outside the timed region) and reports peak memory of the process (with its env workers).
+    ``npc``: ``"replay"``, ``"trajeglish"`` (unguarded sampling) or ``"trajeglish_guard"`` (guarded
+    sampling); ``processes``: the env's worker processes (1: one :class:`BatchedEgoEnv`, else a
+    :class:`~trajeglish_env.env.split.SplitEgoEnv`; ``"auto"``: its automatic count).
 
     ``steps`` None: Trajeglish NPCs are timed over one whole window cycle of the model (its
     ``recompute_every`` steps, one of which re-encodes and re-primes every scene's windows), so the
     figure is the long-run rate; replay NPCs over 40 steps."""
     from trajeglish_env.env import RewardConfig, TrajeglishNPC
-    from trajeglish_env.env.vector import BatchedEgoEnv
+    from trajeglish_env.env.split import SplitEgoEnv, batched_ego_env
     from trajeglish_env.sampler.config import SamplingConfig
 
     rss0 = peak_rss_mb()
@@ -283,33 +286,40 @@ def env_speed(
         if steps is None:  # one window cycle
             steps = npc_spec.sampling.every(ckpt.model.cfg.steps)
     steps = 40 if steps is None else steps
-    venv = BatchedEgoEnv(
+    venv = batched_ego_env(
         num_envs,
         scenes,
         npc=npc_spec,
         reward=never_end,
         max_cycles=steps + warmup + 1,
         torch_threads=torch_threads,
+        processes=processes,
     )
-    venv.reset(seed=0)
-    build = time.perf_counter() - build0
-    rows = venv.core.batch.rows
-    engine = getattr(rows, "engine", None)  # the Trajeglish engine (None for rule-based NPCs)
-    elapsed, rebuilds = 0.0, 0
-    for k in range(steps + warmup):
-        actions = np.stack([_log_action(env) for env in venv.envs])
-        before = None if engine is None else engine.window_step.copy()
-        start = time.perf_counter()
-        venv.step(actions)
-        if k >= warmup:
-            elapsed += time.perf_counter() - start
-            rebuilds += int(engine is not None and (engine.window_step != before).any())
+    try:
+        venv.reset(seed=0)
+        build = time.perf_counter() - build0
+        elapsed, rebuilds = 0.0, 0
+        for k in range(steps + warmup):
+            actions = np.concatenate(venv.apply(_log_actions))
+            before = venv.apply(_window_steps)
+            start = time.perf_counter()
+            venv.step(actions)
+            if k >= warmup:
+                elapsed += time.perf_counter() - start
+                after = venv.apply(_window_steps)
+                rebuilds += int(any((a != b).any() for a, b in zip(after, before, strict=True)))
+        threads = venv.apply(_torch_threads)
+        split = isinstance(venv, SplitEgoEnv)  # peaks of the caller and its workers (shared pages in each)
+        peak = peak_rss_mb() + (sum(venv.apply(_peak_rss)) if split else 0.0)
+    finally:
+        venv.close()
     rate = steps / elapsed
     return {
         "num_envs": num_envs,
         "npc": npc,
         "agents_per_scene": agents,
-        "torch_threads": torch.get_num_threads(),
+        "processes": len(threads),
+        "torch_threads": threads[0],
         "cache_dtype": cache_dtype if model else None,
         "compute_dtype": dtype_name(sampling.torch_compute_dtype()) if model else None,
         "subsets": subsets if model else None,
@@ -320,14 +330,28 @@ def env_speed(
         "scene_steps_per_s": round(rate * num_envs, 2),
         "agent_steps_per_s": round(rate * num_envs * agents, 1),
         "setup_seconds": round(build, 2),
-        "peak_rss_mb": round(peak_rss_mb(), 1),
-        "rss_growth_mb": round(peak_rss_mb() - rss0, 1),
+        "peak_rss_mb": round(peak, 1),
+        "rss_growth_mb": round(peak - rss0, 1),
     }
 
 
-def _log_action(env: Any) -> np.ndarray:
-    """The continuous action bringing a batched env scene's ego closest to its logged next state."""
-    return log_action(env, env.agent)
+def _log_actions(venv: Any) -> np.ndarray:
+    """The continuous actions bringing each scene's ego of a batched env closest to its logged next state."""
+    return np.stack([log_action(env, env.agent) for env in venv.envs])
+
+
+def _window_steps(venv: Any) -> np.ndarray:
+    """The window steps of a batched env's Trajeglish engine (empty for rule-based NPCs)."""
+    engine = getattr(venv.core.batch.rows, "engine", None)
+    return np.zeros(0) if engine is None else engine.window_step.copy()
+
+
+def _torch_threads(venv: Any) -> int:
+    return torch.get_num_threads()
+
+
+def _peak_rss(venv: Any) -> float:
+    return peak_rss_mb()
 
 
 def log_action(env: Any, agent: str) -> np.ndarray:

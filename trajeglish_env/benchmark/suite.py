@@ -23,8 +23,8 @@ from typing import Any
 
 # 2: env figures over a whole window cycle; highway-env measured before and after; 3: guarded sampling's
 # env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section; 4: the womd and busy
-# sections and their ratios
-SCHEMA_VERSION = 4
+# sections and their ratios; 5: split env runs (env.<npc>_split, busy "<B>_split") and env runs' processes
+SCHEMA_VERSION = 5
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "womd", "env", "busy")
 
 
@@ -34,9 +34,11 @@ class BenchConfig:
     scene, timed env steps per run (after ``warmup``), highway-env steps, torch threads for the batched
     env (``"auto"``: see :class:`trajeglish_env.env.threads.AdaptiveThreads`), the NPC cache dtype, the
     Trajeglish NPCs' ``guards`` (guarded sampling off and/or on: env runs ``trajeglish`` and
-    ``trajeglish_guard``), the sections to run (``quick`` shrinks every workload for a smoke run) and the
+    ``trajeglish_guard``), the sections to run (``quick`` shrinks every workload for a smoke run), the
     ``womd`` section's scenario file (None: the shared one, see :func:`~trajeglish_env.benchmark.womd.
-    locate_womd`)."""
+    locate_womd`) and ``split``: whether the env and busy sections also run the default NPCs' env with its
+    scenes split over worker processes (``processes="auto"``, :class:`~trajeglish_env.env.split.
+    SplitEgoEnv`) at the batch sizes that split (:func:`split_batches`)."""
 
     batches: tuple[int, ...] = (1, 8, 32, 128, 256)
     agents: int = 24
@@ -50,6 +52,7 @@ class BenchConfig:
     quick: bool = False
     guards: tuple[bool, ...] = (False, True)
     womd: str | None = None
+    split: bool = True
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.sections) - set(SECTIONS))
@@ -101,6 +104,9 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
         for npc in (*models, "replay"):
             for b in config.batches:
                 jobs.append((f"env/{npc}/{b}", _env_job(config, npc, b)))
+        if config.split:  # the default NPCs with the scenes split over worker processes
+            for b in split_batches(config.batches):
+                jobs.append((f"env/{default_npc()}_split/{b}", _env_job(config, default_npc(), b, "auto")))
         jobs += [(f"{name}/after", job) for name, job in baselines]  # the machine's load drifts
     if "busy" in config.sections:
         jobs.append(("busy", lambda: _busy(config)))
@@ -205,19 +211,40 @@ def _womd_job(config: BenchConfig) -> Callable[[], dict[str, Any]]:
     return lambda: womd_section(found, scene, config.quick)
 
 
-def _busy(config: BenchConfig) -> dict[str, Any]:
-    """The busy section: the batched env with the env's default NPCs (default sampling) at the default
-    thread setting, idle and beside one busy process, through the env worker process."""
-    from trajeglish_env.benchmark.busy import busy_batches, busy_section
+def default_npc() -> str:
+    """The env run of the env's default NPCs (default sampling: guarded or not)."""
     from trajeglish_env.sampler.config import SamplingConfig
 
-    npc = "trajeglish_guard" if SamplingConfig().guard else "trajeglish"
-    auto = replace(config, torch_threads="auto")
-    return busy_section(busy_batches(config.batches, config.quick), lambda b: _env_job(auto, npc, b)())
+    return "trajeglish_guard" if SamplingConfig().guard else "trajeglish"
 
 
-def _env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str, Any]]:
-    """Run one batched-env measurement in a fresh Python process (its own peak memory)."""
+def split_batches(batches: tuple[int, ...]) -> tuple[int, ...]:
+    """The batch sizes whose scenes ``processes="auto"`` may split (two processes' worth of scenes)."""
+    from trajeglish_env.env.split import MIN_SCENES_PER_PROCESS
+
+    return tuple(b for b in batches if b >= 2 * MIN_SCENES_PER_PROCESS)
+
+
+def _busy(config: BenchConfig) -> dict[str, Any]:
+    """The busy section: the batched env with the env's default NPCs (default sampling) at the default
+    thread setting, idle and beside one busy process, through the env worker process; with ``split``, also
+    its scenes over ``processes="auto"`` worker processes (keys ``"{B}_split"``)."""
+    from trajeglish_env.benchmark.busy import busy_batches, busy_section
+
+    npc, auto = default_npc(), replace(config, torch_threads="auto")
+    batches = busy_batches(config.batches, config.quick)
+    out = busy_section(batches, lambda b: _env_job(auto, npc, b)())
+    if config.split and "skipped" not in out:
+        split = busy_section(split_batches(batches), lambda b: _env_job(auto, npc, b, "auto")())
+        out.update({f"{b}_split": run for b, run in split.items() if b != "skipped"})
+    return out
+
+
+def _env_job(
+    config: BenchConfig, npc: str, batch: int, processes: int | str = 1
+) -> Callable[[], dict[str, Any]]:
+    """Run one batched-env measurement in a fresh Python process (its own peak memory, with that of its
+    env workers when ``processes`` is not 1)."""
 
     def job() -> dict[str, Any]:
         steps = config.replay_steps if npc == "replay" else config.env_steps
@@ -231,6 +258,7 @@ def _env_job(config: BenchConfig, npc: str, batch: int) -> Callable[[], dict[str
             "torch_threads": config.torch_threads,
             "cache_dtype": config.cache_dtype,
             "compute_dtype": config.compute_dtype,
+            "processes": processes,
         }
         cmd = [sys.executable, "-m", "trajeglish_env.benchmark.worker", json.dumps(spec)]
         done = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -307,7 +335,7 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
             lines.append(
                 f"env {npc:>10} B={b:>4}: {run['scene_steps_per_s']:>8} scene-steps/s "
                 f"{run['agent_steps_per_s']:>10} agent-steps/s ({ratio}x intersection, {ratio_hw}x highway), "
-                f"peak {run['peak_rss_mb']} MB"
+                f"{_parallelism(run)}, peak {run['peak_rss_mb']} MB"
             )
     for b, cost in result.get("guard_cost", {}).items():
         lines.append(f"guarded sampling B={b:>4}: {cost['slowdown']}x slower ({cost['off']} -> {cost['on']})")
@@ -342,6 +370,13 @@ def _busy_lines(result: dict[str, Any]) -> list[str]:
     return [
         f"busy machine B={b:>4}: {run['idle_agent_steps_per_s']} agent-steps/s idle, "
         f"{run['busy_agent_steps_per_s']} beside one busy process ({run['busy_to_idle']}x; "
-        f"threads {run['idle']['torch_threads']} -> {run['busy']['torch_threads']})"
+        f"{_parallelism(run['idle'])} -> {_parallelism(run['busy'])})"
         for b, run in busy.items()
     ]
+
+
+def _parallelism(run: dict[str, Any]) -> str:
+    """How an env run used the cores: its torch threads, and its worker processes when split."""
+    processes = run.get("processes", 1)
+    threads = f"threads {run.get('torch_threads')}"
+    return threads if processes == 1 else f"{processes} processes x {threads}"

@@ -1,5 +1,5 @@
 """The batched ego env as a Stable-Baselines3 ``VecEnv``: SB3 trains on B scenes whose NPCs are decoded
-together, in one process (no SubprocVecEnv needed)."""
+together, in one process or split over worker processes (no SubprocVecEnv needed)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,17 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvStepReturn
 
 from trajeglish_env.env.config import EnvConfig
-from trajeglish_env.env.vector import BatchedEgoEnv
+from trajeglish_env.env.split import batched_ego_env
 
 
 class SB3VecEnv(VecEnv):
     """``num_envs`` ego scenes (arguments as :class:`~trajeglish_env.env.vector.BatchedEgoEnv`) with SB3's
     conventions: ``dones = terminated | truncated``, same-step reset with ``infos[i]["terminal_observation"]``
-    and ``infos[i]["TimeLimit.truncated"]``, seeds from :meth:`seed` (``seed + i``) used at the next reset."""
+    and ``infos[i]["TimeLimit.truncated"]``, seeds from :meth:`seed` (``seed + i``) used at the next reset.
+
+    ``processes``: the scenes split over that many forked worker processes
+    (:class:`~trajeglish_env.env.split.SplitEgoEnv`, the same rollouts); ``"auto"`` (default): one per core
+    that other processes leave free, at least 4 scenes each, else one process (Linux only)."""
 
     def __init__(
         self,
@@ -25,9 +29,12 @@ class SB3VecEnv(VecEnv):
         config: EnvConfig | None = None,
         render_mode: str | None = None,
         torch_threads: int | str | None = "auto",
+        processes: int | str = "auto",
         **options: Any,
     ):
-        self.venv = BatchedEgoEnv(num_envs, scenes, config, render_mode, torch_threads, **options)
+        self.venv = batched_ego_env(
+            num_envs, scenes, config, render_mode, torch_threads, processes, **options
+        )
         self.envs = self.venv.envs
         self._actions: np.ndarray | None = None
         super().__init__(num_envs, self.venv.single_observation_space, self.venv.single_action_space)
@@ -67,7 +74,7 @@ class SB3VecEnv(VecEnv):
         return np.stack(obs), rewards, dones, infos
 
     def close(self) -> None:
-        """Release the renderers."""
+        """Release the renderers (and stop the worker processes)."""
         self.venv.close()
 
     def get_images(self) -> Sequence[np.ndarray | None]:

@@ -17,7 +17,7 @@ order, and observations are taken where the next step's first external agent act
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium
@@ -289,6 +289,11 @@ class BatchedEgoEnv(VectorEnv):
 
     def _batched(self, observations: list[np.ndarray]) -> Any:
         return concatenate(self.single_observation_space, observations, self._obs).copy()
+
+    def apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> list[Any]:
+        """``[fn(self, *args, **kwargs)]``: this env as the one shard of its scenes (the API of
+        :meth:`~trajeglish_env.env.split.SplitEgoEnv.apply`, whose scenes live in several)."""
+        return [fn(self, *args, **kwargs)]
 
     def render(self) -> tuple[Any, ...] | None:
         """Frames of every scene (``rgb_array``)."""

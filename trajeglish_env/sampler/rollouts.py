@@ -10,14 +10,13 @@ per-call costs of the engine, NumPy's guard geometry and Python, do not share a 
 from __future__ import annotations
 
 import multiprocessing
-import sys
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from trajeglish_env.checkpoint import Checkpoint
-from trajeglish_env.cores import others_busy_cores, threads_for, usable_cores
+from trajeglish_env.cores import can_fork, others_busy_cores, threads_for, usable_cores
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import RolloutEngine
 from trajeglish_env.scenario import Scenario
@@ -79,12 +78,6 @@ def rollout(
     if count > 1 and rollouts > 1 and on_cpu and can_fork():
         return _split_rollouts(job, rollouts, count)
     return _sample(job, 0, rollouts)
-
-
-def can_fork() -> bool:
-    """Whether rollouts may be split over forked processes: on Linux (macOS forks, but its system
-    libraries are not safe to use in a forked child)."""
-    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
 
 
 def auto_processes(rollouts: int) -> int:

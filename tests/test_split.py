@@ -1,0 +1,188 @@
+"""The batched ego env split over worker processes: exactly the rollouts of one process (autoresets, seeds,
+per-scene tools, SB3), errors that name the scenes' worker, and the automatic process count."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+from helpers import tiny
+from stable_baselines3 import PPO
+
+from trajeglish_env.cores import can_fork
+from trajeglish_env.env import RewardConfig, TrajeglishNPC
+from trajeglish_env.env import split as split_module
+from trajeglish_env.env.sb3 import SB3VecEnv
+from trajeglish_env.env.split import SplitEgoEnv, auto_env_processes, batched_ego_env
+from trajeglish_env.env.vector import BatchedEgoEnv
+
+pytestmark = pytest.mark.skipif(not can_fork(), reason="the split env forks its workers (Linux)")
+
+SCENES = ["highway-merge-999000", "sumo-random-999000-0-0", "highway-exit-999001"]
+
+
+def kwargs(**overrides: object) -> dict:
+    """Tiny-model NPCs, 6-step episodes (several autoresets in a test), a few bundled scenes."""
+    from helpers import bundle_scene
+
+    return {
+        "scenes": [bundle_scene(name) for name in SCENES],
+        "npc": TrajeglishNPC(tiny()),
+        "max_cycles": 6,
+        "torch_threads": 1,
+        **overrides,
+    }
+
+
+def ego_states(venv: BatchedEgoEnv) -> list[np.ndarray]:
+    """Each scene's current ego state (a function run where the scenes live)."""
+    return [env.sim.driver.xyh[env.sim.index_of(env.agent)].copy() for env in venv.envs]
+
+
+def same_step(got: tuple, want: tuple) -> None:
+    obs, rew, term, trunc, info = got
+    obs2, rew2, term2, trunc2, info2 = want
+    assert np.array_equal(obs, obs2) and np.array_equal(rew, rew2)
+    assert np.array_equal(term, term2) and np.array_equal(trunc, trunc2)
+    assert sorted(info) == sorted(info2)
+    if "final_obs" in info:
+        assert np.array_equal(info["_final_obs"], info2["_final_obs"])
+        for a, b in zip(info["final_obs"], info2["final_obs"], strict=True):
+            assert (a is None and b is None) or np.array_equal(a, b)
+    if "agent" in info:  # scenes restarted this step: their new egos
+        assert list(info["agent"]) == list(info2["agent"])
+
+
+def test_split_env_plays_exactly_what_one_process_plays() -> None:
+    one = BatchedEgoEnv(5, **kwargs())
+    split = SplitEgoEnv(5, processes=2, **kwargs())
+    try:
+        assert [len(s) for s in split.shards] == [2, 3]
+        assert split.single_action_space == one.single_action_space
+        assert split.observation_space == one.observation_space
+        obs, info = split.reset(seed=7)
+        obs2, info2 = one.reset(seed=7)
+        assert np.array_equal(obs, obs2) and list(info["agent"]) == list(info2["agent"])
+        rng = np.random.default_rng(0)
+        ended = 0
+        for _ in range(14):  # two autoresets of every scene
+            actions = rng.uniform(-1, 1, (5, 2)).astype(np.float32)
+            got, want = split.step(actions), one.step(actions)
+            same_step(got, want)
+            ended += int((got[2] | got[3]).sum())
+        assert ended >= 10
+        # per-scene tools reach into the workers: names, methods, the scene's simulation (a copy)
+        assert [env.agent for env in split.envs] == [env.agent for env in one.envs]
+        target = np.array([1.0, 2.0, 0.1])
+        towards = [env.action_towards(env.agent, target) for env in (split.envs[4], one.envs[4])]
+        assert np.array_equal(*towards)
+        assert split.envs[3].scenario.scenario_id == one.envs[3].scenario.scenario_id
+        states = [s for shard in split.apply(ego_states) for s in shard]
+        assert all(np.array_equal(a, b) for a, b in zip(states, ego_states(one), strict=True))
+        # resetting one scene in its worker, with a chosen scene: the others go on where they are
+        obs3, info3 = split.envs[1].reset(seed=3, options={"scene": SCENES[2]})
+        obs4, info4 = one.envs[1].reset(seed=3, options={"scene": SCENES[2]})
+        assert np.array_equal(obs3, obs4) and info3 == info4
+        actions = np.zeros((5, 2), np.float32)
+        same_step(split.step(actions), one.step(actions))
+        # explicit seeds per scene
+        obs, _ = split.reset(seed=[1, 2, 3, 4, 5])
+        assert np.array_equal(obs, one.reset(seed=[1, 2, 3, 4, 5])[0])
+    finally:
+        split.close()
+    assert split.closed and all(not w.is_alive() for w in split._workers)
+    with pytest.raises(RuntimeError, match="SplitEgoEnv is closed"):
+        split.step(np.zeros((5, 2), np.float32))
+
+
+def test_split_env_refuses_bad_inputs_and_names_the_worker_of_an_error() -> None:
+    with pytest.raises(ValueError, match="processes must be a positive int or 'auto'"):
+        SplitEgoEnv(4, processes=0, npc="idm")
+    with pytest.raises(ValueError, match=r"num_envs must be an int >= processes \(3\)"):
+        SplitEgoEnv(2, processes=3, npc="idm")
+    with pytest.raises(FileNotFoundError, match="/no/such/dir"):  # in this process, before any fork
+        SplitEgoEnv(2, processes=2, npc="idm", scenes="/no/such/dir")
+    venv = SplitEgoEnv(4, processes=2, **kwargs())
+    reference = BatchedEgoEnv(4, **kwargs())
+    try:
+        venv.reset(seed=0)
+        reference.reset(seed=0)
+        with pytest.raises(ValueError, match="expected 4 actions"):
+            venv.step(np.zeros((3, 2), np.float32))
+        bad = np.zeros((4, 2), np.float32)
+        bad[3] = [3.0, 0.0]
+        # checked before any worker moves: the next step is still the reference's
+        agent = venv.envs[3].agent
+        with pytest.raises(ValueError, match=f"agent {agent}: action .* outside the action space"):
+            venv.step(bad)
+        same_step(venv.step(np.zeros((4, 2), np.float32)), reference.step(np.zeros((4, 2), np.float32)))
+        # an error raised in a worker comes back with its type, naming the worker's scenes
+        with pytest.raises(ValueError, match="scene") as caught:
+            venv.envs[2].reset(options={"scene": "no-such-scene"})
+        assert any("worker of scenes 2..3" in note for note in caught.value.__notes__)
+        same_step(venv.step(np.zeros((4, 2), np.float32)), reference.step(np.zeros((4, 2), np.float32)))
+        # a dead worker: a clear error, not a hang
+        os.kill(venv._workers[1].pid, signal.SIGKILL)
+        venv._workers[1].join()
+        with pytest.raises(RuntimeError, match=r"the worker of scenes 2..3 died \(exit code -9\)"):
+            venv.step(np.zeros((4, 2), np.float32))
+    finally:
+        venv.close()
+
+
+def test_sb3_on_the_split_env_equals_one_process_and_trains() -> None:
+    kw = kwargs()
+    split, one = SB3VecEnv(4, processes=2, **kw), SB3VecEnv(4, processes=1, **kw)
+    try:
+        assert isinstance(split.venv, SplitEgoEnv) and isinstance(one.venv, BatchedEgoEnv)
+        split.seed(5)
+        one.seed(5)
+        assert np.array_equal(split.reset(), one.reset())
+        rng = np.random.default_rng(1)
+        for _ in range(8):
+            a = rng.uniform(-1, 1, (4, 2)).astype(np.float32)
+            got, want = split.step(a), one.step(a)
+            assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+            assert np.array_equal(got[2], want[2])
+            for i in np.flatnonzero(got[2]):
+                assert np.array_equal(got[3][i]["terminal_observation"], want[3][i]["terminal_observation"])
+        assert split.get_attr("agent") == one.get_attr("agent")
+        assert split.env_method("agent_index", split.get_attr("agent", 0)[0], indices=0) == one.env_method(
+            "agent_index", one.get_attr("agent", 0)[0], indices=0
+        )
+        model = PPO("MlpPolicy", split, n_steps=8, batch_size=16, n_epochs=1, seed=0, device="cpu")
+        model.learn(32)
+        assert model.num_timesteps >= 32
+    finally:
+        split.close()
+        one.close()
+
+
+def test_auto_process_count_uses_the_free_cores_and_enough_scenes(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(split_module, "usable_cores", lambda: 4)
+    monkeypatch.setattr(split_module, "others_busy_cores", lambda: 0.0)
+    assert [auto_env_processes(b) for b in (1, 7, 8, 12, 16, 128)] == [1, 1, 2, 3, 4, 4]
+    monkeypatch.setattr(split_module, "others_busy_cores", lambda: 1.0)  # one core kept busy by another
+    assert auto_env_processes(128) == 3
+    monkeypatch.setattr(split_module, "others_busy_cores", lambda: 3.0)
+    assert auto_env_processes(128) == 1
+    monkeypatch.setattr(split_module, "can_fork", lambda: False)
+    monkeypatch.setattr(split_module, "others_busy_cores", lambda: 0.0)
+    assert auto_env_processes(128) == 1
+    assert isinstance(batched_ego_env(2, processes="auto", npc="idm", max_cycles=3), BatchedEgoEnv)
+    with pytest.raises(ValueError, match="processes must be a positive int or 'auto'"):
+        batched_ego_env(2, processes="many", npc="idm")
+
+
+def test_split_env_with_rule_based_npcs_and_one_scene_per_worker() -> None:
+    kw = {"npc": "idm", "max_cycles": 5, "reward": RewardConfig(terminate_on_collision=False)}
+    split, one = SplitEgoEnv(3, processes=3, **kw), BatchedEgoEnv(3, **kw)
+    try:
+        assert np.array_equal(split.reset(seed=11)[0], one.reset(seed=11)[0])
+        for _ in range(7):
+            a = np.full((3, 2), 0.3, np.float32)
+            same_step(split.step(a), one.step(a))
+    finally:
+        split.close()
