@@ -21,9 +21,6 @@ from typing import Any
 
 import gymnasium
 import numpy as np
-from gymnasium.vector import VectorEnv
-from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
-from gymnasium.vector.vector_env import AutoresetMode
 
 from trajeglish_env.cores import can_fork, others_busy_cores, threads_for, usable_cores
 from trajeglish_env.env.actions import check_action
@@ -31,7 +28,7 @@ from trajeglish_env.env.config import EnvConfig
 from trajeglish_env.env.gym_ego import check_single
 from trajeglish_env.env.scene_batch import load_npc_checkpoint, trajeglish_settings
 from trajeglish_env.env.scenes import scene_set
-from trajeglish_env.env.vector import BatchedEgoEnv, _seeds
+from trajeglish_env.env.vector import BatchedEgoEnv, EgoVectorEnv
 
 __all__ = ["MIN_SCENES_PER_PROCESS", "SplitEgoEnv", "auto_env_processes", "batched_ego_env"]
 
@@ -169,12 +166,10 @@ class RemoteScene:
         self._owner._scene_command("setattr", self._index, name, value)
 
 
-class SplitEgoEnv(VectorEnv):
+class SplitEgoEnv(EgoVectorEnv):
     """``num_envs`` single-ego scenes in ``processes`` forked workers (arguments as
     :class:`~trajeglish_env.env.vector.BatchedEgoEnv`; ``torch_threads`` is each worker's: ``"auto"`` gives
     a worker the usable cores divided among the workers, at least one). Same-step autoreset."""
-
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(
         self,
@@ -226,10 +221,7 @@ class SplitEgoEnv(VectorEnv):
         except BaseException:
             self._stop()
             raise
-        self.single_observation_space, self.single_action_space = spaces[0]
-        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
-        self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self._obs = create_empty_array(self.single_observation_space, self.num_envs)
+        self._set_spaces(*spaces[0])
         self.agents = [""] * self.num_envs
         self.envs = [RemoteScene(self, i) for i in range(self.num_envs)]
 
@@ -292,17 +284,6 @@ class SplitEgoEnv(VectorEnv):
         return self._all("apply", [(fn, args, kwargs)] * self.processes)
 
     # ------------------------------------------------------------------ the VectorEnv API
-    def reset(
-        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[Any, dict[str, Any]]:
-        """Reset every scene (``seed + i`` for scene i, or a list of seeds; ``options`` go to each)."""
-        self._np_random_seed = seed if isinstance(seed, int) else None
-        observations, infos = self.reset_each(_seeds(seed, self.num_envs), [options] * self.num_envs)
-        merged: dict[str, Any] = {}
-        for i, info in enumerate(infos):
-            merged = self._add_info(merged, info, i)
-        return self._batched(observations), merged
-
     def reset_each(
         self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
     ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
@@ -316,22 +297,6 @@ class SplitEgoEnv(VectorEnv):
             infos += info
         self.agents = [info["agent"] for info in infos]
         return observations, infos
-
-    def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """One timestep of every scene; finished scenes are reset in the same call."""
-        rewards = np.zeros(self.num_envs)
-        terminated = np.zeros(self.num_envs, dtype=bool)
-        truncated = np.zeros(self.num_envs, dtype=bool)
-        infos: dict[str, Any] = {}
-        observations = []
-        for i, (obs, rewards[i], terminated[i], truncated[i], info, final) in enumerate(
-            self.step_each(actions)
-        ):
-            if final is not None:
-                infos = self._add_info(infos, {"final_obs": final[0], "final_info": final[1]}, i)
-            observations.append(obs)
-            infos = self._add_info(infos, info, i)
-        return self._batched(observations), rewards, terminated, truncated, infos
 
     def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
         """Step every scene (every action checked before any worker moves); per scene ``(obs, reward,
@@ -350,9 +315,6 @@ class SplitEgoEnv(VectorEnv):
             for name, (*_, info, final) in zip(self.agents, results, strict=True)
         ]
         return results
-
-    def _batched(self, observations: list[np.ndarray]) -> Any:
-        return concatenate(self.single_observation_space, observations, self._obs).copy()
 
     def render(self) -> tuple[Any, ...] | None:
         """Frames of every scene (``rgb_array``)."""

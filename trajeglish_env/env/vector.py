@@ -36,7 +36,7 @@ from trajeglish_env.env.scenes import scene_set
 from trajeglish_env.env.simulation import AgentReport, Simulation
 from trajeglish_env.env.threads import auto_threads
 
-__all__ = ["BatchedEgoEnv", "BatchedParallelEnv", "auto_threads"]
+__all__ = ["BatchedEgoEnv", "BatchedParallelEnv", "EgoVectorEnv", "auto_threads"]
 
 
 def _seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
@@ -176,43 +176,21 @@ class EgoScene:
             self.owner.core.renderers[self.index].close()
 
 
-class BatchedEgoEnv(VectorEnv):
-    """``num_envs`` single-ego scenes as one Gymnasium ``VectorEnv`` (arguments as
-    :class:`~trajeglish_env.env.gym_ego.EgoEnv`, plus ``torch_threads``: an int, None to leave torch
-    alone, or ``"auto"``, see :class:`~trajeglish_env.env.threads.AdaptiveThreads`). Autoreset: same step
-    (``infos["final_obs"]``)."""
+class EgoVectorEnv(VectorEnv):
+    """The Gymnasium ``VectorEnv`` API of the batched ego envs (:class:`BatchedEgoEnv` and
+    :class:`~trajeglish_env.env.split.SplitEgoEnv`) on their per-scene ``reset_each`` / ``step_each``.
+    Autoreset: same step (``infos["final_obs"]``)."""
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"], "render_fps": 10}
+    _obs: Any
 
-    def __init__(
-        self,
-        num_envs: int,
-        scenes: Any = None,
-        config: EnvConfig | None = None,
-        render_mode: str | None = None,
-        torch_threads: int | str | None = "auto",
-        **options: Any,
-    ):
-        config = (config or EnvConfig()).with_overrides(**options)
-        check_single(config)
-        self.core = BatchCore(num_envs, scenes, config, render_mode, torch_threads)
-        self.num_envs = self.core.num_envs
-        self.render_mode = render_mode
-        self.single_observation_space = self.core.single_observation_space
-        self.single_action_space = named_action_space(config.action, self.core.vocab_size, "ego")
-        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
-        self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self._obs = create_empty_array(self.single_observation_space, self.num_envs)
-        self.egos = np.zeros(self.num_envs, dtype=np.int64)
-        self.agents = [""] * self.num_envs
-        self.envs = [EgoScene(self, i) for i in range(self.num_envs)]
+    def reset_each(
+        self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
+    ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
+        raise NotImplementedError
 
-    def restart(self, scene: int, seed: int | None, options: dict[str, Any] | None) -> dict[str, Any]:
-        """Start scene ``scene``'s next episode; its reset info."""
-        sim = self.core.start(scene, seed, options)
-        self.egos[scene] = sim.external_index[0]
-        self.agents[scene] = sim.names[int(self.egos[scene])]
-        return {"agent": self.agents[scene], "scenario_id": sim.sc.scenario_id}
+    def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
+        raise NotImplementedError
 
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
@@ -224,17 +202,6 @@ class BatchedEgoEnv(VectorEnv):
         for i, info in enumerate(infos):
             merged = self._add_info(merged, info, i)
         return self._batched(observations), merged
-
-    def reset_each(
-        self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
-    ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
-        """Reset scene i with ``seeds[i]`` and ``options[i]``; per-scene observations and infos."""
-        infos = [self.restart(i, s, o) for i, (s, o) in enumerate(zip(seeds, options, strict=True))]
-        self.core.position()
-        return self._observe_all(), infos
-
-    def _observe_all(self) -> list[np.ndarray]:
-        return self.core.batch.observe(range(self.num_envs), self.egos)
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """One timestep of every scene; finished scenes are reset in the same call."""
@@ -251,6 +218,61 @@ class BatchedEgoEnv(VectorEnv):
             observations.append(obs)
             infos = self._add_info(infos, info, i)
         return self._batched(observations), rewards, terminated, truncated, infos
+
+    def _set_spaces(self, observation: gymnasium.Space, action: gymnasium.Space) -> None:
+        """One scene's observation and action spaces, and those of the batch (``num_envs`` set first)."""
+        self.single_observation_space, self.single_action_space = observation, action
+        self.observation_space = batch_space(observation, self.num_envs)
+        self.action_space = batch_space(action, self.num_envs)
+        self._obs = create_empty_array(observation, self.num_envs)
+
+    def _batched(self, observations: list[np.ndarray]) -> Any:
+        return concatenate(self.single_observation_space, observations, self._obs).copy()
+
+
+class BatchedEgoEnv(EgoVectorEnv):
+    """``num_envs`` single-ego scenes as one Gymnasium ``VectorEnv`` (arguments as
+    :class:`~trajeglish_env.env.gym_ego.EgoEnv`, plus ``torch_threads``: an int, None to leave torch
+    alone, or ``"auto"``, see :class:`~trajeglish_env.env.threads.AdaptiveThreads`). Autoreset: same step
+    (``infos["final_obs"]``)."""
+
+    def __init__(
+        self,
+        num_envs: int,
+        scenes: Any = None,
+        config: EnvConfig | None = None,
+        render_mode: str | None = None,
+        torch_threads: int | str | None = "auto",
+        **options: Any,
+    ):
+        config = (config or EnvConfig()).with_overrides(**options)
+        check_single(config)
+        self.core = BatchCore(num_envs, scenes, config, render_mode, torch_threads)
+        self.num_envs = self.core.num_envs
+        self.render_mode = render_mode
+        action_space = named_action_space(config.action, self.core.vocab_size, "ego")
+        self._set_spaces(self.core.single_observation_space, action_space)
+        self.egos = np.zeros(self.num_envs, dtype=np.int64)
+        self.agents = [""] * self.num_envs
+        self.envs = [EgoScene(self, i) for i in range(self.num_envs)]
+
+    def restart(self, scene: int, seed: int | None, options: dict[str, Any] | None) -> dict[str, Any]:
+        """Start scene ``scene``'s next episode; its reset info."""
+        sim = self.core.start(scene, seed, options)
+        self.egos[scene] = sim.external_index[0]
+        self.agents[scene] = sim.names[int(self.egos[scene])]
+        return {"agent": self.agents[scene], "scenario_id": sim.sc.scenario_id}
+
+    def reset_each(
+        self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
+    ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
+        """Reset scene i with ``seeds[i]`` and ``options[i]``; per-scene observations and infos."""
+        infos = [self.restart(i, s, o) for i, (s, o) in enumerate(zip(seeds, options, strict=True))]
+        self.core.position()
+        return self._observe_all(), infos
+
+    def _observe_all(self) -> list[np.ndarray]:
+        return self.core.batch.observe(range(self.num_envs), self.egos)
 
     def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
         """Step every scene; per scene ``(obs, reward, terminated, truncated, info, final)`` where a
@@ -286,9 +308,6 @@ class BatchedEgoEnv(VectorEnv):
             )
             for i, (obs, r, info) in enumerate(zip(observations, reports, infos, strict=True))
         ]
-
-    def _batched(self, observations: list[np.ndarray]) -> Any:
-        return concatenate(self.single_observation_space, observations, self._obs).copy()
 
     def apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> list[Any]:
         """``[fn(self, *args, **kwargs)]``: this env as the one shard of its scenes (the API of
