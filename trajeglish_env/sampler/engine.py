@@ -37,6 +37,7 @@ import torch
 
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.geometry import to_global
+from trajeglish_env.heap import keep_freed_memory
 from trajeglish_env.model.config import Variant
 from trajeglish_env.model.layers import MIN_GEMM_ROWS, linear_compute
 from trajeglish_env.sampler.config import SamplingConfig
@@ -75,6 +76,7 @@ class BatchEngine(WindowedRows):
     ):
         if rows < 1:
             raise ValueError(f"rows must be >= 1, got {rows}")
+        keep_freed_memory()  # a step's activations reuse freed heap memory (trajeglish_env/heap.py)
         config = config or SamplingConfig()
         cache_dtype = config.torch_cache_dtype if cache_dtype is None else cache_dtype
         model = ckpt.model.eval()

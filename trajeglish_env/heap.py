@@ -1,0 +1,43 @@
+"""The C heap's policy for the decoding engines: keep freed memory for the next allocation.
+
+glibc serves an allocation above its mmap threshold (128 kB, raised to the largest block freed so far, at
+most 32 MB) with fresh pages from the kernel, and gives the top of the heap back once more than its trim
+threshold is free. A decoding step allocates and frees the same few-megabyte activations dozens of
+times, so every one of them paid the kernel for zeroed pages again: a bfloat16 linear layer of 1,536
+rows x 512 took 3.6 ms instead of 0.58 ms, and the env ran 11-13 % slower (measured, 2-core machine).
+:func:`keep_freed_memory` raises both thresholds once per process. It changes no number (where memory
+comes from, not what is computed) and no peak: memory freed after the peak stays in the process (up to
+``TRIM_MB`` at the heap's top) instead of going back to the kernel. ``TRAJEGLISH_KEEP_HEAP=0`` turns
+it off; on a C library without ``mallopt`` (macOS, Windows) it does nothing.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+
+MMAP_MB = 64  # allocations below this come from the heap (reused) rather than fresh kernel pages
+TRIM_MB = 256  # free memory at the heap's top kept for reuse before it is given back
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters
+_done: bool | None = None
+
+
+def keep_freed_memory() -> bool:
+    """Raise the C heap's mmap and trim thresholds for this process (once); whether the policy is in force
+    (False where it is turned off or the C library has no ``mallopt``)."""
+    global _done
+    if _done is None:
+        _done = os.environ.get("TRAJEGLISH_KEEP_HEAP", "1") != "0" and _mallopt()
+    return _done
+
+
+def _mallopt() -> bool:
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError, TypeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_MB << 20)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_MB << 20))
