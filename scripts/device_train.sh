@@ -137,16 +137,9 @@ GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
-if ! "$PYTHON" -c 'import gymnasium, pettingzoo, highway_env, pygame' 2>/dev/null; then
-    if compgen -G "$WHEELS/*.whl" >/dev/null; then
-        say "installing $(ls "$WHEELS"/*.whl | wc -l) wheels from $WHEELS into $SITE"
-        "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-            --target "$SITE" "$WHEELS"/*.whl || die "pip could not install the wheels of $WHEELS"
-        export PYTHONPATH="$PYTHONPATH:$SITE"
-    else
-        say "no wheels in $WHEELS (run \`make device-wheels\` and carry .whl if a package is missing)"
-    fi
-fi
+# shellcheck source=scripts/device_packages.sh
+. scripts/device_packages.sh
+install_carried_wheels
 
 # ---- 3. the machine (and the carried run's checkpoint, rebuilt from its parts)
 REBUILD=()

@@ -82,6 +82,8 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         BenchConfig(guards=())
     assert main(["bench", "--threads", "lots", "--quiet"]) == 2
     assert "--threads must be 'auto' or a positive integer" in capsys.readouterr().err
+    assert main(["bench", "--device", "gpu", "--quiet"]) == 2
+    assert "--device must name a torch device" in capsys.readouterr().err
     out = tmp_path / "bench.json"
     assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)

@@ -160,3 +160,37 @@ def test_time_limit_stops_and_the_resume_is_exact(tmp_path: Path) -> None:
     b = load_checkpoint(tmp_path / "b" / "model.pt").model.state_dict()
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=f"{k} differs after a timed stop")
+
+
+# ------------------------------------------------------------------------- the GPU bench job
+BENCH_SCRIPT = REPO / "scripts" / "device_bench.sh"
+
+
+def _bench_job(tmp: Path, **env: str) -> subprocess.CompletedProcess[str]:
+    settings = {"OUT": str(tmp / "out"), "PYTHON": sys.executable, "WHEELS": str(tmp / "no-wheels"), **env}
+    return subprocess.run(
+        [BASH, str(BENCH_SCRIPT)],
+        cwd=REPO,
+        env={**os.environ, **settings},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=300,
+    )
+
+
+@pytest.mark.skipif(BASH is None, reason="needs bash")
+def test_the_gpu_bench_job_dry_runs_on_the_cpu_and_refuses_a_machine_without_cuda(tmp_path: Path) -> None:
+    done = _bench_job(tmp_path, DEVICE="cpu", QUICK="1", BATCHES="2")
+    assert done.returncode == 0, done.stdout[-3000:]
+    result = json.loads((tmp_path / "out" / "bench_gpu.json").read_text())
+    run = result["env"]["trajeglish_guard"]["2"]
+    assert run["device"] == "cpu" and run["processes"] == 1 and run["agent_steps_per_s"] > 0
+    assert "env trajeglish_guard B=   2" in (tmp_path / "out" / "bench_gpu.txt").read_text()
+    assert "trajeglish_guard_split" not in result["env"]  # --no-split: the GPU runs stay in one process
+    if torch.cuda.is_available():
+        return
+    refused = _bench_job(tmp_path / "second")
+    assert refused.returncode == 2
+    assert "device_bench: ERROR: torch sees no CUDA device on this machine" in refused.stdout
+    assert "DEVICE=gpu: expected cuda or cpu" in _bench_job(tmp_path / "third", DEVICE="gpu").stdout

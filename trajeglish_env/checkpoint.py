@@ -7,6 +7,7 @@ mismatched files fail with a :class:`CheckpointError` that names the file and th
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import os
 from dataclasses import dataclass
@@ -92,6 +93,22 @@ def save_checkpoint(
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)
     return path
+
+
+def on_device(ckpt: Checkpoint, device: str | torch.device) -> Checkpoint:
+    """``ckpt`` with its model on ``device``: itself when it is there already, else a copy (the caller's
+    model is not moved); a CUDA device on a machine without one is refused with one clear line."""
+    target = torch.device(device)
+    if target.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(
+            f"device {str(device)!r}: CUDA is not available on this machine (torch "
+            f"{torch.__version__}); use device='cpu'"
+        )
+    here = next(ckpt.model.parameters()).device
+    if here.type == target.type and (target.index is None or here.index == target.index):
+        return ckpt
+    model = copy.deepcopy(ckpt.model).to(target).eval()
+    return dataclasses.replace(ckpt, model=model)
 
 
 def check_compatible(cfg: ModelConfig, vocabulary: MotionVocabulary, where: str) -> None:

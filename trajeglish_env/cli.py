@@ -213,6 +213,7 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
         guards=GUARD_CHOICES[args.guard],
         womd=args.womd,
         split=not args.no_split,
+        device=args.device,
     )
     result = run_suite(config, progress=not args.quiet)
     if args.out:
@@ -426,6 +427,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--womd",
         help="the womd section's WOMD scenario file (default: data/womd/motion_data_one_scenario.tfrecord "
         "of the shared folder: $TRAJEGLISH_SHARED, else shared/ beside the checkout; none: skipped)",
+    )
+    p.add_argument(
+        "--device",
+        default="cpu",
+        help="torch device of the env runs' NPC model (cpu, cuda, cuda:1): the GPU figures of issue 16",
     )
     p.add_argument(
         "--no-split",

@@ -253,6 +253,7 @@ def env_speed(
     subsets: str = "overlap",
     compute_dtype: str = "auto",
     processes: int | str = 1,
+    device: str = "cpu",
 ) -> dict[str, Any]:
     """Stepping speed of the batched ego env: ``num_envs`` scenes of ``agents`` agents (the bundled
     SUMO scenes cut to the sdc and its nearest neighbours), one ego each replaying its log through
@@ -260,7 +261,8 @@ def env_speed(
     computed outside the timed region) and reports peak memory of the process (with its env workers).
     ``npc``: ``"replay"``, ``"trajeglish"`` (unguarded sampling) or ``"trajeglish_guard"`` (guarded
     sampling); ``processes``: the env's worker processes (1: one :class:`BatchedEgoEnv`, else a
-    :class:`~trajeglish_env.env.split.SplitEgoEnv`; ``"auto"``: its automatic count).
+    :class:`~trajeglish_env.env.split.SplitEgoEnv`; ``"auto"``: its automatic count); ``device``: where
+    the NPC model decodes (``"cuda"``: also the peak GPU memory).
 
     ``steps`` None: Trajeglish NPCs are timed over one whole window cycle of the model (its
     ``recompute_every`` steps, one of which re-encodes and re-primes every scene's windows), so the
@@ -282,7 +284,7 @@ def env_speed(
         sampling = SamplingConfig(
             cache_dtype=cache_dtype, subsets=subsets, guard=GUARDED[npc], compute_dtype=compute_dtype
         )
-        npc_spec = TrajeglishNPC(ckpt, sampling)
+        npc_spec = TrajeglishNPC(ckpt, sampling, device=device)
         if steps is None:  # one window cycle
             steps = npc_spec.sampling.every(ckpt.model.cfg.steps)
     steps = 40 if steps is None else steps
@@ -320,6 +322,8 @@ def env_speed(
         "agents_per_scene": agents,
         "processes": len(threads),
         "torch_threads": threads[0],
+        "device": device if model else None,
+        "peak_gpu_mb": _peak_gpu_mb(device) if model else None,
         "cache_dtype": cache_dtype if model else None,
         "compute_dtype": dtype_name(sampling.torch_compute_dtype()) if model else None,
         "subsets": subsets if model else None,
@@ -338,6 +342,13 @@ def env_speed(
 def _log_actions(venv: Any) -> np.ndarray:
     """The continuous actions bringing each scene's ego of a batched env closest to its logged next state."""
     return np.stack([log_action(env, env.agent) for env in venv.envs])
+
+
+def _peak_gpu_mb(device: str) -> float | None:
+    """Peak GPU memory allocated by torch in this process (None on the CPU)."""
+    if torch.device(device).type != "cuda":
+        return None
+    return round(torch.cuda.max_memory_allocated(torch.device(device)) / 2**20, 1)
 
 
 def _window_steps(venv: Any) -> np.ndarray:

@@ -38,7 +38,8 @@ class BenchConfig:
     ``womd`` section's scenario file (None: the shared one, see :func:`~trajeglish_env.benchmark.womd.
     locate_womd`) and ``split``: whether the env and busy sections also run the default NPCs' env with its
     scenes split over worker processes (``processes="auto"``, :class:`~trajeglish_env.env.split.
-    SplitEgoEnv`) at the batch sizes that split (:func:`split_batches`)."""
+    SplitEgoEnv`) at the batch sizes that split (:func:`split_batches`); ``device``: the torch device the
+    env runs' NPC model decodes on (``"cuda"``: a GPU; the split runs then stay in one process)."""
 
     batches: tuple[int, ...] = (1, 8, 32, 128, 256)
     agents: int = 24
@@ -53,6 +54,7 @@ class BenchConfig:
     guards: tuple[bool, ...] = (False, True)
     womd: str | None = None
     split: bool = True
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.sections) - set(SECTIONS))
@@ -62,10 +64,27 @@ class BenchConfig:
             raise ValueError(f"bench: batch sizes must be positive, got {list(self.batches)}")
         if not self.guards or not all(isinstance(g, bool) for g in self.guards):
             raise ValueError(f"bench: guards must be a non-empty tuple of bools, got {self.guards!r}")
+        _check_device(self.device)
         if (self.env_steps is not None and self.env_steps < 1) or min(
             self.replay_steps, self.highway_steps
         ) < 1:
             raise ValueError("bench: step counts must be >= 1")
+
+
+def _check_device(device: str) -> None:
+    """A torch device name the env runs can use here (one clear line otherwise)."""
+    import torch
+
+    try:
+        kind = torch.device(device).type
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(
+            f"bench: --device must name a torch device (cpu, cuda, cuda:1), got {device!r}"
+        ) from exc
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"bench: --device {device}: CUDA is not available on this machine")
+    if kind not in ("cpu", "cuda"):
+        raise ValueError(f"bench: --device {device}: expected a cpu or cuda device")
 
 
 def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
@@ -259,6 +278,7 @@ def _env_job(
             "cache_dtype": config.cache_dtype,
             "compute_dtype": config.compute_dtype,
             "processes": processes,
+            "device": config.device,
         }
         cmd = [sys.executable, "-m", "trajeglish_env.benchmark.worker", json.dumps(spec)]
         done = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -377,6 +397,8 @@ def _busy_lines(result: dict[str, Any]) -> list[str]:
 
 def _parallelism(run: dict[str, Any]) -> str:
     """How an env run used the cores: its torch threads, and its worker processes when split."""
-    processes = run.get("processes", 1)
+    processes, device = run.get("processes", 1), run.get("device")
+    if device not in (None, "cpu"):
+        return f"model on {device}"
     threads = f"threads {run.get('torch_threads')}"
     return threads if processes == 1 else f"{processes} processes x {threads}"

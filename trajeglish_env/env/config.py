@@ -37,11 +37,14 @@ class TrajeglishNPC:
     one sampling configuration of the project, with the same defaults everywhere; its ``seed`` is unused
     here, since every episode draws its own). ``drive_entering``: the agents the log brings in after the
     episode's first step are NPCs too, driven by the model from their first logged step (False: they replay
-    the log, which cannot react and runs into NPCs that did not drive as the log did)."""
+    the log, which cannot react and runs into NPCs that did not drive as the log did). ``device``: the torch
+    device the model decodes on (``"cpu"``, ``"cuda"``, ``"cuda:1"``; None: where the checkpoint is, the
+    CPU for a loaded file); the env's own state and geometry stay on the host either way."""
 
     checkpoint: Any = None
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     drive_entering: bool = True
+    device: str | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.sampling, SamplingConfig):
@@ -50,6 +53,16 @@ class TrajeglishNPC:
             )
         if not isinstance(self.drive_entering, bool):
             raise TypeError(f"TrajeglishNPC.drive_entering must be a bool, got {self.drive_entering!r}")
+        if self.device is not None:
+            import torch
+
+            try:
+                torch.device(self.device)
+            except (RuntimeError, TypeError) as exc:
+                raise ValueError(
+                    f"TrajeglishNPC.device must name a torch device ('cpu', 'cuda', 'cuda:1') or be None, "
+                    f"got {self.device!r}"
+                ) from exc
         ok = self.checkpoint is None or isinstance(self.checkpoint, (str, os.PathLike))
         if not ok and not hasattr(self.checkpoint, "vocabulary"):
             raise TypeError(

@@ -27,8 +27,13 @@ from trajeglish_env.env.threads import AdaptiveThreads
 from trajeglish_env.scenario import Scenario
 
 
-def load_npc_checkpoint(checkpoint: Any) -> Any:
-    """A checkpoint for Trajeglish NPCs: None -> the shipped model, a path, or a Checkpoint (checked)."""
+def load_npc_checkpoint(checkpoint: Any, device: str | None = None) -> Any:
+    """A checkpoint for Trajeglish NPCs: None -> the shipped model, a path, or a Checkpoint (checked); on
+    ``device`` when one is given (see :func:`~trajeglish_env.checkpoint.on_device`)."""
+    if device is not None:
+        from trajeglish_env.checkpoint import on_device
+
+        return on_device(load_npc_checkpoint(checkpoint), device)
     from trajeglish_env.checkpoint import (
         Checkpoint,
         CheckpointError,
@@ -83,7 +88,7 @@ class SceneBatch:
         settings = trajeglish_settings(config.npc)
         self.checkpoint = None
         if settings is not None:
-            self.checkpoint = load_npc_checkpoint(settings.checkpoint)
+            self.checkpoint = load_npc_checkpoint(settings.checkpoint, settings.device)
             settings = settings.with_checkpoint(self.checkpoint)  # loaded once; copies share it
             config = config.with_overrides(npc=settings)
         self.config, self.settings = config, settings

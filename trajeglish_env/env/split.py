@@ -57,7 +57,10 @@ def batched_ego_env(
     **options: Any,
 ) -> BatchedEgoEnv | SplitEgoEnv:
     """A :class:`BatchedEgoEnv` (``processes`` 1) or a :class:`SplitEgoEnv` of that many worker processes
-    (``"auto"``: :func:`auto_env_processes`, one process when that is 1)."""
+    (``"auto"``: :func:`auto_env_processes`, one process when that is 1 or the NPC model is on a GPU)."""
+    settings = trajeglish_settings(options.get("npc", (config or EnvConfig()).npc))
+    if processes == "auto" and settings is not None and settings.device not in (None, "cpu"):
+        processes = 1  # a model on another device decodes every scene in one process
     count = _checked_processes(processes, num_envs)
     if count == 1:
         return BatchedEgoEnv(num_envs, scenes, config, render_mode, torch_threads, **options)
@@ -190,7 +193,7 @@ class SplitEgoEnv(EgoVectorEnv):
         check_single(config)
         settings = trajeglish_settings(config.npc)
         if settings is not None:  # load (and check) the model once, here: the workers share its memory
-            checkpoint = load_npc_checkpoint(settings.checkpoint)
+            checkpoint = load_npc_checkpoint(settings.checkpoint, settings.device)
             if next(checkpoint.model.parameters()).device.type != "cpu":
                 raise ValueError("SplitEgoEnv: the NPC model must be on the CPU (a CUDA context cannot fork)")
             config = config.with_overrides(npc=settings.with_checkpoint(checkpoint))
