@@ -12,11 +12,17 @@ from helpers import tiny
 from stable_baselines3 import PPO
 
 from trajeglish_env.cores import can_fork
-from trajeglish_env.env import RewardConfig, TrajeglishNPC
-from trajeglish_env.env import split as split_module
+from trajeglish_env.env import RandomAgents, RewardConfig, TrajeglishNPC
+from trajeglish_env.env import shards as shards_module
 from trajeglish_env.env.sb3 import SB3VecEnv
-from trajeglish_env.env.split import SplitEgoEnv, auto_env_processes, batched_ego_env
-from trajeglish_env.env.vector import BatchedEgoEnv
+from trajeglish_env.env.split import (
+    SplitEgoEnv,
+    SplitParallelEnv,
+    auto_env_processes,
+    batched_ego_env,
+    batched_parallel_env,
+)
+from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv
 
 pytestmark = pytest.mark.skipif(not can_fork(), reason="the split env forks its workers (Linux)")
 
@@ -85,6 +91,7 @@ def test_split_env_plays_exactly_what_one_process_plays() -> None:
         obs3, info3 = split.envs[1].reset(seed=3, options={"scene": SCENES[2]})
         obs4, info4 = one.envs[1].reset(seed=3, options={"scene": SCENES[2]})
         assert np.array_equal(obs3, obs4) and info3 == info4
+        assert split.agents[1] == info3["agent"] == one.agents[1]  # the caller knows the new ego
         actions = np.zeros((5, 2), np.float32)
         same_step(split.step(actions), one.step(actions))
         # explicit seeds per scene
@@ -92,7 +99,7 @@ def test_split_env_plays_exactly_what_one_process_plays() -> None:
         assert np.array_equal(obs, one.reset(seed=[1, 2, 3, 4, 5])[0])
     finally:
         split.close()
-    assert split.closed and all(not w.is_alive() for w in split._workers)
+    assert split.closed and all(not w.is_alive() for w in split.workers.workers)
     with pytest.raises(RuntimeError, match="SplitEgoEnv is closed"):
         split.step(np.zeros((5, 2), np.float32))
 
@@ -124,8 +131,8 @@ def test_split_env_refuses_bad_inputs_and_names_the_worker_of_an_error() -> None
         assert any("worker of scenes 2..3" in note for note in caught.value.__notes__)
         same_step(venv.step(np.zeros((4, 2), np.float32)), reference.step(np.zeros((4, 2), np.float32)))
         # a dead worker: a clear error, not a hang
-        os.kill(venv._workers[1].pid, signal.SIGKILL)
-        venv._workers[1].join()
+        os.kill(venv.workers.workers[1].pid, signal.SIGKILL)
+        venv.workers.workers[1].join()
         with pytest.raises(RuntimeError, match=r"the worker of scenes 2..3 died \(exit code -9\)"):
             venv.step(np.zeros((4, 2), np.float32))
     finally:
@@ -161,15 +168,15 @@ def test_sb3_on_the_split_env_equals_one_process_and_trains() -> None:
 
 
 def test_auto_process_count_uses_the_free_cores_and_enough_scenes(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(split_module, "usable_cores", lambda: 4)
-    monkeypatch.setattr(split_module, "others_busy_cores", lambda: 0.0)
+    monkeypatch.setattr(shards_module, "usable_cores", lambda: 4)
+    monkeypatch.setattr(shards_module, "others_busy_cores", lambda: 0.0)
     assert [auto_env_processes(b) for b in (1, 7, 8, 12, 16, 128)] == [1, 1, 2, 3, 4, 4]
-    monkeypatch.setattr(split_module, "others_busy_cores", lambda: 1.0)  # one core kept busy by another
+    monkeypatch.setattr(shards_module, "others_busy_cores", lambda: 1.0)  # one core kept busy by another
     assert auto_env_processes(128) == 3
-    monkeypatch.setattr(split_module, "others_busy_cores", lambda: 3.0)
+    monkeypatch.setattr(shards_module, "others_busy_cores", lambda: 3.0)
     assert auto_env_processes(128) == 1
-    monkeypatch.setattr(split_module, "can_fork", lambda: False)
-    monkeypatch.setattr(split_module, "others_busy_cores", lambda: 0.0)
+    monkeypatch.setattr(shards_module, "can_fork", lambda: False)
+    monkeypatch.setattr(shards_module, "others_busy_cores", lambda: 0.0)
     assert auto_env_processes(128) == 1
     assert isinstance(batched_ego_env(2, processes="auto", npc="idm", max_cycles=3), BatchedEgoEnv)
     with pytest.raises(ValueError, match="processes must be a positive int or 'auto'"):
@@ -186,3 +193,45 @@ def test_split_env_with_rule_based_npcs_and_one_scene_per_worker() -> None:
             same_step(split.step(a), one.step(a))
     finally:
         split.close()
+
+
+def test_split_parallel_env_plays_exactly_what_one_process_plays() -> None:
+    kw = kwargs(external=RandomAgents(2), max_cycles=5)
+    split, one = SplitParallelEnv(5, processes=2, **kw), BatchedParallelEnv(5, **kw)
+    try:
+        assert split.observation_space("x") == one.observation_space("x")
+        got, want = split.reset(seed=9), one.reset(seed=9)
+        assert split.agents == one.agents and all(len(a) == 2 for a in split.agents)
+        for g, w in zip(got[0], want[0], strict=True):
+            assert g.keys() == w.keys() and all(np.array_equal(g[a], w[a]) for a in g)
+        for step in range(7):
+            actions = [{a: one.action_space(a).sample() for a in agents} for agents in one.agents]
+            assert all(split.action_space(a) == one.action_space(a) for agents in one.agents for a in agents)
+            out, ref = split.step(actions), one.step(actions)
+            for k in range(5):
+                assert [d.keys() for d in out[k]] == [d.keys() for d in ref[k]]
+            for g, w in zip(out[0], ref[0], strict=True):
+                assert all(np.array_equal(g[a], w[a]) for a in g)
+            assert out[1] == ref[1] and out[2] == ref[2] and out[3] == ref[3]
+            assert split.agents == one.agents
+            if step == 5:  # every scene has ended: restart three, across both workers, in a chosen order
+                assert split.agents == [[]] * 5
+                got, want = split.reset_scenes([4, 0, 2], seed=30), one.reset_scenes([4, 0, 2], seed=30)
+                assert [o.keys() for o in got[0]] == [o.keys() for o in want[0]]
+                assert split.agents == one.agents and split.agents[1] == [] and split.agents[4]
+        # checked before any worker moves, naming the scene
+        bad = [{a: one.action_space(a).sample() for a in agents} for agents in split.agents]
+        bad[4] = {}
+        with pytest.raises(KeyError, match="scene 4 has no action for agent"):
+            split.step(bad)
+        with pytest.raises(ValueError, match=r"scene indices \[5\] out of range for 5 scenes"):
+            split.reset_scenes([5])
+        assert [len(p) for p in split.apply(_scene_count)] == [2, 3]
+    finally:
+        split.close()
+    assert all(not w.is_alive() for w in split.workers.workers)
+    assert isinstance(batched_parallel_env(2, processes="auto", npc="idm"), BatchedParallelEnv)
+
+
+def _scene_count(env: BatchedParallelEnv) -> list[list[str]]:
+    return env.agents

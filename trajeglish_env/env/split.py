@@ -1,50 +1,68 @@
-"""A batched ego env whose scenes are split over worker processes: ``B`` scenes in ``P`` contiguous shards,
-each a :class:`~trajeglish_env.env.vector.BatchedEgoEnv` in its own forked process with its own torch
-threads, stepped at once. On a machine whose cores are free this outruns one process of B scenes with
-several torch threads (decoding calls of B / P rows on one core each scale better than B rows over P
-threads, and the NumPy geometry of the guard, one core in one process, runs in every shard at once).
+"""The batched envs with their scenes split over worker processes: ``B`` scenes in ``P`` contiguous shards,
+each a one-process batched env in its own forked worker with its own torch threads
+(:mod:`~trajeglish_env.env.shards`), stepped at once. On a machine whose cores are free this outruns one
+process of B scenes with several torch threads (decoding calls of B / P rows on one core each scale better
+than B rows over P threads, and the guard's NumPy geometry, one core in one process, runs in every shard).
 
-Semantics are :class:`BatchedEgoEnv`'s, bit for bit: scene ``i`` reset with seed ``s`` plays what scene
-``i`` of a one-process batch plays (a scene's results do not depend on the others of its batch). Per-scene
-tools (``envs[i].agent``, ``envs[i].action_towards(...)``, SB3's ``get_attr`` / ``env_method``) reach into
-the scene's worker; :meth:`SplitEgoEnv.apply` runs a function on every shard where its scenes live (no copy
-of the simulations comes back). Workers are forked, so this needs Linux
-(:func:`~trajeglish_env.cores.can_fork`) and a model on the CPU.
+- :class:`SplitEgoEnv`: :class:`~trajeglish_env.env.vector.BatchedEgoEnv`'s Gymnasium ``VectorEnv``.
+- :class:`SplitParallelEnv`: :class:`~trajeglish_env.env.vector.BatchedParallelEnv`'s per-scene parallel
+  API.
+
+Semantics are the one-process env's, bit for bit: scene ``i`` reset with seed ``s`` plays what scene ``i``
+of a one-process batch plays (a scene's results do not depend on the others of its batch). Actions are
+checked here before any worker moves. ``apply(fn)`` runs a function on every shard's env where its scenes
+live (no copy of the simulations comes back); :class:`SplitEgoEnv`'s ``envs[i]`` reach into scene i's
+worker (SB3's ``get_attr`` / ``env_method``). Workers are forked, so this needs Linux
+(:func:`~trajeglish_env.cores.can_fork`) and an NPC model on the CPU.
 """
 
 from __future__ import annotations
 
-import multiprocessing
-import traceback
+import functools
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium
 import numpy as np
 
-from trajeglish_env.cores import can_fork, others_busy_cores, threads_for, usable_cores
 from trajeglish_env.env.actions import check_action
 from trajeglish_env.env.config import EnvConfig
 from trajeglish_env.env.gym_ego import check_single
-from trajeglish_env.env.scene_batch import load_npc_checkpoint, trajeglish_settings
 from trajeglish_env.env.scenes import scene_set
-from trajeglish_env.env.vector import BatchedEgoEnv, EgoVectorEnv
+from trajeglish_env.env.shards import (
+    MIN_SCENES_PER_PROCESS,
+    ShardWorkers,
+    _Method,
+    auto_env_processes,
+    checked_processes,
+    on_gpu,
+    prepared_config,
+    shard_ranges,
+    worker_threads,
+)
+from trajeglish_env.env.vector import (
+    BatchedEgoEnv,
+    BatchedParallelEnv,
+    EgoVectorEnv,
+    ParallelBatchAPI,
+    check_scene_actions,
+)
 
-__all__ = ["MIN_SCENES_PER_PROCESS", "SplitEgoEnv", "auto_env_processes", "batched_ego_env"]
+__all__ = [
+    "MIN_SCENES_PER_PROCESS",
+    "SplitEgoEnv",
+    "SplitParallelEnv",
+    "auto_env_processes",
+    "batched_ego_env",
+    "batched_parallel_env",
+]
 
-# "auto" gives each process at least this many scenes (measured, 2 cores, 24-agent scenes, guarded NPCs:
-# two processes beat one with 2 threads by 11 % at B = 8, 18 % at 16, 32 % at 32, 23 % at 128)
-MIN_SCENES_PER_PROCESS = 4
 
-
-def auto_env_processes(num_envs: int) -> int:
-    """Processes for ``num_envs`` scenes: the usable cores other processes leave free (looked at over a
-    quarter of a second), at most one per :data:`MIN_SCENES_PER_PROCESS` scenes; 1 where workers cannot be
-    forked."""
-    most = num_envs // MIN_SCENES_PER_PROCESS
-    if most < 2 or usable_cores() < 2 or not can_fork():
+def _count(processes: int | str, num_envs: int, config: EnvConfig | None, options: dict[str, Any]) -> int:
+    """The process count of a factory: ``"auto"`` keeps a model meant for a GPU in one process."""
+    if processes == "auto" and on_gpu(config, options):
         return 1
-    return threads_for(others_busy_cores(), most, usable_cores())
+    return checked_processes(processes, num_envs)
 
 
 def batched_ego_env(
@@ -58,90 +76,72 @@ def batched_ego_env(
 ) -> BatchedEgoEnv | SplitEgoEnv:
     """A :class:`BatchedEgoEnv` (``processes`` 1) or a :class:`SplitEgoEnv` of that many worker processes
     (``"auto"``: :func:`auto_env_processes`, one process when that is 1 or the NPC model is on a GPU)."""
-    settings = trajeglish_settings(options.get("npc", (config or EnvConfig()).npc))
-    if processes == "auto" and settings is not None and settings.device not in (None, "cpu"):
-        processes = 1  # a model on another device decodes every scene in one process
-    count = _checked_processes(processes, num_envs)
+    count = _count(processes, num_envs, config, options)
     if count == 1:
         return BatchedEgoEnv(num_envs, scenes, config, render_mode, torch_threads, **options)
     return SplitEgoEnv(num_envs, scenes, config, render_mode, torch_threads, processes=count, **options)
 
 
-def _checked_processes(processes: int | str, num_envs: int) -> int:
-    if processes == "auto":
-        return auto_env_processes(int(num_envs))
-    if isinstance(processes, bool) or not isinstance(processes, (int, np.integer)) or processes < 1:
-        raise ValueError(f"processes must be a positive int or 'auto', got {processes!r}")
-    return int(processes)
+def batched_parallel_env(
+    num_envs: int,
+    scenes: Any = None,
+    config: EnvConfig | None = None,
+    render_mode: str | None = None,
+    torch_threads: int | str | None = "auto",
+    processes: int | str = 1,
+    **options: Any,
+) -> BatchedParallelEnv | SplitParallelEnv:
+    """A :class:`BatchedParallelEnv` (``processes`` 1) or a :class:`SplitParallelEnv` (as
+    :func:`batched_ego_env`)."""
+    count = _count(processes, num_envs, config, options)
+    if count == 1:
+        return BatchedParallelEnv(num_envs, scenes, config, render_mode, torch_threads, **options)
+    return SplitParallelEnv(num_envs, scenes, config, render_mode, torch_threads, processes=count, **options)
 
 
-class _Method:
-    """What a worker answers for an attribute that is a method: the proxy then calls it remotely."""
+def _ego_spaces(env: BatchedEgoEnv) -> tuple[gymnasium.Space, gymnasium.Space]:
+    return env.single_observation_space, env.single_action_space
 
 
-def _serve(conn: Any, build: Callable[[], BatchedEgoEnv]) -> None:
-    """A shard's loop in its worker: build the env, answer ``ready`` with its spaces, then run commands
-    until ``close`` (an error is sent back with its traceback, and the worker goes on)."""
-    try:
-        env = build()
-        conn.send(("ok", (env.single_observation_space, env.single_action_space)))
-    except BaseException as error:
-        conn.send(("error", _portable(error)))
-        conn.close()
-        return
-    while True:
-        try:
-            command, args = conn.recv()
-        except (EOFError, KeyboardInterrupt):
-            break
-        if command == "close":
-            env.close()
-            conn.send(("ok", None))
-            break
-        try:
-            conn.send(("ok", _run(env, command, args)))
-        except BaseException as error:
-            conn.send(("error", _portable(error)))
-    conn.close()
+class SplitWorkers:
+    """What both split envs share: their workers (started by :meth:`_start`), ``apply`` and stopping."""
 
+    workers: ShardWorkers
+    processes: int
 
-def _run(env: BatchedEgoEnv, command: str, args: tuple[Any, ...]) -> Any:
-    """One command of the parent on a shard's env."""
-    if command == "reset_each":
-        return env.reset_each(*args)
-    if command == "step_each":
-        return env.step_each(*args)
-    if command == "render":
-        return env.render()
-    if command == "apply":
-        fn, fn_args, fn_kwargs = args
-        return fn(env, *fn_args, **fn_kwargs)
-    scene, name = args[0], args[1]
-    target = env.envs[scene]
-    if command == "getattr":
-        value = getattr(target, name)
-        return _Method() if callable(value) else value
-    if command == "call":
-        return getattr(target, name)(*args[2], **args[3])
-    if command == "setattr":
-        setattr(target, name, args[2])
-        return None
-    raise ValueError(f"unknown worker command {command!r}")
+    def _start(
+        self,
+        owner: str,
+        num_envs: int,
+        processes: int | str,
+        build: Callable[[int, int | str | None], Any],
+        torch_threads: int | str | None,
+        describe: Callable[[Any], Any],
+    ) -> Any:
+        """Fork the workers: ``build(n, threads)`` makes a shard's env of ``n`` scenes; ``describe(env)`` of
+        the first shard is returned."""
+        count = checked_processes(processes, num_envs)
+        if not isinstance(num_envs, (int, np.integer)) or num_envs < count:
+            raise ValueError(f"{owner}: num_envs must be an int >= processes ({count}), got {num_envs!r}")
+        threads = worker_threads(torch_threads, count)
+        shards = shard_ranges(int(num_envs), count)
+        builders = [functools.partial(build, len(s), threads) for s in shards]
+        self.workers = ShardWorkers(shards, builders, describe, owner)
+        self.num_envs, self.processes, self.shards = int(num_envs), count, shards
+        return self.workers.described[0]
 
+    def apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> list[Any]:
+        """``fn(shard_env, *args, **kwargs)`` in every worker (``shard_env``: the shard's one-process env,
+        whose scene ``j`` is scene ``shards[k].start + j`` here); the results, one per shard. ``fn`` must
+        pickle (a module-level function)."""
+        return self.workers.all("apply", [(fn, args, kwargs)] * self.processes)
 
-def _portable(error: BaseException) -> BaseException:
-    """The error itself if it survives pickling (so the parent raises the same type), else a RuntimeError
-    with its text; either way carrying the worker's traceback as a note."""
-    import pickle
+    def _render(self) -> tuple[Any, ...]:
+        return tuple(f for part in self.workers.methods("render", [()] * self.processes) for f in part)
 
-    text = "".join(traceback.format_exception(error))
-    try:
-        pickle.loads(pickle.dumps(error))
-        portable = error
-    except Exception:
-        portable = RuntimeError(f"{type(error).__name__}: {error}")
-    portable.__notes__ = [*getattr(portable, "__notes__", []), f"in the worker process:\n{text}"]
-    return portable
+    def __del__(self) -> None:
+        if "workers" in self.__dict__:
+            self.workers.stop()
 
 
 class RemoteScene:
@@ -156,20 +156,30 @@ class RemoteScene:
     def unwrapped(self) -> RemoteScene:
         return self
 
+    def _ask(self, command: str, *args: Any) -> Any:
+        workers, index = self._owner.workers, self._index
+        shard = workers.shard_of(index)
+        return workers.ask(shard, command, (index - workers.shards[shard].start, *args))
+
     def __getattr__(self, name: str) -> Any:
         if name.startswith("__"):
             raise AttributeError(name)
-        owner, index = self._owner, self._index
-        value = owner._scene_command("getattr", index, name)
+        value = self._ask("scene_get", name)
         if isinstance(value, _Method):
-            return lambda *args, **kwargs: owner._scene_command("call", index, name, args, kwargs)
+            return lambda *args, **kwargs: self._ask("scene_call", name, args, kwargs)
         return value
 
     def __setattr__(self, name: str, value: Any) -> None:
-        self._owner._scene_command("setattr", self._index, name, value)
+        self._ask("scene_set", name, value)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict]:
+        """Start this scene's next episode in its worker (the others go on where they are)."""
+        obs, info = self._ask("scene_call", "reset", (), {"seed": seed, "options": options})
+        self._owner.agents[self._index] = info["agent"]
+        return obs, info
 
 
-class SplitEgoEnv(EgoVectorEnv):
+class SplitEgoEnv(SplitWorkers, EgoVectorEnv):
     """``num_envs`` single-ego scenes in ``processes`` forked workers (arguments as
     :class:`~trajeglish_env.env.vector.BatchedEgoEnv`; ``torch_threads`` is each worker's: ``"auto"`` gives
     a worker the usable cores divided among the workers, at least one). Same-step autoreset."""
@@ -184,109 +194,22 @@ class SplitEgoEnv(EgoVectorEnv):
         processes: int = 2,
         **options: Any,
     ):
-        count = _checked_processes(processes, num_envs)
-        if not isinstance(num_envs, (int, np.integer)) or num_envs < count:
-            raise ValueError(f"SplitEgoEnv: num_envs must be an int >= processes ({count}), got {num_envs!r}")
-        if not can_fork():
-            raise RuntimeError("SplitEgoEnv forks its workers, which needs Linux; use BatchedEgoEnv")
-        config = (config or EnvConfig()).with_overrides(**options)
+        config = prepared_config(config, options, "SplitEgoEnv")
         check_single(config)
-        settings = trajeglish_settings(config.npc)
-        if settings is not None:  # load (and check) the model once, here: the workers share its memory
-            checkpoint = load_npc_checkpoint(settings.checkpoint, settings.device)
-            if next(checkpoint.model.parameters()).device.type != "cpu":
-                raise ValueError("SplitEgoEnv: the NPC model must be on the CPU (a CUDA context cannot fork)")
-            config = config.with_overrides(npc=settings.with_checkpoint(checkpoint))
-        scene_source = scene_set(scenes)
-        if torch_threads == "auto":
-            torch_threads = max(1, usable_cores() // count)
-        self.num_envs, self.processes = int(num_envs), count
+        source = scene_set(scenes)
+
+        def build(n: int, threads: int | str | None) -> BatchedEgoEnv:
+            return BatchedEgoEnv(n, source, config, render_mode, threads)
+
+        spaces = self._start("SplitEgoEnv", num_envs, processes, build, torch_threads, _ego_spaces)
         self.render_mode = render_mode
-        bounds = np.linspace(0, self.num_envs, count + 1).round().astype(int)
-        self.shards = [range(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
-        context = multiprocessing.get_context("fork")
-        self._conns: list[Any] = []
-        self._workers: list[Any] = []
-        self._stopped = False
-        try:
-            for shard in self.shards:
-                parent, child = context.Pipe()
-
-                def build(n: int = len(shard)) -> BatchedEgoEnv:
-                    return BatchedEgoEnv(n, scene_source, config, render_mode, torch_threads)
-
-                worker = context.Process(target=_serve, args=(child, build), daemon=True)
-                worker.start()
-                child.close()
-                self._conns.append(parent)
-                self._workers.append(worker)
-            spaces = [self._receive(k) for k in range(count)]
-        except BaseException:
-            self._stop()
-            raise
-        self._set_spaces(*spaces[0])
+        self._set_spaces(*spaces)
         self.agents = [""] * self.num_envs
         self.envs = [RemoteScene(self, i) for i in range(self.num_envs)]
-
-    # ------------------------------------------------------------------ the workers
-    def _name(self, shard: int) -> str:
-        scenes = self.shards[shard]
-        return f"the worker of scenes {scenes.start}..{scenes.stop - 1}"
-
-    def _died(self, shard: int) -> RuntimeError:
-        worker = self._workers[shard]
-        worker.join(timeout=1.0)
-        return RuntimeError(f"SplitEgoEnv: {self._name(shard)} died (exit code {worker.exitcode})")
-
-    def _send(self, shard: int, command: str, args: tuple[Any, ...]) -> None:
-        if self._stopped:
-            raise RuntimeError("SplitEgoEnv is closed")
-        try:
-            self._conns[shard].send((command, args))
-        except (BrokenPipeError, OSError):
-            raise self._died(shard) from None
-
-    def _receive(self, shard: int) -> Any:
-        """The answer of ``shard``'s worker; its error raised here, naming the shard's scenes."""
-        try:
-            status, payload = self._conns[shard].recv()
-        except (EOFError, OSError):
-            raise self._died(shard) from None
-        if status == "error":
-            payload.add_note(f"SplitEgoEnv: raised by {self._name(shard)}")
-            raise payload
-        return payload
-
-    def _all(self, command: str, per_shard: Sequence[tuple[Any, ...]]) -> list[Any]:
-        """Send ``command`` to every worker (its own arguments each), then gather their answers in order."""
-        for k, args in enumerate(per_shard):
-            self._send(k, command, args)
-        answers, error = [], None
-        for k in range(self.processes):  # every answer is read, so the pipes stay in step after an error
-            try:
-                answers.append(self._receive(k))
-            except BaseException as exc:
-                error = error or exc
-        if error is not None:
-            raise error
-        return answers
-
-    def _scene_command(self, command: str, scene: int, *args: Any) -> Any:
-        """One command on scene ``scene`` in its worker."""
-        shard = next(k for k, s in enumerate(self.shards) if scene in s)
-        self._send(shard, command, (scene - self.shards[shard].start, *args))
-        return self._receive(shard)
 
     def _split(self, values: Sequence[Any]) -> list[tuple[Any, ...]]:
         return [(list(values[s.start : s.stop]),) for s in self.shards]
 
-    def apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> list[Any]:
-        """``fn(shard_env, *args, **kwargs)`` in every worker (``shard_env``: the shard's BatchedEgoEnv,
-        whose scene ``j`` is scene ``shards[k].start + j`` here); the results, one per shard. ``fn`` must
-        pickle (a module-level function)."""
-        return self._all("apply", [(fn, args, kwargs)] * self.processes)
-
-    # ------------------------------------------------------------------ the VectorEnv API
     def reset_each(
         self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
     ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
@@ -295,7 +218,7 @@ class SplitEgoEnv(EgoVectorEnv):
             raise ValueError(f"reset_each: expected {self.num_envs} seeds and options (one per scene)")
         args = [(list(seeds[s.start : s.stop]), list(options[s.start : s.stop])) for s in self.shards]
         observations, infos = [], []
-        for obs, info in self._all("reset_each", args):
+        for obs, info in self.workers.methods("reset_each", args):
             observations += obs
             infos += info
         self.agents = [info["agent"] for info in infos]
@@ -312,7 +235,7 @@ class SplitEgoEnv(EgoVectorEnv):
             check_action(self.single_action_space, a, name)
             for a, name in zip(actions, self.agents, strict=True)
         ]
-        results = [r for part in self._all("step_each", self._split(values)) for r in part]
+        results = [r for part in self.workers.methods("step_each", self._split(values)) for r in part]
         self.agents = [
             info["agent"] if final is not None else name
             for name, (*_, info, final) in zip(self.agents, results, strict=True)
@@ -324,33 +247,94 @@ class SplitEgoEnv(EgoVectorEnv):
         if self.render_mode is None:
             gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
             return None
-        return tuple(frame for part in self._all("render", [()] * self.processes) for frame in part)
+        return self._render()
 
     def close_extras(self, **kwargs: Any) -> None:
         """Stop the workers (each closes its env first)."""
-        self._stop()
+        self.workers.stop()
 
-    def _stop(self) -> None:
-        if self._stopped:
-            return
-        self._stopped = True
-        for conn in self._conns:
-            try:
-                conn.send(("close", ()))
-            except (BrokenPipeError, OSError):
-                pass
-        for conn, worker in zip(self._conns, self._workers, strict=False):
-            try:
-                if conn.poll(5.0):
-                    conn.recv()
-            except (EOFError, OSError):
-                pass
-            worker.join(timeout=5.0)
-            if worker.is_alive():
-                worker.terminate()
-                worker.join()
-            conn.close()
 
-    def __del__(self) -> None:
-        if "_stopped" in self.__dict__:
-            self._stop()
+def _parallel_spaces(env: BatchedParallelEnv) -> tuple[gymnasium.Space, tuple[str, int]]:
+    return env._observation, env._actions
+
+
+def _reset_scenes(
+    env: BatchedParallelEnv, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[list[str]]]:
+    """A shard's ``reset_scenes`` with explicit seeds, and its scenes' agents after it."""
+    obs, infos = env.reset_scenes(indices, seeds, options) if indices else ([], [])
+    return obs, infos, env.agents
+
+
+def _step(
+    env: BatchedParallelEnv, actions: list[dict[str, Any]]
+) -> tuple[tuple[list[Any], ...], list[list[str]]]:
+    """A shard's ``step``, and its scenes' agents after it."""
+    return env.step(actions), env.agents
+
+
+class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
+    """``num_envs`` multi-agent scenes in ``processes`` forked workers, with
+    :class:`~trajeglish_env.env.vector.BatchedParallelEnv`'s API (lists with one entry per scene; arguments
+    as it, ``torch_threads`` per worker as in :class:`SplitEgoEnv`)."""
+
+    def __init__(
+        self,
+        num_envs: int,
+        scenes: Any = None,
+        config: EnvConfig | None = None,
+        render_mode: str | None = None,
+        torch_threads: int | str | None = "auto",
+        processes: int = 2,
+        **options: Any,
+    ):
+        config = prepared_config(config, options, "SplitParallelEnv")
+        source = scene_set(scenes)
+
+        def build(n: int, threads: int | str | None) -> BatchedParallelEnv:
+            return BatchedParallelEnv(n, source, config, render_mode, threads)
+
+        start = self._start("SplitParallelEnv", num_envs, processes, build, torch_threads, _parallel_spaces)
+        self._observation, self._actions = start
+        self.render_mode = render_mode
+        self.agents: list[list[str]] = [[] for _ in range(self.num_envs)]
+
+    def _reset_scenes(
+        self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
+    ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        """The listed scenes restarted in their workers (see :meth:`ParallelBatchAPI.reset_scenes`)."""
+        per_shard: list[tuple[list[int], list[int | None]]] = [([], []) for _ in self.shards]
+        for i, s in zip(indices, seeds, strict=True):
+            k = self.workers.shard_of(i)
+            per_shard[k][0].append(i - self.shards[k].start)
+            per_shard[k][1].append(s)
+        args = [(_reset_scenes, (local, shard_seeds, options), {}) for local, shard_seeds in per_shard]
+        answers = self.workers.all("apply", args)
+        found: dict[int, tuple[dict[str, Any], dict[str, Any]]] = {}
+        for k, (obs, infos, agents) in enumerate(answers):
+            start = self.shards[k].start
+            self.agents[start : start + len(agents)] = [list(a) for a in agents]
+            for j, local in enumerate(per_shard[k][0]):
+                found[start + local] = (obs[j], infos[j])
+        return [found[i][0] for i in indices], [found[i][1] for i in indices]
+
+    def step(self, actions: Sequence[dict[str, Any]]) -> tuple[list[dict[str, Any]], ...]:
+        """One timestep of every scene that has agents (every action checked here before any worker
+        moves); per-scene lists of observations, rewards, terminations, truncations and infos."""
+        check_scene_actions(self.agents, actions, self.action_space)
+        args = [(_step, (list(actions[s.start : s.stop]),), {}) for s in self.shards]
+        out: tuple[list[dict[str, Any]], ...] = ([], [], [], [], [])
+        for k, (results, agents) in enumerate(self.workers.all("apply", args)):
+            for column, part in zip(out, results, strict=True):
+                column.extend(part)
+            start = self.shards[k].start
+            self.agents[start : start + len(agents)] = [list(a) for a in agents]
+        return out
+
+    def render(self) -> tuple[Any, ...]:
+        """Frames of every scene (``rgb_array``; None for a finished scene)."""
+        return self._render()
+
+    def close(self) -> None:
+        """Stop the workers (each closes its env first)."""
+        self.workers.stop()

@@ -36,7 +36,14 @@ from trajeglish_env.env.scenes import scene_set
 from trajeglish_env.env.simulation import AgentReport, Simulation
 from trajeglish_env.env.threads import auto_threads
 
-__all__ = ["BatchedEgoEnv", "BatchedParallelEnv", "EgoVectorEnv", "auto_threads"]
+__all__ = [
+    "BatchedEgoEnv",
+    "BatchedParallelEnv",
+    "EgoVectorEnv",
+    "ParallelBatchAPI",
+    "auto_threads",
+    "check_scene_actions",
+]
 
 
 def _seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
@@ -47,6 +54,32 @@ def _seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
     if len(seeds) != n:
         raise ValueError(f"reset: expected {n} seeds (one per scene), got {len(seeds)}")
     return seeds
+
+
+def check_scene_actions(
+    agents: Sequence[Sequence[str]],
+    actions: Sequence[dict[str, Any]],
+    action_space: Callable[[str], gymnasium.Space],
+) -> list[list[Any]]:
+    """Per scene (its live agents ``agents[i]``), the checked values of ``actions[i]``, in agent order: one
+    action per live agent, no unknown agent, each inside its space; the first problem raised, naming the
+    scene and the agent."""
+    if len(actions) != len(agents):
+        raise ValueError(f"step: expected {len(agents)} action dicts (one per scene), got {len(actions)}")
+    out = []
+    for i, names in enumerate(agents):
+        given = actions[i]
+        if names:
+            missing = [a for a in names if a not in given]
+            if missing:
+                raise KeyError(f"step: scene {i} has no action for agent(s) {missing}")
+            unknown = sorted(set(given) - set(names))
+            if unknown:
+                raise KeyError(
+                    f"step: scene {i} has no live agent(s) {unknown}; its agents are {list(names)}"
+                )
+        out.append([check_action(action_space(name), given[name], name) for name in names])
+    return out
 
 
 class BatchCore:
@@ -326,42 +359,27 @@ class BatchedEgoEnv(EgoVectorEnv):
         self.core.close()
 
 
-class BatchedParallelEnv:
-    """``num_envs`` multi-agent scenes stepped together, each with the PettingZoo parallel API (same
-    arguments as :func:`~trajeglish_env.env.parallel.parallel_env`, plus ``torch_threads``).
-
-    ``reset`` / ``reset_scenes`` / ``step`` take and return lists with one entry per scene (dicts keyed
-    by agent name, as a parallel env). A scene whose agents are all done stays empty (empty dicts, no
-    decoding) until :meth:`reset_scenes` restarts it.
-    """
+class ParallelBatchAPI:
+    """What the batched parallel envs (:class:`BatchedParallelEnv` and
+    :class:`~trajeglish_env.env.split.SplitParallelEnv`) share: the spaces (``_observation`` and the action
+    type and vocabulary size of ``_actions``, set by the subclass), ``reset``, and ``reset_scenes`` checking
+    its scene indices before ``_reset_scenes`` restarts them."""
 
     metadata = {"name": "trajeglish_batched_v0", "render_modes": ["rgb_array"], "render_fps": 10}
-
-    def __init__(
-        self,
-        num_envs: int,
-        scenes: Any = None,
-        config: EnvConfig | None = None,
-        render_mode: str | None = None,
-        torch_threads: int | str | None = "auto",
-        **options: Any,
-    ):
-        config = (config or EnvConfig()).with_overrides(**options)
-        self.core = BatchCore(num_envs, scenes, config, render_mode, torch_threads)
-        self.num_envs = self.core.num_envs
-        self.render_mode = render_mode
-        self.agents: list[list[str]] = [[] for _ in range(self.num_envs)]
-        self._spaces: dict[str, gymnasium.Space] = {}
+    num_envs: int
+    _observation: gymnasium.Space
+    _actions: tuple[str, int]
 
     def observation_space(self, agent: str) -> gymnasium.Space:
         """The observation space (the same for every agent of every scene)."""
-        return self.core.single_observation_space
+        return self._observation
 
     def action_space(self, agent: str) -> gymnasium.Space:
         """The agent's action space (as in the parallel env: its sampling seeded from the name)."""
-        if agent not in self._spaces:
-            self._spaces[agent] = named_action_space(self.core.config.action, self.core.vocab_size, agent)
-        return self._spaces[agent]
+        spaces: dict[str, gymnasium.Space] = self.__dict__.setdefault("_action_spaces", {})
+        if agent not in spaces:
+            spaces[agent] = named_action_space(*self._actions, agent)
+        return spaces[agent]
 
     def reset(
         self, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
@@ -381,7 +399,44 @@ class BatchedParallelEnv:
         bad = [i for i in indices if not 0 <= i < self.num_envs]
         if bad:
             raise ValueError(f"reset_scenes: scene indices {bad} out of range for {self.num_envs} scenes")
-        for i, s in zip(indices, _seeds(seed, len(indices)), strict=True):
+        return self._reset_scenes(indices, _seeds(seed, len(indices)), options)
+
+    def _reset_scenes(
+        self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
+    ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        raise NotImplementedError
+
+
+class BatchedParallelEnv(ParallelBatchAPI):
+    """``num_envs`` multi-agent scenes stepped together, each with the PettingZoo parallel API (same
+    arguments as :func:`~trajeglish_env.env.parallel.parallel_env`, plus ``torch_threads``).
+
+    ``reset`` / ``reset_scenes`` / ``step`` take and return lists with one entry per scene (dicts keyed
+    by agent name, as a parallel env). A scene whose agents are all done stays empty (empty dicts, no
+    decoding) until :meth:`reset_scenes` restarts it.
+    """
+
+    def __init__(
+        self,
+        num_envs: int,
+        scenes: Any = None,
+        config: EnvConfig | None = None,
+        render_mode: str | None = None,
+        torch_threads: int | str | None = "auto",
+        **options: Any,
+    ):
+        config = (config or EnvConfig()).with_overrides(**options)
+        self.core = BatchCore(num_envs, scenes, config, render_mode, torch_threads)
+        self.num_envs = self.core.num_envs
+        self.render_mode = render_mode
+        self.agents: list[list[str]] = [[] for _ in range(self.num_envs)]
+        self._observation = self.core.single_observation_space
+        self._actions = (self.core.config.action, self.core.vocab_size)
+
+    def _reset_scenes(
+        self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
+    ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        for i, s in zip(indices, seeds, strict=True):
             self.core.start(i, s, options)
         self.core.position()
         observations, infos = [], []
@@ -399,29 +454,18 @@ class BatchedParallelEnv:
         return dict(zip(names, obs, strict=True))
 
     def _validated(self, actions: Sequence[dict[str, Any]]) -> tuple[list[int], list[int], list[Any]]:
-        """Every scene's actions checked (one per live agent, no unknown agent, inside its space) before
-        anything moves: the flat (scenes, agents, actions) to play."""
-        if len(actions) != self.num_envs:
-            raise ValueError(
-                f"step: expected {self.num_envs} action dicts (one per scene), got {len(actions)}"
-            )
+        """Every scene's actions checked (:func:`check_scene_actions`) before anything moves: the flat
+        (scenes, agents, actions) to play."""
         scenes, agents, values = [], [], []
-        for i, names in enumerate(self.agents):
-            if not names:
+        for i, checked in enumerate(check_scene_actions(self.agents, actions, self.action_space)):
+            if not checked:
                 continue
-            given = actions[i]
-            missing = [a for a in names if a not in given]
-            if missing:
-                raise KeyError(f"step: scene {i} has no action for agent(s) {missing}")
-            unknown = sorted(set(given) - set(names))
-            if unknown:
-                raise KeyError(f"step: scene {i} has no live agent(s) {unknown}; its agents are {names}")
             sim = self.core.sim(i)
             index = {sim.names[a]: int(a) for a in sim.external_index}
-            for name in names:
+            for name, value in zip(self.agents[i], checked, strict=True):
                 scenes.append(i)
                 agents.append(index[name])
-                values.append(check_action(self.action_space(name), given[name], name))
+                values.append(value)
         return scenes, agents, values
 
     def step(self, actions: Sequence[dict[str, Any]]) -> tuple[list[dict[str, Any]], ...]:
@@ -460,6 +504,11 @@ class BatchedParallelEnv:
     def render(self) -> tuple[Any, ...]:
         """Frames of every scene (``rgb_array``; None for a finished scene)."""
         return self.core.frames()
+
+    def apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> list[Any]:
+        """``[fn(self, *args, **kwargs)]``: this env as the one shard of its scenes (see
+        :meth:`~trajeglish_env.env.split.SplitParallelEnv.apply`)."""
+        return [fn(self, *args, **kwargs)]
 
     def close(self) -> None:
         """Release the renderers."""

@@ -1,0 +1,264 @@
+"""Scenes of a batched env in forked worker processes: contiguous shards of the scenes, each a batched env
+(:class:`~trajeglish_env.env.vector.BatchedEgoEnv` or :class:`~trajeglish_env.env.vector.BatchedParallelEnv`)
+in its own process, driven over a pipe by the split envs of :mod:`~trajeglish_env.env.split`.
+
+A worker answers each command with ``("ok", result)`` or ``("error", exception)``: the exception keeps its
+type when it pickles and carries the worker's traceback as a note, and the caller adds which scenes the
+worker holds. Every command sent is answered before the next, so the pipes stay in step after an error; a
+worker that dies is an error naming its scenes, not a hang. Workers are forked (Linux,
+:func:`~trajeglish_env.cores.can_fork`), so they share the caller's loaded model and scenes.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import pickle
+import traceback
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from trajeglish_env.cores import can_fork, others_busy_cores, threads_for, usable_cores
+from trajeglish_env.env.config import EnvConfig
+from trajeglish_env.env.scene_batch import load_npc_checkpoint, trajeglish_settings
+
+__all__ = [
+    "MIN_SCENES_PER_PROCESS",
+    "ShardWorkers",
+    "auto_env_processes",
+    "checked_processes",
+    "prepared_config",
+]
+
+# "auto" gives each process at least this many scenes (measured, 2 cores, 24-agent scenes, guarded NPCs:
+# two processes beat one with 2 threads by 11 % at B = 8, 18 % at 16, 32 % at 32, 23 % at 128)
+MIN_SCENES_PER_PROCESS = 4
+
+
+def auto_env_processes(num_envs: int) -> int:
+    """Processes for ``num_envs`` scenes: the usable cores other processes leave free (looked at over a
+    quarter of a second), at most one per :data:`MIN_SCENES_PER_PROCESS` scenes; 1 where workers cannot be
+    forked."""
+    most = num_envs // MIN_SCENES_PER_PROCESS
+    if most < 2 or usable_cores() < 2 or not can_fork():
+        return 1
+    return threads_for(others_busy_cores(), most, usable_cores())
+
+
+def checked_processes(processes: int | str, num_envs: int) -> int:
+    """A process count: a positive int, or ``"auto"`` resolved by :func:`auto_env_processes`."""
+    if processes == "auto":
+        return auto_env_processes(int(num_envs))
+    if isinstance(processes, bool) or not isinstance(processes, (int, np.integer)) or processes < 1:
+        raise ValueError(f"processes must be a positive int or 'auto', got {processes!r}")
+    return int(processes)
+
+
+def on_gpu(config: EnvConfig | None, options: dict[str, Any]) -> bool:
+    """Whether the env's NPC model is meant for a device other than the CPU (such a model never forks)."""
+    settings = trajeglish_settings(options.get("npc", (config or EnvConfig()).npc))
+    return settings is not None and settings.device not in (None, "cpu")
+
+
+def prepared_config(config: EnvConfig | None, options: dict[str, Any], where: str) -> EnvConfig:
+    """The env's config with its NPC model loaded (and checked) here, once: the forked workers share it.
+    A model on a GPU is refused (a CUDA context cannot fork)."""
+    config = (config or EnvConfig()).with_overrides(**options)
+    settings = trajeglish_settings(config.npc)
+    if settings is None:
+        return config
+    checkpoint = load_npc_checkpoint(settings.checkpoint, settings.device)
+    if next(checkpoint.model.parameters()).device.type != "cpu":
+        raise ValueError(f"{where}: the NPC model must be on the CPU (a CUDA context cannot fork)")
+    return config.with_overrides(npc=settings.with_checkpoint(checkpoint))
+
+
+class _Method:
+    """What a worker answers for a scene attribute that is a method: the proxy then calls it remotely."""
+
+
+def _portable(error: BaseException) -> BaseException:
+    """The error itself if it survives pickling (so the caller raises the same type), else a RuntimeError
+    with its text; either way carrying the worker's traceback as a note."""
+    text = "".join(traceback.format_exception(error))
+    try:
+        pickle.loads(pickle.dumps(error))
+        portable = error
+    except Exception:
+        portable = RuntimeError(f"{type(error).__name__}: {error}")
+    portable.__notes__ = [*getattr(portable, "__notes__", []), f"in the worker process:\n{text}"]
+    return portable
+
+
+def _run(env: Any, command: str, args: tuple[Any, ...]) -> Any:
+    """One command of the caller on a shard's env."""
+    if command == "method":  # a method of the shard's env
+        name, call_args, kwargs = args
+        return getattr(env, name)(*call_args, **kwargs)
+    if command == "apply":  # a function of the caller's on the shard's env
+        fn, call_args, kwargs = args
+        return fn(env, *call_args, **kwargs)
+    target = env.envs[args[0]]  # one scene (ego envs)
+    if command == "scene_get":
+        value = getattr(target, args[1])
+        return _Method() if callable(value) else value
+    if command == "scene_call":
+        return getattr(target, args[1])(*args[2], **args[3])
+    if command == "scene_set":
+        setattr(target, args[1], args[2])
+        return None
+    raise ValueError(f"unknown worker command {command!r}")
+
+
+def _serve(conn: Any, build: Callable[[], Any], describe: Callable[[Any], Any]) -> None:
+    """A shard's loop in its worker: build the env, answer with ``describe(env)``, then run commands until
+    ``close`` (an error is sent back and the worker goes on)."""
+    try:
+        env = build()
+        conn.send(("ok", describe(env)))
+    except BaseException as error:
+        conn.send(("error", _portable(error)))
+        conn.close()
+        return
+    while True:
+        try:
+            command, args = conn.recv()
+        except (EOFError, KeyboardInterrupt):
+            break
+        if command == "close":
+            env.close()
+            conn.send(("ok", None))
+            break
+        try:
+            conn.send(("ok", _run(env, command, args)))
+        except BaseException as error:
+            conn.send(("error", _portable(error)))
+    conn.close()
+
+
+class ShardWorkers:
+    """``len(builders)`` forked workers, worker ``k`` serving the env ``builders[k]()`` for the scenes
+    ``shards[k]``; ``described[k]`` is ``describe(env)`` of each (e.g. its spaces). ``owner`` names the
+    split env in errors."""
+
+    def __init__(
+        self,
+        shards: Sequence[range],
+        builders: Sequence[Callable[[], Any]],
+        describe: Callable[[Any], Any],
+        owner: str,
+    ):
+        if not can_fork():
+            raise RuntimeError(f"{owner} forks its workers, which needs Linux; use the one-process env")
+        self.shards, self.owner = list(shards), owner
+        context = multiprocessing.get_context("fork")
+        self.conns: list[Any] = []
+        self.workers: list[Any] = []
+        self.stopped = False
+        try:
+            for build in builders:
+                parent, child = context.Pipe()
+                worker = context.Process(target=_serve, args=(child, build, describe), daemon=True)
+                worker.start()
+                child.close()
+                self.conns.append(parent)
+                self.workers.append(worker)
+            self.described = [self.receive(k) for k in range(len(self.shards))]
+        except BaseException:
+            self.stop()
+            raise
+
+    def __len__(self) -> int:
+        return len(self.shards)
+
+    def name(self, shard: int) -> str:
+        scenes = self.shards[shard]
+        return f"the worker of scenes {scenes.start}..{scenes.stop - 1}"
+
+    def shard_of(self, scene: int) -> int:
+        """The shard holding scene ``scene``."""
+        for k, scenes in enumerate(self.shards):
+            if scene in scenes:
+                return k
+        raise IndexError(f"{self.owner}: scene {scene} out of range for {self.shards[-1].stop} scenes")
+
+    def _died(self, shard: int) -> RuntimeError:
+        worker = self.workers[shard]
+        worker.join(timeout=1.0)
+        return RuntimeError(f"{self.owner}: {self.name(shard)} died (exit code {worker.exitcode})")
+
+    def send(self, shard: int, command: str, args: tuple[Any, ...]) -> None:
+        if self.stopped:
+            raise RuntimeError(f"{self.owner} is closed")
+        try:
+            self.conns[shard].send((command, args))
+        except (BrokenPipeError, OSError):
+            raise self._died(shard) from None
+
+    def receive(self, shard: int) -> Any:
+        """The answer of ``shard``'s worker; its error raised here, naming the shard's scenes."""
+        try:
+            status, payload = self.conns[shard].recv()
+        except (EOFError, OSError):
+            raise self._died(shard) from None
+        if status == "error":
+            payload.add_note(f"{self.owner}: raised by {self.name(shard)}")
+            raise payload
+        return payload
+
+    def ask(self, shard: int, command: str, args: tuple[Any, ...]) -> Any:
+        """One command to one worker, and its answer."""
+        self.send(shard, command, args)
+        return self.receive(shard)
+
+    def all(self, command: str, per_shard: Sequence[tuple[Any, ...]]) -> list[Any]:
+        """``command`` to every worker (its own arguments each), run at once; their answers in order."""
+        for k, args in enumerate(per_shard):
+            self.send(k, command, args)
+        answers, error = [], None
+        for k in range(len(self.shards)):  # every answer is read, so the pipes stay in step after an error
+            try:
+                answers.append(self.receive(k))
+            except BaseException as exc:
+                error = error or exc
+        if error is not None:
+            raise error
+        return answers
+
+    def methods(self, name: str, per_shard: Sequence[tuple[Any, ...]]) -> list[Any]:
+        """Method ``name`` of every shard's env, with its own positional arguments each."""
+        return self.all("method", [(name, args, {}) for args in per_shard])
+
+    def stop(self) -> None:
+        """Close every shard's env and end its worker (idempotent; a stuck worker is terminated)."""
+        if self.stopped:
+            return
+        self.stopped = True
+        for conn in self.conns:
+            try:
+                conn.send(("close", ()))
+            except (BrokenPipeError, OSError):
+                pass
+        for conn, worker in zip(self.conns, self.workers, strict=False):
+            try:
+                if conn.poll(5.0):
+                    conn.recv()
+            except (EOFError, OSError):
+                pass
+            worker.join(timeout=5.0)
+            if worker.is_alive():
+                worker.terminate()
+                worker.join()
+            conn.close()
+
+
+def shard_ranges(num_envs: int, processes: int) -> list[range]:
+    """``processes`` contiguous, near-equal ranges of the scenes ``0 .. num_envs - 1``."""
+    bounds = np.linspace(0, num_envs, processes + 1).round().astype(int)
+    return [range(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def worker_threads(torch_threads: int | str | None, processes: int) -> int | str | None:
+    """Each worker's torch threads: ``"auto"`` gives it the usable cores divided among the workers."""
+    return max(1, usable_cores() // processes) if torch_threads == "auto" else torch_threads
