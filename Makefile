@@ -39,7 +39,7 @@ clean:
 # The machine has Python 3.12 (x86-64) with torch, numpy, pandas, matplotlib and tqdm, no network: these
 # wheels are what generation and `import trajeglish_env` need besides (pygame-ce: highway-env imports it).
 DEVICE_WHEELS ?= gymnasium==1.4.0 farama-notifications==0.0.6 pettingzoo==1.27.0 highway-env==1.12.1 \
-	pygame-ce==2.5.8
+	pygame-ce==2.5.8 protobuf==7.36.2
 DEVICE_PLATFORMS := $(foreach n,2_28 2_27 2_17,--platform manylinux_$(n)_x86_64) \
 	--platform manylinux2014_x86_64 --platform manylinux1_x86_64
 device-wheels:

@@ -30,8 +30,8 @@ BATCHES=${BATCHES:-1 128 1024}
 MINUTES=${MINUTES:-8}
 GUARD=${GUARD:-on}
 DEVICE=${DEVICE:-cuda}
-QUICK=()
-[ "${QUICK:-0}" = 1 ] && QUICK=(--quick)
+QUICK_ARGS=()
+if [ "${QUICK:-0}" = 1 ]; then QUICK_ARGS=(--quick); fi
 case $DEVICE in cuda | cpu) ;; *) die "DEVICE=$DEVICE: expected cuda or cpu" ;; esac
 WHEELS=${WHEELS:-.whl}
 SITE=${SITE:-/tmp/site}
@@ -48,10 +48,10 @@ if [ "$DEVICE" = cuda ]; then
     "$PYTHON" -c 'import torch; assert torch.cuda.is_available(); print("device_bench: torch", torch.__version__, "on", torch.cuda.get_device_name())' 2>/dev/null ||
         die "torch sees no CUDA device on this machine (DEVICE=cpu for a dry run)"
 fi
-say "bench: DEVICE=$DEVICE BATCHES=$BATCHES GUARD=$GUARD ${QUICK[*]}, at most $MINUTES min"
+say "bench: DEVICE=$DEVICE BATCHES=$BATCHES GUARD=$GUARD ${QUICK_ARGS[*]}, at most $MINUTES min"
 # shellcheck disable=SC2086 # BATCHES is a list of numbers
 timeout --kill-after=20 "$((MINUTES * 60))" "$PYTHON" -m trajeglish_env.cli bench --sections env \
-    --batches $BATCHES --guard "$GUARD" --device "$DEVICE" --no-split "${QUICK[@]}" --quiet --json \
+    --batches $BATCHES --guard "$GUARD" --device "$DEVICE" --no-split "${QUICK_ARGS[@]}" --quiet --json \
     --out "$OUT/bench_gpu.json" \
     >/dev/null || die "the bench failed or ran past $MINUTES min (see log.txt)"
 "$PYTHON" -c 'import json, sys

@@ -2,7 +2,7 @@
 # (`make device-wheels`) into $SITE when a package the project needs is missing, and put $SITE on
 # PYTHONPATH. Needs PYTHON, WHEELS, SITE and the caller's say/die.
 install_carried_wheels() {
-    if "$PYTHON" -c 'import gymnasium, pettingzoo, highway_env, pygame' 2>/dev/null; then
+    if "$PYTHON" -c 'import gymnasium, pettingzoo, highway_env, pygame, google.protobuf' 2>/dev/null; then
         return 0
     fi
     if compgen -G "$WHEELS/*.whl" >/dev/null; then

@@ -45,7 +45,8 @@ def test_env_speed_reports_rates_and_memory() -> None:
     # the scenes split over two worker processes: their threads and memory are reported with the caller's
     split = env_speed(2, npc="replay", steps=2, warmup=1, processes=2, torch_threads=1)
     assert split["processes"] == 2 and split["torch_threads"] == 1
-    assert split["peak_rss_mb"] > run["peak_rss_mb"] and split["agent_steps_per_s"] > 0
+    # each worker's own peak holds the torch runtime it forked with (well over 100 MB)
+    assert split["peak_rss_mb"] > run["peak_rss_mb"] + 200 and split["agent_steps_per_s"] > 0
 
 
 def test_ratios_and_summary_of_a_result() -> None:

@@ -4,6 +4,9 @@ device, a copy is made rather than the caller's model moved, and a GPU that is n
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -44,6 +47,23 @@ def test_a_device_that_is_not_there_is_one_clear_line() -> None:
     # a model meant for another device never splits the scenes over forked processes
     with pytest.raises(RuntimeError, match="CUDA is not available"):
         batched_ego_env(16, processes="auto", npc=TrajeglishNPC(tiny(), device="cuda"), max_cycles=4)
+
+
+def test_a_model_meant_for_a_gpu_never_splits_over_processes() -> None:
+    from trajeglish_env.env.shards import on_gpu
+    from trajeglish_env.env.split import _count
+
+    assert on_gpu(None, {"npc": TrajeglishNPC(device="cuda:1")})
+    assert not on_gpu(None, {"npc": TrajeglishNPC(device="cpu")}) and not on_gpu(None, {"npc": "idm"})
+    assert _count("auto", 64, None, {"npc": TrajeglishNPC(device="cuda")}) == 1
+    # a loaded checkpoint already on another device counts too (a meta-device stand-in for a GPU)
+    ckpt = tiny()
+    elsewhere = dataclasses.replace(ckpt, model=copy.deepcopy(ckpt.model).to("meta"))
+    assert on_gpu(None, {"npc": TrajeglishNPC(elsewhere)}) and not on_gpu(None, {"npc": TrajeglishNPC(ckpt)})
+    from trajeglish_env.env.split import SplitEgoEnv
+
+    with pytest.raises(ValueError, match="the NPC model must be on the CPU"):
+        SplitEgoEnv(4, processes=2, npc=TrajeglishNPC(elsewhere))
 
 
 def test_a_copy_is_moved_not_the_callers_model(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -3,8 +3,12 @@ per-scene tools, SB3), errors that name the scenes' worker, and the automatic pr
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -235,3 +239,89 @@ def test_split_parallel_env_plays_exactly_what_one_process_plays() -> None:
 
 def _scene_count(env: BatchedParallelEnv) -> list[list[str]]:
     return env.agents
+
+
+def _tagged(env: BatchedEgoEnv, tag: str, pause: float = 0.0) -> tuple[str, int]:
+    """A shard's answer naming the call (the first shard may take its time)."""
+    if pause and env.envs[0].agent:
+        time.sleep(pause)
+    return tag, len(env.envs)
+
+
+def test_split_env_stays_in_step_after_interruptions_and_a_dead_worker() -> None:
+    venv = SplitEgoEnv(6, processes=3, npc="idm", max_cycles=5)
+    try:
+        venv.reset(seed=0)
+
+        # a command whose answer was never read (Ctrl-C while waiting): read and dropped before the next one
+        def interrupt(*_: object) -> None:
+            raise KeyboardInterrupt
+
+        previous = signal.signal(signal.SIGALRM, interrupt)
+        signal.setitimer(signal.ITIMER_REAL, 0.2)
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                venv.apply(_tagged, "first", 1.0)
+        finally:
+            signal.signal(signal.SIGALRM, previous)
+        assert venv.apply(_tagged, "second") == [("second", 2)] * 3
+        assert isinstance(venv.envs[0].agent, str)
+        # the middle worker dies: an error naming its scenes, and the others still answer their own calls
+        os.kill(venv.workers.workers[1].pid, signal.SIGKILL)
+        venv.workers.workers[1].join()
+        with pytest.raises(RuntimeError, match=r"the worker of scenes 2..3 died"):
+            venv.step(np.zeros((6, 2), np.float32))
+        assert isinstance(venv.envs[0].agent, str) and isinstance(venv.envs[5].agent, str)
+        with pytest.raises(RuntimeError, match=r"the worker of scenes 2..3 died"):
+            _ = venv.envs[2].agent
+    finally:
+        venv.close()
+
+
+def test_scenes_reset_one_by_one_then_step_and_workers_stop_with_the_env() -> None:
+    kw = {"npc": "idm", "max_cycles": 5}
+    split, one = SplitEgoEnv(4, processes=2, **kw), BatchedEgoEnv(4, **kw)
+    for venv in (split, one):  # the pattern of examples/train_ppo_ego.py's evaluation
+        for k, env in enumerate(venv.envs):
+            env.reset(seed=10 + k)
+    assert split.agents == one.agents
+    got, want = split.step_each(np.zeros((4, 2), np.float32)), one.step_each(np.zeros((4, 2), np.float32))
+    assert all(np.array_equal(g[0], w[0]) and g[1:4] == w[1:4] for g, w in zip(got, want, strict=True))
+    workers = split.workers.workers
+    del split  # no close(): dropping the env stops its workers (the scene proxies hold it weakly)
+    gc.collect()
+    assert all(not w.is_alive() for w in workers)
+    with pytest.raises(ValueError, match="torch_threads must be 'auto', None or 1"):
+        SplitEgoEnv(4, processes=2, torch_threads=2, **kw)
+
+
+ORPHAN = """
+import sys, time
+from trajeglish_env.env.split import SplitEgoEnv
+venv = SplitEgoEnv(4, processes=2, npc="idm", max_cycles=5)
+venv.reset(seed=0)
+print(" ".join(str(w.pid) for w in venv.workers.workers), flush=True)
+time.sleep(60)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_workers_end_when_the_caller_is_killed() -> None:
+    caller = subprocess.Popen([sys.executable, "-c", ORPHAN], stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(p) for p in caller.stdout.readline().split()]  # type: ignore[union-attr]
+        assert len(pids) == 2 and all(_alive(p) for p in pids)
+    finally:
+        caller.kill()
+        caller.wait()
+    deadline = time.monotonic() + 10
+    while any(_alive(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(p) for p in pids)

@@ -7,7 +7,6 @@ mismatched files fail with a :class:`CheckpointError` that names the file and th
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import os
 from dataclasses import dataclass
@@ -107,8 +106,9 @@ def on_device(ckpt: Checkpoint, device: str | torch.device) -> Checkpoint:
     here = next(ckpt.model.parameters()).device
     if here.type == target.type and (target.index is None or here.index == target.index):
         return ckpt
-    model = copy.deepcopy(ckpt.model).to(target).eval()
-    return dataclasses.replace(ckpt, model=model)
+    model = TrajeglishModel(ckpt.model.cfg)  # built on the CPU, so the source device never holds two copies
+    model.load_state_dict(ckpt.model.state_dict())
+    return dataclasses.replace(ckpt, model=model.to(target).eval())
 
 
 def check_compatible(cfg: ModelConfig, vocabulary: MotionVocabulary, where: str) -> None:

@@ -4,17 +4,25 @@ in its own process, driven over a pipe by the split envs of :mod:`~trajeglish_en
 
 A worker answers each command with ``("ok", result)`` or ``("error", exception)``: the exception keeps its
 type when it pickles and carries the worker's traceback as a note, and the caller adds which scenes the
-worker holds. Every command sent is answered before the next, so the pipes stay in step after an error; a
-worker that dies is an error naming its scenes, not a hang. Workers are forked (Linux,
-:func:`~trajeglish_env.cores.can_fork`), so they share the caller's loaded model and scenes.
+worker holds. The caller counts the answers it has not read yet (a command interrupted by Ctrl-C, an
+error in another worker) and reads them before its next command, and pickles every worker's command
+before it sends any, so the pipes stay in step; a worker that dies is an error naming its scenes, not a
+hang. Workers are forked (Linux, :func:`~trajeglish_env.cores.can_fork`), so they share the caller's
+loaded model and scenes; they run one torch thread each (OpenMP is not fork-safe: a forked child that
+uses several threads after its parent did can hang), ignore Ctrl-C (the caller handles it), and end when
+the caller's pipe closes or the caller dies.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import multiprocessing
 import pickle
+import signal
 import traceback
 from collections.abc import Callable, Sequence
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 import numpy as np
@@ -56,21 +64,29 @@ def checked_processes(processes: int | str, num_envs: int) -> int:
 
 
 def on_gpu(config: EnvConfig | None, options: dict[str, Any]) -> bool:
-    """Whether the env's NPC model is meant for a device other than the CPU (such a model never forks)."""
+    """Whether the env's NPC model is meant for a device other than the CPU (``TrajeglishNPC.device``, or a
+    loaded checkpoint already there): such a model never forks."""
+    import torch
+
     settings = trajeglish_settings(options.get("npc", (config or EnvConfig()).npc))
-    return settings is not None and settings.device not in (None, "cpu")
+    if settings is None:
+        return False
+    if settings.device is not None:
+        return torch.device(settings.device).type != "cpu"
+    model = getattr(settings.checkpoint, "model", None)
+    return model is not None and next(model.parameters()).device.type != "cpu"
 
 
 def prepared_config(config: EnvConfig | None, options: dict[str, Any], where: str) -> EnvConfig:
     """The env's config with its NPC model loaded (and checked) here, once: the forked workers share it.
-    A model on a GPU is refused (a CUDA context cannot fork)."""
+    A model on a GPU is refused before anything touches the GPU (a CUDA context cannot fork)."""
+    if on_gpu(config, options):
+        raise ValueError(f"{where}: the NPC model must be on the CPU (a CUDA context cannot fork)")
     config = (config or EnvConfig()).with_overrides(**options)
     settings = trajeglish_settings(config.npc)
     if settings is None:
         return config
     checkpoint = load_npc_checkpoint(settings.checkpoint, settings.device)
-    if next(checkpoint.model.parameters()).device.type != "cpu":
-        raise ValueError(f"{where}: the NPC model must be on the CPU (a CUDA context cannot fork)")
     return config.with_overrides(npc=settings.with_checkpoint(checkpoint))
 
 
@@ -111,9 +127,28 @@ def _run(env: Any, command: str, args: tuple[Any, ...]) -> Any:
     raise ValueError(f"unknown worker command {command!r}")
 
 
-def _serve(conn: Any, build: Callable[[], Any], describe: Callable[[Any], Any]) -> None:
+def _die_with_parent() -> None:
+    """Linux: this process gets SIGTERM when the process that forked it dies (even by SIGKILL)."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError, TypeError):
+        pass
+
+
+def _serve(
+    conn: Any, build: Callable[[], Any], describe: Callable[[Any], Any], inherited: Sequence[Any]
+) -> None:
     """A shard's loop in its worker: build the env, answer with ``describe(env)``, then run commands until
-    ``close`` (an error is sent back and the worker goes on)."""
+    ``close`` (an error is sent back and the worker goes on). ``inherited``: the caller's ends of the
+    pipes, closed here so that the worker sees the caller go."""
+    import torch
+
+    for other in inherited:
+        other.close()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent()
+    torch.set_num_threads(1)
     try:
         env = build()
         conn.send(("ok", describe(env)))
@@ -155,15 +190,18 @@ class ShardWorkers:
         context = multiprocessing.get_context("fork")
         self.conns: list[Any] = []
         self.workers: list[Any] = []
+        self.pending: list[int] = []  # answers sent but not read yet, per worker
         self.stopped = False
         try:
             for build in builders:
                 parent, child = context.Pipe()
-                worker = context.Process(target=_serve, args=(child, build, describe), daemon=True)
+                inherited = [*self.conns, parent]
+                worker = context.Process(target=_serve, args=(child, build, describe, inherited), daemon=True)
                 worker.start()
                 child.close()
                 self.conns.append(parent)
                 self.workers.append(worker)
+                self.pending.append(1)  # its description
             self.described = [self.receive(k) for k in range(len(self.shards))]
         except BaseException:
             self.stop()
@@ -188,20 +226,34 @@ class ShardWorkers:
         worker.join(timeout=1.0)
         return RuntimeError(f"{self.owner}: {self.name(shard)} died (exit code {worker.exitcode})")
 
-    def send(self, shard: int, command: str, args: tuple[Any, ...]) -> None:
+    def _send_bytes(self, shard: int, message: bytes) -> None:
+        """Send a pickled command, after reading (and dropping) the answers left unread before."""
         if self.stopped:
             raise RuntimeError(f"{self.owner} is closed")
+        while self.pending[shard]:
+            self._read(shard)
         try:
-            self.conns[shard].send((command, args))
+            self.conns[shard].send_bytes(message)
         except (BrokenPipeError, OSError):
             raise self._died(shard) from None
+        self.pending[shard] += 1
+
+    def send(self, shard: int, command: str, args: tuple[Any, ...]) -> None:
+        self._send_bytes(shard, bytes(ForkingPickler.dumps((command, args))))
+
+    def _read(self, shard: int) -> tuple[str, Any]:
+        try:
+            answer = self.conns[shard].recv()
+        except (EOFError, OSError):
+            raise self._died(shard) from None
+        self.pending[shard] -= 1
+        return answer
 
     def receive(self, shard: int) -> Any:
         """The answer of ``shard``'s worker; its error raised here, naming the shard's scenes."""
-        try:
-            status, payload = self.conns[shard].recv()
-        except (EOFError, OSError):
-            raise self._died(shard) from None
+        if not self.pending[shard]:
+            raise RuntimeError(f"{self.owner}: no command is waiting for {self.name(shard)}")
+        status, payload = self._read(shard)
         if status == "error":
             payload.add_note(f"{self.owner}: raised by {self.name(shard)}")
             raise payload
@@ -213,14 +265,16 @@ class ShardWorkers:
         return self.receive(shard)
 
     def all(self, command: str, per_shard: Sequence[tuple[Any, ...]]) -> list[Any]:
-        """``command`` to every worker (its own arguments each), run at once; their answers in order."""
-        for k, args in enumerate(per_shard):
-            self.send(k, command, args)
+        """``command`` to every worker (its own arguments each; all pickled before any is sent), run at
+        once; their answers in order."""
+        messages = [bytes(ForkingPickler.dumps((command, args))) for args in per_shard]
+        for k, message in enumerate(messages):
+            self._send_bytes(k, message)
         answers, error = [], None
-        for k in range(len(self.shards)):  # every answer is read, so the pipes stay in step after an error
-            try:
+        for k in range(len(self.shards)):  # every answer is read after an error (Ctrl-C stops at once: the
+            try:  # answers left are read before the next command)
                 answers.append(self.receive(k))
-            except BaseException as exc:
+            except Exception as exc:
                 error = error or exc
         if error is not None:
             raise error
@@ -259,6 +313,12 @@ def shard_ranges(num_envs: int, processes: int) -> list[range]:
     return [range(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def worker_threads(torch_threads: int | str | None, processes: int) -> int | str | None:
-    """Each worker's torch threads: ``"auto"`` gives it the usable cores divided among the workers."""
-    return max(1, usable_cores() // processes) if torch_threads == "auto" else torch_threads
+def worker_threads(torch_threads: int | str | None, owner: str) -> int:
+    """Each worker's torch threads: one (``"auto"``, None or 1); more is refused, since OpenMP is not
+    fork-safe (a forked child using several threads after its parent did can hang)."""
+    if torch_threads in ("auto", None, 1):
+        return 1
+    raise ValueError(
+        f"{owner}: torch_threads must be 'auto', None or 1 (each worker runs one torch thread: OpenMP is not "
+        f"fork-safe), got {torch_threads!r}; use more processes, or the one-process env for more threads"
+    )

@@ -19,6 +19,7 @@ worker (SB3's ``get_attr`` / ``env_method``). Workers are forked, so this needs 
 from __future__ import annotations
 
 import functools
+import weakref
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -123,7 +124,7 @@ class SplitWorkers:
         count = checked_processes(processes, num_envs)
         if not isinstance(num_envs, (int, np.integer)) or num_envs < count:
             raise ValueError(f"{owner}: num_envs must be an int >= processes ({count}), got {num_envs!r}")
-        threads = worker_threads(torch_threads, count)
+        threads = worker_threads(torch_threads, owner)
         shards = shard_ranges(int(num_envs), count)
         builders = [functools.partial(build, len(s), threads) for s in shards]
         self.workers = ShardWorkers(shards, builders, describe, owner)
@@ -146,11 +147,19 @@ class SplitWorkers:
 
 class RemoteScene:
     """Scene ``index`` of a :class:`SplitEgoEnv`: attributes are read from (and methods called on) the
-    scene in its worker (see :class:`~trajeglish_env.env.vector.EgoScene`); values come back as copies."""
+    scene in its worker (see :class:`~trajeglish_env.env.vector.EgoScene`); values come back as copies.
+    It holds its env weakly, so that dropping the env stops its workers at once."""
 
     def __init__(self, owner: SplitEgoEnv, index: int):
-        object.__setattr__(self, "_owner", owner)
+        object.__setattr__(self, "_ref", weakref.ref(owner))
         object.__setattr__(self, "_index", index)
+
+    @property
+    def _owner(self) -> SplitEgoEnv:
+        owner = self._ref()
+        if owner is None:
+            raise RuntimeError("SplitEgoEnv is gone: this scene proxy outlived its env")
+        return owner
 
     @property
     def unwrapped(self) -> RemoteScene:
@@ -181,8 +190,8 @@ class RemoteScene:
 
 class SplitEgoEnv(SplitWorkers, EgoVectorEnv):
     """``num_envs`` single-ego scenes in ``processes`` forked workers (arguments as
-    :class:`~trajeglish_env.env.vector.BatchedEgoEnv`; ``torch_threads`` is each worker's: ``"auto"`` gives
-    a worker the usable cores divided among the workers, at least one). Same-step autoreset."""
+    :class:`~trajeglish_env.env.vector.BatchedEgoEnv`; each worker runs one torch thread: ``torch_threads``
+    ``"auto"``, None or 1). Same-step autoreset."""
 
     def __init__(
         self,
@@ -276,7 +285,7 @@ def _step(
 class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
     """``num_envs`` multi-agent scenes in ``processes`` forked workers, with
     :class:`~trajeglish_env.env.vector.BatchedParallelEnv`'s API (lists with one entry per scene; arguments
-    as it, ``torch_threads`` per worker as in :class:`SplitEgoEnv`)."""
+    as it, one torch thread per worker as in :class:`SplitEgoEnv`)."""
 
     def __init__(
         self,
