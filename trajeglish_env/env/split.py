@@ -27,6 +27,7 @@ import gymnasium
 import numpy as np
 
 from trajeglish_env.env.actions import check_action
+from trajeglish_env.env.batch_api import EgoVectorEnv, ParallelBatchAPI, check_scene_actions
 from trajeglish_env.env.config import EnvConfig
 from trajeglish_env.env.gym_ego import check_single
 from trajeglish_env.env.scenes import scene_set
@@ -41,13 +42,7 @@ from trajeglish_env.env.shards import (
     shard_ranges,
     worker_threads,
 )
-from trajeglish_env.env.vector import (
-    BatchedEgoEnv,
-    BatchedParallelEnv,
-    EgoVectorEnv,
-    ParallelBatchAPI,
-    check_scene_actions,
-)
+from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv
 
 __all__ = [
     "MIN_SCENES_PER_PROCESS",

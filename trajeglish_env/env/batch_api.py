@@ -1,0 +1,158 @@
+"""The API shapes the batched envs share, whether their scenes live in this process
+(:mod:`~trajeglish_env.env.vector`) or in worker processes (:mod:`~trajeglish_env.env.split`): per-scene
+seeds, the checks of a step's actions, and the Gymnasium ``VectorEnv`` and per-scene parallel APIs built
+on each env's own per-scene steps."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium.vector import VectorEnv
+from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
+from gymnasium.vector.vector_env import AutoresetMode
+
+from trajeglish_env.env.actions import check_action, named_action_space
+
+__all__ = ["EgoVectorEnv", "ParallelBatchAPI", "check_scene_actions", "scene_seeds"]
+
+
+def scene_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
+    """Per-scene seeds as Gymnasium's vector envs derive them (``seed + i``, or a list of n seeds)."""
+    if seed is None or isinstance(seed, (int, np.integer)):
+        return [None if seed is None else int(seed) + i for i in range(n)]
+    seeds = list(seed)
+    if len(seeds) != n:
+        raise ValueError(f"reset: expected {n} seeds (one per scene), got {len(seeds)}")
+    return seeds
+
+
+def check_scene_actions(
+    agents: Sequence[Sequence[str]],
+    actions: Sequence[dict[str, Any]],
+    action_space: Callable[[str], gymnasium.Space],
+) -> list[list[Any]]:
+    """Per scene (its live agents ``agents[i]``), the checked values of ``actions[i]``, in agent order: one
+    action per live agent, no unknown agent, each inside its space; the first problem raised, naming the
+    scene and the agent."""
+    if len(actions) != len(agents):
+        raise ValueError(f"step: expected {len(agents)} action dicts (one per scene), got {len(actions)}")
+    out = []
+    for i, names in enumerate(agents):
+        given = actions[i]
+        if names:
+            missing = [a for a in names if a not in given]
+            if missing:
+                raise KeyError(f"step: scene {i} has no action for agent(s) {missing}")
+            unknown = sorted(set(given) - set(names))
+            if unknown:
+                raise KeyError(
+                    f"step: scene {i} has no live agent(s) {unknown}; its agents are {list(names)}"
+                )
+        out.append([check_action(action_space(name), given[name], name) for name in names])
+    return out
+
+
+class EgoVectorEnv(VectorEnv):
+    """The Gymnasium ``VectorEnv`` API of the batched ego envs
+    (:class:`~trajeglish_env.env.vector.BatchedEgoEnv` and :class:`~trajeglish_env.env.split.SplitEgoEnv`)
+    on their per-scene ``reset_each`` / ``step_each``.
+    Autoreset: same step (``infos["final_obs"]``)."""
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"], "render_fps": 10}
+    _obs: Any
+
+    def reset_each(
+        self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
+    ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
+        raise NotImplementedError
+
+    def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
+        raise NotImplementedError
+
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        """Reset every scene (``seed + i`` for scene i, or a list of seeds; ``options`` go to each)."""
+        self._np_random_seed = seed if isinstance(seed, int) else None
+        observations, infos = self.reset_each(scene_seeds(seed, self.num_envs), [options] * self.num_envs)
+        merged: dict[str, Any] = {}
+        for i, info in enumerate(infos):
+            merged = self._add_info(merged, info, i)
+        return self._batched(observations), merged
+
+    def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """One timestep of every scene; finished scenes are reset in the same call."""
+        rewards = np.zeros(self.num_envs)
+        terminated = np.zeros(self.num_envs, dtype=bool)
+        truncated = np.zeros(self.num_envs, dtype=bool)
+        infos: dict[str, Any] = {}
+        observations = []
+        for i, (obs, rewards[i], terminated[i], truncated[i], info, final) in enumerate(
+            self.step_each(actions)
+        ):
+            if final is not None:
+                infos = self._add_info(infos, {"final_obs": final[0], "final_info": final[1]}, i)
+            observations.append(obs)
+            infos = self._add_info(infos, info, i)
+        return self._batched(observations), rewards, terminated, truncated, infos
+
+    def _set_spaces(self, observation: gymnasium.Space, action: gymnasium.Space) -> None:
+        """One scene's observation and action spaces, and those of the batch (``num_envs`` set first)."""
+        self.single_observation_space, self.single_action_space = observation, action
+        self.observation_space = batch_space(observation, self.num_envs)
+        self.action_space = batch_space(action, self.num_envs)
+        self._obs = create_empty_array(observation, self.num_envs)
+
+    def _batched(self, observations: list[np.ndarray]) -> Any:
+        return concatenate(self.single_observation_space, observations, self._obs).copy()
+
+
+class ParallelBatchAPI:
+    """What the batched parallel envs (:class:`BatchedParallelEnv` and
+    :class:`~trajeglish_env.env.split.SplitParallelEnv`) share: the spaces (``_observation`` and the action
+    type and vocabulary size of ``_actions``, set by the subclass), ``reset``, and ``reset_scenes`` checking
+    its scene indices before ``_reset_scenes`` restarts them."""
+
+    metadata = {"name": "trajeglish_batched_v0", "render_modes": ["rgb_array"], "render_fps": 10}
+    num_envs: int
+    _observation: gymnasium.Space
+    _actions: tuple[str, int]
+
+    def observation_space(self, agent: str) -> gymnasium.Space:
+        """The observation space (the same for every agent of every scene)."""
+        return self._observation
+
+    def action_space(self, agent: str) -> gymnasium.Space:
+        """The agent's action space (as in the parallel env: its sampling seeded from the name)."""
+        spaces: dict[str, gymnasium.Space] = self.__dict__.setdefault("_action_spaces", {})
+        if agent not in spaces:
+            spaces[agent] = named_action_space(*self._actions, agent)
+        return spaces[agent]
+
+    def reset(
+        self, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        """Reset every scene (``seed + i`` for scene i, or a list of seeds)."""
+        return self.reset_scenes(range(self.num_envs), seed, options)
+
+    def reset_scenes(
+        self,
+        indices: Sequence[int],
+        seed: int | list[int | None] | None = None,
+        options: dict[str, Any] | None = None,
+    ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        """Reset the scenes ``indices`` (seeds as :meth:`reset`, per listed scene); returns their
+        observations and infos, in that order."""
+        indices = [int(i) for i in indices]
+        bad = [i for i in indices if not 0 <= i < self.num_envs]
+        if bad:
+            raise ValueError(f"reset_scenes: scene indices {bad} out of range for {self.num_envs} scenes")
+        return self._reset_scenes(indices, scene_seeds(seed, len(indices)), options)
+
+    def _reset_scenes(
+        self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
+    ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+        raise NotImplementedError
