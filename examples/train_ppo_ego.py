@@ -5,7 +5,8 @@ learning curve, and compare the trained ego with a random and a constant-velocit
     python examples/train_ppo_ego.py --npc idm --smoke                   # a minute-long check
 
 Training steps ``--envs`` scenes in one batched env (:class:`~trajeglish_env.env.sb3.SB3VecEnv`: the
-NPCs of all scenes are decoded together, in one process); ``--workers N`` uses N SubprocVecEnv workers
+NPCs of its scenes are decoded together, the scenes split over ``--processes`` forked workers, by default
+one per free core); ``--workers N`` uses N SubprocVecEnv workers
 of unbatched ``EgoEnv`` instead. Scenes: the bundled held-out scenes (training episodes draw a scene per
 reset; evaluation plays every scene with fixed seeds, all evaluation episodes of an ego in one batch).
 Outputs in ``--out``: ``ppo_ego.zip``, ``learning_curve.csv`` / ``.png`` (episode return vs timesteps,
@@ -101,6 +102,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--timesteps", type=int, default=100_000)
     parser.add_argument("--envs", type=int, default=16, help="scenes of the batched training env")
     parser.add_argument(
+        "--processes",
+        type=lambda v: v if v == "auto" else int(v),
+        default="auto",
+        help="worker processes of the batched training env (auto: one per free core, >= 4 scenes each)",
+    )
+    parser.add_argument(
         "--workers", type=int, default=0, help="SubprocVecEnv workers of unbatched envs instead (0: batched)"
     )
     parser.add_argument(
@@ -141,7 +148,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             vec_env_kwargs={"start_method": "spawn"},
         )
     else:
-        vec = VecMonitor(SB3VecEnv(args.envs, **env_kwargs), filename=str(monitor_dir / "batched"))
+        batched = SB3VecEnv(args.envs, processes=args.processes, **env_kwargs)
+        vec = VecMonitor(batched, filename=str(monitor_dir / "batched"))
         vec.seed(args.seed)
     n_steps = 64 if args.smoke else max(64, 8192 // max(args.workers, args.envs, 1))
     model = PPO(

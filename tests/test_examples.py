@@ -40,7 +40,9 @@ def test_quickstart(tmp_path: Path, tiny_model: Path) -> None:
 
 
 def test_train_ppo_ego_smoke(tmp_path: Path) -> None:
-    result = example("train_ppo_ego").main(["--smoke", "--npc", "idm", "--out", str(tmp_path)])
+    # the smoke's 2 training scenes split over 2 worker processes (SB3VecEnv -> SplitEgoEnv)
+    argv = ["--smoke", "--npc", "idm", "--processes", "2", "--out", str(tmp_path)]
+    result = example("train_ppo_ego").main(argv)
     saved = json.loads((tmp_path / "comparison.json").read_text())
     assert set(saved["comparison"]) == {"ppo", "random", "constant_velocity"} == set(result["comparison"])
     assert (tmp_path / "ppo_ego.zip").is_file() and (tmp_path / "learning_curve.png").is_file()

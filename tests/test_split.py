@@ -325,3 +325,23 @@ def test_workers_end_when_the_caller_is_killed() -> None:
     while any(_alive(p) for p in pids) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not any(_alive(p) for p in pids)
+
+
+def test_split_envs_render_the_frames_of_one_process() -> None:
+    kw = {"npc": "idm", "max_cycles": 5, "render_mode": "rgb_array"}
+    split, one = SplitEgoEnv(2, processes=2, **kw), BatchedEgoEnv(2, **kw)
+    psplit, pone = SplitParallelEnv(2, processes=2, **kw), BatchedParallelEnv(2, **kw)
+    try:
+        split.reset(seed=1)
+        one.reset(seed=1)
+        split.step(np.zeros((2, 2), np.float32))
+        one.step(np.zeros((2, 2), np.float32))
+        frames, want = split.render(), one.render()
+        assert len(frames) == 2 and all(f.dtype == np.uint8 and f.ndim == 3 for f in frames)
+        assert all(np.array_equal(f, w) for f, w in zip(frames, want, strict=True))
+        psplit.reset(seed=2)
+        pone.reset(seed=2)
+        assert all(np.array_equal(f, w) for f, w in zip(psplit.render(), pone.render(), strict=True))
+    finally:
+        split.close()
+        psplit.close()
