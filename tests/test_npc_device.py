@@ -55,7 +55,7 @@ def test_a_model_meant_for_a_gpu_never_splits_over_processes() -> None:
 
     assert on_gpu(None, {"npc": TrajeglishNPC(device="cuda:1")})
     assert not on_gpu(None, {"npc": TrajeglishNPC(device="cpu")}) and not on_gpu(None, {"npc": "idm"})
-    assert _count("auto", 64, None, {"npc": TrajeglishNPC(device="cuda")}) == 1
+    assert _count("auto", 64, None, {"npc": TrajeglishNPC(device="cuda")}, "auto") == 1
     # a loaded checkpoint already on another device counts too (a meta-device stand-in for a GPU)
     ckpt = tiny()
     elsewhere = dataclasses.replace(ckpt, model=copy.deepcopy(ckpt.model).to("meta"))

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+import torch
 from helpers import tiny
 from stable_baselines3 import PPO
 
@@ -293,6 +294,12 @@ def test_scenes_reset_one_by_one_then_step_and_workers_stop_with_the_env() -> No
     assert all(not w.is_alive() for w in workers)
     with pytest.raises(ValueError, match="torch_threads must be 'auto', None or 1"):
         SplitEgoEnv(4, processes=2, torch_threads=2, **kw)
+    # asking for several torch threads keeps "auto" in one process (SB3VecEnv's default)
+    threads = torch.get_num_threads()
+    try:
+        assert isinstance(SB3VecEnv(16, torch_threads=2, **kw).venv, BatchedEgoEnv)
+    finally:
+        torch.set_num_threads(threads)
 
 
 ORPHAN = """

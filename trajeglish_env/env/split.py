@@ -54,9 +54,16 @@ __all__ = [
 ]
 
 
-def _count(processes: int | str, num_envs: int, config: EnvConfig | None, options: dict[str, Any]) -> int:
-    """The process count of a factory: ``"auto"`` keeps a model meant for a GPU in one process."""
-    if processes == "auto" and on_gpu(config, options):
+def _count(
+    processes: int | str,
+    num_envs: int,
+    config: EnvConfig | None,
+    options: dict[str, Any],
+    torch_threads: int | str | None,
+) -> int:
+    """The process count of a factory: ``"auto"`` keeps in one process a model meant for a GPU, and an env
+    asked for several torch threads (a worker runs one)."""
+    if processes == "auto" and (on_gpu(config, options) or torch_threads not in ("auto", None, 1)):
         return 1
     return checked_processes(processes, num_envs)
 
@@ -71,8 +78,9 @@ def batched_ego_env(
     **options: Any,
 ) -> BatchedEgoEnv | SplitEgoEnv:
     """A :class:`BatchedEgoEnv` (``processes`` 1) or a :class:`SplitEgoEnv` of that many worker processes
-    (``"auto"``: :func:`auto_env_processes`, one process when that is 1 or the NPC model is on a GPU)."""
-    count = _count(processes, num_envs, config, options)
+    (``"auto"``: :func:`auto_env_processes`; one process when that is 1, when the NPC model is on a GPU or
+    when ``torch_threads`` asks for several threads)."""
+    count = _count(processes, num_envs, config, options, torch_threads)
     if count == 1:
         return BatchedEgoEnv(num_envs, scenes, config, render_mode, torch_threads, **options)
     return SplitEgoEnv(num_envs, scenes, config, render_mode, torch_threads, processes=count, **options)
@@ -89,7 +97,7 @@ def batched_parallel_env(
 ) -> BatchedParallelEnv | SplitParallelEnv:
     """A :class:`BatchedParallelEnv` (``processes`` 1) or a :class:`SplitParallelEnv` (as
     :func:`batched_ego_env`)."""
-    count = _count(processes, num_envs, config, options)
+    count = _count(processes, num_envs, config, options, torch_threads)
     if count == 1:
         return BatchedParallelEnv(num_envs, scenes, config, render_mode, torch_threads, **options)
     return SplitParallelEnv(num_envs, scenes, config, render_mode, torch_threads, processes=count, **options)
