@@ -11,8 +11,6 @@ from pathlib import Path
 
 import pytest
 
-from trajeglish_env.heap import keep_freed_memory
-
 # allocates 24 activations of 4 MB and frees them, 10 times (as a decoding step does), and prints the minor
 # page faults that took, with the policy applied or not. Without it glibc gives the 96 MB freed at the
 # heap's top back to the kernel whatever its history: its own trim threshold is twice its mmap threshold,
@@ -66,12 +64,18 @@ def test_freed_memory_is_reused_instead_of_fresh_pages() -> None:
     assert probe("policy", TRAJEGLISH_KEEP_HEAP="0")["applied"] is False
 
 
+ENGINE = """
+from trajeglish_env import heap
+from trajeglish_env.benchmark.workloads import model_checkpoint
+from trajeglish_env.sampler.engine import BatchEngine
+before = heap._done
+BatchEngine(model_checkpoint()[0], 1)
+print(before, heap._done)
+"""
+
+
 def test_engines_apply_the_policy() -> None:
-    from helpers import tiny
-
-    from trajeglish_env.sampler.engine import BatchEngine
-
-    BatchEngine(tiny(), 1)
-    assert keep_freed_memory() is (
-        sys.platform.startswith("linux") and os.environ.get("TRAJEGLISH_KEEP_HEAP") != "0"
-    )
+    done = subprocess.run([sys.executable, "-c", ENGINE], capture_output=True, text=True, check=True)
+    before, after = done.stdout.split()
+    wanted = sys.platform.startswith("linux") and os.environ.get("TRAJEGLISH_KEEP_HEAP") != "0"
+    assert before == "None" and after == str(wanted)  # a fresh process: the engine applied it

@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -305,10 +306,12 @@ def test_scenes_reset_one_by_one_then_step_and_workers_stop_with_the_env() -> No
 ORPHAN = """
 import sys, time
 from trajeglish_env.env.split import SplitEgoEnv
+def busy(env):
+    time.sleep(60)
 venv = SplitEgoEnv(4, processes=2, npc="idm", max_cycles=5)
 venv.reset(seed=0)
 print(" ".join(str(w.pid) for w in venv.workers.workers), flush=True)
-time.sleep(60)
+venv.apply(busy)  # the workers are busy (not reading their pipes) when the caller is killed
 """
 
 
@@ -352,3 +355,49 @@ def test_split_envs_render_the_frames_of_one_process() -> None:
     finally:
         split.close()
         psplit.close()
+
+
+def _explode() -> None:
+    raise ValueError("this answer cannot be loaded here")
+
+
+class _Unloadable:
+    """Pickles in the worker, fails to unpickle in the caller."""
+
+    def __reduce__(self) -> tuple[object, tuple[()]]:
+        return _explode, ()
+
+
+def _unloadable(env: BatchedEgoEnv) -> _Unloadable:
+    return _Unloadable()
+
+
+def test_an_answer_that_cannot_be_loaded_is_an_error_and_the_env_goes_on() -> None:
+    venv = SplitEgoEnv(4, processes=2, npc="idm", max_cycles=5)
+    try:
+        venv.reset(seed=0)
+        with pytest.raises(ValueError, match="cannot be loaded here"):
+            venv.apply(_unloadable)
+        assert venv.workers.pending == [0, 0]
+        venv.step(np.zeros((4, 2), np.float32))
+    finally:
+        venv.close()
+    assert all(not w.is_alive() for w in venv.workers.workers)
+
+
+def test_a_split_env_made_in_another_thread_keeps_its_workers() -> None:
+    made: list[SplitEgoEnv] = []
+
+    def make() -> None:
+        made.append(SplitEgoEnv(4, processes=2, npc="idm", max_cycles=5))
+
+    thread = threading.Thread(target=make)
+    thread.start()
+    thread.join()  # the thread that forked the workers is gone; they live on
+    venv = made[0]
+    try:
+        venv.reset(seed=0)
+        venv.step(np.zeros((4, 2), np.float32))
+        assert all(w.is_alive() for w in venv.workers.workers)
+    finally:
+        venv.close()

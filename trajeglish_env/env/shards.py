@@ -18,8 +18,11 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import multiprocessing
+import os
 import pickle
 import signal
+import threading
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from multiprocessing.reduction import ForkingPickler
@@ -127,27 +130,38 @@ def _run(env: Any, command: str, args: tuple[Any, ...]) -> Any:
     raise ValueError(f"unknown worker command {command!r}")
 
 
-def _die_with_parent() -> None:
-    """Linux: this process gets SIGTERM when the process that forked it dies (even by SIGKILL)."""
+def _die_with_parent(parent: int | None) -> None:
+    """Linux: this process gets SIGTERM when the process that forked it dies (even by SIGKILL). The kernel
+    ties the signal to the forking *thread*, so ``parent`` is None (no signal: the closed pipe ends the
+    worker) when the caller forked from another thread than its main one; a caller already gone ends the
+    worker at once."""
+    if parent is None:
+        return
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError, TypeError):
-        pass
+        return
+    if os.getppid() != parent:  # the caller died before the signal was armed
+        os._exit(1)
 
 
 def _serve(
-    conn: Any, build: Callable[[], Any], describe: Callable[[Any], Any], inherited: Sequence[Any]
+    conn: Any,
+    build: Callable[[], Any],
+    describe: Callable[[Any], Any],
+    inherited: Sequence[Any],
+    parent: int | None,
 ) -> None:
     """A shard's loop in its worker: build the env, answer with ``describe(env)``, then run commands until
     ``close`` (an error is sent back and the worker goes on). ``inherited``: the caller's ends of the
-    pipes, closed here so that the worker sees the caller go."""
+    pipes, closed here so that the worker sees the caller go; ``parent``: see :func:`_die_with_parent`."""
     import torch
 
     for other in inherited:
         other.close()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _die_with_parent()
+    _die_with_parent(parent)
     torch.set_num_threads(1)
     try:
         env = build()
@@ -192,11 +206,13 @@ class ShardWorkers:
         self.workers: list[Any] = []
         self.pending: list[int] = []  # answers sent but not read yet, per worker
         self.stopped = False
+        main = threading.current_thread() is threading.main_thread()
         try:
             for build in builders:
                 parent, child = context.Pipe()
                 inherited = [*self.conns, parent]
-                worker = context.Process(target=_serve, args=(child, build, describe, inherited), daemon=True)
+                args = (child, build, describe, inherited, os.getpid() if main else None)
+                worker = context.Process(target=_serve, args=args, daemon=True)
                 worker.start()
                 child.close()
                 self.conns.append(parent)
@@ -242,12 +258,21 @@ class ShardWorkers:
         self._send_bytes(shard, bytes(ForkingPickler.dumps((command, args))))
 
     def _read(self, shard: int) -> tuple[str, Any]:
+        """The next answer of ``shard``'s worker. Waiting can be interrupted (Ctrl-C) and reads nothing;
+        once an answer arrives it is read whole with SIGINT held back, and counted before it is unpickled,
+        so the pipe stays in step whatever happens."""
+        conn = self.conns[shard]
         try:
-            answer = self.conns[shard].recv()
+            conn.poll(None)
+            held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            try:
+                data = conn.recv_bytes()
+                self.pending[shard] -= 1
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, held)
         except (EOFError, OSError):
             raise self._died(shard) from None
-        self.pending[shard] -= 1
-        return answer
+        return ForkingPickler.loads(data)
 
     def receive(self, shard: int) -> Any:
         """The answer of ``shard``'s worker; its error raised here, naming the shard's scenes."""
@@ -284,8 +309,9 @@ class ShardWorkers:
         """Method ``name`` of every shard's env, with its own positional arguments each."""
         return self.all("method", [(name, args, {}) for args in per_shard])
 
-    def stop(self) -> None:
-        """Close every shard's env and end its worker (idempotent; a stuck worker is terminated)."""
+    def stop(self, wait_s: float = 5.0) -> None:
+        """Close every shard's env and end its worker (idempotent): the answers still coming are read and
+        dropped, and a worker that has not ended after ``wait_s`` is terminated."""
         if self.stopped:
             return
         self.stopped = True
@@ -294,17 +320,20 @@ class ShardWorkers:
                 conn.send(("close", ()))
             except (BrokenPipeError, OSError):
                 pass
+        deadline = time.monotonic() + wait_s
         for conn, worker in zip(self.conns, self.workers, strict=False):
             try:
-                if conn.poll(5.0):
-                    conn.recv()
-            except (EOFError, OSError):
+                while worker.is_alive() and time.monotonic() < deadline:
+                    if conn.poll(0.05):  # a worker blocked on a full pipe could not end
+                        conn.recv_bytes()
+            except Exception:
                 pass
-            worker.join(timeout=5.0)
-            if worker.is_alive():
-                worker.terminate()
-                worker.join()
-            conn.close()
+            finally:
+                worker.join(timeout=max(0.0, deadline - time.monotonic()))
+                if worker.is_alive():
+                    worker.terminate()
+                    worker.join()
+                conn.close()
 
 
 def shard_ranges(num_envs: int, processes: int) -> list[range]:

@@ -83,15 +83,17 @@ class BatchCore:
 
     def frames(self) -> tuple[np.ndarray | None, ...]:
         """The current frame of every scene (None for a stopped one)."""
+        return tuple(self.frame(i) for i in range(self.num_envs))
+
+    def frame(self, scene: int) -> np.ndarray | None:
+        """The current frame of scene ``scene`` alone (None when it is stopped)."""
         if not self.renderers:
             from trajeglish_env.render import LiveRenderer
 
             size, radius = self.config.render_size, self.config.render_radius
             self.renderers = [LiveRenderer(size, radius) for _ in range(self.num_envs)]
-        out = []
-        for i, sim in enumerate(self.batch.sims):
-            out.append(None if sim is None else self.renderers[i].of(sim).frame(sim.t))
-        return tuple(out)
+        sim = self.batch.sims[scene]
+        return None if sim is None else self.renderers[scene].of(sim).frame(sim.t)
 
     def close(self) -> None:
         """Release the renderers."""
@@ -163,7 +165,7 @@ class EgoScene:
         return self.owner.core.batch.observe([self.index], [self.owner.egos[self.index]])[0], info
 
     def render(self) -> np.ndarray | None:
-        return self.owner.core.frames()[self.index] if self.render_mode == "rgb_array" else None
+        return self.owner.core.frame(self.index) if self.render_mode == "rgb_array" else None
 
     def close(self) -> None:
         """Release this scene's renderer."""
