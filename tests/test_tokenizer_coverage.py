@@ -21,6 +21,8 @@ from trajeglish_env.tokenizer.coverage import (
     envelope_cover,
     envelope_error,
     envelope_transitions,
+    stress_error,
+    stress_tracks,
     unicycle_step,
 )
 from trajeglish_env.tokenizer.data import TrajectorySet
@@ -89,18 +91,17 @@ def test_envelope_cover_reaches_every_envelope_transition() -> None:
         envelope_transitions(VEHICLE, 0.0)
 
 
-# Turning at the limit is a known gap: the cover's templates lie on the (arc length, heading change)
-# surface of the envelope, so a lateral/heading lag of the tokenized state has no template to correct it
-# and grows slowly along a long curve at the lateral-acceleration limit (measured: 5.2 cm for the tight
-# turn, 8 cm at 30 m/s, 33 cm at 40 m/s, 15 cm accelerating in a turn, over 5 s).
-CURVE_GAP = {"tight turn at 5 m/s", "8 m/s^2 curve at 30 m/s", "8 m/s^2 curve at 40 m/s"}
-CURVE_GAP |= {"accelerating 0 to 10 m/s in a turn"}
+# A greedy tokenizer's error is not bounded by the cover's one-step radius: a state that lags at a limit
+# is tokenized from off the envelope surface. The lattice's catch-up band keeps the lag small (below), but
+# at a 4.5 cm radius one of these tracks still ends a hair over 5 cm (measured 5.1 cm; the accelerating
+# turn 4.99 cm).
+CURVE_GAP = {"40 m/s braking to a stop"}
 
 
 @pytest.mark.parametrize(
     "name",
     [
-        n if n not in CURVE_GAP else pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="curve gap"))
+        n if n not in CURVE_GAP else pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="lag"))
         for n in _envelope_tracks()
     ],
 )
@@ -109,6 +110,49 @@ def test_covered_vocabulary_follows_envelope_motions_within_5cm(covered: MotionV
     cov = covered.metadata["coverage"]["vehicle"]
     assert cov["max_error_m"] <= 0.045 and cov["envelope"]["max_speed"] == 40.0 and cov["templates"] < 384
     assert _max_error(covered, _envelope_tracks()[name]) < 0.05
+
+
+def _random_envelope_tracks(count: int, seed: int) -> list[np.ndarray]:
+    """Held-out tracks inside the vehicle envelope (not :func:`stress_tracks`'s grid): a random start speed,
+    speed change of up to 8 m/s^2 (reversing ones keep their speed) and a random share of the turn limit."""
+    rng = np.random.default_rng(seed)
+    tracks = []
+    for _ in range(count):
+        v0 = rng.uniform(VEHICLE.min_speed, VEHICLE.max_speed)
+        speed = np.full(50, v0) if v0 < 0 else np.clip(v0 + rng.uniform(-8, 8) * DT * np.arange(50), 0, 40)
+        mean = np.maximum(np.abs(speed), 1e-3)
+        limit = np.minimum(1.0 / VEHICLE.min_turn_radius, VEHICLE.max_lateral_accel / mean**2)
+        tracks.append(_track(speed, rng.uniform(-1, 1) * limit))
+    return tracks
+
+
+def test_tokenized_tracks_do_not_drift_away_at_the_limits(
+    small_fit: TrajectorySet, covered: MotionVocabulary
+) -> None:
+    """Envelope tracks stay near their tokenized states: the lattice's catch-up band (templates a little
+    faster and turning a little harder than the limits). Without it, tracks accelerating through a curve
+    at the lateral limit fell metres behind (measured: up to 2.9 m with the full cover, 2.1 m at the
+    default share on these tracks; stress tracks 2.1 m and 11.6 m)."""
+    tracks = _random_envelope_tracks(60, seed=7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        default = fit_vocabulary("k-disks", 384, small_fit, seed=0, trials=1, epsilon_scales=(1.0,))
+    full = covered
+    worst = {
+        name: max(_max_error(v, x) for x in tracks) for name, v in (("default", default), ("full", full))
+    }
+    assert worst["full"] < 0.07 and worst["default"] < 0.11, worst  # measured 6.8 and 10.1 cm
+    for vocab, bound in ((full, 0.075), (default, 0.3)):  # measured 7.1 and 26.8 cm
+        stress = vocab.metadata["coverage"]["vehicle"]["stress_max_error_m"]
+        assert stress < bound
+        assert stress == pytest.approx(stress_error(vocab, AgentKind.VEHICLE, DT), abs=1e-5)
+    shipped = load_default_tokenizer()
+    assert max(_max_error(shipped, x) for x in tracks[:20]) > 5.0  # no 40 m/s, no reversing: metres behind
+    xyh = stress_tracks(VEHICLE, DT)
+    assert xyh.shape[1:] == (50, 3) and np.isfinite(xyh).all()
+    # the family reaches both speed limits and both turn directions
+    step = np.linalg.norm(np.diff(xyh[..., :2], axis=1), axis=-1).max(1)
+    assert step.max() == pytest.approx(4.0, abs=0.01) and np.diff(xyh[..., 2], axis=1).min() < 0
 
 
 def test_shipped_vocabulary_cannot_follow_40_mps() -> None:

@@ -28,7 +28,8 @@ class Envelope:
     """Motion limits of one class: speed in [min_speed, max_speed] m/s (negative: reversing), speed
     change up to ``max_accel`` / ``max_brake`` m/s^2, curvature up to min(1 / min_turn_radius,
     max_lateral_accel / v^2); the cover is measured with a ``length`` x ``width`` box (m) and must reach
-    every envelope transition within ``radius`` m."""
+    every envelope transition within ``radius`` m; its lattice reaches ``catch_up`` spacings beyond the
+    speed and turn limits (see :func:`lattice_templates`)."""
 
     min_speed: float
     max_speed: float
@@ -41,6 +42,7 @@ class Envelope:
     radius: float = 0.03
     speed_step: float = 0.25
     curvatures: int = 25
+    catch_up: float = 0.5
 
     def __post_init__(self) -> None:
         if not self.min_speed <= 0.0 < self.max_speed:
@@ -50,8 +52,8 @@ class Envelope:
         for name in ("max_lateral_accel", "min_turn_radius", "length", "width", "radius", "speed_step"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"Envelope: {name} must be > 0, got {getattr(self, name)}")
-        if self.max_accel < 0 or self.max_brake < 0 or self.curvatures < 1:
-            raise ValueError("Envelope: max_accel, max_brake must be >= 0 and curvatures >= 1")
+        if self.max_accel < 0 or self.max_brake < 0 or self.curvatures < 1 or self.catch_up < 0:
+            raise ValueError("Envelope: max_accel, max_brake, catch_up must be >= 0 and curvatures >= 1")
 
     def to_json(self) -> dict[str, float | int]:
         """The fields as a JSON-able dict (for vocabulary metadata)."""
@@ -148,25 +150,28 @@ def cover_templates(
 
 
 def lattice_templates(env: Envelope, dt: float, radius: float) -> np.ndarray:
-    """Templates on the envelope's (arc length, heading change) surface: rows of arc length ``radius *
-    sqrt(2)`` apart, each with heading changes ``radius * sqrt(2) / half-diagonal`` apart up to the row's
-    limit min(|s| / min_turn_radius, max_lateral_accel dt^2 / |s|) (cell centres, so a cell's corners are
-    within ``radius``)."""
+    """Templates on the envelope's (arc length, heading change) surface, hexagonally packed: rows of arc
+    length ``1.5 radius`` apart, heading changes ``min(sqrt(3) radius / half-diagonal, 1.5 radius / |s|)``
+    apart within a row of arc length ``s`` (at speed, a heading error's lever over the next step outweighs
+    the box's half-diagonal), odd counts (a straight template) on even rows and even counts on odd rows, so
+    neighbouring rows interleave. Rows and headings reach ``env.catch_up`` spacings beyond the envelope's
+    speed and turn limits: a track at a limit lags its tokenized state a little, and without templates
+    that go faster or turn harder the lag only grows (measured on :func:`stress_tracks`: metres over 5 s)."""
     half = 0.5 * float(np.hypot(env.length, env.width))
-    ds, dhs = radius * np.sqrt(2.0), radius * np.sqrt(2.0) / half
-    lo = (env.min_speed - env.max_brake * dt / 2) * dt
-    hi = (env.max_speed + env.max_accel * dt / 2) * dt
+    ds = 1.5 * radius
+    lo = (env.min_speed - env.max_brake * dt / 2) * dt - env.catch_up * ds
+    hi = (env.max_speed + env.max_accel * dt / 2) * dt + env.catch_up * ds
     rows = int(np.ceil((hi - lo) / ds))
     arc = np.linspace(lo + (hi - lo) / rows / 2, hi - (hi - lo) / rows / 2, rows)
     mag = np.maximum(np.abs(arc), 1e-9)
+    dhs = np.minimum(np.sqrt(3.0) * radius / half, 1.5 * radius / mag)
     limit = np.minimum(mag / env.min_turn_radius, env.max_lateral_accel * dt * dt / mag)
-    # Half a cell beyond the limit on each side puts the outermost templates on the limit itself: a track
-    # turning at its limit would otherwise lag (tokenized from a lagging state, with nothing to catch up).
-    limit = limit + dhs / 2
-    count = np.maximum(1, np.ceil(2 * limit / dhs)).astype(np.int64)
+    count = np.ceil(2.0 * (limit / dhs + env.catch_up)).astype(np.int64)
+    odd = np.arange(rows) % 2 == 0
+    count = np.maximum(np.where((count % 2 == 1) == odd, count, count + 1), 1)
     row = np.repeat(np.arange(rows), count)
     pos = np.arange(len(row)) - np.repeat(np.cumsum(count) - count, count)  # index within the row
-    dh = limit[row] * ((2 * pos + 1) / count[row] - 1)
+    dh = dhs[row] * (pos - (count[row] - 1) / 2.0)
     s = arc[row]
     curvature = np.where(np.abs(s) > 1e-9, dh / np.where(np.abs(s) > 1e-9, s, 1.0), 0.0)
     return unicycle_step(s / dt, np.zeros_like(s), curvature, dt)
@@ -193,6 +198,44 @@ def envelope_error(
     env = envelope or DEFAULT_ENVELOPES[kind]
     points = envelope_transitions(env, dt)
     return float(_nearest_distance(points, templates, np.array([env.length, env.width])).max())
+
+
+def stress_tracks(env: Envelope, dt: float, steps: int = 50) -> np.ndarray:
+    """Deterministic tracks ``xyh [M, steps, 3]`` at the envelope's edges: start speeds 2 m/s apart over
+    [min_speed, max_speed], braking at ``max_brake``, constant speed or accelerating at ``max_accel``
+    (forward starts; reversing ones keep their speed), each turning at its full and half turn limit both
+    ways (the limit follows the speed). The cover's one-step radius does not bound how far a tokenized
+    track lags behind these; :func:`stress_error` measures it."""
+    t = np.arange(steps)
+    starts = np.unique(np.r_[np.arange(env.min_speed, env.max_speed, 2.0), env.max_speed])
+    speeds = []
+    for v0 in starts:
+        accels = (-env.max_brake, 0.0, env.max_accel) if v0 > 0 else (0.0,)
+        for a in accels:
+            speeds.append(np.clip(v0 + a * dt * t, 0.0 if v0 > 0 else env.min_speed, env.max_speed))
+    v = np.repeat(np.stack(speeds), 4, axis=0)  # [M, steps]
+    frac = np.tile([-1.0, -0.5, 0.5, 1.0], len(speeds))[:, None]
+    mean = np.maximum(np.abs(v[:, :-1] + v[:, 1:]) / 2, 1e-3)
+    curvature = frac * np.minimum(1.0 / env.min_turn_radius, env.max_lateral_accel / mean**2)
+    local = unicycle_step(v[:, :-1], np.diff(v, axis=1) / dt, curvature, dt)  # [M, steps-1, 3]
+    heading = np.concatenate([np.zeros((len(v), 1)), np.cumsum(local[..., 2], axis=1)], axis=1)
+    c, s = np.cos(heading[:, :-1]), np.sin(heading[:, :-1])
+    dx = c * local[..., 0] - s * local[..., 1]
+    dy = s * local[..., 0] + c * local[..., 1]
+    xy = np.concatenate([np.zeros((len(v), 1, 2)), np.cumsum(np.stack([dx, dy], -1), axis=1)], axis=1)
+    return np.concatenate([xy, heading[..., None]], axis=-1)
+
+
+def stress_error(vocab: Any, kind: AgentKind, dt: float, envelope: Envelope | None = None) -> float:
+    """Largest error (m, envelope box) of ``vocab``'s tokenization of ``kind``'s :func:`stress_tracks`."""
+    from trajeglish_env.tokenizer.tokenize import tokenize
+
+    env = envelope or DEFAULT_ENVELOPES[kind]
+    xyh = stress_tracks(env, dt)
+    m = len(xyh)
+    size = np.tile([env.length, env.width], (m, 1))
+    tok = tokenize(vocab, xyh, np.ones(xyh.shape[:2], bool), size, np.full(m, int(kind), np.int64))
+    return float(np.nanmax(tok.error))
 
 
 def drift_report(

@@ -23,7 +23,13 @@ import numpy as np
 
 from trajeglish_env.scenario import AgentKind
 from trajeglish_env.tokenizer.baselines import kmeans_templates, xy_grid_templates, xyh_grid_templates
-from trajeglish_env.tokenizer.coverage import DEFAULT_ENVELOPES, envelope_cover, envelope_error
+from trajeglish_env.tokenizer.coverage import (
+    DEFAULT_ENVELOPES,
+    envelope_cover,
+    envelope_error,
+    stress_error,
+    stress_tracks,  # noqa: F401  (named in the docstring)
+)
 from trajeglish_env.tokenizer.data import TrajectorySet, load_trajectories
 from trajeglish_env.tokenizer.discretization import collision_rates, evaluate_vocabulary, plot_error_vs_length
 from trajeglish_env.tokenizer.kdisks import default_epsilon, sample_kdisks
@@ -90,12 +96,13 @@ def fit_vocabulary(
     With ``coverage`` (k-disks and k-means), every candidate set starts with the templates of
     :func:`envelope_cover` for the class (every transition of the class's motion envelope, up to the env's
     40 m/s, reversing and tight turns, within the envelope's radius) and samples the rest from data; the
-    metadata's ``coverage`` records per class the envelope, the reserved templates and the max one-step
-    error on the envelope. At least ``min_data_share`` of the templates stay for data: a cover that does
-    not fit is made at a wider radius (recorded, with a warning). The envelope templates all lie on the
-    unicycle surface, so on their own they cannot correct a tokenized state that is off it (lateral slip,
-    noise): with a small data share, real tracks tokenize worse (README, "Motion vocabulary coverage").
-    The result depends only on the inputs (deterministic).
+    metadata's ``coverage`` records per class the envelope, the reserved templates, the max one-step
+    error on the envelope and the max error of tokenizing the envelope's :func:`stress_tracks` (a track at
+    a limit can lag more than one step's error). At least ``min_data_share`` of the templates stay for
+    data: a cover that does not fit is made at a wider radius (recorded, with a warning). The envelope
+    templates all lie on the unicycle surface, so on their own they cannot correct a tokenized state that
+    is off it (lateral slip, noise): with a small data share, real tracks tokenize worse (README, "Motion
+    vocabulary coverage"). The result depends only on the inputs (deterministic).
 
     k-disks draws ``trials`` candidate sets for each epsilon in ``epsilon * epsilon_scales`` (``epsilon``
     defaults to the paper's value for ``vocab_size``; ``epsilon_scales=(1.0,)`` is exactly the paper's
@@ -167,7 +174,14 @@ def fit_vocabulary(
                     "borrowed": "vehicle",
                     "max_error_m": round(envelope_error(templates[kind], kind, fit.dt), 5),
                 }
-    return MotionVocabulary(np.stack(templates), method=method, metadata=metadata)  # type: ignore[arg-type]
+    vocab = MotionVocabulary(np.stack(templates), method=method, metadata=metadata)  # type: ignore[arg-type]
+    if (
+        covered
+    ):  # how far a tokenized track lags along the envelope's edges (one-step radius does not bound it)
+        for kind in AgentKind:
+            entry = metadata["coverage"][kind.name.lower()]
+            entry["stress_max_error_m"] = round(stress_error(vocab, kind, fit.dt), 5)
+    return vocab
 
 
 def _reserve(
