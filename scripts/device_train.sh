@@ -35,6 +35,9 @@
 #   SIGNAL_INPUT   1: the model reads traffic-signal states (`train --signal-input`; with INIT, the
 #                  checkpoint's model extended with that input) [0]
 #   SIGNAL_LR_SCALE  learning-rate multiplier of the signal embedding (`--signal-lr-scale`) [1]
+#   VOCAB          a new run without INIT: fit a vocabulary of this many tokens per class on the
+#                  training scenes (`tokenizer fit`, with its motion-envelope cover; 640 is the README's
+#                  choice for a model trained from scratch) and train on it; 0: the shipped 384 [0]
 #   STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY   the run's schedule [10000 32 5e-4 200 0 500 250];
 #                  kept from RUN_IN when resuming (setting another value is an error), as the SIGNAL_ ones are
 #   GEN_WORKERS TRAIN_WORKERS   processes generating / loading batches [cores, cores - 1]
@@ -57,7 +60,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest)
 declare -A GIVEN=()
-for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE; do
+for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
 done
 
@@ -97,7 +100,7 @@ RESUME=()
 if [ -n "$RUN_IN" ]; then
     SAVED=$("$PYTHON" trajeglish_env/device_job.py saved "$RUN_IN") || exit 2
     eval "$SAVED"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE; do
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB; do
         s=SAVED_$v
         [ -n "${!s:-}" ] || continue
         if [ -n "${GIVEN[$v]:-}" ] && [ "${GIVEN[$v]}" != "${!s}" ]; then
@@ -127,6 +130,11 @@ VAL_EVERY=${VAL_EVERY:-500}
 CKPT_EVERY=${CKPT_EVERY:-250}
 SIGNAL_INPUT=${SIGNAL_INPUT:-0}
 SIGNAL_LR_SCALE=${SIGNAL_LR_SCALE:-1}
+VOCAB=${VOCAB:-0}
+case $VOCAB in
+'' | *[!0-9]*) die "VOCAB=$VOCAB: expected a number of tokens (0: the shipped vocabulary)" ;;
+esac
+[ "$VOCAB" = 0 ] || [ ${#INIT_ARGS[@]} = 0 ] || die "VOCAB=$VOCAB with INIT=$INIT: a fine-tuned model keeps its checkpoint's vocabulary (unset one of them)"
 case $SIGNAL_INPUT in
 0) SIGNAL_ARGS=() ;;
 1) SIGNAL_ARGS=(--signal-input --signal-lr-scale "$SIGNAL_LR_SCALE") ;;
@@ -134,7 +142,7 @@ case $SIGNAL_INPUT in
 esac
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh
@@ -212,7 +220,17 @@ fi
 GEN_TOOK=$((SECONDS - T_GEN))
 say "scene shards: $N_TRAIN for training (${HAVE[*]}), $N_VAL held out; $GEN_TOOK s"
 
-# ---- 5. train until the budget is spent
+# ---- 5. a new vocabulary (VOCAB, new runs only: a resumed run's checkpoint holds its own)
+VOCAB_ARGS=()
+if [ "$VOCAB" != 0 ] && [ -z "$RUN_IN" ]; then
+    T_VOCAB=$SECONDS
+    "$PYTHON" -m trajeglish_env.cli tokenizer fit --json --data "${HAVE[@]}" --vocab "$VOCAB" --trials 2 \
+        --out "$WORK/vocab.npz" >"$WORK/vocab.json" || die "tokenizer fit --vocab $VOCAB failed (see $LOG)"
+    VOCAB_ARGS=(--vocab "$WORK/vocab.npz")
+    say "fitted a $VOCAB-token vocabulary on the training scenes in $((SECONDS - T_VOCAB)) s"
+fi
+
+# ---- 6. train until the budget is spent
 if [ -n "${TRAIN_MINUTES:-}" ]; then
     TRAIN_S=$(calc "$TRAIN_MINUTES * 60")
     [ "$(calc "($TRAIN_S > 0) ? 1 : 0")" = 1 ] || die "TRAIN_MINUTES=$TRAIN_MINUTES: expected a positive number"
@@ -228,11 +246,11 @@ rc=0
 "$PYTHON" -m trajeglish_env.cli train --json --quiet --data "${HAVE[@]}" --out "$RUN" --preset "$PRESET" \
     --steps "$STEPS" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --seed "$SEED" \
     --workers "$TRAIN_WORKERS" --val-every "$VAL_EVERY" --checkpoint-every "$CKPT_EVERY" \
-    --minutes "$(calc "$TRAIN_S / 60")" "${VAL_ARGS[@]}" "${RESUME[@]}" "${INIT_ARGS[@]}" "${SIGNAL_ARGS[@]}" >"$WORK/train.json" || rc=$?
+    --minutes "$(calc "$TRAIN_S / 60")" "${VAL_ARGS[@]}" "${RESUME[@]}" "${INIT_ARGS[@]}" "${SIGNAL_ARGS[@]}" "${VOCAB_ARGS[@]}" >"$WORK/train.json" || rc=$?
 [ "$rc" = 0 ] || say "train failed (exit code $rc); packing what was checkpointed"
 cat "$WORK/train.json"
 
-# ---- 6. what comes back
+# ---- 7. what comes back
 {
     echo "call=$CALL"
     echo "device=$DEVICE"
@@ -246,7 +264,7 @@ cat "$WORK/train.json"
     echo "gen_seconds=$GEN_TOOK"
     echo "train_seconds=$((SECONDS - T_TRAIN))"
     echo "train_workers=$TRAIN_WORKERS"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE; do echo "param.$v=${!v}"; done
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB; do echo "param.$v=${!v}"; done
 } >"$WORK/call.env"
 say "packing into $OUT"
 "$PYTHON" trajeglish_env/device_job.py pack "$RUN" "$OUT" --facts "$WORK/call.env" \

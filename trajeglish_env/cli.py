@@ -28,6 +28,7 @@ from trajeglish_env.cli_args import (
 from trajeglish_env.cli_eval import GUARD_CHOICES, add_eval_commands, checkpoints
 from trajeglish_env.cli_womd import add_womd_commands
 from trajeglish_env.sampler.config import COMPUTE_DTYPES
+from trajeglish_env.tokenizer.fit import VOCAB_SIZES
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
 
@@ -268,7 +269,7 @@ def build_parser() -> argparse.ArgumentParser:
         "fit", cmd_tokenizer_fit, "fit k-disks vocabularies (one per agent class) on a scene directory", tsub
     )
     p.add_argument("--data", nargs="+", required=True, help="scene directories")
-    p.add_argument("--vocab", type=int, default=384, choices=(128, 256, 384, 512))
+    p.add_argument("--vocab", type=int, default=384, choices=VOCAB_SIZES)
     p.add_argument("--out", required=True, help="output vocabulary file")
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument(
@@ -282,7 +283,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--fit-data", nargs="+", help="scenes to fit the vocabularies on (default: a split of --data)"
     )
     p.add_argument("--trials", type=POSITIVE, default=4)
-    p.add_argument("--vocab", type=int, nargs="*", choices=(128, 256, 384, 512))
+    p.add_argument(
+        "--vocab", type=int, nargs="*", choices=VOCAB_SIZES, help="default: the paper's 128 256 384 512"
+    )
     p.add_argument("--out", default="out/tokenizer_eval", help="directory for plots")
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument(

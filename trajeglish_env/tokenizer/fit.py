@@ -38,6 +38,7 @@ from trajeglish_env.tokenizer.vocabulary import KIND_NAMES, MotionVocabulary
 
 METHODS = ("xyh-grid", "xy-grid", "k-means", "k-disks")
 PAPER_VOCAB_SIZES = (128, 256, 384, 512)
+VOCAB_SIZES = (*PAPER_VOCAB_SIZES, 640, 768)  # the paper's sizes and two larger (README: coverage)
 MIN_TRANSITIONS_PER_TEMPLATE = 10
 # k-disks tries the paper's epsilon and these multiples of it (data unlike WOMD may want another radius).
 EPSILON_SCALES = (0.75, 1.0, 1.5, 2.0)
