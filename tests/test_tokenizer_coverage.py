@@ -168,8 +168,9 @@ def test_default_share_leaves_half_for_data(small_fit: TrajectorySet) -> None:
         vocab = fit_vocabulary("k-disks", 384, small_fit, seed=0, trials=1, epsilon_scales=(1.0,))
     cov = vocab.metadata["coverage"]["vehicle"]
     assert cov["templates"] <= 192 and 0.045 < cov["radius_m"] < 0.07 and cov["max_error_m"] < 0.07
-    # one step within 7 cm, but along 5 s at 40 m/s the coarser cover lags (measured 0.38 m; shipped: 47 m)
-    assert _max_error(vocab, _envelope_tracks()["40 m/s straight"]) < 0.5
+    # one step within 7 cm; along 5 s at 40 m/s the coarser cover lags a little (measured 5.7 cm; 37.5 cm
+    # before the lattice reached past the speed limit; shipped: 47 m)
+    assert _max_error(vocab, _envelope_tracks()["40 m/s straight"]) < 0.08
     with pytest.raises(ValueError, match="min_data_share"):
         fit_vocabulary("k-disks", 384, small_fit, trials=1, epsilon_scales=(1.0,), min_data_share=1.0)
 

@@ -312,11 +312,14 @@ def partial_control(
     ranks: Ranks | None = None,
 ) -> dict[str, dict[str, float]]:
     """The sdc driven by the model, all others replaying the log; the sdc acts first vs last (ranks
-    share the scenes; the merged result is the one-process one)."""
+    share the scenes; the merged result is the one-process one). Per placement: ADE, the share of
+    rollouts with a collision, and that share split at each rollout's first collision into the sdc moving
+    into another agent (``at_fault_rate``: its new box overlaps the other's box of the step before) and
+    another agent moving into the sdc (``struck_rate``: the logged agents do not react to it)."""
     ranks = ranks or Ranks()
     out: dict[str, dict[str, float]] = {}
     for place in ("first", "last"):
-        ades, cols = [], []
+        ades, cols, faults = [], [], []
         mine = my_share(range(len(scenes)), ranks)
         for k in tqdm(mine, disable=not progress, file=sys.stderr, desc=f"partial ({place})"):
             scene = scenes[k]
@@ -338,18 +341,40 @@ def partial_control(
             log_ok = scene.valid[scene.sdc, fut]
             err = np.linalg.norm(res.xyh[:, scene.sdc, fut, :2] - scene.xyh[scene.sdc, fut, :2], axis=-1)
             ades.append((k, float(err[:, log_ok].mean())))
-            others = np.flatnonzero(np.arange(scene.num_agents) != scene.sdc)
-            ego = res.xyh[:, scene.sdc, fut][:, None]  # [R,1,H,3]
-            oth = res.xyh[:, others, fut]
-            ok = res.valid[:, others, fut]
-            hit = box_collisions(ego, scene.size[scene.sdc], oth, scene.size[others][None, :, None]) & ok
-            cols.append((k, float(hit.any(axis=(1, 2)).mean())))
-        ades, cols = (sorted(x for part in gather(values, ranks) for x in part) for values in (ades, cols))
+            hit, at_fault = _sdc_collisions(scene, res.xyh, res.valid)
+            cols.append((k, float(hit.mean())))
+            faults.append((k, float(at_fault.mean())))
+        ades, cols, faults = (
+            sorted(x for part in gather(values, ranks) for x in part) for values in (ades, cols, faults)
+        )
+        collided, fault = float(np.mean([c for _, c in cols])), float(np.mean([f for _, f in faults]))
         out[place] = {
             "ade": float(np.mean([a for _, a in ades])),
-            "collision_rate": float(np.mean([c for _, c in cols])),
+            "collision_rate": collided,
+            "at_fault_rate": fault,
+            "struck_rate": collided - fault,
         }
     return out
+
+
+def _sdc_collisions(scene: Scenario, xyh: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per rollout (``xyh [R,N,T,3]``, ``valid [R,N,T]``): whether the sdc's box overlaps another's after
+    the current step, and whether, at the first such step, its new box overlaps the box one of those
+    agents had the step before (it moved into them, rather than they into it)."""
+    sdc, cur = scene.sdc, scene.current_index
+    others = np.flatnonzero(np.arange(scene.num_agents) != sdc)
+    ego = xyh[:, sdc, cur:][:, None]  # [R,1,H+1,3], from the current step
+    oth, ok = xyh[:, others, cur:], valid[:, others, cur:]
+    ego_size, oth_size = scene.size[sdc], scene.size[others][None, :, None]
+    hit = box_collisions(ego[:, :, 1:], ego_size, oth[:, :, 1:], oth_size) & ok[:, :, 1:]  # [R,O,H]
+    collided = hit.any(axis=(1, 2))
+    first = np.argmax(hit.any(axis=1), axis=1)  # [R] first colliding step (index into H)
+    rows = np.arange(len(hit))
+    ego_then = ego[rows, 0, first + 1][:, None]  # the sdc's box at that step [R,1,3]
+    before = oth[rows, :, first]  # the others' boxes a step earlier [R,O,3]
+    into = box_collisions(ego_then, ego_size, before, oth_size[:, :, 0]) & ok[rows, :, first]
+    at_fault = collided & (into & hit[rows, :, first]).any(axis=1)
+    return collided, at_fault
 
 
 def evaluate(
@@ -467,9 +492,13 @@ def markdown_table(result: dict[str, Any]) -> str:
             "",
             f"Partial control ({pc['model']} drives the sdc, others replay the log):",
             "",
-            "| sdc placed | ADE (m) | collision rate |",
-            "|---|---|---|",
+            "| sdc placed | ADE (m) | collision rate | sdc moved into another | another moved into the sdc |",
+            "|---|---|---|---|---|",
         ]
         for place in ("first", "last"):
-            lines.append(f"| {place} | {pc[place]['ade']:.3f} | {pc[place]['collision_rate']:.4f} |")
+            r = pc[place]
+            lines.append(
+                f"| {place} | {r['ade']:.3f} | {r['collision_rate']:.4f} | {r['at_fault_rate']:.4f} | "
+                f"{r['struck_rate']:.4f} |"
+            )
     return "\n".join(lines) + "\n"

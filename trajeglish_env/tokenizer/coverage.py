@@ -19,6 +19,8 @@ import numpy as np
 from trajeglish_env.kinematics import VehicleLimits
 from trajeglish_env.scenario import AgentKind
 from trajeglish_env.tokenizer.distance import corner_distance
+from trajeglish_env.tokenizer.tokenize import tokenize
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
 DRIFT_TOLERANCE_M = 0.05  # held-out tracks: error beyond this counts as drift (the coverage target)
 
@@ -226,10 +228,10 @@ def stress_tracks(env: Envelope, dt: float, steps: int = 50) -> np.ndarray:
     return np.concatenate([xy, heading[..., None]], axis=-1)
 
 
-def stress_error(vocab: Any, kind: AgentKind, dt: float, envelope: Envelope | None = None) -> float:
+def stress_error(
+    vocab: MotionVocabulary, kind: AgentKind, dt: float, envelope: Envelope | None = None
+) -> float:
     """Largest error (m, envelope box) of ``vocab``'s tokenization of ``kind``'s :func:`stress_tracks`."""
-    from trajeglish_env.tokenizer.tokenize import tokenize
-
     env = envelope or DEFAULT_ENVELOPES[kind]
     xyh = stress_tracks(env, dt)
     m = len(xyh)
