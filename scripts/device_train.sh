@@ -36,8 +36,10 @@
 #                  checkpoint's model extended with that input) [0]
 #   SIGNAL_LR_SCALE  learning-rate multiplier of the signal embedding (`--signal-lr-scale`) [1]
 #   VOCAB          a new run without INIT: fit a vocabulary of this many tokens per class on the
-#                  training scenes (`tokenizer fit`, with its motion-envelope cover; 640 is the README's
-#                  choice for a model trained from scratch) and train on it; 0: the shipped 384 [0]
+#                  training scenes (`tokenizer fit`, with its motion-envelope cover) and train on it; 0:
+#                  the shipped 384 [0]. The README's choice for a model trained from scratch:
+#                  VOCAB=1024 COVER_RADIUS=0.03 DATA_SHARE=0.2 (envelope tracks within 5 cm)
+#   COVER_RADIUS DATA_SHARE   that fit's `--cover-radius` and `--data-share` [0.045, 0.5]
 #   STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY   the run's schedule [10000 32 5e-4 200 0 500 250];
 #                  kept from RUN_IN when resuming (setting another value is an error), as the SIGNAL_ ones are
 #   GEN_WORKERS TRAIN_WORKERS   processes generating / loading batches [cores, cores - 1]
@@ -60,7 +62,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest)
 declare -A GIVEN=()
-for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB; do
+for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
 done
 
@@ -100,7 +102,7 @@ RESUME=()
 if [ -n "$RUN_IN" ]; then
     SAVED=$("$PYTHON" trajeglish_env/device_job.py saved "$RUN_IN") || exit 2
     eval "$SAVED"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB; do
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE; do
         s=SAVED_$v
         [ -n "${!s:-}" ] || continue
         if [ -n "${GIVEN[$v]:-}" ] && [ "${GIVEN[$v]}" != "${!s}" ]; then
@@ -131,6 +133,8 @@ CKPT_EVERY=${CKPT_EVERY:-250}
 SIGNAL_INPUT=${SIGNAL_INPUT:-0}
 SIGNAL_LR_SCALE=${SIGNAL_LR_SCALE:-1}
 VOCAB=${VOCAB:-0}
+COVER_RADIUS=${COVER_RADIUS:-0.045}
+DATA_SHARE=${DATA_SHARE:-0.5}
 case $VOCAB in
 '' | *[!0-9]*) die "VOCAB=$VOCAB: expected a number of tokens (0: the shipped vocabulary)" ;;
 esac
@@ -142,7 +146,7 @@ case $SIGNAL_INPUT in
 esac
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh
@@ -225,7 +229,7 @@ VOCAB_ARGS=()
 if [ "$VOCAB" != 0 ] && [ -z "$RUN_IN" ]; then
     T_VOCAB=$SECONDS
     "$PYTHON" -m trajeglish_env.cli tokenizer fit --json --data "${HAVE[@]}" --vocab "$VOCAB" --trials 2 \
-        --out "$WORK/vocab.npz" >"$WORK/vocab.json" || die "tokenizer fit --vocab $VOCAB failed (see $LOG)"
+        --cover-radius "$COVER_RADIUS" --data-share "$DATA_SHARE" --out "$WORK/vocab.npz" >"$WORK/vocab.json" || die "tokenizer fit --vocab $VOCAB failed (see $LOG)"
     VOCAB_ARGS=(--vocab "$WORK/vocab.npz")
     say "fitted a $VOCAB-token vocabulary on the training scenes in $((SECONDS - T_VOCAB)) s"
 fi
@@ -264,7 +268,7 @@ cat "$WORK/train.json"
     echo "gen_seconds=$GEN_TOOK"
     echo "train_seconds=$((SECONDS - T_TRAIN))"
     echo "train_workers=$TRAIN_WORKERS"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB; do echo "param.$v=${!v}"; done
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE; do echo "param.$v=${!v}"; done
 } >"$WORK/call.env"
 say "packing into $OUT"
 "$PYTHON" trajeglish_env/device_job.py pack "$RUN" "$OUT" --facts "$WORK/call.env" \

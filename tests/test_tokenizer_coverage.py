@@ -91,25 +91,38 @@ def test_envelope_cover_reaches_every_envelope_transition() -> None:
         envelope_transitions(VEHICLE, 0.0)
 
 
-# A greedy tokenizer's error is not bounded by the cover's one-step radius: a state that lags at a limit
-# is tokenized from off the envelope surface. The lattice's catch-up band keeps the lag small (below), but
-# at a 4.5 cm radius one of these tracks still ends a hair over 5 cm (measured 5.1 cm; the accelerating
-# turn 4.99 cm).
-CURVE_GAP = {"40 m/s braking to a stop"}
+@pytest.fixture(scope="module")
+def fine(small_fit: TrajectorySet) -> MotionVocabulary:
+    """The recipe that meets the 5 cm target: V = 1024, the vehicle cover within 3 cm, a fifth for data."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the other classes borrow the vehicle templates
+        return fit_vocabulary(
+            "k-disks", 1024, small_fit, seed=0, trials=1, epsilon_scales=(1.0,), min_data_share=0.2,
+            cover_radius=0.03,
+        )  # fmt: skip
 
 
-@pytest.mark.parametrize(
-    "name",
-    [
-        n if n not in CURVE_GAP else pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="lag"))
-        for n in _envelope_tracks()
-    ],
-)
-def test_covered_vocabulary_follows_envelope_motions_within_5cm(covered: MotionVocabulary, name: str) -> None:
+@pytest.mark.parametrize("name", list(_envelope_tracks()))
+def test_fine_vocabulary_follows_envelope_motions_within_5cm(fine: MotionVocabulary, name: str) -> None:
+    """Issue 15's target: a greedy tokenizer's error is not bounded by the cover's one-step radius (a
+    state that lags at a limit is tokenized from off the envelope surface), so the cover is made within
+    3 cm, and the lattice's catch-up band keeps the lag from growing (measured: 2.6-4.0 cm)."""
+    cov = fine.metadata["coverage"]["vehicle"]
+    assert fine.size == 1024 and cov["radius_m"] == 0.03 and cov["envelope"]["radius"] == 0.03
+    assert cov["max_error_m"] <= 0.03 and 600 < cov["templates"] <= 1024 - 0.2 * 1024
+    assert _max_error(fine, _envelope_tracks()[name]) < 0.05
+
+
+def test_full_cover_at_384_tokens_stays_near_5cm(covered: MotionVocabulary, small_fit: TrajectorySet) -> None:
+    """At V = 384 the cover's 4.5 cm radius leaves too little room: six of the seven tracks within 5 cm,
+    braking from 40 m/s to a stop ends at 5.1 cm."""
     assert covered.size == 384
     cov = covered.metadata["coverage"]["vehicle"]
     assert cov["max_error_m"] <= 0.045 and cov["envelope"]["max_speed"] == 40.0 and cov["templates"] < 384
-    assert _max_error(covered, _envelope_tracks()[name]) < 0.05
+    errors = {name: _max_error(covered, xyh) for name, xyh in _envelope_tracks().items()}
+    assert max(errors.values()) < 0.055 and sum(e < 0.05 for e in errors.values()) >= 6, errors
+    with pytest.raises(ValueError, match="cover_radius"):
+        fit_vocabulary("k-disks", 384, small_fit, cover_radius=0.001)
 
 
 def _random_envelope_tracks(count: int, seed: int) -> list[np.ndarray]:
@@ -127,7 +140,7 @@ def _random_envelope_tracks(count: int, seed: int) -> list[np.ndarray]:
 
 
 def test_tokenized_tracks_do_not_drift_away_at_the_limits(
-    small_fit: TrajectorySet, covered: MotionVocabulary
+    small_fit: TrajectorySet, covered: MotionVocabulary, fine: MotionVocabulary
 ) -> None:
     """Envelope tracks stay near their tokenized states: the lattice's catch-up band (templates a little
     faster and turning a little harder than the limits). Without it, tracks accelerating through a curve

@@ -23,12 +23,13 @@ from trajeglish_env.cli_args import (
     one_line,
     output_dir,
     positive_float,
+    probability,
     scene_at,
 )
 from trajeglish_env.cli_eval import GUARD_CHOICES, add_eval_commands, checkpoints
 from trajeglish_env.cli_womd import add_womd_commands
 from trajeglish_env.sampler.config import COMPUTE_DTYPES
-from trajeglish_env.tokenizer.fit import VOCAB_SIZES
+from trajeglish_env.tokenizer.fit import MIN_DATA_SHARE, VOCAB_SIZES
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
 
@@ -76,6 +77,23 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     return {"scene": scene.scenario_id, "source": scene.source, "agents": scene.num_agents, "out": str(out)}
 
 
+def add_cover_args(p: argparse.ArgumentParser) -> None:
+    """The motion-envelope cover's options of ``tokenizer fit`` and ``tokenizer eval``."""
+    p.add_argument(
+        "--data-share",
+        type=probability,
+        default=MIN_DATA_SHARE,
+        help=f"share of V kept for templates sampled from data (default {MIN_DATA_SHARE}); a cover that "
+        "leaves less is made at a wider radius",
+    )
+    p.add_argument(
+        "--cover-radius",
+        type=positive_float,
+        help="metres within which the vehicle cover reaches every envelope transition (default 0.045; "
+        "0.03 with --vocab 1024 --data-share 0.2 keeps envelope tracks within 5 cm)",
+    )
+
+
 def cmd_tokenizer_fit(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.tokenizer.fit import fit_from_directory
 
@@ -86,6 +104,8 @@ def cmd_tokenizer_fit(args: argparse.Namespace) -> dict[str, Any]:
         out=args.out,
         trials=args.trials,
         coverage=not args.no_coverage,
+        min_data_share=args.data_share,
+        cover_radius=args.cover_radius,
     )
 
 
@@ -101,6 +121,8 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
         trials=args.trials,
         methods=tuple(args.methods or METHODS),
         coverage=not args.no_coverage,
+        min_data_share=args.data_share,
+        cover_radius=args.cover_radius,
     )
 
 
@@ -277,6 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     no_cov = "do not reserve templates covering each class's motion envelope (40 m/s, reversing, tight turns)"
     p.add_argument("--no-coverage", action="store_true", help=no_cov)
+    add_cover_args(p)
     p = add("eval", cmd_tokenizer_eval, "discretization error of k-disks and the baselines", tsub)
     p.add_argument("--data", nargs="+", required=True, help="held-out scenes to evaluate on")
     p.add_argument(
@@ -292,6 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--methods", nargs="*", choices=("xyh-grid", "xy-grid", "k-means", "k-disks"), help="default: all"
     )
     p.add_argument("--no-coverage", action="store_true", help=no_cov)
+    add_cover_args(p)
 
     p = add("train", cmd_train, "train a Trajeglish model on scene shards (torchrun for several processes)")
     p.add_argument("--data", nargs="+", required=True, help="scene directories")

@@ -64,6 +64,8 @@ SAVED = (
     "SIGNAL_INPUT",
     "SIGNAL_LR_SCALE",
     "VOCAB",
+    "COVER_RADIUS",
+    "DATA_SHARE",
 )
 
 

@@ -11,6 +11,7 @@ the vocabulary's metadata; the vehicle class itself must have enough data.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import time
@@ -25,6 +26,7 @@ from trajeglish_env.scenario import AgentKind
 from trajeglish_env.tokenizer.baselines import kmeans_templates, xy_grid_templates, xyh_grid_templates
 from trajeglish_env.tokenizer.coverage import (
     DEFAULT_ENVELOPES,
+    Envelope,
     envelope_cover,
     envelope_error,
     stress_error,
@@ -38,7 +40,7 @@ from trajeglish_env.tokenizer.vocabulary import KIND_NAMES, MotionVocabulary
 
 METHODS = ("xyh-grid", "xy-grid", "k-means", "k-disks")
 PAPER_VOCAB_SIZES = (128, 256, 384, 512)
-VOCAB_SIZES = (*PAPER_VOCAB_SIZES, 640, 768)  # the paper's sizes and two larger (README: coverage)
+VOCAB_SIZES = (*PAPER_VOCAB_SIZES, 640, 768, 1024)  # the paper's sizes and larger (README: coverage)
 MIN_TRANSITIONS_PER_TEMPLATE = 10
 # k-disks tries the paper's epsilon and these multiples of it (data unlike WOMD may want another radius).
 EPSILON_SCALES = (0.75, 1.0, 1.5, 2.0)
@@ -91,6 +93,7 @@ def fit_vocabulary(
     epsilon_scales: Sequence[float] = EPSILON_SCALES,
     coverage: bool = True,
     min_data_share: float = MIN_DATA_SHARE,
+    cover_radius: float | None = None,
 ) -> MotionVocabulary:
     """Fit a vocabulary by ``method`` (one of METHODS) of nominal size ``vocab_size`` on ``fit``.
 
@@ -103,7 +106,9 @@ def fit_vocabulary(
     data: a cover that does not fit is made at a wider radius (recorded, with a warning). The envelope
     templates all lie on the unicycle surface, so on their own they cannot correct a tokenized state that
     is off it (lateral slip, noise): with a small data share, real tracks tokenize worse (README, "Motion
-    vocabulary coverage"). The result depends only on the inputs (deterministic).
+    vocabulary coverage"). ``cover_radius`` (m) replaces the vehicle envelope's radius (4.5 cm): a 3 cm
+    cover (703 templates, e.g. V = 1024 with ``min_data_share=0.2``) keeps every envelope track within
+    5 cm. The result depends only on the inputs (deterministic).
 
     k-disks draws ``trials`` candidate sets for each epsilon in ``epsilon * epsilon_scales`` (``epsilon``
     defaults to the paper's value for ``vocab_size``; ``epsilon_scales=(1.0,)`` is exactly the paper's
@@ -111,6 +116,7 @@ def fit_vocabulary(
     """
     if method not in METHODS:
         raise ValueError(f"unknown tokenizer method {method!r}; expected one of {METHODS}")
+    envelopes = cover_envelopes(cover_radius)
     counts = fit.transition_counts()
     needed = MIN_TRANSITIONS_PER_TEMPLATE * vocab_size
     if method != "xyh-grid" and counts["vehicle"] < needed:
@@ -151,7 +157,9 @@ def fit_vocabulary(
             templates[kind] = xy_grid_templates(vocab_size, transitions)
         else:
             reserved = (
-                _reserve(kind, vocab_size, fit.dt, metadata, min_data_share) if covered else np.zeros((0, 3))
+                _reserve(kind, vocab_size, fit.dt, metadata, min_data_share, envelopes[kind])
+                if covered
+                else np.zeros((0, 3))
             )
             best, errors = _best_candidate(
                 method, transitions, int(kind), vocab_size, heldout, seed, trials, epsilons, reserved
@@ -173,26 +181,39 @@ def fit_vocabulary(
             if covered:
                 metadata["coverage"][name] = {
                     "borrowed": "vehicle",
-                    "max_error_m": round(envelope_error(templates[kind], kind, fit.dt), 5),
+                    "max_error_m": round(envelope_error(templates[kind], kind, fit.dt, envelopes[kind]), 5),
                 }
     vocab = MotionVocabulary(np.stack(templates), method=method, metadata=metadata)  # type: ignore[arg-type]
-    if (
-        covered
-    ):  # how far a tokenized track lags along the envelope's edges (one-step radius does not bound it)
+    if covered:  # how far a tokenized track lags at the envelope's limits (more than one step's error)
         for kind in AgentKind:
             entry = metadata["coverage"][kind.name.lower()]
-            entry["stress_max_error_m"] = round(stress_error(vocab, kind, fit.dt), 5)
+            entry["stress_max_error_m"] = round(stress_error(vocab, kind, fit.dt, envelopes[kind]), 5)
     return vocab
 
 
+def cover_envelopes(cover_radius: float | None = None) -> dict[AgentKind, Envelope]:
+    """Every class's motion envelope, the vehicles' cover made within ``cover_radius`` m when given."""
+    envelopes = dict(DEFAULT_ENVELOPES)
+    if cover_radius is not None:
+        if not 0.005 <= cover_radius <= 0.5:
+            raise ValueError(f"cover_radius: expected metres in [0.005, 0.5], got {cover_radius}")
+        vehicle = envelopes[AgentKind.VEHICLE]
+        envelopes[AgentKind.VEHICLE] = dataclasses.replace(vehicle, radius=float(cover_radius))
+    return envelopes
+
+
 def _reserve(
-    kind: AgentKind, vocab_size: int, dt: float, metadata: dict[str, Any], min_data_share: float
+    kind: AgentKind,
+    vocab_size: int,
+    dt: float,
+    metadata: dict[str, Any],
+    min_data_share: float,
+    env: Envelope,
 ) -> np.ndarray:
     """The envelope cover of ``kind`` (radius widened by 15 % steps, with a warning, until at least
     ``min_data_share`` of the vocabulary is left for data); records it in ``metadata["coverage"]``."""
     if not 0.0 < min_data_share < 1.0:
         raise ValueError(f"min_data_share: expected a share in (0, 1), got {min_data_share}")
-    env = DEFAULT_ENVELOPES[kind]
     room = vocab_size - max(1, int(np.ceil(min_data_share * vocab_size)))
     radius = env.radius
     cover = envelope_cover(kind, dt, env, radius)
@@ -297,10 +318,13 @@ def fit_from_directory(
     heldout_every: int = 5,
     max_scenes: int | None = None,
     coverage: bool = True,
+    min_data_share: float = MIN_DATA_SHARE,
+    cover_radius: float | None = None,
 ) -> dict[str, Any]:
     """Fit a vocabulary on the scenes of ``data_dir`` (one or several directories), save it to ``out``.
 
-    ``coverage`` reserves templates for every class's motion envelope (see :func:`fit_vocabulary`).
+    ``coverage`` reserves templates for every class's motion envelope, ``min_data_share`` and
+    ``cover_radius`` as in :func:`fit_vocabulary`.
 
     Every ``heldout_every``-th scene is held out to choose among trials and to report the error.
     """
@@ -319,6 +343,8 @@ def fit_from_directory(
         trials=trials,
         epsilon_scales=epsilon_scales,
         coverage=coverage,
+        min_data_share=min_data_share,
+        cover_radius=cover_radius,
     )
     sources = [str(data_dir)] if isinstance(data_dir, (str, os.PathLike)) else [str(p) for p in data_dir]
     vocab.metadata["data"] = sources
@@ -356,13 +382,16 @@ def evaluate_directory(
     collisions: bool = True,
     max_scenes: int | None = None,
     coverage: bool = True,
+    min_data_share: float = MIN_DATA_SHARE,
+    cover_radius: float | None = None,
 ) -> dict[str, Any]:
     """Fit every method at every size and evaluate on held-out trajectories (the paper's comparison table).
 
     Without ``fit_data``, ``data_dir`` is split by scene (every ``heldout_every``-th scene held out for
     evaluation; the rest fit, with its own inner split for choosing trials). With ``fit_data``, vocabularies
     are fitted there and all of ``data_dir`` is evaluated. Writes ``tokenizer_error_vs_length.png`` and the
-    fitted vocabularies into ``out_dir`` when given. ``coverage`` as in :func:`fit_vocabulary`; each
+    fitted vocabularies into ``out_dir`` when given. ``coverage``, ``min_data_share`` and ``cover_radius``
+    as in :func:`fit_vocabulary`; each
     result's ``drift`` reports per class the max error and the share of tracks drifting beyond 5 cm (with
     a warning naming the worst tracks).
     """
@@ -388,6 +417,8 @@ def evaluate_directory(
                 trials=trials,
                 epsilon_scales=epsilon_scales,
                 coverage=coverage,
+                min_data_share=min_data_share,
+                cover_radius=cover_radius,
             )
             res = evaluate_vocabulary(vocab, evaluation, collisions=collisions, raw_collisions=raw)
             res.update(
