@@ -6,11 +6,10 @@ import json
 
 import numpy as np
 import pytest
-from helpers import straight_road_scene, tiny_checkpoint
+from helpers import tiny_checkpoint
 
 from trajeglish_env.evaluation import (
     EvalConfig,
-    _sdc_collisions,
     collisions_over_time,
     constant_velocity_method,
     evaluate,
@@ -140,24 +139,6 @@ def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
     assert split["methods"] == methods and split["partial_control"] == pc
     with pytest.raises(ValueError, match="rollout_processes must be a positive int"):
         EvalConfig(rollout_processes=0)
-
-
-def test_partial_control_tells_who_moved_into_whom() -> None:
-    """At a rollout's first collision: the sdc driving into a stopped car ahead is at fault; a car from
-    behind driving into the stopped sdc is not; a rollout without contact is neither."""
-    scene = straight_road_scene(num_agents=3, steps=20)  # sdc 0 at x = 0, agents 1 (y = 3.5) and 2 (x = 24)
-    cur, steps = scene.current_index, scene.num_steps
-    xyh = np.repeat(scene.xyh[None].copy(), 3, axis=0)
-    valid = np.ones((3, 3, steps), bool)
-    xyh[:, :, :, 1] = 0.0  # one lane
-    xyh[:, :, :, 0] = np.array([0.0, -20.0, 20.0])[None, :, None]  # everyone stands still
-    t = np.arange(steps - cur)
-    xyh[1, 0, cur:, 0] = np.minimum(2.0 * t, 16.0)  # rollout 1: the sdc drives up to x = 16 (into agent 2)
-    xyh[2, 1, cur:, 0] = np.minimum(-20.0 + 2.0 * t, -4.0)  # rollout 2: agent 1 drives into the sdc
-    hit, at_fault = _sdc_collisions(scene, xyh, valid)
-    assert hit.tolist() == [False, True, True] and at_fault.tolist() == [False, True, False]
-    valid[2, 1, :] = False  # an agent that is absent cannot collide
-    assert _sdc_collisions(scene, xyh, valid)[0].tolist() == [False, True, False]
 
 
 def test_red_light_runs_of_every_simulated_agent_by_class() -> None:

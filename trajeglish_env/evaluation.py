@@ -29,6 +29,7 @@ from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.distributed import Ranks, gather, my_share
 from trajeglish_env.evaluation_plots import plot_evaluation, plot_feature_scores
 from trajeglish_env.metrics import LogDetails, RealismScores, box_collisions, mean_scores, score_rollouts
+from trajeglish_env.metrics.collision_fault import collisions_by_fault
 from trajeglish_env.metrics.log_details_io import details_for_files
 from trajeglish_env.metrics.submission import iter_submission
 from trajeglish_env.metrics.traffic_lights import red_light_violations
@@ -314,8 +315,8 @@ def partial_control(
     """The sdc driven by the model, all others replaying the log; the sdc acts first vs last (ranks
     share the scenes; the merged result is the one-process one). Per placement: ADE, the share of
     rollouts with a collision, and that share split at each rollout's first collision into the sdc moving
-    into another agent (``at_fault_rate``: its new box overlaps the other's box of the step before) and
-    another agent moving into the sdc (``struck_rate``: the logged agents do not react to it)."""
+    into another agent (``at_fault_rate``) and other agents moving into the sdc (``struck_rate``: the
+    logged agents do not react to it), see :mod:`~trajeglish_env.metrics.collision_fault`."""
     ranks = ranks or Ranks()
     out: dict[str, dict[str, float]] = {}
     for place in ("first", "last"):
@@ -341,7 +342,9 @@ def partial_control(
             log_ok = scene.valid[scene.sdc, fut]
             err = np.linalg.norm(res.xyh[:, scene.sdc, fut, :2] - scene.xyh[scene.sdc, fut, :2], axis=-1)
             ades.append((k, float(err[:, log_ok].mean())))
-            hit, at_fault = _sdc_collisions(scene, res.xyh, res.valid)
+            hit, at_fault = collisions_by_fault(
+                res.xyh, res.valid, scene.size, scene.sdc, scene.current_index
+            )
             cols.append((k, float(hit.mean())))
             faults.append((k, float(at_fault.mean())))
         ades, cols, faults = (
@@ -355,26 +358,6 @@ def partial_control(
             "struck_rate": collided - fault,
         }
     return out
-
-
-def _sdc_collisions(scene: Scenario, xyh: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per rollout (``xyh [R,N,T,3]``, ``valid [R,N,T]``): whether the sdc's box overlaps another's after
-    the current step, and whether, at the first such step, its new box overlaps the box one of those
-    agents had the step before (it moved into them, rather than they into it)."""
-    sdc, cur = scene.sdc, scene.current_index
-    others = np.flatnonzero(np.arange(scene.num_agents) != sdc)
-    ego = xyh[:, sdc, cur:][:, None]  # [R,1,H+1,3], from the current step
-    oth, ok = xyh[:, others, cur:], valid[:, others, cur:]
-    ego_size, oth_size = scene.size[sdc], scene.size[others][None, :, None]
-    hit = box_collisions(ego[:, :, 1:], ego_size, oth[:, :, 1:], oth_size) & ok[:, :, 1:]  # [R,O,H]
-    collided = hit.any(axis=(1, 2))
-    first = np.argmax(hit.any(axis=1), axis=1)  # [R] first colliding step (index into H)
-    rows = np.arange(len(hit))
-    ego_then = ego[rows, 0, first + 1][:, None]  # the sdc's box at that step [R,1,3]
-    before = oth[rows, :, first]  # the others' boxes a step earlier [R,O,3]
-    into = box_collisions(ego_then, ego_size, before, oth_size[:, :, 0]) & ok[rows, :, first]
-    at_fault = collided & (into & hit[rows, :, first]).any(axis=1)
-    return collided, at_fault
 
 
 def evaluate(

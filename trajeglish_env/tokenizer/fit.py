@@ -30,7 +30,6 @@ from trajeglish_env.tokenizer.coverage import (
     envelope_cover,
     envelope_error,
     stress_error,
-    stress_tracks,  # noqa: F401  (named in the docstring)
 )
 from trajeglish_env.tokenizer.data import TrajectorySet, load_trajectories
 from trajeglish_env.tokenizer.discretization import collision_rates, evaluate_vocabulary, plot_error_vs_length
@@ -101,7 +100,7 @@ def fit_vocabulary(
     :func:`envelope_cover` for the class (every transition of the class's motion envelope, up to the env's
     40 m/s, reversing and tight turns, within the envelope's radius) and samples the rest from data; the
     metadata's ``coverage`` records per class the envelope, the reserved templates, the max one-step
-    error on the envelope and the max error of tokenizing the envelope's :func:`stress_tracks` (a track at
+    error on the envelope and the max error of tokenizing the envelope's ``stress_tracks`` (a track at
     a limit can lag more than one step's error). At least ``min_data_share`` of the templates stay for
     data: a cover that does not fit is made at a wider radius (recorded, with a warning). The envelope
     templates all lie on the unicycle surface, so on their own they cannot correct a tokenized state that
