@@ -113,17 +113,22 @@ def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(BASH is None, reason="needs bash")
 def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path) -> None:
-    job = _job(tmp_path, "v", VOCAB="128", SCENES="10", DATA_IN="")  # highway-env scenes: varied motion
+    # highway-env scenes (varied motion); the windows' map chunks nearest any of their agents
+    job = _job(tmp_path, "v", VOCAB="128", SCENES="10", DATA_IN="", MAP_SELECT="agents")
     assert job.returncode == 0, job.stdout[-3000:]
     ckpt = load_checkpoint(tmp_path / "out-v" / "model.pt")
     assert ckpt.config.vocab_size == 128 and ckpt.vocabulary.size == 128
+    assert ckpt.config.map_select == "agents"
     assert "vehicle" in ckpt.vocabulary.metadata["coverage"]  # fitted with the motion-envelope cover
     summary = json.loads((tmp_path / "out-v" / "summary.json").read_text())
     assert summary["params"]["VOCAB"] == "128"  # kept for a resumed call, which does not refit
+    assert summary["params"]["MAP_SELECT"] == "agents"
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
     assert clash.returncode == 2 and "keeps its checkpoint's vocabulary" in clash.stdout
     bad = _job(tmp_path, "vb", VOCAB="big")
     assert bad.returncode == 2 and "VOCAB=big: expected a number of tokens" in bad.stdout
+    bad_map = _job(tmp_path, "vm", MAP_SELECT="lanes")
+    assert bad_map.returncode == 2 and "MAP_SELECT=lanes: expected frame or agents" in bad_map.stdout
 
 
 @pytest.mark.skipif(BASH is None, reason="needs bash")

@@ -122,12 +122,14 @@ def check_compatible(cfg: ModelConfig, vocabulary: MotionVocabulary, where: str)
 
 
 def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary) -> None:
-    """A run started from ``ckpt`` (fine-tuning) must keep its config (but may add the signal input),
-    vocabulary and finite weights; otherwise raise a :class:`CheckpointError` naming what differs."""
+    """A run started from ``ckpt`` (fine-tuning) must keep its config (but may add the signal input, or
+    choose its windows' map chunks another way), vocabulary and finite weights; otherwise raise a
+    :class:`CheckpointError` naming what differs."""
     where = f"--init {ckpt.path or 'checkpoint'}"
     theirs_cfg, ours_cfg = _plain_config(ckpt.config), _plain_config(cfg)
     if cfg.signal_input and not ckpt.config.signal_input:
         theirs_cfg["signal_input"] = True  # an added input (its weights start at zero): see extends_with
+    theirs_cfg["map_select"] = cfg.map_select  # which chunks a window holds: inputs, not weights
     diffs = [
         f"{name} {theirs_cfg[name]} (checkpoint) vs {ours_cfg[name]} (requested)"
         for name in theirs_cfg

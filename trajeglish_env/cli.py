@@ -20,16 +20,17 @@ from trajeglish_env.cli_args import (
     POSITIVE,
     USER_ERRORS,
     ArgParser,
+    add_cover_args,
     one_line,
     output_dir,
     positive_float,
-    probability,
     scene_at,
 )
 from trajeglish_env.cli_eval import GUARD_CHOICES, add_eval_commands, checkpoints
 from trajeglish_env.cli_womd import add_womd_commands
+from trajeglish_env.model.config import MAP_SELECT
 from trajeglish_env.sampler.config import COMPUTE_DTYPES
-from trajeglish_env.tokenizer.fit import MIN_DATA_SHARE, VOCAB_SIZES
+from trajeglish_env.tokenizer.fit import VOCAB_SIZES
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
 
@@ -75,23 +76,6 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     config = RenderConfig(view_radius=args.radius, follow_sdc=args.follow_sdc, show_ids=args.ids)
     out = save_render(scene, args.out, config=config, fps=args.fps)
     return {"scene": scene.scenario_id, "source": scene.source, "agents": scene.num_agents, "out": str(out)}
-
-
-def add_cover_args(p: argparse.ArgumentParser) -> None:
-    """The motion-envelope cover's options of ``tokenizer fit`` and ``tokenizer eval``."""
-    p.add_argument(
-        "--data-share",
-        type=probability,
-        default=MIN_DATA_SHARE,
-        help=f"share of V kept for templates sampled from data (default {MIN_DATA_SHARE}); a cover that "
-        "leaves less is made at a wider radius",
-    )
-    p.add_argument(
-        "--cover-radius",
-        type=positive_float,
-        help="metres within which the vehicle cover reaches every envelope transition (default 0.045; "
-        "0.03 with --vocab 1024 --data-share 0.2 keeps envelope tracks within 5 cm)",
-    )
 
 
 def cmd_tokenizer_fit(args: argparse.Namespace) -> dict[str, Any]:
@@ -146,6 +130,8 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         model_config = preset(args.preset or "small", **overrides)
     if args.signal_input:
         model_config = dataclasses.replace(model_config, signal_input=True)
+    if args.map_select is not None:
+        model_config = dataclasses.replace(model_config, map_select=args.map_select)
     config = TrainConfig(
         steps=args.steps,
         batch_size=args.batch_size,
@@ -335,6 +321,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--init",
         help="start from this trained checkpoint, or 'shipped' for the shipped model (fine-tuning; same "
         "config and vocabulary)",
+    )
+    p.add_argument(
+        "--map-select",
+        choices=MAP_SELECT,
+        help="map chunks of a window: nearest its frame agent ('frame', the shipped model's and the default) "
+        "or nearest any of its agents ('agents': every agent sees the road near it); with --init, the "
+        "checkpoint's",
     )
     p.add_argument(
         "--signal-input",

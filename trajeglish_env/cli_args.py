@@ -108,3 +108,22 @@ def add_dtype_args(p: argparse.ArgumentParser) -> None:
         default="auto",
         help="dtype the linear layers multiply in (auto: bfloat16 where the CPU has it natively)",
     )
+
+
+def add_cover_args(p: argparse.ArgumentParser) -> None:
+    """The motion-envelope cover's options of ``tokenizer fit`` and ``tokenizer eval``."""
+    from trajeglish_env.tokenizer.fit import MIN_DATA_SHARE
+
+    p.add_argument(
+        "--data-share",
+        type=probability,
+        default=MIN_DATA_SHARE,
+        help=f"share of V kept for templates sampled from data (default {MIN_DATA_SHARE}); a cover that "
+        "leaves less is made at a wider radius",
+    )
+    p.add_argument(
+        "--cover-radius",
+        type=positive_float,
+        help="metres within which the vehicle cover reaches every envelope transition (default 0.045; "
+        "0.03 with --vocab 1024 --data-share 0.2 keeps envelope tracks within 5 cm)",
+    )

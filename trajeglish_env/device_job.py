@@ -66,6 +66,7 @@ SAVED = (
     "VOCAB",
     "COVER_RADIUS",
     "DATA_SHARE",
+    "MAP_SELECT",
 )
 
 

@@ -19,13 +19,20 @@ class Variant(str, Enum):
         return self is not Variant.NO_MAP
 
 
+MAP_SELECT = ("frame", "agents")  # see ModelConfig.map_select
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Model hyper-parameters. ``steps`` is the number of future tokens per agent in a training window.
 
     ``signal_input``: map chunks of a signal-controlled lane carry the state of its signal (none, stop,
     caution, go) at the window's first step, a learned embedding added to the chunk's; its weights start
-    at zero, so a model extended with it (``train --init CKPT --signal-input``) starts as ``CKPT`` did."""
+    at zero, so a model extended with it (``train --init CKPT --signal-input``) starts as ``CKPT`` did.
+
+    ``map_select``: which ``max_polylines`` map chunks a window holds: ``"frame"`` those nearest the
+    window's frame agent (the shipped model's; 64 chunks of 20 points at 0.5 m reach only 26-49 m, so
+    agents farther away see no map), ``"agents"`` those nearest to any of the window's agents."""
 
     d_model: int = 512
     num_heads: int = 8
@@ -44,6 +51,7 @@ class ModelConfig:
     dropout: float = 0.0
     variant: Variant = Variant.TRAJEGLISH
     signal_input: bool = False
+    map_select: str = "frame"
 
     def __post_init__(self) -> None:
         if self.d_model % self.num_heads:
@@ -65,6 +73,8 @@ class ModelConfig:
             object.__setattr__(self, "variant", Variant(self.variant))
         if not isinstance(self.signal_input, bool):
             raise TypeError(f"ModelConfig.signal_input must be a bool, got {self.signal_input!r}")
+        if self.map_select not in MAP_SELECT:
+            raise ValueError(f"ModelConfig.map_select must be one of {MAP_SELECT}, got {self.map_select!r}")
 
     @property
     def seq_len(self) -> int:

@@ -73,6 +73,16 @@ def chunk_map(scenario: Scenario, points_per_chunk: int) -> MapChunks:
     )
 
 
+def _nearest_d2(chunks: MapChunks, anchors: np.ndarray) -> np.ndarray:
+    """``[C]`` squared distance from each chunk's nearest point to the nearest of ``anchors [A,2]``."""
+    best = np.full(len(chunks.points), np.inf)
+    for lo in range(0, len(anchors), 8):  # [C,P,8] at a time: bounded memory on large maps
+        a = anchors[lo : lo + 8]
+        d2 = ((chunks.points[:, :, None, :] - a[None, None]) ** 2).sum(-1).min(-1)
+        best = np.minimum(best, np.where(chunks.mask, d2, np.inf).min(-1))
+    return best
+
+
 def _signals(scenario: Scenario) -> np.ndarray:
     """``[K]`` per polyline, the signal (column of ``signal_state``) controlling it, -1 for none (the first
     signal listed for a lane, when several are)."""
@@ -104,8 +114,10 @@ def nearest_chunks(
     max_chunks: int,
     radius: float,
     signal: np.ndarray | None = None,
+    anchors: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The ``max_chunks`` chunks with a point nearest to ``origin [3]`` within ``radius``, in its frame.
+    """The ``max_chunks`` chunks with a point nearest to ``origin [3]`` within ``radius``, in its frame;
+    with ``anchors [A,2]`` (world xy, e.g. the window's agents), nearest to any of them instead.
 
     Returns ``points [M,P,2]`` float32, ``point_mask [M,P]``, ``kind [M]`` int64, ``mask [M]`` and their
     signal classes ``[M]`` int64 (from ``signal [C]``, :func:`signal_classes`; zeros without it), padded
@@ -119,8 +131,7 @@ def nearest_chunks(
     out_signal = np.zeros(max_chunks, dtype=np.int64)
     if chunks.num_chunks == 0:
         return out_pts, out_pmask, out_kind, out_mask, out_signal
-    d2 = ((chunks.points - origin[:2]) ** 2).sum(-1)
-    d2 = np.where(chunks.mask, d2, np.inf).min(-1)
+    d2 = _nearest_d2(chunks, origin[None, :2] if anchors is None or not len(anchors) else anchors)
     inside = np.flatnonzero(d2 <= radius * radius)
     if len(inside) > max_chunks:
         inside = inside[np.argpartition(d2[inside], max_chunks - 1)[:max_chunks]]

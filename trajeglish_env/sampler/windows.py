@@ -172,8 +172,9 @@ class WindowedRows(RowStates):
             chunks, sc = self.chunks[b], self.scenes[b]
             # the signals at the window's first step, as in training (read only by models with signal_input)
             signal = signal_classes(sc, chunks, int(s0[i])) if c.signal_input and sc is not None else None
+            anchors = init[i, real[i], :2] if c.map_select == "agents" else None
             pts[i], pmask[i], mkind[i], mmask[i], msignal[i] = nearest_chunks(
-                chunks, frames[i], c.max_polylines, MAP_RADIUS, signal
+                chunks, frames[i], c.max_polylines, MAP_RADIUS, signal, anchors
             )
         dev = self.device
         return SceneInputs(

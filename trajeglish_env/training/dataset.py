@@ -35,6 +35,7 @@ class WindowConfig:
     max_polylines: int = 96
     map_radius: float = 100.0
     points_per_polyline: int = 20  # points per map chunk (about 10-20 m at 0.5-1 m spacing)
+    map_select: str = "frame"  # ModelConfig.map_select: chunks nearest the frame agent, or any agent
 
     def __post_init__(self) -> None:
         for name in ("steps", "max_agents", "max_polylines", "points_per_polyline"):
@@ -161,7 +162,10 @@ def make_window(
 
     chunks = _chunks_for(scene, c.points_per_polyline)
     signal = signal_classes(scene, chunks, start)
-    pts, pmask, mkind, mmask, msignal = nearest_chunks(chunks, frame, c.max_polylines, c.map_radius, signal)
+    anchors = scene.xyh[chosen, start, :2] if c.map_select == "agents" else None
+    pts, pmask, mkind, mmask, msignal = nearest_chunks(
+        chunks, frame, c.max_polylines, c.map_radius, signal, anchors
+    )
     return {
         "agent_xyh": xyh,
         "agent_valid": valid,

@@ -110,6 +110,7 @@ def window_config(cfg: ModelConfig) -> WindowConfig:
         max_agents=cfg.max_agents,
         max_polylines=cfg.max_polylines,
         points_per_polyline=cfg.points_per_polyline,
+        map_select=cfg.map_select,
     )
 
 

@@ -1,0 +1,77 @@
+"""ModelConfig.map_select: a window holds the map chunks nearest its frame agent (the shipped model's
+choice: with 0.5 m map points, 64 chunks reach only 26-49 m, so farther agents see no map) or those
+nearest to any of its agents, so that every agent sees the road near it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from helpers import straight_road_scene, tiny_checkpoint
+
+from trajeglish_env.checkpoint import Checkpoint, check_init, load_pretrained
+from trajeglish_env.geometry import to_local
+from trajeglish_env.model import TrajeglishModel
+from trajeglish_env.model.config import ModelConfig
+from trajeglish_env.model.map_chunks import chunk_map, nearest_chunks
+from trajeglish_env.sampler import SamplingConfig, rollout
+from trajeglish_env.training.dataset import WindowConfig, make_window
+
+
+def _map_gap(points: np.ndarray, point_mask: np.ndarray, agents_local: np.ndarray) -> np.ndarray:
+    """``[A]`` distance from each agent (window frame) to the nearest map point the window holds."""
+    pts = points[point_mask]
+    return np.sqrt(((pts[None] - agents_local[:, None, :2]) ** 2).sum(-1)).min(-1)
+
+
+def test_chunks_near_any_agent_reach_agents_far_from_the_frame() -> None:
+    scene = straight_road_scene(num_agents=6, steps=40)  # 6 cars 12 m apart along a 1 m-spaced road
+    chunks = chunk_map(scene, 20)  # 19 m chunks
+    frame = scene.xyh[0, 0]
+    agents = scene.xyh[scene.valid[:, 0], 0]
+    local = to_local(frame, agents)
+    pts, pmask, _, mask, _ = nearest_chunks(chunks, frame, 6, 100.0)
+    assert mask.all() and _map_gap(pts, pmask, local).max() > 20.0  # the farthest car sees no road
+    pts, pmask, _, mask, _ = nearest_chunks(chunks, frame, 6, 100.0, anchors=agents[:, :2])
+    assert mask.all() and _map_gap(pts, pmask, local).max() < 1.0  # every car has a lane under it
+    same = nearest_chunks(chunks, frame, 6, 100.0, anchors=frame[None, :2])
+    frame_only = nearest_chunks(chunks, frame, 6, 100.0)
+    assert all(np.array_equal(a, b) for a, b in zip(same, frame_only, strict=True))
+
+
+@pytest.mark.parametrize("select", ["frame", "agents"])
+def test_training_windows_follow_the_config(select: str) -> None:
+    scene = straight_road_scene(num_agents=6, steps=40)
+    cfg = WindowConfig(steps=9, max_agents=6, max_polylines=6, points_per_polyline=20, map_select=select)
+    gaps = []
+    for seed in range(6):
+        w = make_window(scene, cfg, np.random.default_rng(seed))
+        real = w["agent_mask"] & w["agent_valid"][:, 0]
+        gaps.append(_map_gap(w["map_points"], w["map_point_mask"], w["agent_xyh"][real, 0]).max())
+    if select == "agents":
+        assert max(gaps) < 1.0
+    else:
+        assert max(gaps) > 10.0  # some window's frame agent is at one end of the queue
+
+
+def test_configs_checkpoints_and_fine_tuning() -> None:
+    with pytest.raises(ValueError, match="map_select must be one of"):
+        ModelConfig(map_select="lanes")
+    shipped = load_pretrained()
+    assert shipped.config.map_select == "frame"  # written before the field: the shipped behaviour
+    check_init(shipped, dataclasses.replace(shipped.config, map_select="agents"), shipped.vocabulary)
+
+
+def test_rollouts_of_an_agents_model_are_deterministic_and_see_far_lanes() -> None:
+    base = tiny_checkpoint()
+    cfg = dataclasses.replace(base.model.cfg, map_select="agents")
+    model = TrajeglishModel(cfg).eval()
+    model.load_state_dict(base.model.state_dict())
+    ckpt = Checkpoint(model=model, vocabulary=base.vocabulary, training={})
+    scene = straight_road_scene(num_agents=6, steps=40)
+    a = rollout(ckpt, scene, 2, 6, config=SamplingConfig(seed=3))
+    b = rollout(ckpt, scene, 2, 6, config=SamplingConfig(seed=3))
+    np.testing.assert_array_equal(a.tokens, b.tokens)
+    c = rollout(base, scene, 2, 6, config=SamplingConfig(seed=3))
+    assert not np.array_equal(a.tokens, c.tokens)  # the far cars' map context differs
