@@ -118,6 +118,7 @@ def _ddp_worker(rank: int, world: int, port: int, scenes: str, out: str) -> None
     )
     torch.set_num_threads(1)
     train(scenes, out, tiny_config(), _quick(steps=3), vocabulary=grid_vocabulary(), progress=False)
+    torch.distributed.barrier()  # both ranks done before either tears its connections down
     torch.distributed.destroy_process_group()
 
 

@@ -129,6 +129,7 @@ def _rank(rank: int, world: int, port: int, root: str) -> None:
     torch.set_num_threads(1)
     for command in _commands(Path(root), "two"):
         assert main([*command, "--quiet"]) == 0, command
+    torch.distributed.barrier()  # both ranks done before either tears its connections down
     torch.distributed.destroy_process_group()
 
 
