@@ -71,7 +71,8 @@ def _carry_scenes(tmp: Path, n: int) -> None:
 def test_a_call_trains_and_a_second_call_resumes(tmp_path: Path) -> None:
     _carry_scenes(tmp_path, 6)
 
-    first = _job(tmp_path, "1", SCENES="2")  # two highway-env scenes generated, six carried
+    # two highway-env scenes generated, six carried; the schedule of STEPS goes on over several calls
+    first = _job(tmp_path, "1", SCENES="2", FIT_STEPS="0")
     assert first.returncode == 0, first.stdout[-3000:]
     out1 = tmp_path / "out-1"
     summary1 = json.loads((out1 / "summary.json").read_text())
@@ -123,12 +124,15 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     summary = json.loads((tmp_path / "out-v" / "summary.json").read_text())
     assert summary["params"]["VOCAB"] == "128"  # kept for a resumed call, which does not refit
     assert summary["params"]["MAP_SELECT"] == "agents"
+    assert summary["params"]["FIT_STEPS"] == "1"  # the default: the schedule fitted to the call's budget
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
     assert clash.returncode == 2 and "keeps its checkpoint's vocabulary" in clash.stdout
     bad = _job(tmp_path, "vb", VOCAB="big")
     assert bad.returncode == 2 and "VOCAB=big: expected a number of tokens" in bad.stdout
     bad_map = _job(tmp_path, "vm", MAP_SELECT="lanes")
     assert bad_map.returncode == 2 and "MAP_SELECT=lanes: expected frame or agents" in bad_map.stdout
+    bad_fit = _job(tmp_path, "vf", FIT_STEPS="yes")
+    assert bad_fit.returncode == 2 and "FIT_STEPS=yes: expected 0 or 1" in bad_fit.stdout
 
 
 @pytest.mark.skipif(BASH is None, reason="needs bash")
@@ -180,6 +184,32 @@ def test_time_limit_stops_and_the_resume_is_exact(tmp_path: Path) -> None:
     b = load_checkpoint(tmp_path / "b" / "model.pt").model.state_dict()
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=f"{k} differs after a timed stop")
+
+
+def test_fit_steps_ends_the_schedule_with_the_budget_and_resume_keeps_it(tmp_path: Path) -> None:
+    scenes = tmp_path / "scenes"
+    save_scenarios(
+        scenes / "a.scn.npz", [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)]
+    )
+    cfg = dict(batch_size=2, warmup_steps=15, val_every=10_000, log_every=1, checkpoint_every=10_000)
+    kw = dict(vocabulary=grid_vocabulary(), progress=False)
+    config = TrainConfig(steps=1_000_000, **cfg, num_workers=0, val_fraction=0.0)
+    with pytest.raises(ValueError, match="needs a time_limit"):
+        train(scenes, tmp_path / "x", tiny_config(), config, fit_steps=True, **kw)
+    fitted = train(scenes, tmp_path / "a", tiny_config(), config, time_limit=8.0, fit_steps=True, **kw)
+    n = fitted["steps_fitted_to_time"]
+    # the rate of steps 5..15 sets the length: far fewer than the most allowed, more than the probe
+    assert 15 < n < 1_000_000 and fitted["steps"] <= n
+    ckpt = load_checkpoint(tmp_path / "a" / "last.pt")
+    assert ckpt.trainer["train_config"]["steps"] == n
+    lrs = [row["lr"] for row in ckpt.trainer["history"]]
+    if fitted["steps"] == n:  # finished inside the budget: the learning rate decayed to 0 on the last step
+        assert lrs[-1] == pytest.approx(config.lr / (n - 15))
+    # a resume with the same (unfitted) request keeps the fitted length and finishes it
+    again = train(
+        scenes, tmp_path / "a", tiny_config(), config, resume=True, time_limit=60.0, fit_steps=True, **kw
+    )
+    assert again["steps"] == again["steps_fitted_to_time"] == n
 
 
 # ------------------------------------------------------------------------- the GPU bench job

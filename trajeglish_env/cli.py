@@ -157,6 +157,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         not args.quiet,
         init=init,
         time_limit=None if args.minutes is None else args.minutes * 60.0,
+        fit_steps=args.fit_steps,
     )
     result["_silent"] = not ranks.main  # under torchrun the main rank prints the run's result
     return result
@@ -356,6 +357,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--minutes",
         type=positive_float,
         help="wall-clock budget: no step after M minutes; the last step is checkpointed (--resume goes on)",
+    )
+    p.add_argument(
+        "--fit-steps",
+        action="store_true",
+        help="with --minutes: the step rate of the first steps sets the schedule's length, so the learning "
+        "rate decays to 0 as the budget ends (--steps is then the most)",
     )
     p.add_argument(
         "--shard-cache",

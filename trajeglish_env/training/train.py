@@ -176,6 +176,7 @@ def train(
     progress: bool = True,
     init: str | os.PathLike[str] | Checkpoint | None = None,
     time_limit: float | None = None,
+    fit_steps: bool = False,
 ) -> dict[str, Any]:
     """Train (or resume) a model on scene shards; writes ``last.pt``, ``model.pt`` and ``metrics.csv``.
 
@@ -184,7 +185,12 @@ def train(
     ``time_limit``: seconds after this call starts when no further step is taken (a wall-clock budget,
     e.g. a lent machine's): the step reached is validated and checkpointed like the last one, and a later
     ``resume`` continues the same schedule (``config.steps``, which the limit does not change).
+    ``fit_steps`` (with ``time_limit``, a new run): the step rate measured during warm-up sets the schedule's
+    length, so the learning rate reaches 0 as the budget ends (``config.steps`` is then the most); the
+    fitted length is saved, and a ``resume`` keeps it.
     """
+    if fit_steps and time_limit is None:
+        raise ValueError("train: fit_steps needs a time_limit (train --fit-steps needs --minutes)")
     deadline = None if time_limit is None else time.perf_counter() + time_limit
     out = Path(out)
     device = rank_device()
@@ -215,6 +221,8 @@ def train(
         # loader processes do not change the batches (items are pure functions of seed and index), so a run
         # may go on on a machine with another number of cores
         saved["num_workers"] = config.num_workers
+        if fit_steps:  # the schedule's length was fitted to the first call's budget
+            config = dataclasses.replace(config, steps=int(saved["steps"]))
         if saved != dataclasses.asdict(config):
             raise CheckpointError(f"{last}: it was trained with {trainer.get('train_config')}, not {config}")
         model.load_state_dict(ckpt.model.state_dict())
@@ -266,6 +274,10 @@ def train(
     unstable = 0  # consecutive steps whose gradients were not finite
     window_tokens, window_loss = 0.0, 0.0
     stopped = False  # the time limit ended the run before config.steps
+    # the schedule is fitted to the budget from the step rate after the 5th step (warmed up), measured over
+    # at least 10 steps and a tenth of the budget: the loaders' first, prefetched batches come faster
+    probe = (5, 15, 0.1 * (time_limit or 0.0)) if fit_steps and start_step == 0 else None
+    probe_t = 0.0
     for batch in loader:
         batch = _batch_to(batch, device)
         for group in optimizer.param_groups:
@@ -293,6 +305,16 @@ def train(
                 )
         optimizer.zero_grad(set_to_none=True)
         step += 1
+        if probe is not None and step == probe[0]:
+            probe_t = time.perf_counter()
+        elif probe is not None and _rank0_says(
+            step >= probe[1] and time.perf_counter() - probe_t >= probe[2], device, dd.world
+        ):
+            rate = (step - probe[0]) / max(time.perf_counter() - probe_t, 1e-9)
+            config = dataclasses.replace(
+                config, steps=_steps_in_time(config.steps, step, rate, deadline or 0.0, device, dd.world)
+            )
+            bar.total, probe = config.steps, None
         batch_loss = torch.stack([loss_sum.detach().float(), n.float()])
         if dd.world > 1:
             dist.all_reduce(batch_loss)
@@ -337,13 +359,15 @@ def train(
                     facts,
                 )
         bar.update(1)
-        if stopped:
+        if final:
             break
     bar.close()
     elapsed = time.perf_counter() - t0
     result: dict[str, Any] = {"out": str(out), "steps": step, "resumed_from": start_step}
     if time_limit is not None:
         result["stopped_by_time_limit"] = stopped
+    if fit_steps:
+        result["steps_fitted_to_time"] = config.steps
     if dd.main:
         final = out / "model.pt"
         info = _training_info(config, step, history, facts)
@@ -365,16 +389,32 @@ def train(
     return result
 
 
+def _steps_in_time(
+    most: int, step: int, rate: float, deadline: float, device: torch.device, world: int
+) -> int:
+    """The schedule's length the rest of the budget allows at ``rate`` steps/s (92 % of it: validation and
+    checkpoints take the rest), at most ``most``; under torchrun every rank takes rank 0's."""
+    left = max(0.0, deadline - time.perf_counter())
+    steps = float(min(most, step + max(1, int(0.92 * left * rate))))
+    if world > 1:
+        flag = torch.tensor([steps], device=device, dtype=torch.float64)
+        dist.broadcast(flag, src=0)
+        steps = float(flag.item())
+    return int(steps)
+
+
 def _out_of_time(deadline: float | None, device: torch.device, world: int) -> bool:
     """Whether the wall-clock budget is spent; under torchrun every rank takes rank 0's answer."""
-    if deadline is None:
-        return False
-    late = time.perf_counter() >= deadline
+    return deadline is not None and _rank0_says(time.perf_counter() >= deadline, device, world)
+
+
+def _rank0_says(flag: bool, device: torch.device, world: int) -> bool:
+    """``flag`` as rank 0 sees it (under torchrun: a decision on a clock every rank must take alike)."""
     if world > 1:
-        flag = torch.tensor([float(late)], device=device)
-        dist.broadcast(flag, src=0)
-        late = bool(flag.item())
-    return late
+        value = torch.tensor([float(flag)], device=device)
+        dist.broadcast(value, src=0)
+        flag = bool(value.item())
+    return flag
 
 
 @dataclass(frozen=True)
