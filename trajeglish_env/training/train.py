@@ -185,9 +185,9 @@ def train(
     ``time_limit``: seconds after this call starts when no further step is taken (a wall-clock budget,
     e.g. a lent machine's): the step reached is validated and checkpointed like the last one, and a later
     ``resume`` continues the same schedule (``config.steps``, which the limit does not change).
-    ``fit_steps`` (with ``time_limit``, a new run): the step rate measured during warm-up sets the schedule's
-    length, so the learning rate reaches 0 as the budget ends (``config.steps`` is then the most); the
-    fitted length is saved, and a ``resume`` keeps it.
+    ``fit_steps`` (with ``time_limit``, a new run): the step rate over the first tenth of the budget sets the
+    schedule's length, so the learning rate reaches 0 as the budget ends (``config.steps`` is then the most);
+    the fitted length is saved, and a ``resume`` keeps it.
     """
     if fit_steps and time_limit is None:
         raise ValueError("train: fit_steps needs a time_limit (train --fit-steps needs --minutes)")
