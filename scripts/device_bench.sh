@@ -5,7 +5,8 @@
 #
 # Run from the repository root, carrying .whl (`make device-wheels`):
 #   run(command="OUT=$OUT bash scripts/device_bench.sh", carry=[".whl"], timeout_s=...)
-# Writes into $OUT: bench_gpu.json (the bench document), bench_gpu.txt (its summary), log.txt.
+# Writes into $OUT: bench_gpu.json (the bench document, rewritten after every run: a bench stopped at
+# MINUTES keeps the runs it finished, `complete` false), bench_gpu.txt (its summary), log.txt.
 #
 # Settings (environment variables; defaults in brackets):
 #   OUT       where the results go [required; the device tool sets it]
@@ -50,11 +51,18 @@ if [ "$DEVICE" = cuda ]; then
 fi
 say "bench: DEVICE=$DEVICE BATCHES=$BATCHES GUARD=$GUARD ${QUICK_ARGS[*]}, at most $MINUTES min"
 # shellcheck disable=SC2086 # BATCHES is a list of numbers
+rm -f "$OUT/bench_gpu.json"
+rc=0
 timeout --kill-after=20 "$((MINUTES * 60))" "$PYTHON" -m trajeglish_env.cli bench --sections env \
     --batches $BATCHES --guard "$GUARD" --device "$DEVICE" --no-split "${QUICK_ARGS[@]}" --quiet --json \
-    --out "$OUT/bench_gpu.json" \
-    >/dev/null || die "the bench failed or ran past $MINUTES min (see log.txt)"
+    --out "$OUT/bench_gpu.json" >/dev/null || rc=$?
+# the bench writes its document after every run: a stopped bench keeps the runs it finished
+[ -f "$OUT/bench_gpu.json" ] || die "the bench failed or ran past $MINUTES min before its first run ended (exit code $rc; see log.txt)"
 "$PYTHON" -c 'import json, sys
 from trajeglish_env.benchmark.suite import summary_lines
 print("\n".join(summary_lines(json.load(open(sys.argv[1])))))' "$OUT/bench_gpu.json" | tee "$OUT/bench_gpu.txt"
+if [ "$rc" != 0 ]; then
+    say "the bench stopped early (exit code $rc: 124 is the $MINUTES-minute limit); $OUT/bench_gpu.json holds the runs it finished"
+    exit "$rc"
+fi
 say "done: $OUT/bench_gpu.json"

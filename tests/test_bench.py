@@ -89,8 +89,25 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 5
+    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 6
+    assert printed["complete"] is True and written == printed
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
+
+
+def test_a_suite_stopped_early_keeps_the_runs_it_finished(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def broken(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("stopped")  # a lent machine's time limit, a crash: the second run never ends
+
+    monkeypatch.setattr(measure, "metrics_time", broken)
+    out = tmp_path / "bench.json"
+    with pytest.raises(RuntimeError, match="stopped"):
+        main(["bench", "--sections", "tokenizer", "metrics", "--quick", "--quiet", "--out", str(out)])
+    written = json.loads(out.read_text())
+    assert written["complete"] is False and "metrics" not in written
+    assert written["tokenizer"]["agent_steps_per_s"] > 0 and written["ratios"] == {}
+    assert summary_lines(written)[-1].startswith("incomplete: the suite stopped before its last run")
 
 
 def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> None:

@@ -234,7 +234,7 @@ def test_the_gpu_bench_job_dry_runs_on_the_cpu_and_refuses_a_machine_without_cud
     done = _bench_job(tmp_path, DEVICE="cpu", QUICK="1", BATCHES="2")
     assert done.returncode == 0, done.stdout[-3000:]
     result = json.loads((tmp_path / "out" / "bench_gpu.json").read_text())
-    assert result["config"]["quick"] is True and result["config"]["device"] == "cpu"
+    assert result["config"]["quick"] is True and result["config"]["device"] == "cpu" and result["complete"]
     run = result["env"]["trajeglish_guard"]["2"]
     assert run["device"] == "cpu" and run["processes"] == 1 and run["agent_steps_per_s"] > 0
     assert "env trajeglish_guard B=   2" in (tmp_path / "out" / "bench_gpu.txt").read_text()

@@ -225,10 +225,14 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
         split=not args.no_split,
         device=args.device,
     )
-    result = run_suite(config, progress=not args.quiet)
-    if args.out:
-        with atomic_path(args.out) as tmp:
-            tmp.write_text(json.dumps(result, indent=2))
+
+    def write(doc: dict[str, Any]) -> None:  # after every run: a suite stopped early keeps its figures
+        if args.out:
+            with atomic_path(args.out) as tmp:
+                tmp.write_text(json.dumps(doc, indent=2))
+
+    result = run_suite(config, progress=not args.quiet, on_update=write)
+    write(result)
     if args.json:
         return result
     print("\n".join(summary_lines(result)))

@@ -12,6 +12,7 @@ highway-env make the figures comparable across noisy runs. JSON layout: see the 
 
 from __future__ import annotations
 
+import copy
 import json
 import subprocess
 import sys
@@ -23,8 +24,9 @@ from typing import Any
 
 # 2: env figures over a whole window cycle; highway-env measured before and after; 3: guarded sampling's
 # env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section; 4: the womd and busy
-# sections and their ratios; 5: split env runs (env.<npc>_split, busy "<B>_split") and env runs' processes
-SCHEMA_VERSION = 5
+# sections and their ratios; 5: split env runs (env.<npc>_split, busy "<B>_split") and env runs' processes;
+# 6: ``complete`` (False in the documents written after each run while the suite goes on)
+SCHEMA_VERSION = 6
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "womd", "env", "busy")
 
 
@@ -87,8 +89,14 @@ def _check_device(device: str) -> None:
         raise ValueError(f"bench: --device {device}: expected a cpu or cuda device")
 
 
-def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
-    """Run the configured sections (with a progress bar on stderr) and return the JSON document."""
+def run_suite(
+    config: BenchConfig,
+    progress: bool = True,
+    on_update: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """Run the configured sections (with a progress bar on stderr) and return the JSON document.
+    ``on_update`` gets the document of the runs done so far after each run (``complete`` False), so a
+    suite stopped early (a lent machine's time limit) keeps what it measured."""
     from tqdm import tqdm
 
     from trajeglish_env.benchmark import measure
@@ -144,14 +152,23 @@ def run_suite(config: BenchConfig, progress: bool = True) -> dict[str, Any]:
             result.setdefault(name.split("/")[0], {"runs": []})["runs"].append(value)
         else:
             result[name] = value
+        if on_update is not None and len(result) > 3:
+            on_update(_document(result, start, complete=False))
+    return _document(result, start, complete=True)
+
+
+def _document(result: dict[str, Any], start: float, complete: bool) -> dict[str, Any]:
+    """The suite's JSON document from its runs so far: highway-env's runs averaged, ratios, guard cost."""
+    doc = copy.deepcopy(result)
     for key in ("highway_env", "highway_env_highway"):
-        if key in result:
-            result[key] = _mean_run(result[key]["runs"])
-    result["ratios"] = ratios(result)
-    if "trajeglish" in result.get("env", {}) and "trajeglish_guard" in result["env"]:
-        result["guard_cost"] = guard_cost(result["env"])
-    result["seconds"] = round(time.perf_counter() - start, 1)
-    return result
+        if key in doc:
+            doc[key] = _mean_run(doc[key]["runs"])
+    doc["ratios"] = ratios(doc)
+    if "trajeglish" in doc.get("env", {}) and "trajeglish_guard" in doc["env"]:
+        doc["guard_cost"] = guard_cost(doc["env"])
+    doc["seconds"] = round(time.perf_counter() - start, 1)
+    doc["complete"] = complete
+    return doc
 
 
 def _mean_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -361,6 +378,8 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
         lines.append(f"guarded sampling B={b:>4}: {cost['slowdown']}x slower ({cost['off']} -> {cost['on']})")
     lines += _womd_lines(result) + _busy_lines(result)
     lines.append(f"total {result['seconds']} s")
+    if result.get("complete") is False:
+        lines.append("incomplete: the suite stopped before its last run (these are the runs it finished)")
     return lines
 
 
