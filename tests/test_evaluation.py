@@ -15,6 +15,7 @@ from trajeglish_env.evaluation import (
     evaluate,
     evaluate_methods,
     log_method,
+    markdown_table,
     red_light_runs,
     scene_kind,
     tokenized_log_method,
@@ -92,6 +93,17 @@ def test_collision_curves_by_scene_kind(scenes) -> None:
     overall = (2 * by_kind["highway/two-way"] + by_kind["highway/intersection"]) / 3
     np.testing.assert_allclose(cv["collision_rate_over_time"], overall)
     assert max(max(v) for v in raw["log"]["collision_rate_over_time_by_kind"].values()) == 0.0
+    # the headline figures per scene kind: the two-way scenes' rates apart from the crossing's, and the
+    # overall figures their scene-weighted means
+    kinds = cv["scores_by_kind"]
+    assert {k: v["scenes"] for k, v in kinds.items()} == {"highway/two-way": 2, "highway/intersection": 1}
+    assert kinds["highway/two-way"]["collision_rate"] == 0.0 < kinds["highway/intersection"]["collision_rate"]
+    for key in ("collision_rate", "offroad_rate", "metametric"):
+        weighted = sum(v["scenes"] * v[key] for v in kinds.values()) / 3
+        assert weighted == pytest.approx(cv["scores"][key])
+    md = markdown_table({"scenes": 3, "rollouts": 1, "metrics_config": "2025", "methods": raw})
+    row = next(line for line in md.splitlines() if line.startswith("| highway/intersection (1) |"))
+    assert f"{kinds['highway/intersection']['collision_rate']:.3f}" in row
 
 
 def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:

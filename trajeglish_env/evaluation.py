@@ -28,6 +28,7 @@ from tqdm import tqdm
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.distributed import Ranks, gather, my_share
 from trajeglish_env.evaluation_plots import plot_evaluation, plot_feature_scores
+from trajeglish_env.evaluation_tables import markdown_table
 from trajeglish_env.metrics import LogDetails, RealismScores, box_collisions, mean_scores, score_rollouts
 from trajeglish_env.metrics.collision_fault import collisions_by_fault
 from trajeglish_env.metrics.log_details_io import details_for_files
@@ -273,10 +274,25 @@ def evaluate_methods(
                 for kind in sorted(set(kinds))
             },
             "red_light_runs_by_kind": _red_light_table(np.sum(red, axis=0)),
+            "scores_by_kind": {
+                kind: _kind_scores([r for r, g in zip(scores, kinds, strict=True) if g == kind])
+                for kind in sorted(set(kinds))
+            },
             "_speed": np.concatenate(speeds),
             "_accel": np.concatenate(accels),
         }
     return results
+
+
+def _kind_scores(scores: list[RealismScores]) -> dict[str, float]:
+    """The headline figures of one scene kind's scenes (plain means over them, as for all scenes)."""
+    mean = mean_scores(scores)
+    return {
+        "scenes": len(scores),
+        "metametric": mean.metametric,
+        "collision_rate": mean.collision_rate,
+        "offroad_rate": mean.offroad_rate,
+    }
 
 
 def _red_light_table(counts: np.ndarray) -> dict[str, dict[str, float]]:
@@ -434,54 +450,3 @@ def evaluate(
         tmp.write_text(json.dumps(result, indent=2))
     result["markdown"] = str(out / "evaluation.md")
     return result
-
-
-def markdown_table(result: dict[str, Any]) -> str:
-    """The evaluation as a Markdown table (one row per method)."""
-    cols = [
-        "metametric",
-        "kinematic",
-        "interactive",
-        "map_based",
-        "min_ade",
-        "collision_rate",
-        "offroad_rate",
-    ]
-    lines = [
-        f"Held-out scenes: {result['scenes']}, rollouts per scene: {result['rollouts']}, "
-        f"metrics: WOSAC {result['metrics_config']}",
-        "",
-        "| method | " + " | ".join(cols) + " |",
-        "|---|" + "---|" * len(cols),
-    ]
-    for name, r in result["methods"].items():
-        lines.append(f"| {name} | " + " | ".join(f"{r['scores'][c]:.4f}" for c in cols) + " |")
-    red = {name: r["red_light_runs_by_kind"] for name, r in result["methods"].items()}
-    if any(c["agent_rollouts"] for r in red.values() for c in r.values()):
-        kinds = [k.name.lower() for k in AgentKind]
-        lines += [
-            "",
-            "Red lights run (share of simulated agent-rollouts crossing a red stop fence on their lane):",
-            "",
-            "| method | " + " | ".join(kinds) + " |",
-            "|---|" + "---|" * len(kinds),
-        ]
-        for name, r in red.items():
-            cells = [f"{r[k]['rate']:.4f} ({r[k]['runs']}/{r[k]['agent_rollouts']})" for k in kinds]
-            lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    if "partial_control" in result:
-        pc = result["partial_control"]
-        lines += [
-            "",
-            f"Partial control ({pc['model']} drives the sdc, others replay the log):",
-            "",
-            "| sdc placed | ADE (m) | collision rate | sdc moved into another | another moved into the sdc |",
-            "|---|---|---|---|---|",
-        ]
-        for place in ("first", "last"):
-            r = pc[place]
-            lines.append(
-                f"| {place} | {r['ade']:.3f} | {r['collision_rate']:.4f} | {r['at_fault_rate']:.4f} | "
-                f"{r['struck_rate']:.4f} |"
-            )
-    return "\n".join(lines) + "\n"

@@ -1,0 +1,92 @@
+"""The realism evaluation's Markdown report (``evaluation.md``): the table of methods, red lights run, the
+scene kinds' table and partial control, from :func:`trajeglish_env.evaluation.evaluate`'s JSON document."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from trajeglish_env.scenario import AgentKind
+
+
+def markdown_table(result: dict[str, Any]) -> str:
+    """The evaluation as a Markdown table (one row per method)."""
+    cols = [
+        "metametric",
+        "kinematic",
+        "interactive",
+        "map_based",
+        "min_ade",
+        "collision_rate",
+        "offroad_rate",
+    ]
+    lines = [
+        f"Held-out scenes: {result['scenes']}, rollouts per scene: {result['rollouts']}, "
+        f"metrics: WOSAC {result['metrics_config']}",
+        "",
+        "| method | " + " | ".join(cols) + " |",
+        "|---|" + "---|" * len(cols),
+    ]
+    for name, r in result["methods"].items():
+        lines.append(f"| {name} | " + " | ".join(f"{r['scores'][c]:.4f}" for c in cols) + " |")
+    red = {name: r["red_light_runs_by_kind"] for name, r in result["methods"].items()}
+    if any(c["agent_rollouts"] for r in red.values() for c in r.values()):
+        kinds = [k.name.lower() for k in AgentKind]
+        lines += [
+            "",
+            "Red lights run (share of simulated agent-rollouts crossing a red stop fence on their lane):",
+            "",
+            "| method | " + " | ".join(kinds) + " |",
+            "|---|" + "---|" * len(kinds),
+        ]
+        for name, r in red.items():
+            cells = [f"{r[k]['rate']:.4f} ({r[k]['runs']}/{r[k]['agent_rollouts']})" for k in kinds]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += _kind_table(result["methods"])
+    if "partial_control" in result:
+        pc = result["partial_control"]
+        lines += [
+            "",
+            f"Partial control ({pc['model']} drives the sdc, others replay the log):",
+            "",
+            "| sdc placed | ADE (m) | collision rate | sdc moved into another | another moved into the sdc |",
+            "|---|---|---|---|---|",
+        ]
+        for place in ("first", "last"):
+            r = pc[place]
+            lines.append(
+                f"| {place} | {r['ade']:.3f} | {r['collision_rate']:.4f} | {r['at_fault_rate']:.4f} | "
+                f"{r['struck_rate']:.4f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def _kind_table(methods: dict[str, Any]) -> list[str]:
+    """Markdown lines of the per-scene-kind table (meta-metric / collision / off-road of each method),
+    when the scenes hold more than one kind: where a model fails hides in the means (roundabouts)."""
+    kinds = sorted({k for r in methods.values() for k in r.get("scores_by_kind", {})})
+    if len(kinds) < 2:
+        return []
+    names = list(methods)
+    lines = [
+        "",
+        "By scene kind (meta-metric / collision rate / off-road rate; scenes of the kind in brackets):",
+        "",
+        "| kind | " + " | ".join(names) + " |",
+        "|---|" + "---|" * len(names),
+    ]
+    for kind in kinds:
+        cells = []
+        for name in names:
+            k = methods[name].get("scores_by_kind", {}).get(kind)
+            cells.append(
+                ""
+                if k is None
+                else f"{k['metametric']:.3f} / {k['collision_rate']:.3f} / {k['offroad_rate']:.3f}"
+            )
+        count = next(
+            m["scores_by_kind"][kind]["scenes"]
+            for m in methods.values()
+            if kind in m.get("scores_by_kind", {})
+        )
+        lines.append(f"| {kind} ({count}) | " + " | ".join(cells) + " |")
+    return lines
