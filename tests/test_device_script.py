@@ -115,7 +115,7 @@ def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
 @pytest.mark.skipif(BASH is None, reason="needs bash")
 def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path) -> None:
     # highway-env scenes (varied motion); the windows' map chunks nearest any of their agents
-    job = _job(tmp_path, "v", VOCAB="128", SCENES="10", DATA_IN="", MAP_SELECT="agents")
+    job = _job(tmp_path, "v", VOCAB="128", SCENES="10", DATA_IN="", MAP_SELECT="agents", REPEAT="highway=2")
     assert job.returncode == 0, job.stdout[-3000:]
     ckpt = load_checkpoint(tmp_path / "out-v" / "model.pt")
     assert ckpt.config.vocab_size == 128 and ckpt.vocabulary.size == 128
@@ -125,6 +125,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert summary["params"]["VOCAB"] == "128"  # kept for a resumed call, which does not refit
     assert summary["params"]["MAP_SELECT"] == "agents"
     assert summary["params"]["FIT_STEPS"] == "1"  # the default: the schedule fitted to the call's budget
+    assert summary["params"]["REPEAT"] == "highway=2"  # kept for a resumed call (`train --repeat`)
+    assert tuple(map(tuple, ckpt.training["train_config"]["repeat"])) == (("highway", 2),)
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
     assert clash.returncode == 2 and "keeps its checkpoint's vocabulary" in clash.stdout
     bad = _job(tmp_path, "vb", VOCAB="big")

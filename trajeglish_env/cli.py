@@ -20,6 +20,7 @@ from trajeglish_env.cli_args import (
     POSITIVE,
     USER_ERRORS,
     ArgParser,
+    add_budget_and_mix_args,
     add_cover_args,
     one_line,
     output_dir,
@@ -115,6 +116,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.distributed import init_ranks, rank_device
     from trajeglish_env.model.config import preset
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+    from trajeglish_env.training.kind_repeat import parse_repeat
     from trajeglish_env.training.train import TrainConfig, train
 
     vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
@@ -144,6 +146,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         noisy_inputs=not args.no_noise,
         shard_cache=args.shard_cache,
         signal_lr_scale=args.signal_lr_scale,
+        repeat=parse_repeat(args.repeat),
     )
     ranks = init_ranks(rank_device())
     result = train(
@@ -357,17 +360,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=POSITIVE, default=200)
     p.add_argument("--no-noise", action="store_true", help="argmin input tokens (no noisy tokenization)")
     p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
-    p.add_argument(
-        "--minutes",
-        type=positive_float,
-        help="wall-clock budget: no step after M minutes; the last step is checkpointed (--resume goes on)",
-    )
-    p.add_argument(
-        "--fit-steps",
-        action="store_true",
-        help="with --minutes: the step rate of the first steps sets the schedule's length, so the learning "
-        "rate decays to 0 as the budget ends (--steps is then the most)",
-    )
+    add_budget_and_mix_args(p)
     p.add_argument(
         "--shard-cache",
         type=NON_NEGATIVE,

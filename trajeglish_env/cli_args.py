@@ -127,3 +127,25 @@ def add_cover_args(p: argparse.ArgumentParser) -> None:
         help="metres within which the vehicle cover reaches every envelope transition (default 0.045; "
         "0.03 with --vocab 1024 --data-share 0.2 keeps envelope tracks within 5 cm)",
     )
+
+
+def add_budget_and_mix_args(p: argparse.ArgumentParser) -> None:
+    """``train``'s wall-clock budget and data-mix options."""
+    p.add_argument(
+        "--minutes",
+        type=positive_float,
+        help="wall-clock budget: no step after M minutes; the last step is checkpointed (--resume goes on)",
+    )
+    p.add_argument(
+        "--fit-steps",
+        action="store_true",
+        help="with --minutes: the step rate over the first tenth of the budget sets the schedule's length, "
+        "so the learning rate decays to 0 as the budget ends (--steps is then the most)",
+    )
+    p.add_argument(
+        "--repeat",
+        nargs="+",
+        default=[],
+        metavar="KIND=N",
+        help="draw the training scenes of a kind (highway/roundabout) or source (sumo) N times an epoch",
+    )

@@ -68,6 +68,7 @@ SAVED = (
     "DATA_SHARE",
     "MAP_SELECT",
     "FIT_STEPS",
+    "REPEAT",
 )
 
 

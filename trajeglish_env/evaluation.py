@@ -13,7 +13,6 @@ placed first versus last in the intra-timestep order.
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import sys
@@ -37,7 +36,7 @@ from trajeglish_env.metrics.traffic_lights import red_light_violations
 from trajeglish_env.sampler import rollout
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.sampler.guard_signals import SceneSignals
-from trajeglish_env.scenario import AgentKind, Scenario
+from trajeglish_env.scenario import AgentKind, Scenario, scene_kind
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.tokenizer.tokenize import tokenize_scenario
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
@@ -177,17 +176,6 @@ def submission_method(path: str | os.PathLike[str], scenario_ids: Sequence[str])
         return item.xyh[:, order].astype(np.float64), item.z[:, order].astype(np.float64)
 
     return run
-
-
-def scene_kind(scene: Scenario) -> str:
-    """The scene's kind for per-kind breakdowns: ``source/kind`` for generated scenes (their ids read
-    ``source-kind-seed[-...]``, the kind possibly with dashes), else the source (WOMD: ``womd``)."""
-    parts = scene.scenario_id.split("-")
-    if scene.source in ("highway", "sumo") and parts[0] == scene.source:
-        words = list(itertools.takewhile(lambda w: not w.isdigit(), parts[1:]))
-        if words and len(words) < len(parts) - 1:
-            return f"{scene.source}/{'-'.join(words)}"
-    return scene.source
 
 
 def collisions_over_time(scene: Scenario, fut: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ Every source (highway-env, SUMO, WOMD, user arrays) produces a :class:`Scenario`
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field, fields, replace
 from enum import IntEnum
 from typing import NoReturn
@@ -421,3 +422,14 @@ class _Checker:
                 f"values must be SignalState 0..{int(max(SignalState))}; step {step}, signal {j} "
                 f"(lane {int(lanes[j])}) has {int(st[step, j])}",
             )
+
+
+def scene_kind(scene: Scenario) -> str:
+    """The scene's kind for per-kind breakdowns: ``source/kind`` for generated scenes (their ids read
+    ``source-kind-seed[-...]``, the kind possibly with dashes), else the source (WOMD: ``womd``)."""
+    parts = scene.scenario_id.split("-")
+    if scene.source in ("highway", "sumo") and parts[0] == scene.source:
+        words = list(itertools.takewhile(lambda w: not w.isdigit(), parts[1:]))
+        if words and len(words) < len(parts) - 1:
+            return f"{scene.source}/{'-'.join(words)}"
+    return scene.source

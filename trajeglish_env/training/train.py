@@ -47,7 +47,8 @@ from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_t
 from trajeglish_env.training.curves import plot_curve
 from trajeglish_env.training.curves import write_metrics as _write_metrics
 from trajeglish_env.training.dataset import SceneStore, WindowConfig, collate_windows
-from trajeglish_env.training.shard_cache import ShardBlockOrder, ShardedScenes, split_shards
+from trajeglish_env.training.kind_repeat import window_order
+from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
 
 MAX_UNSTABLE_STEPS = 10  # consecutive non-finite-gradient steps skipped before training stops
@@ -77,6 +78,7 @@ class TrainConfig:
     # learning-rate multiplier of the signal embedding (ModelConfig.signal_input): it starts at zero inside
     # an already trained model (train --init CKPT --signal-input) and must catch up with the rest
     signal_lr_scale: float = 1.0
+    repeat: tuple[tuple[str, int], ...] = ()  # scene kinds drawn N times an epoch (training/kind_repeat.py)
 
     def __post_init__(self) -> None:
         if not self.signal_lr_scale > 0:
@@ -221,6 +223,7 @@ def train(
         # loader processes do not change the batches (items are pure functions of seed and index), so a run
         # may go on on a machine with another number of cores
         saved["num_workers"] = config.num_workers
+        saved["repeat"] = tuple((str(k), int(n)) for k, n in saved["repeat"])  # lists once serialized
         if fit_steps:  # the schedule's length was fitted to the first call's budget
             config = dataclasses.replace(config, steps=int(saved["steps"]))
         if saved != dataclasses.asdict(config):
@@ -241,11 +244,7 @@ def train(
             loss_module, device_ids=[device.index] if device.type == "cuda" else None
         )
     noise = NoiseConfig(config.noise_sigma, config.noise_top_p) if config.noisy_inputs else None
-    order = (
-        ShardBlockOrder(tuple(train_scenes.counts.tolist()), config.shard_cache, config.seed)
-        if isinstance(train_scenes, ShardedScenes)
-        else None
-    )
+    order = window_order(train_scenes, config.repeat, config.shard_cache, config.seed)
     dataset = TokenizedWindows(
         train_scenes, window_config(model_config), vocabulary, noise, config.seed, order
     )
