@@ -14,6 +14,8 @@
 #   MINUTES   the bench is stopped after this [8]
 #   GUARD     on | off | both: the NPCs' guarded sampling [on]
 #   DEVICE    cuda | cpu [cuda]; cpu (with QUICK=1: tiny workloads) is a dry run on any machine
+#   SPLIT     also run the default NPCs with the scenes split over this many worker processes (GPU
+#             workers spawned, each with its copy of the model on the GPU), at the batches >= 8; [none]
 #   WHEELS SITE PYTHON   [.whl, /tmp/site, python3]
 #
 # The project builds, tests and runs without this script or a GPU (README "Speed").
@@ -34,6 +36,11 @@ DEVICE=${DEVICE:-cuda}
 QUICK_ARGS=()
 if [ "${QUICK:-0}" = 1 ]; then QUICK_ARGS=(--quick); fi
 case $DEVICE in cuda | cpu) ;; *) die "DEVICE=$DEVICE: expected cuda or cpu" ;; esac
+SPLIT_ARGS=(--no-split)
+if [ -n "${SPLIT:-}" ]; then
+    [[ $SPLIT =~ ^[0-9]+$ ]] && [ "$SPLIT" -ge 2 ] || die "SPLIT=$SPLIT: expected a number of worker processes >= 2"
+    SPLIT_ARGS=(--split-processes "$SPLIT")
+fi
 WHEELS=${WHEELS:-.whl}
 SITE=${SITE:-/tmp/site}
 PYTHON=${PYTHON:-python3}
@@ -49,12 +56,12 @@ if [ "$DEVICE" = cuda ]; then
     "$PYTHON" -c 'import torch; assert torch.cuda.is_available(); print("device_bench: torch", torch.__version__, "on", torch.cuda.get_device_name())' 2>/dev/null ||
         die "torch sees no CUDA device on this machine (DEVICE=cpu for a dry run)"
 fi
-say "bench: DEVICE=$DEVICE BATCHES=$BATCHES GUARD=$GUARD ${QUICK_ARGS[*]}, at most $MINUTES min"
+say "bench: DEVICE=$DEVICE BATCHES=$BATCHES GUARD=$GUARD SPLIT=${SPLIT:-none} ${QUICK_ARGS[*]}, at most $MINUTES min"
 # shellcheck disable=SC2086 # BATCHES is a list of numbers
 rm -f "$OUT/bench_gpu.json"
 rc=0
 timeout --kill-after=20 "$((MINUTES * 60))" "$PYTHON" -m trajeglish_env.cli bench --sections env \
-    --batches $BATCHES --guard "$GUARD" --device "$DEVICE" --no-split "${QUICK_ARGS[@]}" --quiet --json \
+    --batches $BATCHES --guard "$GUARD" --device "$DEVICE" "${SPLIT_ARGS[@]}" "${QUICK_ARGS[@]}" --quiet --json \
     --out "$OUT/bench_gpu.json" >/dev/null || rc=$?
 # the bench writes its document after every run: a stopped bench keeps the runs it finished
 [ -f "$OUT/bench_gpu.json" ] || die "the bench failed or ran past $MINUTES min before its first run ended (exit code $rc; see log.txt)"

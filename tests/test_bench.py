@@ -81,6 +81,12 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         BenchConfig(batches=(0,))
     with pytest.raises(ValueError, match="guards"):
         BenchConfig(guards=())
+    with pytest.raises(ValueError, match="split processes must be 'auto' or an int >= 2, got 1"):
+        BenchConfig(split_processes=1)
+    with pytest.raises(SystemExit) as exited:
+        main(["bench", "--split-processes", "one", "--quiet"])
+    assert exited.value.code == 2
+    assert "--split-processes: expected 'auto' or an integer >= 2, got 'one'" in capsys.readouterr().err
     assert main(["bench", "--threads", "lots", "--quiet"]) == 2
     assert "--threads must be 'auto' or a positive integer" in capsys.readouterr().err
     assert main(["bench", "--device", "gpu", "--quiet"]) == 2
@@ -273,6 +279,9 @@ def test_env_section_also_runs_the_default_npcs_split_over_processes(monkeypatch
     assert split == [("trajeglish_guard", 8, "auto")]  # B = 4 is too small to split
     assert result["ratios"]["trajeglish_guard_split_B8_to_highway_env"] == 3.0
     assert any("trajeglish_guard_split B=   8" in line for line in summary_lines(result))
+    calls.clear()
+    run_suite(replace(config, split_processes=16), progress=False)  # e.g. GPU workers, one per core
+    assert [c for c in calls if c[2] != 1] == [("trajeglish_guard", 8, 16)]
     calls.clear()
     run_suite(replace(config, split=False), progress=False)
     assert all(c[2] == 1 for c in calls)

@@ -17,6 +17,7 @@ from helpers import REPO, grid_vocabulary, straight_road_scene, tiny_checkpoint,
 
 from trajeglish_env import device_job
 from trajeglish_env.checkpoint import load_checkpoint, pretrained_path, save_checkpoint
+from trajeglish_env.cores import can_fork
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.training.train import TrainConfig, train
 
@@ -247,3 +248,15 @@ def test_the_gpu_bench_job_dry_runs_on_the_cpu_and_refuses_a_machine_without_cud
     assert refused.returncode == 2
     assert "device_bench: ERROR: torch sees no CUDA device on this machine" in refused.stdout
     assert "DEVICE=gpu: expected cuda or cpu" in _bench_job(tmp_path / "third", DEVICE="gpu").stdout
+    refused = _bench_job(tmp_path / "fourth", SPLIT="1")
+    assert "SPLIT=1: expected a number of worker processes >= 2" in refused.stdout
+
+
+@pytest.mark.skipif(BASH is None or not can_fork(), reason="needs bash and forked workers")
+def test_the_gpu_bench_job_also_times_the_scenes_split_over_workers(tmp_path: Path) -> None:
+    done = _bench_job(tmp_path, DEVICE="cpu", QUICK="1", BATCHES="8", SPLIT="2")
+    assert done.returncode == 0, done.stdout[-3000:]
+    result = json.loads((tmp_path / "out" / "bench_gpu.json").read_text())
+    assert result["env"]["trajeglish_guard"]["8"]["processes"] == 1
+    split = result["env"]["trajeglish_guard_split"]["8"]
+    assert split["processes"] == 2 and split["agent_steps_per_s"] > 0

@@ -401,3 +401,44 @@ def test_a_split_env_made_in_another_thread_keeps_its_workers() -> None:
         assert all(w.is_alive() for w in venv.workers.workers)
     finally:
         venv.close()
+
+
+def test_spawned_workers_play_exactly_what_one_process_plays(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The start method of a model meant for a GPU (fresh interpreters, the model sent as a CPU copy)
+    gives the one-process rollouts too; here on the CPU, spawning forced."""
+    import trajeglish_env.env.split as split_module
+
+    monkeypatch.setattr(split_module, "start_method", lambda config, options: "spawn")
+    one = BatchedEgoEnv(4, **kwargs())
+    split = SplitEgoEnv(4, processes=2, **kwargs())
+    try:
+        assert split.workers.method == "spawn"
+        obs, info = split.reset(seed=5)
+        obs2, info2 = one.reset(seed=5)
+        assert np.array_equal(obs, obs2) and list(info["agent"]) == list(info2["agent"])
+        rng = np.random.default_rng(1)
+        for _ in range(8):  # an autoreset of every scene
+            actions = rng.uniform(-1, 1, (4, 2)).astype(np.float32)
+            same_step(split.step(actions), one.step(actions))
+        states = [s for shard in split.apply(ego_states) for s in shard]
+        assert all(np.array_equal(a, b) for a, b in zip(states, ego_states(one), strict=True))
+    finally:
+        split.close()
+    assert all(not w.is_alive() for w in split.workers.workers)
+
+
+def test_a_gpu_model_spawns_its_workers_and_goes_to_them_on_the_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``TrajeglishNPC(device="cuda")``: the workers are spawned (a CUDA context cannot fork) and get a CPU
+    copy of the model with the device named, so each puts it on its GPU; without CUDA, one clear error
+    before any worker starts."""
+    npc = TrajeglishNPC(tiny(), device="cuda")
+    assert shards_module.start_method(None, {"npc": npc}) == "spawn"
+    assert shards_module.start_method(None, {"npc": TrajeglishNPC(tiny())}) == "fork"
+    assert shards_module.start_method(None, {"npc": "idm"}) == "fork"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # as on a GPU machine
+    prepared = shards_module.prepared_config(None, {"npc": npc}, "SplitEgoEnv").npc
+    assert prepared.device == "cuda"
+    assert next(prepared.checkpoint.model.parameters()).device.type == "cpu"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(RuntimeError, match="SplitEgoEnv: the NPC model's device 'cuda' needs CUDA"):
+        SplitEgoEnv(4, processes=2, **kwargs(npc=npc))

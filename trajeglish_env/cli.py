@@ -22,6 +22,7 @@ from trajeglish_env.cli_args import (
     ArgParser,
     add_budget_and_mix_args,
     add_cover_args,
+    auto_or_at_least,
     one_line,
     output_dir,
     positive_float,
@@ -227,6 +228,7 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
         womd=args.womd,
         split=not args.no_split,
         device=args.device,
+        split_processes=args.split_processes,
     )
 
     def write(doc: dict[str, Any]) -> None:  # after every run: a suite stopped early keeps its figures
@@ -461,6 +463,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-split",
         action="store_true",
         help="skip the env and busy runs whose scenes are split over worker processes (processes='auto')",
+    )
+    p.add_argument(
+        "--split-processes",
+        default="auto",
+        type=auto_or_at_least(2),
+        help="worker processes of the env section's split runs (default auto; a count with --device cuda "
+        "spawns that many GPU workers)",
     )
     p.add_argument("--out", help="also write the JSON document here (atomically)")
     return parser

@@ -53,6 +53,22 @@ def integer_at_least(low: int) -> Callable[[str], int]:
     return parse
 
 
+def auto_or_at_least(low: int) -> Callable[[str], int | str]:
+    """Argument type: ``auto`` or an integer >= ``low``."""
+    count = integer_at_least(low)
+
+    def parse(text: str) -> int | str:
+        if text == "auto":
+            return text
+        try:
+            return count(text)
+        except argparse.ArgumentTypeError:
+            message = f"expected 'auto' or an integer >= {low}, got {text!r}"
+            raise argparse.ArgumentTypeError(message) from None
+
+    return parse
+
+
 def positive_float(text: str) -> float:
     """Argument type: a finite number > 0."""
     try:

@@ -41,7 +41,8 @@ class BenchConfig:
     locate_womd`) and ``split``: whether the env and busy sections also run the default NPCs' env with its
     scenes split over worker processes (``processes="auto"``, :class:`~trajeglish_env.env.split.
     SplitEgoEnv`) at the batch sizes that split (:func:`split_batches`); ``device``: the torch device the
-    env runs' NPC model decodes on (``"cuda"``: a GPU; the split runs then stay in one process)."""
+    env runs' NPC model decodes on (``"cuda"``: a GPU; the split runs then stay in one process unless
+    ``split_processes`` is a count: the env section's split runs' processes, spawned GPU workers)."""
 
     batches: tuple[int, ...] = (1, 8, 32, 128, 256)
     agents: int = 24
@@ -57,6 +58,7 @@ class BenchConfig:
     womd: str | None = None
     split: bool = True
     device: str = "cpu"
+    split_processes: int | str = "auto"
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.sections) - set(SECTIONS))
@@ -67,6 +69,11 @@ class BenchConfig:
         if not self.guards or not all(isinstance(g, bool) for g in self.guards):
             raise ValueError(f"bench: guards must be a non-empty tuple of bools, got {self.guards!r}")
         _check_device(self.device)
+        if self.split_processes != "auto" and not (
+            isinstance(self.split_processes, int) and self.split_processes >= 2
+        ):
+            wrong = self.split_processes
+            raise ValueError(f"bench: split processes must be 'auto' or an int >= 2, got {wrong!r}")
         if (self.env_steps is not None and self.env_steps < 1) or min(
             self.replay_steps, self.highway_steps
         ) < 1:
@@ -133,7 +140,8 @@ def run_suite(
                 jobs.append((f"env/{npc}/{b}", _env_job(config, npc, b)))
         if config.split:  # the default NPCs with the scenes split over worker processes
             for b in split_batches(config.batches):
-                jobs.append((f"env/{default_npc()}_split/{b}", _env_job(config, default_npc(), b, "auto")))
+                job = _env_job(config, default_npc(), b, config.split_processes)
+                jobs.append((f"env/{default_npc()}_split/{b}", job))
         jobs += [(f"{name}/after", job) for name, job in baselines]  # the machine's load drifts
     if "busy" in config.sections:
         jobs.append(("busy", lambda: _busy(config)))

@@ -8,7 +8,9 @@ worker holds. The caller counts the answers it has not read yet (a command inter
 error in another worker) and reads them before its next command, and pickles every worker's command
 before it sends any, so the pipes stay in step; a worker that dies is an error naming its scenes, not a
 hang. Workers are forked (Linux, :func:`~trajeglish_env.cores.can_fork`), so they share the caller's
-loaded model and scenes; they run one torch thread each (OpenMP is not fork-safe: a forked child that
+loaded model and scenes, unless the model is meant for a GPU: a CUDA context cannot fork, so they are then
+spawned, get a pickled CPU copy of the model and scenes, and each moves its model to the GPU
+(:func:`start_method`). They run one torch thread each (OpenMP is not fork-safe: a forked child that
 uses several threads after its parent did can hang), ignore Ctrl-C (the caller handles it), and end when
 the caller's pipe closes or the caller dies.
 """
@@ -25,6 +27,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
@@ -80,17 +83,31 @@ def on_gpu(config: EnvConfig | None, options: dict[str, Any]) -> bool:
     return model is not None and next(model.parameters()).device.type != "cpu"
 
 
+def start_method(config: EnvConfig | None, options: dict[str, Any]) -> str:
+    """How the workers of an env start: ``"spawn"`` (fresh interpreters, each putting the model on its
+    GPU) for a model meant for a GPU, since a CUDA context cannot fork; else ``"fork"`` (the workers share
+    the caller's loaded model and scenes)."""
+    return "spawn" if on_gpu(config, options) else "fork"
+
+
 def prepared_config(config: EnvConfig | None, options: dict[str, Any], where: str) -> EnvConfig:
-    """The env's config with its NPC model loaded (and checked) here, once: the forked workers share it.
-    A model on a GPU is refused before anything touches the GPU (a CUDA context cannot fork)."""
-    if on_gpu(config, options):
-        raise ValueError(f"{where}: the NPC model must be on the CPU (a CUDA context cannot fork)")
+    """The env's config with its NPC model loaded (and checked) here, once. Forked workers share it; for a
+    model meant for a GPU the copy sent to the spawned workers is a CPU one (nothing here touches the GPU)
+    and ``TrajeglishNPC.device`` names the GPU, so each worker moves the model there itself."""
+    import torch
+
+    gpu = on_gpu(config, options)
     config = (config or EnvConfig()).with_overrides(**options)
     settings = trajeglish_settings(config.npc)
     if settings is None:
         return config
-    checkpoint = load_npc_checkpoint(settings.checkpoint, settings.device)
-    return config.with_overrides(npc=settings.with_checkpoint(checkpoint))
+    device = settings.device
+    if gpu and device is None:  # a loaded checkpoint already on a GPU: the workers use that device
+        device = str(next(settings.checkpoint.model.parameters()).device)
+    if gpu and not torch.cuda.is_available():
+        raise RuntimeError(f"{where}: the NPC model's device {device!r} needs CUDA, which this machine lacks")
+    checkpoint = load_npc_checkpoint(settings.checkpoint, "cpu" if gpu else device)
+    return config.with_overrides(npc=replace(settings.with_checkpoint(checkpoint), device=device))
 
 
 class _Method:
@@ -187,9 +204,11 @@ def _serve(
 
 
 class ShardWorkers:
-    """``len(builders)`` forked workers, worker ``k`` serving the env ``builders[k]()`` for the scenes
+    """``len(builders)`` workers, worker ``k`` serving the env ``builders[k]()`` for the scenes
     ``shards[k]``; ``described[k]`` is ``describe(env)`` of each (e.g. its spaces). ``owner`` names the
-    split env in errors."""
+    split env in errors. ``method``: ``"fork"``, or ``"spawn"`` (see :func:`start_method`; the builders
+    and ``describe`` must then pickle, and a script that makes the env needs an ``if __name__ ==
+    "__main__":`` guard, as for any spawned process)."""
 
     def __init__(
         self,
@@ -197,11 +216,14 @@ class ShardWorkers:
         builders: Sequence[Callable[[], Any]],
         describe: Callable[[Any], Any],
         owner: str,
+        method: str = "fork",
     ):
-        if not can_fork():
+        if method not in ("fork", "spawn"):
+            raise ValueError(f"{owner}: start method must be 'fork' or 'spawn', got {method!r}")
+        if method == "fork" and not can_fork():
             raise RuntimeError(f"{owner} forks its workers, which needs Linux; use the one-process env")
-        self.shards, self.owner = list(shards), owner
-        context = multiprocessing.get_context("fork")
+        self.shards, self.owner, self.method = list(shards), owner, method
+        context = multiprocessing.get_context(method)
         self.conns: list[Any] = []
         self.workers: list[Any] = []
         self.pending: list[int] = []  # answers sent but not read yet, per worker
@@ -210,7 +232,7 @@ class ShardWorkers:
         try:
             for build in builders:
                 parent, child = context.Pipe()
-                inherited = [*self.conns, parent]
+                inherited = [*self.conns, parent] if method == "fork" else []  # spawn inherits none
                 args = (child, build, describe, inherited, os.getpid() if main else None)
                 worker = context.Process(target=_serve, args=args, daemon=True)
                 worker.start()

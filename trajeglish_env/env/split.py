@@ -12,15 +12,17 @@ Semantics are the one-process env's, bit for bit: scene ``i`` reset with seed ``
 of a one-process batch plays (a scene's results do not depend on the others of its batch). Actions are
 checked here before any worker moves. ``apply(fn)`` runs a function on every shard's env where its scenes
 live (no copy of the simulations comes back); :class:`SplitEgoEnv`'s ``envs[i]`` reach into scene i's
-worker (SB3's ``get_attr`` / ``env_method``). Workers are forked, so this needs Linux
-(:func:`~trajeglish_env.cores.can_fork`) and an NPC model on the CPU.
+worker (SB3's ``get_attr`` / ``env_method``). Workers are forked (Linux, :func:`~trajeglish_env.cores.
+can_fork`) for a model on the CPU, and spawned for one meant for a GPU (``TrajeglishNPC(device="cuda")``:
+each worker puts its copy of the model on the GPU, so the scenes' host work, the guard's geometry and the
+env state, runs on as many cores as there are workers while the GPU decodes for all of them).
 """
 
 from __future__ import annotations
 
-import functools
 import weakref
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium
@@ -40,6 +42,7 @@ from trajeglish_env.env.shards import (
     on_gpu,
     prepared_config,
     shard_ranges,
+    start_method,
     worker_threads,
 )
 from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv
@@ -61,7 +64,8 @@ def _count(
     options: dict[str, Any],
     torch_threads: int | str | None,
 ) -> int:
-    """The process count of a factory: ``"auto"`` keeps in one process a model meant for a GPU, and an env
+    """The process count of a factory: ``"auto"`` keeps in one process a model meant for a GPU (spawned
+    GPU workers are taken only when asked for by count: not yet measured against one process) and an env
     asked for several torch threads (a worker runs one)."""
     if processes == "auto" and (on_gpu(config, options) or torch_threads not in ("auto", None, 1)):
         return 1
@@ -79,7 +83,7 @@ def batched_ego_env(
 ) -> BatchedEgoEnv | SplitEgoEnv:
     """A :class:`BatchedEgoEnv` (``processes`` 1) or a :class:`SplitEgoEnv` of that many worker processes
     (``"auto"``: :func:`auto_env_processes`; one process when that is 1, when the NPC model is on a GPU or
-    when ``torch_threads`` asks for several threads)."""
+    when ``torch_threads`` asks for several threads; a count for a GPU model spawns GPU workers)."""
     count = _count(processes, num_envs, config, options, torch_threads)
     if count == 1:
         return BatchedEgoEnv(num_envs, scenes, config, render_mode, torch_threads, **options)
@@ -103,6 +107,22 @@ def batched_parallel_env(
     return SplitParallelEnv(num_envs, scenes, config, render_mode, torch_threads, processes=count, **options)
 
 
+@dataclass(frozen=True)
+class _ShardEnv:
+    """What a worker builds: a one-process batched env (``kind``) of ``num_envs`` scenes. A module-level
+    value, so that it pickles for spawned workers."""
+
+    kind: type
+    num_envs: int
+    scenes: Any
+    config: EnvConfig
+    render_mode: str | None
+    torch_threads: int | str | None
+
+    def __call__(self) -> Any:
+        return self.kind(self.num_envs, self.scenes, self.config, self.render_mode, self.torch_threads)
+
+
 def _ego_spaces(env: BatchedEgoEnv) -> tuple[gymnasium.Space, gymnasium.Space]:
     return env.single_observation_space, env.single_action_space
 
@@ -115,22 +135,25 @@ class SplitWorkers:
 
     def _start(
         self,
-        owner: str,
+        kind: type,
         num_envs: int,
         processes: int | str,
-        build: Callable[[int, int | str | None], Any],
-        torch_threads: int | str | None,
+        shard: tuple[Any, EnvConfig, str | None, int | str | None],
         describe: Callable[[Any], Any],
+        method: str,
     ) -> Any:
-        """Fork the workers: ``build(n, threads)`` makes a shard's env of ``n`` scenes; ``describe(env)`` of
-        the first shard is returned."""
+        """Start the workers (``method``: see :func:`~trajeglish_env.env.shards.start_method`), each with
+        an env ``kind(n, *shard)`` of its ``n`` scenes (``shard``: scenes, config, render mode, torch
+        threads); ``describe(env)`` of the first shard is returned."""
+        owner = f"Split{kind.__name__.removeprefix('Batched')}"
         count = checked_processes(processes, num_envs)
         if not isinstance(num_envs, (int, np.integer)) or num_envs < count:
             raise ValueError(f"{owner}: num_envs must be an int >= processes ({count}), got {num_envs!r}")
+        scenes, config, render_mode, torch_threads = shard
         threads = worker_threads(torch_threads, owner)
         shards = shard_ranges(int(num_envs), count)
-        builders = [functools.partial(build, len(s), threads) for s in shards]
-        self.workers = ShardWorkers(shards, builders, describe, owner)
+        builders = [_ShardEnv(kind, len(s), scenes, config, render_mode, threads) for s in shards]
+        self.workers = ShardWorkers(shards, builders, describe, owner, method)
         self.num_envs, self.processes, self.shards = int(num_envs), count, shards
         return self.workers.described[0]
 
@@ -206,14 +229,11 @@ class SplitEgoEnv(SplitWorkers, EgoVectorEnv):
         processes: int = 2,
         **options: Any,
     ):
+        method = start_method(config, options)
         config = prepared_config(config, options, "SplitEgoEnv")
         check_single(config)
-        source = scene_set(scenes)
-
-        def build(n: int, threads: int | str | None) -> BatchedEgoEnv:
-            return BatchedEgoEnv(n, source, config, render_mode, threads)
-
-        spaces = self._start("SplitEgoEnv", num_envs, processes, build, torch_threads, _ego_spaces)
+        shard = (scene_set(scenes), config, render_mode, torch_threads)
+        spaces = self._start(BatchedEgoEnv, num_envs, processes, shard, _ego_spaces, method)
         self.render_mode = render_mode
         self._set_spaces(*spaces)
         self.agents = [""] * self.num_envs
@@ -300,13 +320,10 @@ class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
         processes: int = 2,
         **options: Any,
     ):
+        method = start_method(config, options)
         config = prepared_config(config, options, "SplitParallelEnv")
-        source = scene_set(scenes)
-
-        def build(n: int, threads: int | str | None) -> BatchedParallelEnv:
-            return BatchedParallelEnv(n, source, config, render_mode, threads)
-
-        start = self._start("SplitParallelEnv", num_envs, processes, build, torch_threads, _parallel_spaces)
+        shard = (scene_set(scenes), config, render_mode, torch_threads)
+        start = self._start(BatchedParallelEnv, num_envs, processes, shard, _parallel_spaces, method)
         self._observation, self._actions = start
         self.render_mode = render_mode
         self.agents: list[list[str]] = [[] for _ in range(self.num_envs)]
