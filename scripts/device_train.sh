@@ -43,6 +43,8 @@
 #   MAP_SELECT     frame | agents: a window's map chunks nearest its frame agent or any of its agents
 #                  (`train --map-select`; with INIT it may differ from the checkpoint's) [the checkpoint's,
 #                  or frame]
+#   MAP_STRIDE     a map chunk takes every Nth point of its polyline (`train --map-stride`; 4: chunks 38 m
+#                  long instead of 9.5 m; with INIT it may differ from the checkpoint's) [the checkpoint's, or 1]
 #   STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY   the run's schedule [10000 32 5e-4 200 0 500 250];
 #                  kept from RUN_IN when resuming (setting another value is an error), as the SIGNAL_ ones are.
 #   REPEAT         scene kinds drawn N times an epoch, e.g. "sumo=3 highway/roundabout=2" (`train --repeat`;
@@ -70,7 +72,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest)
 declare -A GIVEN=()
-for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE MAP_SELECT FIT_STEPS REPEAT; do
+for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
 done
 
@@ -110,7 +112,7 @@ RESUME=()
 if [ -n "$RUN_IN" ]; then
     SAVED=$("$PYTHON" trajeglish_env/device_job.py saved "$RUN_IN") || exit 2
     eval "$SAVED"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE MAP_SELECT FIT_STEPS REPEAT; do
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do
         s=SAVED_$v
         [ -n "${!s:-}" ] || continue
         if [ -n "${GIVEN[$v]:-}" ] && [ "${GIVEN[$v]}" != "${!s}" ]; then
@@ -144,6 +146,7 @@ VOCAB=${VOCAB:-0}
 COVER_RADIUS=${COVER_RADIUS:-0.045}
 DATA_SHARE=${DATA_SHARE:-0.5}
 MAP_SELECT=${MAP_SELECT:-}
+MAP_STRIDE=${MAP_STRIDE:-}
 FIT_STEPS=${FIT_STEPS:-1}
 REPEAT=${REPEAT:-}
 REPEAT_ARGS=()
@@ -160,6 +163,11 @@ case $MAP_SELECT in
 frame | agents) MAP_ARGS=(--map-select "$MAP_SELECT") ;;
 *) die "MAP_SELECT=$MAP_SELECT: expected frame or agents" ;;
 esac
+case $MAP_STRIDE in
+'') ;;
+*[!0-9]* | 0) die "MAP_STRIDE=$MAP_STRIDE: expected a whole number >= 1" ;;
+*) MAP_ARGS+=(--map-stride "$MAP_STRIDE") ;;
+esac
 case $VOCAB in
 '' | *[!0-9]*) die "VOCAB=$VOCAB: expected a number of tokens (0: the shipped vocabulary)" ;;
 esac
@@ -171,7 +179,7 @@ case $SIGNAL_INPUT in
 esac
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT", scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT", scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh
@@ -293,7 +301,7 @@ cat "$WORK/train.json"
     echo "gen_seconds=$GEN_TOOK"
     echo "train_seconds=$((SECONDS - T_TRAIN))"
     echo "train_workers=$TRAIN_WORKERS"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE MAP_SELECT FIT_STEPS REPEAT; do echo "param.$v=${!v}"; done
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do echo "param.$v=${!v}"; done
 } >"$WORK/call.env"
 say "packing into $OUT"
 "$PYTHON" trajeglish_env/device_job.py pack "$RUN" "$OUT" --facts "$WORK/call.env" \

@@ -116,15 +116,24 @@ def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
 @pytest.mark.skipif(BASH is None, reason="needs bash")
 def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path) -> None:
     # highway-env scenes (varied motion); the windows' map chunks nearest any of their agents
-    job = _job(tmp_path, "v", VOCAB="128", SCENES="10", DATA_IN="", MAP_SELECT="agents", REPEAT="highway=2")
+    job = _job(
+        tmp_path,
+        "v",
+        VOCAB="128",
+        SCENES="10",
+        DATA_IN="",
+        MAP_SELECT="agents",
+        MAP_STRIDE="4",
+        REPEAT="highway=2",
+    )
     assert job.returncode == 0, job.stdout[-3000:]
     ckpt = load_checkpoint(tmp_path / "out-v" / "model.pt")
     assert ckpt.config.vocab_size == 128 and ckpt.vocabulary.size == 128
-    assert ckpt.config.map_select == "agents"
+    assert ckpt.config.map_select == "agents" and ckpt.config.map_stride == 4
     assert "vehicle" in ckpt.vocabulary.metadata["coverage"]  # fitted with the motion-envelope cover
     summary = json.loads((tmp_path / "out-v" / "summary.json").read_text())
     assert summary["params"]["VOCAB"] == "128"  # kept for a resumed call, which does not refit
-    assert summary["params"]["MAP_SELECT"] == "agents"
+    assert summary["params"]["MAP_SELECT"] == "agents" and summary["params"]["MAP_STRIDE"] == "4"
     assert summary["params"]["FIT_STEPS"] == "1"  # the default: the schedule fitted to the call's budget
     assert summary["params"]["REPEAT"] == "highway=2"  # kept for a resumed call (`train --repeat`)
     assert tuple(map(tuple, ckpt.training["train_config"]["repeat"])) == (("highway", 2),)
@@ -134,6 +143,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert bad.returncode == 2 and "VOCAB=big: expected a number of tokens" in bad.stdout
     bad_map = _job(tmp_path, "vm", MAP_SELECT="lanes")
     assert bad_map.returncode == 2 and "MAP_SELECT=lanes: expected frame or agents" in bad_map.stdout
+    bad_stride = _job(tmp_path, "vs", MAP_STRIDE="0")
+    assert bad_stride.returncode == 2 and "MAP_STRIDE=0: expected a whole number >= 1" in bad_stride.stdout
     bad_fit = _job(tmp_path, "vf", FIT_STEPS="yes")
     assert bad_fit.returncode == 2 and "FIT_STEPS=yes: expected 0 or 1" in bad_fit.stdout
 

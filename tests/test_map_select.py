@@ -1,6 +1,7 @@
 """ModelConfig.map_select: a window holds the map chunks nearest its frame agent (the shipped model's
 choice: with 0.5 m map points, 64 chunks reach only 26-49 m, so farther agents see no map) or those
-nearest to any of its agents, so that every agent sees the road near it."""
+nearest to any of its agents, so that every agent sees the road near it; ModelConfig.map_stride: a chunk
+takes every Nth point of its polyline, so the same chunks show N times as much road."""
 
 from __future__ import annotations
 
@@ -14,9 +15,11 @@ from trajeglish_env.checkpoint import Checkpoint, check_init, load_pretrained
 from trajeglish_env.geometry import to_local
 from trajeglish_env.model import TrajeglishModel
 from trajeglish_env.model.config import ModelConfig
-from trajeglish_env.model.map_chunks import chunk_map, nearest_chunks
+from trajeglish_env.model.map_chunks import chunk_map, nearest_chunks, strided_points
 from trajeglish_env.sampler import SamplingConfig, rollout
+from trajeglish_env.sampler.engine import RolloutEngine
 from trajeglish_env.training.dataset import WindowConfig, make_window
+from trajeglish_env.training.train import window_config
 
 
 def _map_gap(points: np.ndarray, point_mask: np.ndarray, agents_local: np.ndarray) -> np.ndarray:
@@ -75,3 +78,50 @@ def test_rollouts_of_an_agents_model_are_deterministic_and_see_far_lanes() -> No
     np.testing.assert_array_equal(a.tokens, b.tokens)
     c = rollout(base, scene, 2, 6, config=SamplingConfig(seed=3))
     assert not np.array_equal(a.tokens, c.tokens)  # the far cars' map context differs
+
+
+def test_a_map_stride_keeps_every_nth_point_and_each_polylines_ends() -> None:
+    offsets = np.array([0, 1, 5, 14])  # polylines of 1, 4 and 9 points
+    index, new = strided_points(offsets, 4)
+    assert index.tolist() == [0, 1, 4, 5, 9, 13] and new.tolist() == [0, 1, 3, 6]
+    scene = straight_road_scene(num_agents=6, steps=40)  # 1 m map points
+    plain, strided = chunk_map(scene, 20), chunk_map(scene, 20, 4)
+    assert np.array_equal(chunk_map(scene, 20, 1).points, plain.points)
+    step = np.hypot(*np.diff(strided.points[0][strided.mask[0]], axis=0).T)
+    assert np.allclose(step, 4.0)  # 4 m between the points: a chunk of 20 shows 76 m of road, not 19
+    assert strided.num_chunks < plain.num_chunks and set(strided.kind) == set(plain.kind)
+    first = scene.map_points[scene.map_offsets[:-1]]
+    last = scene.map_points[scene.map_offsets[1:] - 1]
+    ends = [
+        strided.points[strided.polyline == k][strided.mask[strided.polyline == k]] for k in range(len(first))
+    ]
+    assert all(
+        np.array_equal(e[0], a) and np.array_equal(e[-1], b)
+        for e, a, b in zip(ends, first, last, strict=True)
+    )
+    with pytest.raises(ValueError, match="stride must be >= 1"):
+        chunk_map(scene, 20, 0)
+    with pytest.raises(ValueError, match="map_stride must be an int >= 1, got 0"):
+        ModelConfig(map_stride=0)
+
+
+def test_a_strided_model_sees_farther_and_fine_tunes_from_one_that_did_not() -> None:
+    base = tiny_checkpoint()
+    cfg = dataclasses.replace(base.model.cfg, map_stride=4)
+    check_init(base, cfg, base.vocabulary)  # inputs, not weights: the checkpoint's weights still fit
+    assert load_pretrained().config.map_stride == 1  # written before the field: the shipped behaviour
+    scene = straight_road_scene(num_agents=6, steps=40)
+    reach = []
+    for c in (base.model.cfg, cfg):
+        w = make_window(scene, window_config(c), np.random.default_rng(0))
+        reach.append(np.abs(w["map_points"][w["map_point_mask"]][:, 0]).max())
+    assert reach[1] > 2.5 * reach[0]  # the same number of chunks reach much farther along the road
+    model = TrajeglishModel(cfg).eval()
+    model.load_state_dict(base.model.state_dict())
+    ckpt = Checkpoint(model=model, vocabulary=base.vocabulary, training={})
+    a = rollout(ckpt, scene, 2, 6, config=SamplingConfig(seed=3))
+    b = rollout(ckpt, scene, 2, 6, config=SamplingConfig(seed=3))
+    np.testing.assert_array_equal(a.tokens, b.tokens)
+    engine = RolloutEngine(ckpt, scene, 1, 6, scene.valid[:, scene.current_index], config=SamplingConfig())
+    spacing = np.hypot(*np.diff(engine.chunks[0].points[0][engine.chunks[0].mask[0]], axis=0).T)
+    assert np.allclose(spacing, 4.0)  # the sampler's windows are cut as the training windows were

@@ -49,7 +49,7 @@ def test_a_device_that_is_not_there_is_one_clear_line() -> None:
         batched_ego_env(16, processes="auto", npc=TrajeglishNPC(tiny(), device="cuda"), max_cycles=4)
 
 
-def test_a_model_meant_for_a_gpu_never_splits_over_processes() -> None:
+def test_a_model_meant_for_a_gpu_splits_only_when_asked_to() -> None:
     from trajeglish_env.env.shards import on_gpu
     from trajeglish_env.env.split import _count
 
@@ -62,8 +62,8 @@ def test_a_model_meant_for_a_gpu_never_splits_over_processes() -> None:
     assert on_gpu(None, {"npc": TrajeglishNPC(elsewhere)}) and not on_gpu(None, {"npc": TrajeglishNPC(ckpt)})
     from trajeglish_env.env.split import SplitEgoEnv
 
-    with pytest.raises(ValueError, match="the NPC model must be on the CPU"):
-        SplitEgoEnv(4, processes=2, npc=TrajeglishNPC(elsewhere))
+    with pytest.raises(RuntimeError, match="on a CUDA device or keep it on the CPU, got 'meta'"):
+        SplitEgoEnv(4, processes=2, npc=TrajeglishNPC(elsewhere))  # a count spawns GPU workers
 
 
 def test_a_copy_is_moved_not_the_callers_model(monkeypatch: pytest.MonkeyPatch) -> None:

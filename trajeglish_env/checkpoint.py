@@ -129,7 +129,8 @@ def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary)
     theirs_cfg, ours_cfg = _plain_config(ckpt.config), _plain_config(cfg)
     if cfg.signal_input and not ckpt.config.signal_input:
         theirs_cfg["signal_input"] = True  # an added input (its weights start at zero): see extends_with
-    theirs_cfg["map_select"] = cfg.map_select  # which chunks a window holds: inputs, not weights
+    theirs_cfg["map_select"] = cfg.map_select  # which chunks a window holds, and their points: inputs,
+    theirs_cfg["map_stride"] = cfg.map_stride  # not weights
     diffs = [
         f"{name} {theirs_cfg[name]} (checkpoint) vs {ours_cfg[name]} (requested)"
         for name in theirs_cfg

@@ -22,15 +22,16 @@ from trajeglish_env.cli_args import (
     ArgParser,
     add_budget_and_mix_args,
     add_cover_args,
+    add_map_args,
     auto_or_at_least,
     one_line,
     output_dir,
     positive_float,
     scene_at,
+    with_map_args,
 )
 from trajeglish_env.cli_eval import GUARD_CHOICES, add_eval_commands, checkpoints
 from trajeglish_env.cli_womd import add_womd_commands
-from trajeglish_env.model.config import MAP_SELECT
 from trajeglish_env.sampler.config import COMPUTE_DTYPES
 from trajeglish_env.tokenizer.fit import VOCAB_SIZES
 
@@ -133,8 +134,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         model_config = preset(args.preset or "small", **overrides)
     if args.signal_input:
         model_config = dataclasses.replace(model_config, signal_input=True)
-    if args.map_select is not None:
-        model_config = dataclasses.replace(model_config, map_select=args.map_select)
+    model_config = with_map_args(model_config, args)
     config = TrainConfig(
         steps=args.steps,
         batch_size=args.batch_size,
@@ -332,13 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="start from this trained checkpoint, or 'shipped' for the shipped model (fine-tuning; same "
         "config and vocabulary)",
     )
-    p.add_argument(
-        "--map-select",
-        choices=MAP_SELECT,
-        help="map chunks of a window: nearest its frame agent ('frame', the shipped model's and the default) "
-        "or nearest any of its agents ('agents': every agent sees the road near it); with --init, the "
-        "checkpoint's",
-    )
+    add_map_args(p)
     p.add_argument(
         "--signal-input",
         action="store_true",

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
 
+from trajeglish_env.model.config import MAP_SELECT
 from trajeglish_env.sampler.config import CACHE_DTYPES, COMPUTE_DTYPES
 
 # Errors that mean bad input (a wrong value, a missing, corrupt or misplaced file): one line on stderr and
@@ -165,3 +166,32 @@ def add_budget_and_mix_args(p: argparse.ArgumentParser) -> None:
         metavar="KIND=N",
         help="draw the training scenes of a kind (highway/roundabout) or source (sumo) N times an epoch",
     )
+
+
+def add_map_args(p: argparse.ArgumentParser) -> None:
+    """``train``'s choices of what a window shows of the map (inputs, not weights: an ``--init``
+    checkpoint may be fine-tuned with other ones)."""
+    p.add_argument(
+        "--map-select",
+        choices=MAP_SELECT,
+        help="map chunks of a window: nearest its frame agent ('frame', the shipped model's and the default) "
+        "or nearest any of its agents ('agents': every agent sees the road near it); with --init, the "
+        "checkpoint's",
+    )
+    p.add_argument(
+        "--map-stride",
+        type=integer_at_least(1),
+        help="a map chunk takes every Nth point of its polyline (ModelConfig.map_stride; 1, the default and "
+        "the shipped model's: 20 points 0.5 m apart; 4: chunks 38 m long); with --init, the checkpoint's",
+    )
+
+
+def with_map_args(config: Any, args: argparse.Namespace) -> Any:
+    """A ModelConfig with the ``--map-select`` / ``--map-stride`` that were given."""
+    import dataclasses
+
+    if args.map_select is not None:
+        config = dataclasses.replace(config, map_select=args.map_select)
+    if args.map_stride is not None:
+        config = dataclasses.replace(config, map_stride=args.map_stride)
+    return config

@@ -244,6 +244,45 @@ def add_eval_commands(add: AddCommand) -> None:
     )
     add_sampling_args(p)
     p.add_argument("--follow-sdc", action="store_true")
+    add_map_coverage_command(add)
+
+
+def cmd_map_coverage(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.map_coverage import CoverageConfig, coverage_by_kind, coverage_table
+    from trajeglish_env.training.dataset import SceneStore
+
+    every = SceneStore(args.data).scenes
+    scenes = list(every)[: args.scenes] if args.scenes else list(every)
+    ckpt = next(iter(checkpoints([args.ckpt] if args.ckpt else None).values()))
+    strides = args.stride or [ckpt.config.map_stride]
+    by_kind = coverage_by_kind(scenes, ckpt.config, strides, CoverageConfig(horizon=args.horizon))
+    result = {
+        "scenes": len(scenes),
+        "map_select": ckpt.config.map_select,
+        "max_polylines": ckpt.config.max_polylines,
+        "points_per_polyline": ckpt.config.points_per_polyline,
+        "strides": strides,
+        "by_kind": by_kind,
+        "table": "\n" + coverage_table(by_kind),
+    }
+    if not args.json:  # the table says it
+        del result["by_kind"]
+    return result
+
+
+def add_map_coverage_command(add: AddCommand) -> None:
+    """``trajeglish map-coverage``: how much of the road ahead a model's windows show (see
+    :mod:`~trajeglish_env.map_coverage`)."""
+    p = add(
+        "map-coverage",
+        cmd_map_coverage,
+        "how much of each vehicle's next logged path lies on the lane chunks a model's window shows",
+    )
+    p.add_argument("--data", nargs="+", required=True, help="scene directories or files")
+    p.add_argument("--scenes", type=POSITIVE, help="the first N scenes (default: all)")
+    p.add_argument("--ckpt", help="the model whose windows are measured (default: the shipped model)")
+    p.add_argument("--stride", type=POSITIVE, nargs="+", help="map strides to measure (default: the model's)")
+    p.add_argument("--horizon", type=POSITIVE, default=80, help="future steps looked at (10 a second)")
 
 
 def add_sampling_args(p: argparse.ArgumentParser) -> None:

@@ -67,6 +67,7 @@ SAVED = (
     "COVER_RADIUS",
     "DATA_SHARE",
     "MAP_SELECT",
+    "MAP_STRIDE",
     "FIT_STEPS",
     "REPEAT",
 )

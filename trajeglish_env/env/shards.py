@@ -104,6 +104,10 @@ def prepared_config(config: EnvConfig | None, options: dict[str, Any], where: st
     device = settings.device
     if gpu and device is None:  # a loaded checkpoint already on a GPU: the workers use that device
         device = str(next(settings.checkpoint.model.parameters()).device)
+    if gpu and torch.device(device).type != "cuda":
+        raise RuntimeError(
+            f"{where}: workers put the NPC model on a CUDA device or keep it on the CPU, got {device!r}"
+        )
     if gpu and not torch.cuda.is_available():
         raise RuntimeError(f"{where}: the NPC model's device {device!r} needs CUDA, which this machine lacks")
     checkpoint = load_npc_checkpoint(settings.checkpoint, "cpu" if gpu else device)

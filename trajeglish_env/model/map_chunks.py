@@ -51,23 +51,42 @@ class MapChunks:
         return int(self.kind.shape[0])
 
 
-def chunk_map(scenario: Scenario, points_per_chunk: int) -> MapChunks:
-    """Cut every polyline into consecutive chunks of ``points_per_chunk`` points (sharing end points)."""
+def strided_points(offsets: np.ndarray, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``stride``-th point of each polyline (``offsets [K+1]`` into its points) and its last one: the
+    kept points' indices and the polylines' new offsets."""
+    lengths = np.diff(offsets)
+    kept = np.where(lengths > 0, (lengths - 1) // stride + 1 + ((lengths - 1) % stride > 0), 0)
+    new_offsets = np.concatenate([[0], np.cumsum(kept)]).astype(offsets.dtype)
+    poly = np.repeat(np.arange(len(lengths)), kept)
+    within = np.arange(int(kept.sum())) - new_offsets[:-1][poly]
+    index = np.minimum(offsets[:-1][poly] + within * stride, offsets[1:][poly] - 1)
+    return index, new_offsets
+
+
+def chunk_map(scenario: Scenario, points_per_chunk: int, stride: int = 1) -> MapChunks:
+    """Cut every polyline into consecutive chunks of ``points_per_chunk`` points (sharing end points),
+    taking every ``stride``-th point of it (and its last: ``ModelConfig.map_stride``)."""
     if points_per_chunk < 2:
         raise ValueError(f"points_per_chunk must be >= 2, got {points_per_chunk}")
-    lengths = np.diff(scenario.map_offsets)
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    offsets, map_points = scenario.map_offsets, scenario.map_points
+    if stride > 1:
+        index, offsets = strided_points(offsets, stride)
+        map_points = map_points[index]
+    lengths = np.diff(offsets)
     step = points_per_chunk - 1  # consecutive chunks share one point so no segment is lost
     n_chunks = np.where(lengths <= 1, lengths, np.maximum(1, -(-(lengths - 1) // step)))
     total = int(n_chunks.sum())
     poly = np.repeat(np.arange(len(lengths)), n_chunks)
     first = np.repeat(np.cumsum(n_chunks) - n_chunks, n_chunks)
     within = np.arange(total) - first
-    start = scenario.map_offsets[:-1][poly] + within * step
-    end = scenario.map_offsets[1:][poly]
+    start = offsets[:-1][poly] + within * step
+    end = offsets[1:][poly]
     idx = start[:, None] + np.arange(points_per_chunk)[None, :]
     mask = idx < end[:, None]
     idx = np.minimum(idx, (end - 1)[:, None])
-    pts = scenario.map_points[idx] if total else np.zeros((0, points_per_chunk, 2))
+    pts = map_points[idx] if total else np.zeros((0, points_per_chunk, 2))
     return MapChunks(
         points=pts, mask=mask, kind=scenario.map_kind[poly], polyline=poly, signal=_signals(scenario)[poly]
     )

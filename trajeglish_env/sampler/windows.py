@@ -80,7 +80,7 @@ class WindowedRows(RowStates):
         if hit is None or hit[0] is not sc:
             if len(self._chunk_cache) > 4 * self.B + 64:
                 self._chunk_cache.clear()
-            hit = (sc, chunk_map(sc, self.cfg.points_per_polyline))
+            hit = (sc, chunk_map(sc, self.cfg.points_per_polyline, self.cfg.map_stride))
             self._chunk_cache[id(sc)] = hit
         return hit[1]
 

@@ -36,6 +36,7 @@ class WindowConfig:
     map_radius: float = 100.0
     points_per_polyline: int = 20  # points per map chunk (about 10-20 m at 0.5-1 m spacing)
     map_select: str = "frame"  # ModelConfig.map_select: chunks nearest the frame agent, or any agent
+    map_stride: int = 1  # ModelConfig.map_stride: every map_stride-th point of a polyline in a chunk
 
     def __post_init__(self) -> None:
         for name in ("steps", "max_agents", "max_polylines", "points_per_polyline"):
@@ -66,15 +67,15 @@ class SceneStore:
 
 # Map chunks per live scene: an entry goes with its scene (e.g. a shard dropped from a shard cache), so
 # the cache never holds more than the scenes in memory.
-_CHUNKS: weakref.WeakKeyDictionary[Scenario, dict[int, MapChunks]] = weakref.WeakKeyDictionary()
+_CHUNKS: weakref.WeakKeyDictionary[Scenario, dict[tuple[int, int], MapChunks]] = weakref.WeakKeyDictionary()
 
 
-def _chunks_for(scene: Scenario, points_per_chunk: int) -> MapChunks:
+def _chunks_for(scene: Scenario, points_per_chunk: int, stride: int) -> MapChunks:
     """Map chunks of a scene, computed once per scene object (Scenarios hash by identity)."""
     per_scene = _CHUNKS.setdefault(scene, {})
-    if points_per_chunk not in per_scene:
-        per_scene[points_per_chunk] = chunk_map(scene, points_per_chunk)
-    return per_scene[points_per_chunk]
+    if (points_per_chunk, stride) not in per_scene:
+        per_scene[points_per_chunk, stride] = chunk_map(scene, points_per_chunk, stride)
+    return per_scene[points_per_chunk, stride]
 
 
 class WindowDataset(Dataset):
@@ -160,7 +161,7 @@ def make_window(
     mask[real] = True
     track[real] = scene.track_id[chosen]
 
-    chunks = _chunks_for(scene, c.points_per_polyline)
+    chunks = _chunks_for(scene, c.points_per_polyline, c.map_stride)
     signal = signal_classes(scene, chunks, start)
     anchors = scene.xyh[chosen, start, :2] if c.map_select == "agents" else None
     pts, pmask, mkind, mmask, msignal = nearest_chunks(

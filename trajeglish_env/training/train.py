@@ -113,6 +113,7 @@ def window_config(cfg: ModelConfig) -> WindowConfig:
         max_polylines=cfg.max_polylines,
         points_per_polyline=cfg.points_per_polyline,
         map_select=cfg.map_select,
+        map_stride=cfg.map_stride,
     )
 
 
