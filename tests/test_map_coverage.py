@@ -1,6 +1,6 @@
 """What a model's windows show of the road ahead (`trajeglish map-coverage`): on the bundled highway-env
-scenes the shipped model's chunks (64 of 20 points 0.5 m apart, nearest its frame agent) show a fifth of
-the vehicles' next 8 s of path, chunks of every 4th point three times as much."""
+scenes 64 chunks of 20 points 0.5 m apart nearest the frame agent (the model shipped until stop 29) show a
+fifth of the vehicles' next 8 s of path, chunks of every 4th point three times as much."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from trajeglish_env.map_coverage import CoverageConfig, coverage_by_kind, covera
 def test_strided_and_agent_chosen_chunks_show_more_of_the_road_ahead() -> None:
     bundle = load_bundle()
     scenes = [bundle.get(i) for i in range(16)]  # the 16 bundled highway-env scenes
-    shipped = load_pretrained().config
+    shipped = dataclasses.replace(load_pretrained().config, map_select="frame")
     frame = coverage_by_kind(scenes, shipped, (1, 4))["all"]
     agents = coverage_by_kind(scenes, dataclasses.replace(shipped, map_select="agents"), (1, 4))["all"]
     assert frame["stride 1"]["vehicles"] == 134
@@ -52,7 +52,7 @@ def test_the_command_prints_a_table_and_json(tmp_path, capsys: pytest.CaptureFix
     save_scenarios(tmp_path / "s.scn.npz", [bundle_scene("highway-merge-999000")])
     assert main(["map-coverage", "--data", str(tmp_path), "--stride", "1", "4", "--json", "--quiet"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["scenes"] == 1 and out["strides"] == [1, 4] and out["map_select"] == "frame"
+    assert out["scenes"] == 1 and out["strides"] == [1, 4] and out["map_select"] == "agents"  # the shipped
     row = out["by_kind"]["highway/merge"]
     assert row["stride 4"]["path_shown"] > row["stride 1"]["path_shown"]
     assert main(["map-coverage", "--data", str(tmp_path), "--quiet"]) == 0

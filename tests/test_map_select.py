@@ -62,7 +62,7 @@ def test_configs_checkpoints_and_fine_tuning() -> None:
     with pytest.raises(ValueError, match="map_select must be one of"):
         ModelConfig(map_select="lanes")
     shipped = load_pretrained()
-    assert shipped.config.map_select == "frame"  # written before the field: the shipped behaviour
+    assert shipped.config.map_select == "agents"  # the shipped model (stop 29) sees the road near every agent
     check_init(shipped, dataclasses.replace(shipped.config, map_select="agents"), shipped.vocabulary)
 
 

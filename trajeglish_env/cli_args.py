@@ -174,7 +174,7 @@ def add_map_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--map-select",
         choices=MAP_SELECT,
-        help="map chunks of a window: nearest its frame agent ('frame', the shipped model's and the default) "
+        help="map chunks of a window: nearest its frame agent ('frame', the default) "
         "or nearest any of its agents ('agents': every agent sees the road near it); with --init, the "
         "checkpoint's",
     )

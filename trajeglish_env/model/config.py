@@ -31,7 +31,7 @@ class ModelConfig:
     at zero, so a model extended with it (``train --init CKPT --signal-input``) starts as ``CKPT`` did.
 
     ``map_select``: which ``max_polylines`` map chunks a window holds: ``"frame"`` those nearest the
-    window's frame agent (the shipped model's; 64 chunks of 20 points at 0.5 m reach only 26-49 m, so
+    window's frame agent (the default; 64 chunks of 20 points at 0.5 m reach only 26-49 m, so
     agents farther away see no map), ``"agents"`` those nearest to any of the window's agents.
 
     ``map_stride``: a chunk takes every ``map_stride``-th point of its polyline (and its last): 1 (the
