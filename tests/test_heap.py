@@ -34,12 +34,15 @@ print(json.dumps({"applied": applied, "faults": faults() - before}))
 
 
 def probe(mode: str, **env: str) -> dict:
+    """The probe in a fresh process whose environment is the shell's basics only: variables other tests of
+    the same worker leave behind must not change how the C heap behaves there."""
+    basics = {k: os.environ[k] for k in ("PATH", "HOME", "LANG", "TMPDIR") if k in os.environ}
     done = subprocess.run(
         [sys.executable, "-c", PROBE, mode],
         capture_output=True,
         text=True,
         check=True,
-        env={**os.environ, **env},
+        env={**basics, **env},
     )
     return json.loads(done.stdout.strip().splitlines()[-1])
 
