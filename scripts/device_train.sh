@@ -40,6 +40,9 @@
 #                  the shipped 384 [0]. The README's choice for a model trained from scratch:
 #                  VOCAB=1024 COVER_RADIUS=0.03 DATA_SHARE=0.2 (envelope tracks within 5 cm)
 #   COVER_RADIUS DATA_SHARE   that fit's `--cover-radius` and `--data-share` [0.045, 0.5]
+#   EXTEND         a new run with INIT: extend the checkpoint's vocabulary to this many tokens per class
+#                  (`tokenizer extend`: old tokens kept, the added ones cover every motion of the env's
+#                  limits; EXTEND=1152 keeps them within 4 cm) and fine-tune on it; 0: keep it [0]
 #   MAP_SELECT     frame | agents: a window's map chunks nearest its frame agent or any of its agents
 #                  (`train --map-select`; with INIT it may differ from the checkpoint's) [the checkpoint's,
 #                  or frame]
@@ -72,7 +75,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest)
 declare -A GIVEN=()
-for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do
+for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
 done
 
@@ -112,7 +115,7 @@ RESUME=()
 if [ -n "$RUN_IN" ]; then
     SAVED=$("$PYTHON" trajeglish_env/device_job.py saved "$RUN_IN") || exit 2
     eval "$SAVED"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do
         s=SAVED_$v
         [ -n "${!s:-}" ] || continue
         if [ -n "${GIVEN[$v]:-}" ] && [ "${GIVEN[$v]}" != "${!s}" ]; then
@@ -143,6 +146,7 @@ CKPT_EVERY=${CKPT_EVERY:-250}
 SIGNAL_INPUT=${SIGNAL_INPUT:-0}
 SIGNAL_LR_SCALE=${SIGNAL_LR_SCALE:-1}
 VOCAB=${VOCAB:-0}
+EXTEND=${EXTEND:-0}
 COVER_RADIUS=${COVER_RADIUS:-0.045}
 DATA_SHARE=${DATA_SHARE:-0.5}
 MAP_SELECT=${MAP_SELECT:-}
@@ -171,6 +175,10 @@ esac
 case $VOCAB in
 '' | *[!0-9]*) die "VOCAB=$VOCAB: expected a number of tokens (0: the shipped vocabulary)" ;;
 esac
+case $EXTEND in
+'' | *[!0-9]*) die "EXTEND=$EXTEND: expected a number of tokens (0: the checkpoint's vocabulary)" ;;
+esac
+[ "$EXTEND" = 0 ] || [ -n "$RUN_IN" ] || [ ${#INIT_ARGS[@]} != 0 ] || die "EXTEND=$EXTEND needs INIT: it extends the checkpoint's vocabulary"
 [ "$VOCAB" = 0 ] || [ ${#INIT_ARGS[@]} = 0 ] || die "VOCAB=$VOCAB with INIT=$INIT: a fine-tuned model keeps its checkpoint's vocabulary (unset one of them)"
 case $SIGNAL_INPUT in
 0) SIGNAL_ARGS=() ;;
@@ -179,7 +187,7 @@ case $SIGNAL_INPUT in
 esac
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT", scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT", scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh
@@ -266,6 +274,12 @@ if [ "$VOCAB" != 0 ] && [ -z "$RUN_IN" ]; then
     VOCAB_ARGS=(--vocab "$WORK/vocab.npz")
     say "fitted a $VOCAB-token vocabulary on the training scenes in $((SECONDS - T_VOCAB)) s"
 fi
+if [ "$EXTEND" != 0 ] && [ -z "$RUN_IN" ]; then
+    "$PYTHON" -m trajeglish_env.cli tokenizer extend --json --base "$INIT" --size "$EXTEND" \
+        --out "$WORK/vocab.npz" >"$WORK/vocab.json" || die "tokenizer extend --size $EXTEND failed (see $LOG)"
+    VOCAB_ARGS=(--vocab "$WORK/vocab.npz")
+    say "extended $INIT's vocabulary to $EXTEND tokens"
+fi
 
 # ---- 6. train until the budget is spent
 if [ -n "${TRAIN_MINUTES:-}" ]; then
@@ -301,7 +315,7 @@ cat "$WORK/train.json"
     echo "gen_seconds=$GEN_TOOK"
     echo "train_seconds=$((SECONDS - T_TRAIN))"
     echo "train_workers=$TRAIN_WORKERS"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do echo "param.$v=${!v}"; done
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do echo "param.$v=${!v}"; done
 } >"$WORK/call.env"
 say "packing into $OUT"
 "$PYTHON" trajeglish_env/device_job.py pack "$RUN" "$OUT" --facts "$WORK/call.env" \

@@ -21,6 +21,7 @@ from trajeglish_env.model.config import ModelConfig, Variant
 from trajeglish_env.model.encoder import SIGNAL_PARAMS
 from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.tokenizer.extend import embedding_sources, is_extension
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, VocabularyError
 
 FORMAT_NAME = "trajeglish_env.checkpoint"
@@ -123,7 +124,8 @@ def check_compatible(cfg: ModelConfig, vocabulary: MotionVocabulary, where: str)
 
 def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary) -> None:
     """A run started from ``ckpt`` (fine-tuning) must keep its config (but may add the signal input, or
-    choose its windows' map chunks another way), vocabulary and finite weights; otherwise raise a
+    choose its windows' map chunks another way), vocabulary (or extend it: ``tokenizer.extend``, with
+    ``vocab_size`` and ``token_bias`` to match) and finite weights; otherwise raise a
     :class:`CheckpointError` naming what differs."""
     where = f"--init {ckpt.path or 'checkpoint'}"
     theirs_cfg, ours_cfg = _plain_config(ckpt.config), _plain_config(cfg)
@@ -131,6 +133,17 @@ def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary)
         theirs_cfg["signal_input"] = True  # an added input (its weights start at zero): see extends_with
     theirs_cfg["map_select"] = cfg.map_select  # which chunks a window holds, and their points: inputs,
     theirs_cfg["map_stride"] = cfg.map_stride  # not weights
+    extended = is_extension(ckpt.vocabulary, vocabulary)
+    if extended:  # added tokens: their embeddings and biases, see load_into
+        theirs_cfg["vocab_size"] = vocabulary.size
+        theirs_cfg["token_bias"] = True
+    theirs, ours = ckpt.vocabulary.templates, vocabulary.templates
+    if not extended and (theirs.shape != ours.shape or not np.array_equal(theirs, ours)):
+        raise CheckpointError(
+            f"{where}: the vocabulary differs from the checkpoint's ({ckpt.vocabulary.method}, "
+            f"{list(theirs.shape)} vs {vocabulary.method}, {list(ours.shape)}; leave --vocab out to use "
+            "the checkpoint's, or pass one that extends it: trajeglish tokenizer extend)"
+        )
     diffs = [
         f"{name} {theirs_cfg[name]} (checkpoint) vs {ours_cfg[name]} (requested)"
         for name in theirs_cfg
@@ -141,22 +154,33 @@ def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary)
             f"{where}: the model config differs from the checkpoint's: {'; '.join(diffs)} "
             "(leave --preset/--variant out to use the checkpoint's)"
         )
-    theirs, ours = ckpt.vocabulary.templates, vocabulary.templates
-    if theirs.shape != ours.shape or not np.array_equal(theirs, ours):
-        raise CheckpointError(
-            f"{where}: the vocabulary differs from the checkpoint's ({ckpt.vocabulary.method}, "
-            f"{list(theirs.shape)} vs {vocabulary.method}, {list(ours.shape)}; leave --vocab out to use "
-            "the checkpoint's)"
-        )
     bad = [name for name, p in ckpt.model.named_parameters() if not torch.isfinite(p).all()]
     if bad:
         raise CheckpointError(f"{where}: weights {bad[:3]} are not finite")
 
 
-def load_into(model: TrajeglishModel, ckpt: Checkpoint) -> None:
+def load_into(model: TrajeglishModel, ckpt: Checkpoint, vocabulary: MotionVocabulary | None = None) -> None:
     """Load ``ckpt``'s weights into ``model``, whose config is ``ckpt``'s or extends it with the signal
-    input (:func:`check_init`): the added weights keep their initial values (zeros)."""
-    missing, unexpected = model.load_state_dict(ckpt.model.state_dict(), strict=False)
+    input (:func:`check_init`): the added weights keep their initial values (zeros). With ``vocabulary``
+    extending the checkpoint's (``tokenizer.extend``), each added token starts as a copy of the nearest
+    old template of its class, and the bias of each old token and its copies is ``-log`` of their number
+    (plus the old bias): the extended model gives every old token's group the old token's probability."""
+    state = ckpt.model.state_dict()
+    if vocabulary is not None and is_extension(ckpt.vocabulary, vocabulary):
+        if not model.cfg.token_bias:
+            raise CheckpointError(
+                f"--init {ckpt.path or 'checkpoint'}: an extended vocabulary needs token_bias"
+            )
+        sources = torch.from_numpy(embedding_sources(ckpt.vocabulary, vocabulary))  # [K, V']
+        kinds = torch.arange(len(sources))[:, None]
+        old = state["token.weight"].view(ckpt.config.num_kinds, ckpt.config.vocab_size, -1)
+        state["token.weight"] = old[kinds, sources].reshape(-1, old.shape[-1])
+        copies = torch.stack([torch.bincount(row, minlength=ckpt.config.vocab_size) for row in sources])
+        bias = -torch.log(copies[kinds, sources].to(old.dtype))
+        if "token_bias" in state:
+            bias = bias + state["token_bias"].view(ckpt.config.num_kinds, -1)[kinds, sources]
+        state["token_bias"] = bias.reshape(-1)
+    missing, unexpected = model.load_state_dict(state, strict=False)
     added = [k for k in missing if k.startswith(SIGNAL_PARAMS)]
     if unexpected or len(added) != len(missing) or (added and not model.cfg.signal_input):
         raise CheckpointError(

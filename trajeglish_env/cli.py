@@ -21,7 +21,6 @@ from trajeglish_env.cli_args import (
     USER_ERRORS,
     ArgParser,
     add_budget_and_mix_args,
-    add_cover_args,
     add_map_args,
     auto_or_at_least,
     one_line,
@@ -31,9 +30,9 @@ from trajeglish_env.cli_args import (
     with_map_args,
 )
 from trajeglish_env.cli_eval import GUARD_CHOICES, add_eval_commands, checkpoints
+from trajeglish_env.cli_tokenizer import add_tokenizer_commands
 from trajeglish_env.cli_womd import add_womd_commands
 from trajeglish_env.sampler.config import COMPUTE_DTYPES
-from trajeglish_env.tokenizer.fit import VOCAB_SIZES
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
 
@@ -81,38 +80,6 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     return {"scene": scene.scenario_id, "source": scene.source, "agents": scene.num_agents, "out": str(out)}
 
 
-def cmd_tokenizer_fit(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.tokenizer.fit import fit_from_directory
-
-    return fit_from_directory(
-        args.data,
-        vocab_size=args.vocab,
-        seed=args.seed,
-        out=args.out,
-        trials=args.trials,
-        coverage=not args.no_coverage,
-        min_data_share=args.data_share,
-        cover_radius=args.cover_radius,
-    )
-
-
-def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.tokenizer.fit import METHODS, evaluate_directory
-
-    return evaluate_directory(
-        args.data,
-        vocab_sizes=tuple(args.vocab or (128, 256, 384, 512)),
-        fit_data=args.fit_data,
-        out_dir=output_dir(args.out),
-        seed=args.seed,
-        trials=args.trials,
-        methods=tuple(args.methods or METHODS),
-        coverage=not args.no_coverage,
-        min_data_share=args.data_share,
-        cover_radius=args.cover_radius,
-    )
-
-
 def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
     from trajeglish_env.distributed import init_ranks, rank_device
@@ -132,6 +99,9 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         model_config = init.config  # fine-tuning: the checkpoint's model unless asked otherwise
     else:
         model_config = preset(args.preset or "small", **overrides)
+    if init is not None and vocabulary is not None and vocabulary.size != init.config.vocab_size:
+        # a vocabulary extending the checkpoint's (check_init says if it does not)
+        model_config = dataclasses.replace(model_config, vocab_size=vocabulary.size, token_bias=True)
     if args.signal_input:
         model_config = dataclasses.replace(model_config, signal_input=True)
     model_config = with_map_args(model_config, args)
@@ -281,37 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ids", action="store_true", help="label agents with their track ids")
     p.add_argument("--fps", type=POSITIVE, default=10)
 
-    tok = sub.add_parser("tokenizer", help="fit and evaluate motion-token vocabularies")
-    tsub = tok.add_subparsers(dest="tokenizer_command", required=True)
-    p = add(
-        "fit", cmd_tokenizer_fit, "fit k-disks vocabularies (one per agent class) on a scene directory", tsub
-    )
-    p.add_argument("--data", nargs="+", required=True, help="scene directories")
-    p.add_argument("--vocab", type=int, default=384, choices=VOCAB_SIZES)
-    p.add_argument("--out", required=True, help="output vocabulary file")
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
-    p.add_argument(
-        "--trials", type=POSITIVE, default=8, help="k-disks trials (the best on held-out data is kept)"
-    )
-    no_cov = "do not reserve templates covering each class's motion envelope (40 m/s, reversing, tight turns)"
-    p.add_argument("--no-coverage", action="store_true", help=no_cov)
-    add_cover_args(p)
-    p = add("eval", cmd_tokenizer_eval, "discretization error of k-disks and the baselines", tsub)
-    p.add_argument("--data", nargs="+", required=True, help="held-out scenes to evaluate on")
-    p.add_argument(
-        "--fit-data", nargs="+", help="scenes to fit the vocabularies on (default: a split of --data)"
-    )
-    p.add_argument("--trials", type=POSITIVE, default=4)
-    p.add_argument(
-        "--vocab", type=int, nargs="*", choices=VOCAB_SIZES, help="default: the paper's 128 256 384 512"
-    )
-    p.add_argument("--out", default="out/tokenizer_eval", help="directory for plots")
-    p.add_argument("--seed", type=NON_NEGATIVE, default=0)
-    p.add_argument(
-        "--methods", nargs="*", choices=("xyh-grid", "xy-grid", "k-means", "k-disks"), help="default: all"
-    )
-    p.add_argument("--no-coverage", action="store_true", help=no_cov)
-    add_cover_args(p)
+    add_tokenizer_commands(add, sub)
 
     p = add("train", cmd_train, "train a Trajeglish model on scene shards (torchrun for several processes)")
     p.add_argument("--data", nargs="+", required=True, help="scene directories")

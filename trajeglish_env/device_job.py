@@ -64,6 +64,7 @@ SAVED = (
     "SIGNAL_INPUT",
     "SIGNAL_LR_SCALE",
     "VOCAB",
+    "EXTEND",
     "COVER_RADIUS",
     "DATA_SHARE",
     "MAP_SELECT",

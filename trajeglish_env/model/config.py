@@ -37,7 +37,12 @@ class ModelConfig:
     ``map_stride``: a chunk takes every ``map_stride``-th point of its polyline (and its last): 1 (the
     shipped model's) gives 20 points at the maps' 0.5 m, a chunk 9.5 m long, so 64 chunks show a vehicle
     its lane for a median 0.3-1.7 s ahead on highway-env scenes; 4 makes chunks 38 m long (3-8 s ahead;
-    ``docs/evaluation.md``, "What the model sees of the road")."""
+    ``docs/evaluation.md``, "What the model sees of the road").
+
+    ``token_bias``: the tied output head adds a learned bias per token. A model whose vocabulary was
+    extended (``tokenizer.extend``) gets it: each added token starts as a copy of the nearest old one, and
+    the bias (``-log`` of the copies) keeps every old token's probability, now shared by its copies, as it
+    was, so the extended model starts as the trained one did."""
 
     d_model: int = 512
     num_heads: int = 8
@@ -58,6 +63,7 @@ class ModelConfig:
     signal_input: bool = False
     map_select: str = "frame"
     map_stride: int = 1
+    token_bias: bool = False
 
     def __post_init__(self) -> None:
         if self.d_model % self.num_heads:
@@ -77,6 +83,8 @@ class ModelConfig:
                 raise ValueError(f"ModelConfig.{name} must be >= 1, got {getattr(self, name)}")
         if not isinstance(self.variant, Variant):
             object.__setattr__(self, "variant", Variant(self.variant))
+        if not isinstance(self.token_bias, bool):
+            raise TypeError(f"ModelConfig.token_bias must be a bool, got {self.token_bias!r}")
         if not isinstance(self.signal_input, bool):
             raise TypeError(f"ModelConfig.signal_input must be a bool, got {self.signal_input!r}")
         if isinstance(self.map_stride, bool) or not isinstance(self.map_stride, int) or self.map_stride < 1:

@@ -39,6 +39,9 @@ class TrajeglishModel(nn.Module):
         c = cfg.d_model
         self.encoder = SceneEncoder(cfg)
         self.token = nn.Embedding(cfg.num_kinds * cfg.vocab_size, c)
+        self.token_bias = (
+            nn.Parameter(torch.zeros(cfg.num_kinds * cfg.vocab_size)) if cfg.token_bias else None
+        )
         self.start = nn.Parameter(torch.randn(c) * 0.02)
         self.time = nn.Embedding(cfg.steps, c)
         self.target_agent = Linear(c, c)
@@ -65,6 +68,8 @@ class TrajeglishModel(nn.Module):
     def class_logits(self, hidden: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
         """Tied head restricted to the class: ``hidden [...,C]``, ``kind [...]`` -> ``[...,V]``."""
         logits = invariant_linear(self.norm(hidden), self.token.weight)  # [..., K*V]
+        if self.token_bias is not None:
+            logits = logits + self.token_bias
         logits = logits.view(*logits.shape[:-1], self.cfg.num_kinds, self.cfg.vocab_size)
         index = kind.clamp(0, self.cfg.num_kinds - 1)[..., None, None].expand(
             *kind.shape, 1, self.cfg.vocab_size
@@ -78,13 +83,17 @@ class TrajeglishModel(nn.Module):
         v = self.cfg.vocab_size
         kind = np.clip(kind, 0, self.cfg.num_kinds - 1)
         present = np.unique(kind)
+        bias = self.token_bias
         if len(present) == 1:
             k = int(present[0])
-            return invariant_linear(x, self.token.weight[k * v : (k + 1) * v])
+            out = invariant_linear(x, self.token.weight[k * v : (k + 1) * v])
+            return out if bias is None else out + bias[k * v : (k + 1) * v]
         out = x.new_empty(len(kind), v)
         for k in present.tolist():
             rows = torch.from_numpy(np.flatnonzero(kind == k)).to(x.device)
             out[rows] = invariant_linear(x[rows], self.token.weight[k * v : (k + 1) * v])
+            if bias is not None:
+                out[rows] += bias[k * v : (k + 1) * v]
         return out
 
     def _positions(self, agents: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

@@ -184,7 +184,8 @@ def train(
     """Train (or resume) a model on scene shards; writes ``last.pt``, ``model.pt`` and ``metrics.csv``.
 
     ``init``: a trained checkpoint to start from (fine-tuning, e.g. adapting a model to WOMD); its config
-    and vocabulary must be the run's (:func:`check_init`). A ``resume`` from ``last.pt`` takes precedence.
+    and vocabulary must be the run's, or the vocabulary one that extends the checkpoint's (new tokens start
+    from the nearest old one's embedding; :func:`check_init`). A ``resume`` from ``last.pt`` takes precedence.
     ``time_limit``: seconds after this call starts when no further step is taken (a wall-clock budget,
     e.g. a lent machine's): the step reached is validated and checkpointed like the last one, and a later
     ``resume`` continues the same schedule (``config.steps``, which the limit does not change).
@@ -237,7 +238,7 @@ def train(
         if resume and dd.main:
             print(f"train: no {last} to resume from; starting from scratch", file=sys.stderr)
         if start_ckpt is not None:
-            load_into(model, start_ckpt)
+            load_into(model, start_ckpt, vocabulary)
 
     loss_module: nn.Module = _LossModule(model)
     if dd.world > 1:

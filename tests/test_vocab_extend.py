@@ -1,0 +1,164 @@
+"""Extending a trained model's vocabulary (``tokenizer.extend``): the shipped templates keep their ids,
+the added ones keep every motion of the env's limits within 5 cm, and a model that takes them on starts
+as the trained model was (each old token's probability, shared by its copies); ``train --init CKPT
+--vocab EXTENDED`` fine-tunes it, and a vocabulary that does not extend the checkpoint's is refused."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from helpers import small_scenes, straight_road_scene, tiny_checkpoint, tiny_config
+from test_tokenizer_coverage import _envelope_tracks, _max_error, _random_envelope_tracks
+
+from trajeglish_env.checkpoint import CheckpointError, check_init, load_checkpoint, load_into, save_checkpoint
+from trajeglish_env.cli import main
+from trajeglish_env.model import TrajeglishModel
+from trajeglish_env.scenario import AgentKind
+from trajeglish_env.scenario_io import save_scenarios
+from trajeglish_env.tokenizer.coverage import DEFAULT_ENVELOPES, stress_error
+from trajeglish_env.tokenizer.data import TrajectorySet
+from trajeglish_env.tokenizer.discretization import evaluate_vocabulary
+from trajeglish_env.tokenizer.extend import embedding_sources, extend_vocabulary, extension_report
+from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
+from trajeglish_env.training.train import TrainConfig, train
+
+
+@pytest.fixture(scope="module")
+def shipped() -> MotionVocabulary:
+    return load_default_tokenizer()
+
+
+@pytest.fixture(scope="module")
+def extended(shipped: MotionVocabulary) -> MotionVocabulary:
+    return extend_vocabulary(shipped, 1152)
+
+
+def test_the_shipped_templates_keep_their_ids(shipped: MotionVocabulary, extended: MotionVocabulary) -> None:
+    assert extended.size == 1152 and extended.method == shipped.method
+    assert np.array_equal(extended.templates[:, :384], shipped.templates)
+    report = extension_report(extended)
+    assert report["base_size"] == 384 and report["vehicle"]["cover"] == 703  # the 3 cm cover
+    for kind in AgentKind:
+        row = report[kind.name.lower()]
+        assert row["cover"] + row["catch_up"] + row["fill"] == 1152 - 384
+    assert report["vehicle"]["catch_up"] == 30
+    sources = embedding_sources(shipped, extended)
+    assert np.array_equal(sources[:, :384], np.tile(np.arange(384), (3, 1)))
+    assert sources[:, 384:].max() < 384
+    fastest = int(np.argmax(shipped.templates[0, :, 0]))  # 3.04 m a step: what 40 m/s templates copy
+    assert sources[0, 384 + int(np.argmax(extended.templates[0, 384:, 0]))] == fastest
+
+
+def test_every_motion_of_the_limits_tokenizes_within_5cm(
+    shipped: MotionVocabulary, extended: MotionVocabulary
+) -> None:
+    """Measured: stress tracks 3.96 / 1.86 / 3.49 cm (vehicle / pedestrian / cyclist); the shipped
+    vocabulary: 67 m on random envelope tracks (it tops out at 30.4 m/s)."""
+    for kind in AgentKind:
+        entry = extended.metadata["coverage"][kind.name.lower()]
+        assert entry["stress_max_error_m"] <= 0.05, (kind, entry)
+    vehicle = dataclasses.replace(DEFAULT_ENVELOPES[AgentKind.VEHICLE], radius=0.03)
+    assert stress_error(extended, AgentKind.VEHICLE, 0.1, vehicle) == pytest.approx(0.0396, abs=5e-4)
+    random_tracks = _random_envelope_tracks(60, seed=11)
+    assert max(_max_error(extended, x) for x in random_tracks) < 0.05
+    assert max(_max_error(shipped, x) for x in random_tracks) > 10.0
+    for name, xyh in _envelope_tracks().items():  # 40 m/s, braking from 40, reversing, tight turns
+        assert _max_error(extended, xyh) < 0.05, name
+
+
+def test_real_tracks_tokenize_closer(shipped: MotionVocabulary, extended: MotionVocabulary) -> None:
+    data = TrajectorySet.from_scenarios(small_scenes())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # drift warnings name the tracks; the shares are asserted
+        before, after = (evaluate_vocabulary(v, data, collisions=False) for v in (shipped, extended))
+    assert after["by_kind"]["vehicle"]["mean_cm"] < 0.85 * before["by_kind"]["vehicle"]["mean_cm"]
+    assert (
+        after["drift"]["per_class"]["vehicle"]["drift_share"]
+        < before["drift"]["per_class"]["vehicle"]["drift_share"]
+    )
+
+
+def test_too_small_an_extension_says_what_size_it_needs(shipped: MotionVocabulary) -> None:
+    with pytest.warns(UserWarning, match="class 'vehicle''s stress tracks lag up to 5.4 cm"):
+        assert not extension_report(extend_vocabulary(shipped, 1100))["vehicle"]["within_5cm"]
+    with pytest.raises(ValueError, match="class 'vehicle' needs 703 templates.*at least 1087"):
+        extend_vocabulary(shipped, 700)
+    with pytest.raises(ValueError, match="cover_radius"):
+        extend_vocabulary(shipped, 1088, cover_radius=2.0)
+
+
+def _tiny_extension() -> tuple[MotionVocabulary, MotionVocabulary]:
+    base = tiny_checkpoint().vocabulary  # a grid of templates
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a 12 cm cover of the tiny model's lets tracks lag (warned)
+        return base, extend_vocabulary(base, 384, cover_radius=0.12)
+
+
+def test_an_extended_model_starts_as_the_trained_one() -> None:
+    """Summed over each old token's copies, the extended model's probabilities are the trained model's."""
+    from test_model import random_scene
+
+    ckpt = tiny_checkpoint()
+    base, ext = _tiny_extension()
+    cfg = dataclasses.replace(ckpt.config, vocab_size=ext.size, token_bias=True)
+    check_init(ckpt, cfg, ext)
+    model = TrajeglishModel(cfg).eval()
+    load_into(model, ckpt, ext)
+    scene, tokens = random_scene(ckpt.config, b=2)
+    sources = torch.from_numpy(embedding_sources(base, ext))
+    with torch.no_grad():
+        want = ckpt.model(scene, tokens).softmax(-1)  # [B,T,A,V]
+        probs = model(scene, tokens).softmax(-1)  # [B,T,A,384]
+    kind = scene.agent_kind[:, None, :, None].expand(*probs.shape[:-1], 1)
+    groups = sources[kind.clamp(0, 2), torch.arange(ext.size)]  # each token's old token, per agent's class
+    got = torch.zeros_like(want).scatter_add_(-1, groups, probs)
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-6)
+    assert (probs[..., base.size :] > 0).all()  # the added tokens can be drawn
+
+
+def test_init_takes_an_extension_and_nothing_else(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    base, ext = _tiny_extension()
+    start = save_checkpoint(tmp_path / "start.pt", TrajeglishModel(tiny_config()), base)
+    ckpt = load_checkpoint(start)
+    scenes = tmp_path / "scenes"
+    save_scenarios(scenes / "a.scn.npz", [straight_road_scene(5, 40, seed=s) for s in range(3)])
+    cfg = dataclasses.replace(tiny_config(), vocab_size=ext.size, token_bias=True)
+    quick = TrainConfig(steps=2, batch_size=2, warmup_steps=1, val_fraction=0.0, num_workers=0)
+    result = train(scenes, tmp_path / "run", cfg, quick, ext, progress=False, init=start)
+    tuned = load_checkpoint(result["checkpoint"])
+    assert tuned.config.vocab_size == 384 and tuned.config.token_bias
+    assert tuned.vocabulary.equals(ext)
+    n = base.size
+    old = ckpt.model.token.weight.view(3, n, -1)
+    torch.testing.assert_close(tuned.model.token.weight.view(3, 384, -1)[:, :n], old, atol=1e-2, rtol=0)
+    shifted = MotionVocabulary(ext.templates + 0.01 * (np.arange(ext.size) < n)[None, :, None])
+    with pytest.raises(CheckpointError, match="vocabulary differs.*tokenizer extend"):
+        check_init(ckpt, cfg, shifted)  # the old templates must be kept as they are
+    with pytest.raises(CheckpointError, match="vocab_size"):
+        check_init(ckpt, dataclasses.replace(tiny_config(), vocab_size=384), base)
+
+
+def test_extend_command_writes_the_vocabulary_and_compares_on_held_out_scenes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    scenes = tmp_path / "scenes"
+    save_scenarios(scenes / "a.scn.npz", small_scenes()[:1])
+    out = tmp_path / "ext.npz"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        main(["tokenizer", "extend", "--out", str(out), "--data", str(scenes), "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert result["extension"]["size"] == 1152 and result["extension"]["vehicle"]["within_5cm"]
+    assert (
+        result["heldout"]["extended"]["templates"] == 1152 and result["heldout"]["base"]["templates"] == 384
+    )
+    assert MotionVocabulary.load(out).size == 1152
+    assert main(["tokenizer", "extend", "--out", str(out), "--size", "384"]) == 2
+    assert "an extension needs more than the base's 384 templates" in capsys.readouterr().err
