@@ -118,16 +118,16 @@ def test_a_new_run_can_extend_its_checkpoints_vocabulary(tmp_path: Path) -> None
     _carry_scenes(tmp_path, 4)
     start = tiny_checkpoint()
     init = save_checkpoint(tmp_path / "tiny.pt", start.model, start.vocabulary)
-    job = _job(tmp_path, "ext", INIT=str(init), EXTEND="900", STEPS="3")
+    job = _job(tmp_path, "ext", INIT=str(init), EXTEND="2048", STEPS="3")
     assert job.returncode == 0, job.stdout[-3000:]
     tuned = load_checkpoint(tmp_path / "out-ext" / "model.pt")
-    assert tuned.config.vocab_size == 900 and tuned.config.token_bias
+    assert tuned.config.vocab_size == 2048 and tuned.config.token_bias
     n = start.vocabulary.size
     assert (tuned.vocabulary.templates[:, :n] == start.vocabulary.templates).all()
     summary = json.loads((tmp_path / "out-ext" / "summary.json").read_text())
-    assert summary["params"]["EXTEND"] == "900"
-    alone = _job(tmp_path, "ext0", EXTEND="900")
-    assert alone.returncode == 2 and "EXTEND=900 needs INIT" in alone.stdout
+    assert summary["params"]["EXTEND"] == "2048"
+    alone = _job(tmp_path, "ext0", EXTEND="2048")
+    assert alone.returncode == 2 and "EXTEND=2048 needs INIT" in alone.stdout
     bad = _job(tmp_path, "extb", EXTEND="many", INIT=str(init))
     assert bad.returncode == 2 and "EXTEND=many: expected a number of tokens" in bad.stdout
 

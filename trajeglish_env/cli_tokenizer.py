@@ -115,9 +115,9 @@ def add_tokenizer_commands(add: AddCommand, sub: Any) -> None:
     p.add_argument(
         "--size",
         type=POSITIVE,
-        default=1152,
-        help="templates per class after the extension (default 1152: every motion of the env's limits "
-        "within 4 cm)",
+        default=2048,
+        help="templates per class after the extension (default 2048: every motion of the env's limits, "
+        "the continuous action's kinematic bicycle included, within 5 cm)",
     )
     p.add_argument(
         "--cover-radius",

@@ -33,3 +33,26 @@ class VehicleLimits:
         for f in fields(self):
             if not getattr(self, f.name) > 0:
                 raise ValueError(f"VehicleLimits.{f.name} must be > 0, got {getattr(self, f.name)}")
+
+
+def bicycle_local_step(
+    speed: np.ndarray,
+    accel: np.ndarray,
+    steer_fraction: np.ndarray,
+    length: float,
+    limits: VehicleLimits,
+    dt: float,
+) -> np.ndarray:
+    """``[...,3]`` local (dx, dy, dh) of one step of the env's kinematic bicycle (``continuous`` action,
+    ``env.actions.bicycle_step``) from ``speed`` with acceleration ``accel`` m/s^2 and ``steer_fraction``
+    of the steering limit: the centre moves at the slip angle ``beta = atan(tan(steer) / 2)`` off the
+    heading, so a step carries more sideways motion per heading change than a unicycle's (the
+    tokenizer's envelope must cover both)."""
+    steer = np.asarray(steer_fraction) * limits.steer_limit(speed, length)
+    v_next = np.clip(np.asarray(speed) + np.asarray(accel) * dt, 0.0, limits.max_speed)
+    step = (np.asarray(speed) + v_next) / 2 * dt
+    beta = np.arctan(np.tan(steer) / 2)
+    half_base = limits.wheelbase_ratio * length / 2
+    return np.stack(
+        np.broadcast_arrays(step * np.cos(beta), step * np.sin(beta), step * np.sin(beta) / half_base), -1
+    )

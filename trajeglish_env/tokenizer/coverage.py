@@ -219,12 +219,30 @@ def stress_tracks(env: Envelope, dt: float, steps: int = 50) -> np.ndarray:
     frac = np.tile([-1.0, -0.5, 0.5, 1.0], len(speeds))[:, None]
     mean = np.maximum(np.abs(v[:, :-1] + v[:, 1:]) / 2, 1e-3)
     curvature = frac * np.minimum(1.0 / env.min_turn_radius, env.max_lateral_accel / mean**2)
-    local = unicycle_step(v[:, :-1], np.diff(v, axis=1) / dt, curvature, dt)  # [M, steps-1, 3]
-    heading = np.concatenate([np.zeros((len(v), 1)), np.cumsum(local[..., 2], axis=1)], axis=1)
+    return integrate_steps(unicycle_step(v[:, :-1], np.diff(v, axis=1) / dt, curvature, dt))
+
+
+def random_envelope_tracks(env: Envelope, dt: float, count: int, seed: int, steps: int = 50) -> np.ndarray:
+    """``count`` tracks ``xyh [count, steps, 3]`` inside the envelope (not :func:`stress_tracks`'s grid): a
+    random start speed, a constant speed change of up to the envelope's (reversing ones keep their speed)
+    and a random share of the turn limit. Deterministic in ``seed``."""
+    rng = np.random.default_rng(seed)
+    v0 = rng.uniform(env.min_speed, env.max_speed, (count, 1))
+    accel = rng.uniform(-env.max_brake, env.max_accel, (count, 1))
+    v = np.where(v0 < 0, v0, np.clip(v0 + accel * dt * np.arange(steps), 0.0, env.max_speed))
+    mean = np.maximum(np.abs(v[:, :-1] + v[:, 1:]) / 2, 1e-3)
+    share = rng.uniform(-1.0, 1.0, (count, 1))
+    curvature = share * np.minimum(1.0 / env.min_turn_radius, env.max_lateral_accel / mean**2)
+    return integrate_steps(unicycle_step(v[:, :-1], np.diff(v, axis=1) / dt, curvature, dt))
+
+
+def integrate_steps(local: np.ndarray) -> np.ndarray:
+    """Tracks ``xyh [M, T+1, 3]`` from the origin of local steps ``[M, T, 3]`` (each in its state's frame)."""
+    heading = np.concatenate([np.zeros((len(local), 1)), np.cumsum(local[..., 2], axis=1)], axis=1)
     c, s = np.cos(heading[:, :-1]), np.sin(heading[:, :-1])
     dx = c * local[..., 0] - s * local[..., 1]
     dy = s * local[..., 0] + c * local[..., 1]
-    xy = np.concatenate([np.zeros((len(v), 1, 2)), np.cumsum(np.stack([dx, dy], -1), axis=1)], axis=1)
+    xy = np.concatenate([np.zeros((len(local), 1, 2)), np.cumsum(np.stack([dx, dy], -1), axis=1)], axis=1)
     return np.concatenate([xy, heading[..., None]], axis=-1)
 
 
