@@ -42,7 +42,7 @@
 #   COVER_RADIUS DATA_SHARE   that fit's `--cover-radius` and `--data-share` [0.045, 0.5]
 #   EXTEND         a new run with INIT: extend the checkpoint's vocabulary to this many tokens per class
 #                  (`tokenizer extend`: old tokens kept, the added ones cover every motion of the env's
-#                  limits; EXTEND=1152 keeps them within 4 cm) and fine-tune on it; 0: keep it [0]
+#                  limits; EXTEND=2048 keeps them within 5 cm) and fine-tune on it; 0: keep it [0]
 #   MAP_SELECT     frame | agents: a window's map chunks nearest its frame agent or any of its agents
 #                  (`train --map-select`; with INIT it may differ from the checkpoint's) [the checkpoint's,
 #                  or frame]
