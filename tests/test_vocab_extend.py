@@ -13,15 +13,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import small_scenes, straight_road_scene, tiny_checkpoint, tiny_config
+from helpers import bundle_scene, small_scenes, straight_road_scene, tiny_checkpoint, tiny_config
 from test_tokenizer_coverage import _envelope_tracks, _max_error, _random_envelope_tracks
 
-from trajeglish_env.checkpoint import CheckpointError, check_init, load_checkpoint, load_into, save_checkpoint
+from trajeglish_env.checkpoint import (
+    Checkpoint,
+    CheckpointError,
+    check_init,
+    load_checkpoint,
+    load_into,
+    save_checkpoint,
+)
 from trajeglish_env.cli import main
 from trajeglish_env.env.actions import bicycle_step
 from trajeglish_env.geometry import to_global, wrap_angle
 from trajeglish_env.kinematics import VehicleLimits, bicycle_local_step
 from trajeglish_env.model import TrajeglishModel
+from trajeglish_env.sampler import guard as guard_module
+from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.engine import RolloutEngine
 from trajeglish_env.scenario import AgentKind
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.tokenizer.coverage import DEFAULT_ENVELOPES, stress_error
@@ -137,10 +147,39 @@ def test_too_small_an_extension_says_what_size_it_needs(shipped: MotionVocabular
         extend_vocabulary(shipped, 2048, cover_radius=2.0)
 
 
-def _tiny_extension() -> tuple[MotionVocabulary, MotionVocabulary]:
+def _tiny_extension(size: int = 384) -> tuple[MotionVocabulary, MotionVocabulary]:
     base = tiny_checkpoint().vocabulary  # a grid of templates
     with pytest.warns(UserWarning, match="class 'vehicle''s stress tracks lag up to"):  # a 12 cm cover
-        return base, extend_vocabulary(base, 384, cover_radius=0.12)
+        return base, extend_vocabulary(base, size, cover_radius=0.12)
+
+
+def test_the_guards_lazy_passes_draw_what_the_full_mask_draws_in_a_larger_vocabulary(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A vocabulary of more than 384 tokens gets a fourth lazy pass (384 candidates) before all of them."""
+    ckpt = tiny_checkpoint()
+    base, ext = _tiny_extension(512)
+    model = TrajeglishModel(dataclasses.replace(ckpt.config, vocab_size=ext.size, token_bias=True)).eval()
+    load_into(model, ckpt, ext)
+    extended_ckpt = Checkpoint(model=model, vocabulary=ext, training={})
+    sc = bundle_scene("highway-roundabout-999001")
+    active = sc.valid[:, sc.current_index].copy()
+    config = SamplingConfig(temperature=1.0, guard=True, seed=5)
+    passes: list[int] = []
+    original = guard_module.SamplingGuard._lazy_draw
+
+    def counted(self, pairs, sel, logits, k, *rest):  # noqa: ANN001, ANN202
+        passes.append(k)
+        return original(self, pairs, sel, logits, k, *rest)
+
+    monkeypatch.setattr(guard_module.SamplingGuard, "_lazy_draw", counted)
+    lazy = RolloutEngine(extended_ckpt, sc, 2, 12, active, config=config)
+    lazy.run()
+    monkeypatch.setattr(guard_module, "LAZY_CANDIDATES", ())  # every candidate of every agent checked
+    full = RolloutEngine(extended_ckpt, sc, 2, 12, active, config=config)
+    full.run()
+    assert np.array_equal(lazy.tokens, full.tokens)
+    assert 384 in passes and lazy.guard.stats.full < lazy.guard.stats.guarded
 
 
 def test_an_extended_model_starts_as_the_trained_one() -> None:

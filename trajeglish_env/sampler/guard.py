@@ -16,8 +16,9 @@ temperature 0) the 6 most likely ones (LAZY_CANDIDATES) are checked first: the m
 and of the unchecked rest bound the cumulative distribution of every possible mask, and when those bounds
 put the draw on the same token, that token is the one the full mask gives (at temperature 0: the most
 likely allowed one, when one of them is allowed). The other agents (when the draw falls near a token
-boundary, or when most of the likely candidates are masked) are checked with 24, then 96, then all; a
-pass whose candidates hold less than half the probability (an untrained model) is skipped."""
+boundary, or when most of the likely candidates are masked) are checked with 24, then 96 (then 384 in a
+larger vocabulary), then all; a pass whose candidates hold less than half the probability (an untrained
+model) is skipped."""
 
 from __future__ import annotations
 
@@ -32,8 +33,9 @@ from trajeglish_env.sampler.sampling import sample_with_uniform
 
 # the most likely candidates checked first, then more where the draw is not decided yet, then all: the
 # shipped model's draws are mostly decided by 6 (the check's cost grows with the candidates; 16, 64 before:
-# 32 rollouts x 20 steps of the shared WOMD scene took 31.2 s, now 23.6 s, the same tokens)
-LAZY_CANDIDATES = (6, 24, 96)
+# 32 rollouts x 20 steps of the shared WOMD scene took 31.2 s, now 23.6 s, the same tokens); a pass is
+# made only with fewer candidates than the vocabulary has (an extended one of 2048 gets the fourth)
+LAZY_CANDIDATES = (6, 24, 96, 384)
 LAZY_MIN_MASS = 0.5  # a lazy pass is tried where its candidates hold at least this probability mass
 _SLACK = 1e-12  # probability mass of slack in the bounds, covering the rounding of the full draw's CDF
 
@@ -92,7 +94,7 @@ class SamplingGuard:
         sub = logits[torch.from_numpy(guarded)]
         chosen, done = plain.copy(), np.zeros(len(guarded), bool)
         lazy = temperature == 0 or top_p == 1.0  # a masked nucleus depends on every candidate
-        for k in LAZY_CANDIDATES if lazy else ():
+        for k in [k for k in LAZY_CANDIDATES if k < logits.shape[1]] if lazy else ():
             rest = np.flatnonzero(~done)
             if not len(rest):
                 break
