@@ -6,8 +6,10 @@ A vocabulary that meets the 5 cm coverage target needs a 3 cm cover of the vehic
 templates; README, "Motion vocabulary coverage"), which a model trained on the shipped 384 templates has
 never seen. Appending that cover to the shipped templates keeps the model's knowledge (every old token
 means what it meant) while a fine-tune learns to use the finer, faster, reversing templates, at a
-fraction of the cost of training from scratch. Classes whose cover is smaller fill the rest of the shared
-size with the envelope transitions farthest from every template they already have.
+fraction of the cost of training from scratch. The vehicle cover also spans the env's kinematic bicycle
+(:mod:`~trajeglish_env.tokenizer.bicycle`), catch-up templates close the gaps where a greedily tokenized
+track lags, and classes whose cover is smaller fill the rest of the shared size with the envelope
+transitions farthest from every template they already have (V = 2048 for the shipped 384).
 """
 
 from __future__ import annotations
