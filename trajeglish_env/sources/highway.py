@@ -77,7 +77,10 @@ class HighwaySceneConfig:
     ``map_spacing`` (m) is the largest gap between map points; ``agent_radius`` drops vehicles
     that never come within that many metres of the sdc (None keeps all); ``map_margin`` is how far
     (m) the map extends beyond the recorded vehicles; ``reject_any_crash`` retries scenes in which any
-    recorded vehicle crashes (the ego's crashes are always retried), up to ``max_attempts``.
+    recorded vehicle crashes (the ego's crashes are always retried), up to ``max_attempts``;
+    ``kerb_radius`` (m) rounds the kerb corners where one road edge hands over to the next (highway-env's
+    vehicles cut those corners: with sharp corners 53-62 % of the logged roundabout vehicles crossed an
+    edge, with 8 m none did; 0 keeps them sharp).
     """
 
     steps: int = 91
@@ -91,6 +94,7 @@ class HighwaySceneConfig:
     agent_radius: float | None = 150.0
     reject_any_crash: bool = True
     max_attempts: int = 8
+    kerb_radius: float = 8.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -104,6 +108,7 @@ class HighwaySceneConfig:
             "density": self.density > 0,
             "agent_radius": self.agent_radius is None or self.agent_radius > 0,
             "max_attempts": self.max_attempts >= 1,
+            "kerb_radius": self.kerb_radius >= 0,
         }
         for name, ok in checks.items():
             if not ok:
@@ -242,7 +247,9 @@ def _attempt(kind: str, seed: int, attempt: int, config: HighwaySceneConfig) -> 
     sdc_index = int(np.flatnonzero(index == recording.sdc)[0])
     points = xyh[valid][:, :2]
     region = (points.min(axis=0) - config.map_margin, points.max(axis=0) + config.map_margin)
-    map_lines = network_polylines(road.network, spec.lane_kind, region, spacing=config.map_spacing)
+    map_lines = network_polylines(
+        road.network, spec.lane_kind, region, spacing=config.map_spacing, kerb_radius=config.kerb_radius
+    )
     return Scenario.from_arrays(
         xyh,
         valid,

@@ -16,7 +16,8 @@ region of interest, and converted to WOMD-style map features:
   intersection gets no edge (its turning lanes' unpainted sides are never edges: in highway-env an
   unpainted side is either painted by the neighbouring lane or lies inside a junction). Edges sit on
   the painted line (no shoulder) and are oriented with the road on their left (counter-clockwise
-  around the drivable area, the convention of the WOSAC off-road metric).
+  around the drivable area, the convention of the WOSAC off-road metric). With ``kerb_radius`` the
+  corner where one edge hands over to the next is rounded (:mod:`trajeglish_env.sources.kerb_corners`).
 
 Geometry is computed in highway-env's native frame; the caller passes ``mirror_y`` to express it in the
 Scenario frame (see :mod:`trajeglish_env.sources.highway`).
@@ -32,6 +33,7 @@ from highway_env.road.road import RoadNetwork
 
 from trajeglish_env.geometry import resample_polyline
 from trajeglish_env.scenario import MapKind
+from trajeglish_env.sources.kerb_corners import round_kerb_corners
 
 _LINE_KIND = {
     LineType.STRIPED: MapKind.ROAD_LINE_BROKEN_SINGLE_WHITE,
@@ -164,10 +166,13 @@ def network_polylines(
     spacing: float = 0.5,
     edge_probe: float = 0.5,
     mirror_y: bool = True,
+    kerb_radius: float = 0.0,
 ) -> MapPolylines:
     """Lane centres, road lines and road edges of ``network`` inside ``region`` (low, high corners).
 
-    ``region`` is given in the Scenario frame; points are sampled every ``spacing`` metres at most.
+    ``region`` is given in the Scenario frame; points are sampled every ``spacing`` metres at most. With
+    ``kerb_radius`` > 0 the kerb corners where one edge hands over to the next are rounded
+    (:func:`~trajeglish_env.sources.kerb_corners.round_kerb_corners`).
     """
     if not spacing > 0:
         raise ValueError(f"map spacing must be > 0 metres, got {spacing}")
@@ -211,6 +216,8 @@ def network_polylines(
             _emit(
                 edges, boundary, inside & is_open, MapKind.ROAD_EDGE_BOUNDARY, spacing, mirror, seen, reverse
             )
+    if kerb_radius > 0:
+        edges = MapPolylines(round_kerb_corners(edges.polylines, kerb_radius, spacing), edges.kinds)
     return MapPolylines(
         centres.polylines + lines.polylines + edges.polylines, centres.kinds + lines.kinds + edges.kinds
     )
