@@ -62,6 +62,7 @@ __all__ = [
 ]
 
 SOURCE = "highway"
+GENERATOR_VERSION = 2  # 2: rounded kerb corners (HighwaySceneConfig.kerb_radius)
 
 
 class SceneCrashError(RuntimeError):
