@@ -189,6 +189,22 @@ def test_auto_process_count_uses_the_free_cores_and_enough_scenes(monkeypatch: p
         batched_ego_env(2, processes="many", npc="idm")
 
 
+def test_auto_gives_a_gpu_model_one_spawned_worker_per_64_scenes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Measured on an H200 at B = 1,024: 16 GPU workers of 64 scenes ran 3.6x one process; so ``"auto"``
+    takes one per 64 scenes, at most one per core, and keeps fewer than two workers' worth in one process."""
+    from trajeglish_env.env.split import _count
+
+    monkeypatch.setattr(shards_module, "usable_cores", lambda: 16)
+    gpu = {"npc": TrajeglishNPC(tiny(), device="cuda")}
+    assert [_count("auto", b, None, gpu, "auto") for b in (8, 127, 128, 1024, 4096)] == [1, 1, 2, 16, 16]
+    assert _count("auto", 1024, None, gpu, 4) == 16  # a worker runs one thread whatever the caller asked
+    assert _count(3, 1024, None, gpu, "auto") == 3  # a count is kept
+    monkeypatch.setattr(shards_module, "usable_cores", lambda: 2)
+    assert _count("auto", 1024, None, gpu, "auto") == 2
+    cpu = {"npc": TrajeglishNPC(tiny())}
+    assert _count("auto", 1024, None, cpu, 2) == 1  # several torch threads on the CPU: one process
+
+
 def test_split_env_with_rule_based_npcs_and_one_scene_per_worker() -> None:
     kw = {"npc": "idm", "max_cycles": 5, "reward": RewardConfig(terminate_on_collision=False)}
     split, one = SplitEgoEnv(3, processes=3, **kw), BatchedEgoEnv(3, **kw)

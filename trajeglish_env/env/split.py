@@ -38,6 +38,7 @@ from trajeglish_env.env.shards import (
     ShardWorkers,
     _Method,
     auto_env_processes,
+    auto_gpu_processes,
     checked_processes,
     on_gpu,
     prepared_config,
@@ -64,10 +65,12 @@ def _count(
     options: dict[str, Any],
     torch_threads: int | str | None,
 ) -> int:
-    """The process count of a factory: ``"auto"`` keeps in one process a model meant for a GPU (spawned
-    GPU workers are taken only when asked for by count: not yet measured against one process) and an env
-    asked for several torch threads (a worker runs one)."""
-    if processes == "auto" and (on_gpu(config, options) or torch_threads not in ("auto", None, 1)):
+    """The process count of a factory: ``"auto"`` gives a model meant for a GPU one spawned GPU worker per
+    :data:`~trajeglish_env.env.shards.GPU_SCENES_PER_PROCESS` scenes (:func:`auto_gpu_processes`), and keeps
+    in one process an env asked for several torch threads (a worker runs one)."""
+    if processes == "auto" and on_gpu(config, options):
+        return auto_gpu_processes(int(num_envs))
+    if processes == "auto" and torch_threads not in ("auto", None, 1):
         return 1
     return checked_processes(processes, num_envs)
 
@@ -82,8 +85,9 @@ def batched_ego_env(
     **options: Any,
 ) -> BatchedEgoEnv | SplitEgoEnv:
     """A :class:`BatchedEgoEnv` (``processes`` 1) or a :class:`SplitEgoEnv` of that many worker processes
-    (``"auto"``: :func:`auto_env_processes`; one process when that is 1, when the NPC model is on a GPU or
-    when ``torch_threads`` asks for several threads; a count for a GPU model spawns GPU workers)."""
+    (``"auto"``: :func:`auto_env_processes`, one process when that is 1 or when ``torch_threads`` asks for
+    several threads; for an NPC model on a GPU, one spawned GPU worker per 64 scenes up to the cores,
+    :func:`auto_gpu_processes`; a count for a GPU model spawns that many GPU workers)."""
     count = _count(processes, num_envs, config, options, torch_threads)
     if count == 1:
         return BatchedEgoEnv(num_envs, scenes, config, render_mode, torch_threads, **options)
