@@ -53,7 +53,7 @@ def test_a_reflex_corner_is_rounded_and_only_the_road_grows() -> None:
     assert signed_distance_to_road_edges(np.array([[-0.3, -0.3]]), RoadEdges.from_polylines(rounded))[0] < 0
 
 
-@pytest.mark.parametrize("turn", [90.0, -5.0])
+@pytest.mark.parametrize("turn", [90.0, -5.0, -170.0])
 def test_convex_corners_and_gentle_hand_overs_stay(turn: float) -> None:
     sharp = _corner(turn)
     for before, after in zip(sharp, round_kerb_corners(sharp, radius=8.0, spacing=0.5), strict=True):

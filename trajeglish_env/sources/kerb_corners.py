@@ -4,9 +4,10 @@ highway-env draws a junction of two lanes (a roundabout ring and its exit, say) 
 meet at a sharp corner, and its vehicles cut that corner: with sharp corners 53-62 % of the logged
 roundabout vehicles crossed a drawn edge (by 0.26 m median). Real kerbs are rounded there. Where one edge
 polyline ends within ``join`` metres of where another begins and the chain turns away from the road (the
-kerb pokes into the road: a reflex corner of the drivable area), both are trimmed back by the tangent
-length of a fillet of ``radius`` metres and joined by a curve through the corner's cut-off, which only
-widens the road.
+kerb pokes into the road: a reflex corner of the drivable area) by 10-120 degrees, both are trimmed back
+by the tangent length of a fillet of ``radius`` metres and joined by a curve through the corner's cut-off,
+which only widens the road. Sharper hand-overs, the noses of splitter islands and the gores of ramps
+(155-180 degrees), stay sharp.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 from trajeglish_env.geometry import resample_polyline
 
 MIN_TURN = np.deg2rad(10.0)  # gentler hand-overs are a continuing kerb, not a corner
+MAX_TURN = np.deg2rad(120.0)  # sharper ones are the nose of an island or a gore, which no lane cuts
 
 
 def _cumulative(line: np.ndarray) -> np.ndarray:
@@ -70,7 +72,7 @@ def round_kerb_corners(
         d_out = _direction(lines[j][0], _point_at(lines[j], arcs[j], probe_out))
         cross = d_in[0] * d_out[1] - d_in[1] * d_out[0]
         turn = float(np.arctan2(abs(cross), float(d_in @ d_out)))
-        if cross >= 0 or turn < MIN_TURN:  # a left turn is a convex road corner: the kerb stays
+        if cross >= 0 or not MIN_TURN <= turn <= MAX_TURN:  # a left turn is a convex road corner: it stays
             continue
         tangent = radius * np.tan(turn / 2)
         fillets[i] = (j, tangent)
