@@ -4,7 +4,7 @@ highway-env draws a junction of two lanes (a roundabout ring and its exit, say) 
 meet at a sharp corner, and its vehicles cut that corner: with sharp corners 53-62 % of the logged
 roundabout vehicles crossed a drawn edge (by 0.26 m median). Real kerbs are rounded there. Where one edge
 polyline ends within ``join`` metres of where another begins and the chain turns away from the road (the
-kerb pokes into the road: a reflex corner of the drivable area) by 10-120 degrees, both are trimmed back
+kerb pokes into the road: a reflex corner of the drivable area) by 10-140 degrees, both are trimmed back
 by the tangent length of a fillet of ``radius`` metres and joined by a curve through the corner's cut-off,
 which only widens the road. Sharper hand-overs, the noses of splitter islands and the gores of ramps
 (155-180 degrees), stay sharp.
@@ -17,7 +17,7 @@ import numpy as np
 from trajeglish_env.geometry import resample_polyline
 
 MIN_TURN = np.deg2rad(10.0)  # gentler hand-overs are a continuing kerb, not a corner
-MAX_TURN = np.deg2rad(120.0)  # sharper ones are the nose of an island or a gore, which no lane cuts
+MAX_TURN = np.deg2rad(140.0)  # sharper ones are the nose of an island or a gore, which no lane cuts
 
 
 def _cumulative(line: np.ndarray) -> np.ndarray:
