@@ -108,7 +108,7 @@ def new_events(engine: RolloutEngine) -> tuple[int, int]:
 
 
 def test_guarded_rollouts_neither_collide_nor_leave_the_road() -> None:
-    sc = bundle_scene("highway-roundabout-999001")
+    sc = bundle_scene("highway-roundabout-999000")
     active = sc.valid[:, sc.current_index].copy()
     runs = {}
     for guard in (False, True):

@@ -41,14 +41,14 @@ def test_onsets_count_each_event_once() -> None:
 
 
 def test_rates_past_the_log_and_the_guard() -> None:
-    scenes = [bundle_scene("highway-roundabout-999001"), bundle_scene("highway-merge-999000")]
+    scenes = [bundle_scene("highway-roundabout-999000"), bundle_scene("highway-merge-999000")]
     config = LongRolloutConfig(seconds=11.0, rollouts=2, sampling=SamplingConfig(temperature=1.0))
     result = long_rollout_rates(tiny(), scenes, config, progress=False)
     plain, guarded = result["methods"]["trajeglish"], result["methods"]["trajeglish+guard"]
     for m in (plain, guarded):
         assert len(m["agent_seconds"]) == 11 and min(m["agent_seconds"]) > 5  # 8 s of log, then 3 s past it
         assert len(m["collision"]["per_second"]) == 11
-    assert plain["collision"]["before"] > 0.02  # the untrained model crashes (0.047 per agent-second)
+    assert plain["collision"]["before"] > 0.02  # the untrained model crashes (0.029 per agent-second)
     assert guarded["collision"]["before"] == guarded["collision"]["after"] == 0.0
     assert guarded["collision"]["within_1_5x"] and guarded["collision"]["ratio"] is None
 
