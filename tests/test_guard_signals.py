@@ -1,6 +1,6 @@
-"""Red lights under guarded sampling: the candidates masked are exactly the WOSAC violations (metric code
-on every candidate), and guarded rollouts of a signalized SUMO grid run no red light but where the guard
-had to drop its map rules."""
+"""Signals under guarded sampling: the candidates masked at red are exactly the WOSAC violations (metric
+code on every candidate), guarded rollouts of a signalized SUMO grid run no red light but where the guard
+had to drop its map rules, and queues stopped at red set off at green."""
 
 from __future__ import annotations
 
@@ -72,3 +72,91 @@ def test_guarded_vehicles_and_cyclists_stop_at_red(grid_scenes: list[Scenario]) 
                 fallbacks += engine.guard.stats.edge_fallback + engine.guard.stats.plain_fallback
     assert runs[False] >= 40  # the untrained model runs red lights
     assert runs[True] <= fallbacks < 10  # only where every candidate broke a rule
+
+
+def _set_off(sc: Scenario) -> list[tuple[int, int]]:
+    """(agent, step) where a logged vehicle standing still (under 0.1 m/s) sets off (0.5 m/s a second
+    later) within the scene."""
+    speed = np.linalg.norm(np.diff(sc.xyh[..., :2], axis=1), axis=-1) / sc.dt
+    ok = sc.valid[:, 1:] & sc.valid[:, :-1]
+    out = []
+    for i in np.flatnonzero(sc.kind == AgentKind.VEHICLE):
+        for t in range(1, sc.num_steps - 12):
+            if ok[i, t - 1 : t + 11].all() and speed[i, t - 1] < 0.1 and speed[i, t + 10] > 0.5:
+                out.append((int(i), int(t)))
+                break
+    return out
+
+
+def test_logged_vehicles_the_green_rule_would_push_all_set_off(grid_scenes: list[Scenario]) -> None:
+    """The rule's premise on SUMO's own drivers: every logged vehicle standing still behind a green line on
+    its lane with the way clear sets off within 3 s; the others standing still mostly do not."""
+    from trajeglish_env.sampler.guard_geometry import way_clear
+
+    pushed, moved, others, others_moved, turned = 0, 0, 0, 0, 0
+    for sc in grid_scenes:
+        ss = SceneSignals.of(sc)
+        assert ss is not None
+        speed = np.linalg.norm(np.diff(sc.xyh[..., :2], axis=1), axis=-1) / sc.dt
+        ok = sc.valid[:, 1:] & sc.valid[:, :-1]
+        for t in range(1, sc.num_steps - 31):
+            still = (sc.kind == AgentKind.VEHICLE) & ok[:, t - 1] & (speed[:, t - 1] < 0.1)
+            i = np.flatnonzero(still & ok[:, t : t + 30].all(axis=1))
+            if not len(i):
+                continue
+            steps = np.full(len(i), t)
+            green = ss.green_ahead(sc.xyh[i, t], sc.size[i, 0], steps)
+            turned += int(ss.green_ahead(sc.xyh[i, t] + [0, 0, np.pi], sc.size[i, 0], steps).sum())
+            near = np.flatnonzero(sc.valid[:, t])
+            clear = way_clear(
+                sc.xyh[i, t],
+                sc.size[i],
+                np.broadcast_to(sc.xyh[near, t], (len(i), len(near), 3)),
+                np.broadcast_to(sc.size[near], (len(i), len(near), 2)),
+                near[None, :] != i[:, None],
+            )
+            sets_off = (speed[i, t : t + 30] > 0.5).any(axis=1)
+            pushed += int((green & clear).sum())
+            moved += int((green & clear & sets_off).sum())
+            others += int((~green & clear).sum())
+            others_moved += int((~green & clear & sets_off).sum())
+    assert pushed >= 50
+    assert moved == pushed  # SUMO's drivers all go at green (129 of 129 here)
+    assert others_moved < 0.3 * others  # at red, or with nothing ahead on the lane, most wait (20 %)
+    assert turned == 0  # a vehicle facing away from the line is never pushed on
+
+
+def test_way_clear_sees_only_the_box_ahead_in_the_lane() -> None:
+    from trajeglish_env.sampler.guard_geometry import CLEAR_GAP, way_clear
+
+    origin = np.zeros((5, 3))
+    size = np.tile([4.5, 2.0], (5, 1))
+    # one obstacle per case: ahead within the gap, ahead beyond it, in the next lane, behind, none
+    gap = 4.5 + CLEAR_GAP
+    xyh = np.array([[[gap - 0.2, 0, 0]], [[gap + 0.2, 0, 0]], [[3, 3.5, 0]], [[-6, 0, 0]], [[5, 0, 0]]])
+    real = np.array([[True], [True], [True], [True], [False]])
+    got = way_clear(origin, size, xyh, np.tile([4.5, 2.0], (5, 1, 1)), real)
+    assert got.tolist() == [False, True, True, True, True]
+
+
+def test_guarded_queues_set_off_at_green(grid_scenes: list[Scenario]) -> None:
+    from trajeglish_env.checkpoint import load_pretrained
+
+    ckpt = load_pretrained()
+    moved, runs = {False: [], True: []}, {False: 0, True: 0}
+    for sc in grid_scenes:
+        cur = sc.current_index
+        starts = [(i, t) for i, t in _set_off(sc) if cur <= t < cur + 15]
+        metric = prepare_scene(sc).signals
+        for green in (False, True):
+            config = SamplingConfig(temperature=0.75, guard=True, guard_green=green, seed=3)
+            engine = RolloutEngine(ckpt, sc, 2, 30, sc.valid[:, cur].copy(), config=config)
+            engine.run()
+            xy = engine.xyh[:, :, cur : cur + 31, :2]
+            for i, t in starts:  # metres travelled from the logged departure to the horizon
+                moved[green].append(float(np.linalg.norm(xy[:, i, -1] - xy[:, i, t - cur], axis=-1).mean()))
+            valid = engine.valid[:, :, cur : cur + 31]
+            runs[green] += int(red_light_violations(metric, xy, valid, cur).sum())
+    assert len(moved[True]) >= 4
+    assert np.mean(moved[True]) > np.mean(moved[False]) + 2.0  # the queues move off instead of waiting
+    assert runs[True] <= runs[False] + 1  # and still stop at red

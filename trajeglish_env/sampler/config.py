@@ -52,8 +52,11 @@ class SamplingConfig:
     box would overlap one of them (or the current box of an agent that has not moved yet), or that would
     put a corner of a vehicle's box more than ``guard_road_margin`` m beyond a road edge (default
     :data:`GUARD_ROAD_MARGIN`; a vehicle off the road already may not go farther off), are masked before
-    the token is drawn; when that leaves nothing, the road-edge rule is dropped, then the guard
-    altogether.
+    the token is drawn, and so are those that would take a vehicle or cyclist across the stop line of a
+    red light on its lane; with ``guard_green`` (default on) a vehicle or cyclist behind the stop line of a
+    green light on its lane, the way ahead clear, may not stand still (the model reads no signals, so
+    without it a queue stopped at red stays stopped at green). When that leaves nothing, these map rules
+    are dropped, then the guard altogether.
 
     ``intra_step``: how the agents of a timestep are decoded (:data:`INTRA_STEP_MODES`). Both draw each
     agent's token from the model's conditional given the tokens of the agents before it, with the agent's
@@ -77,12 +80,15 @@ class SamplingConfig:
     seed: int = 0
     guard: bool = DEFAULT_GUARD
     guard_road_margin: float = GUARD_ROAD_MARGIN
+    guard_green: bool = True
     intra_step: str = "parallel"
     compute_dtype: str = "auto"
 
     def __post_init__(self) -> None:
         if not isinstance(self.guard, bool):
             raise TypeError(f"SamplingConfig.guard must be a bool, got {self.guard!r}")
+        if not isinstance(self.guard_green, bool):
+            raise TypeError(f"SamplingConfig.guard_green must be a bool, got {self.guard_green!r}")
         if not (self.guard_road_margin >= 0):
             raise ValueError(
                 f"SamplingConfig.guard_road_margin must be >= 0 (m), got {self.guard_road_margin}"

@@ -94,7 +94,9 @@ class BatchEngine(WindowedRows):
             from trajeglish_env.sampler.guard import SamplingGuard
             from trajeglish_env.sampler.guard_geometry import GuardGeometry
 
-            self.guard = SamplingGuard(GuardGeometry(self.vocab.templates, config.guard_road_margin))
+            self.guard = SamplingGuard(
+                GuardGeometry(self.vocab.templates, config.guard_road_margin, config.guard_green)
+            )
             self.with_edges = True
         self._slot = np.zeros(self.B, dtype=np.int64)  # per row: next slot of that rank to decode
         self.model_calls = 0  # decoding calls made (a measure of the cost of a step)

@@ -1,8 +1,8 @@
 """Geometry of guarded sampling (:mod:`~trajeglish_env.sampler.guard`): for the (row, agent) pairs sampled
 in one model call, the obstacles near each agent, the road edges near each vehicle
-(:mod:`~trajeglish_env.sampler.guard_edges`) and the red lights ahead of it
+(:mod:`~trajeglish_env.sampler.guard_edges`) and the red or green lights ahead of it
 (:mod:`~trajeglish_env.sampler.guard_signals`), and which candidate tokens would overlap an obstacle, or
-put the vehicle off the road or across a red stop line.
+put the vehicle off the road or across a red stop line, or leave it standing at a green light.
 
 Vectorized over pairs, candidates and neighbours, with the env's own functions
 (:mod:`~trajeglish_env.batch_geometry`): boxes overlap by the separating-axis test the env's collision
@@ -20,7 +20,7 @@ from trajeglish_env.batch_geometry import PaddedRows, latest_states, nearest_fir
 from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.sampler.guard_edges import EdgeLists, RoadView, road_view
-from trajeglish_env.sampler.guard_signals import SceneSignals, SignalCache
+from trajeglish_env.sampler.guard_signals import DEPART_STEP, SceneSignals, SignalCache
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.scenario import AgentKind
 
@@ -31,7 +31,8 @@ class Pairs:
     the model's state the candidates start from at steps ``t [n]``, ``size [n,2]``, ``kind [n]``,
     ``extent [n]`` the reach of its candidates' corners; the obstacles near each agent ``near_xyh [n,K,3]``,
     ``near_size [n,K,2]``, ``near_real [n,K]``; its road ``edges``; ``red [n]`` vehicles and cyclists with a
-    red light within reach, and the ``signals`` of their rows."""
+    red light within reach, ``depart [n]`` those the green rule applies to (a green light ahead, the way
+    clear), and the ``signals`` of their rows."""
 
     rows: np.ndarray
     agents: np.ndarray
@@ -45,13 +46,20 @@ class Pairs:
     near_real: np.ndarray
     edges: RoadView
     red: np.ndarray
+    depart: np.ndarray
     signals: dict[int, SceneSignals]
 
     @property
     def guarded(self) -> np.ndarray:
         """``[n]`` pairs some candidate of which could be masked (an obstacle near, a road edge, a red
-        light)."""
-        return self.near_real.any(axis=1) | self.edges.road | self.red
+        light, a green one)."""
+        return self.near_real.any(axis=1) | self.edges.road | self.red | self.depart
+
+
+# Metres between a rider's front and the box ahead of it under which the green rule does not push it on
+# (SUMO's standstill gap, minGap); boxes whose centres lie within the widths' half sum plus CLEAR_SIDE m of
+# its centre line count as ahead.
+CLEAR_GAP, CLEAR_SIDE = 2.5, 0.25
 
 
 def half_diagonal(size: np.ndarray) -> np.ndarray:
@@ -59,14 +67,29 @@ def half_diagonal(size: np.ndarray) -> np.ndarray:
     return np.hypot(size[..., 0], size[..., 1]) / 2
 
 
+def way_clear(
+    origin: np.ndarray, size: np.ndarray, near_xyh: np.ndarray, near_size: np.ndarray, near_real: np.ndarray
+) -> np.ndarray:
+    """``[n]`` no obstacle ``near_xyh [n,K,3]`` (``near_size``, ``near_real [n,K]``) within
+    :data:`CLEAR_GAP` m ahead of the front of the box at ``origin [n,3]`` (``size [n,2]``), in its lane."""
+    c, s = np.cos(origin[:, 2])[:, None], np.sin(origin[:, 2])[:, None]
+    dx, dy = near_xyh[..., 0] - origin[:, None, 0], near_xyh[..., 1] - origin[:, None, 1]
+    along, across = dx * c + dy * s, np.abs(dy * c - dx * s)
+    ahead = (along > 0) & (along < (size[:, 0, None] + near_size[..., 0]) / 2 + CLEAR_GAP)
+    beside = across < (size[:, 1, None] + near_size[..., 1]) / 2 + CLEAR_SIDE
+    return ~(near_real & ahead & beside).any(axis=1)
+
+
 class GuardGeometry:
     """Obstacles and road edges of the sampled pairs of an engine's rows (``templates [classes,V,3]``:
-    the motion tokens; ``road_margin``: how far a candidate corner may lie beyond a road edge), with each
-    row-agent's road-edge list kept between steps."""
+    the motion tokens; ``road_margin``: how far a candidate corner may lie beyond a road edge;
+    ``green_rule``: whether riders at a green light with the way clear must move), with each row-agent's
+    road-edge list kept between steps."""
 
-    def __init__(self, templates: np.ndarray, road_margin: float = 0.0):
+    def __init__(self, templates: np.ndarray, road_margin: float = 0.0, green_rule: bool = True):
         self.templates = np.asarray(templates, dtype=np.float64)
         self.road_margin = float(road_margin)
+        self.green_rule = bool(green_rule)
         self.move = np.hypot(self.templates[..., 0], self.templates[..., 1]).max(axis=1)  # per class
         self._columns = PaddedRows(0.0, last=True)
         self._links = PaddedRows(-1, last=True)
@@ -92,25 +115,30 @@ class GuardGeometry:
             np.array([e[0].shape[1] for e in rs.edges]),
         )
         corners = box_corners(origin, size)
-        vehicle = kind == AgentKind.VEHICLE
+        wheeled = kind != AgentKind.PEDESTRIAN  # cyclists keep to the road as vehicles do
         edges = road_view(
-            self._lists, rs, rr, who, origin, corners, extent, vehicle, padded, self.road_margin
+            self._lists, rs, rr, who, origin, corners, extent, wheeled, padded, self.road_margin
         )
-        red, signals = self._red_lights(rs, rr, tt, origin, extent, kind != AgentKind.PEDESTRIAN)
-        return Pairs(rr, who, tt, origin, size, kind, extent, *near, edges, red, signals)
+        red, depart, signals = self._lights(rs, rr, tt, origin, size, extent, wheeled)
+        if self.green_rule and depart.any():
+            depart &= way_clear(origin, size, *near)
+        else:
+            depart[:] = False
+        return Pairs(rr, who, tt, origin, size, kind, extent, *near, edges, red, depart, signals)
 
-    def _red_lights(
+    def _lights(
         self,
         rs: RowStates,
         rr: np.ndarray,
         tt: np.ndarray,
         origin: np.ndarray,
+        size: np.ndarray,
         extent: np.ndarray,
         riders: np.ndarray,
-    ) -> tuple[np.ndarray, dict[int, SceneSignals]]:
+    ) -> tuple[np.ndarray, np.ndarray, dict[int, SceneSignals]]:
         """``[n]`` the vehicles and cyclists (``riders [n]``) with a red stop point within reach of a
-        candidate, and their rows' signals."""
-        red, signals = np.zeros(len(rr), bool), {}
+        candidate, ``[n]`` those with a green one ahead on their lane, and their rows' signals."""
+        red, green, signals = np.zeros(len(rr), bool), np.zeros(len(rr), bool), {}
         for row in np.unique(rr[riders]).tolist():
             sc = rs.scenes[row]
             ss = None if sc is None else self._signals.get(sc)
@@ -118,8 +146,9 @@ class GuardGeometry:
                 continue
             q = np.flatnonzero(riders & (rr == row))
             red[q] = ss.near_red(origin[q, :2], tt[q], extent[q]).any(axis=1)
+            green[q] = ss.green_ahead(origin[q], size[q, 0], tt[q])
             signals[row] = ss
-        return red, signals
+        return red, green, signals
 
     def _neighbours(
         self,
@@ -159,7 +188,7 @@ class GuardGeometry:
     def blocked(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For pairs ``sel [m]`` and their candidate ``tokens [m,c]``: which would overlap an obstacle, and
         which would break a map rule ``[m,c]`` (take the vehicle off the road where the road-edge rule
-        applies, or across the stop line of a red light on its lane)."""
+        applies, across the stop line of a red light on its lane, or leave it standing at a green one)."""
         kind, size = p.kind[sel], p.size[sel]
         cand = to_global(p.origin[sel][:, None], self.templates[kind[:, None], tokens])  # [m,c,3]
         collide = np.zeros(tokens.shape, bool)
@@ -184,4 +213,7 @@ class GuardGeometry:
             pick, ss = sel[q], p.signals[row]
             near = ss.near_red(p.origin[pick, :2], p.t[pick], p.extent[pick])
             off[q] |= ss.violations(p.origin[pick, :2], cand[q, :, :2], p.t[pick], near)
+        go = p.depart[sel]
+        if go.any():
+            off[go] |= self.templates[kind[go, None], tokens[go], 0] < DEPART_STEP
         return collide, off
