@@ -39,7 +39,7 @@ def brute_force_masks(engine: RolloutEngine, agent: int) -> tuple[np.ndarray, np
     others = np.flatnonzero((moved | still) & (np.arange(sc.num_agents) != agent))
     boxes = np.where(moved[others, None], engine.xyh[0, others, t + 1], engine.xyh[0, others, t])
     collide = box_collisions(cand[:, None], sc.size[agent], boxes[None], sc.size[others][None]).any(axis=1)
-    if sc.kind[agent] != AgentKind.VEHICLE:
+    if sc.kind[agent] == AgentKind.PEDESTRIAN:  # vehicles and cyclists keep to the road
         return collide, np.zeros(len(cand), bool)
     edges = road_edges(sc)
     now = excess(engine.mxyh[0, agent, t][None], sc.size[agent], edges)[0]

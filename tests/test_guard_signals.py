@@ -160,3 +160,44 @@ def test_guarded_queues_set_off_at_green(grid_scenes: list[Scenario]) -> None:
     assert len(moved[True]) >= 4
     assert np.mean(moved[True]) > np.mean(moved[False]) + 2.0  # the queues move off instead of waiting
     assert runs[True] <= runs[False] + 1  # and still stop at red
+
+
+def _green_pairs(grid_scenes: list[Scenario]) -> tuple[RolloutEngine, np.ndarray, object]:
+    """An engine at a step of a grid scene where the green rule applies to some rider, its riders and
+    their guard pairs."""
+    for sc in grid_scenes:
+        for t in range(sc.current_index, sc.num_steps - 10, 5):
+            active = sc.valid[:, t]
+            riders = np.flatnonzero(active & (sc.kind != AgentKind.PEDESTRIAN))
+            engine = RolloutEngine(tiny(), sc, 1, 5, active.copy(), current_index=t, config=SamplingConfig())
+            rows, steps = np.zeros(len(riders), np.int64), np.full(len(riders), engine.t)
+            pairs = engine.guard.geometry.pairs(engine, rows, riders, steps)
+            if pairs.depart.any():
+                return engine, riders, pairs
+    raise AssertionError("no rider at a green light in the grid scenes")
+
+
+def test_green_rule_masks_standing_still_unless_a_box_is_ahead_or_overlapping(
+    grid_scenes: list[Scenario],
+) -> None:
+    from trajeglish_env.sampler.guard_signals import DEPART_STEP
+
+    engine, riders, pairs = _green_pairs(grid_scenes)
+    geometry, v = engine.guard.geometry, engine.vocab.size
+    every = np.broadcast_to(np.arange(v), (len(riders), v))
+    _, off = geometry.blocked(pairs, np.arange(len(riders)), every)
+    still = geometry.templates[pairs.kind[:, None], every, 0] < DEPART_STEP  # [n, V]
+    go = pairs.depart
+    assert still.any(axis=1).all() and (off[go] | ~still[go]).all()  # standing still is masked
+    assert not (off[~go] & still[~go] & ~pairs.red[~go, None] & ~pairs.edges.road[~go, None]).any()
+    # a box put right in front of a pushed rider (another agent's state this step), or onto it, stops it
+    sc, t = engine.sc, engine.t
+    i = int(np.flatnonzero(go)[0])
+    agent = riders[i]
+    other = next(j for j in np.flatnonzero(engine.valid[0, :, t]) if j != agent)
+    x, y, h = engine.xyh[0, agent, t]
+    length = (sc.size[agent, 0] + sc.size[other, 0]) / 2
+    for ahead in (length + 1.0, 0.5):  # 1 m gap in front, then overlapping
+        engine.xyh[0, other, t] = (x + ahead * np.cos(h), y + ahead * np.sin(h), h)
+        again = engine.guard.geometry.pairs(engine, np.zeros(1, np.int64), np.array([agent]), np.array([t]))
+        assert not again.depart[0]

@@ -52,7 +52,10 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
         scenes=args.scenes,
         temperatures=tuple(args.temperature),
         sampling=SamplingConfig(
-            top_p=args.top_p, cache_dtype=args.cache_dtype, compute_dtype=args.compute_dtype
+            top_p=args.top_p,
+            cache_dtype=args.cache_dtype,
+            compute_dtype=args.compute_dtype,
+            guard_green=not args.no_green_rule,
         ),
         metrics=args.metrics,
         seed=args.seed,
@@ -192,6 +195,11 @@ def add_eval_commands(add: AddCommand) -> None:
         choices=("off", "on", "both"),
         default="both",
         help="guarded sampling: methods NAME@T=t (off) and NAME+guard@T=t (on); default: both",
+    )
+    p.add_argument(
+        "--no-green-rule",
+        action="store_true",
+        help="guarded methods without the green-light rule (SamplingConfig.guard_green=False)",
     )
     p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)

@@ -1,13 +1,15 @@
-"""Guarded sampling (``SamplingConfig.guard``): candidate tokens that would overlap another agent or take a
-vehicle off the road are masked before a token is drawn.
+"""Guarded sampling (``SamplingConfig.guard``): candidate tokens that would overlap another agent, take a
+vehicle or cyclist off the road or across a red stop line, or leave it standing at a green one, are masked
+before a token is drawn.
 
 The intra-timestep factorization makes this exact: when an agent is sampled, the next states of the agents
 that moved before it in the step are known (and the current boxes of those that have not moved yet), so
 each of its candidate tokens -- every template of its class, applied to its current model state -- can be
 checked against them (:mod:`~trajeglish_env.sampler.guard_geometry`). A candidate is masked when its box
-overlaps one of those boxes, or, for a vehicle on the road, when a corner of its box lies more than the
-env's off-road margin beyond a road edge. When every candidate is masked, the road-edge rule is dropped;
-when that still leaves none, the token is drawn unguarded.
+overlaps one of those boxes, or, for a vehicle or cyclist, when a corner of its box lies more than the
+env's off-road margin beyond a road edge, or when it breaks a signal rule
+(:mod:`~trajeglish_env.sampler.guard_signals`). When every candidate is masked, these map rules are
+dropped; when that still leaves none, the token is drawn unguarded.
 
 The token is the one :func:`~trajeglish_env.sampler.sampling.sample_with_uniform` draws from the masked
 logits with the agent's own counter-based number (so a row's rollout never depends on the other rows), but

@@ -108,7 +108,7 @@ class GuardGeometry:
         which agents moved before each pair and their next states (default: as the rows say)."""
         origin, size, kind = rs.mxyh[rr, who, tt], rs.size[rr, who], rs.kind[rr, who]
         extent = self.move[kind] + half_diagonal(size)  # candidate corners lie within this of the origin
-        near = self._neighbours(rs, rr, who, tt, origin, size, extent, view)
+        *near, tangled = self._neighbours(rs, rr, who, tt, origin, size, extent, view)
         padded = (
             self._columns.sync(rs.edges, lambda e: e[0]),  # type: ignore[index]
             self._links.sync(rs.edges, lambda e: e[1]),  # type: ignore[index]
@@ -120,8 +120,8 @@ class GuardGeometry:
             self._lists, rs, rr, who, origin, corners, extent, wheeled, padded, self.road_margin
         )
         red, depart, signals = self._lights(rs, rr, tt, origin, size, extent, wheeled)
-        if self.green_rule and depart.any():
-            depart &= way_clear(origin, size, *near)
+        if self.green_rule and depart.any():  # one overlapping another box already is not pushed on
+            depart &= way_clear(origin, size, *near) & ~tangled
         else:
             depart[:] = False
         return Pairs(rr, who, tt, origin, size, kind, extent, *near, edges, red, depart, signals)
@@ -160,10 +160,11 @@ class GuardGeometry:
         size: np.ndarray,
         extent: np.ndarray,
         view: tuple[np.ndarray, np.ndarray] | None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The boxes a candidate could overlap: the next state of each agent of the row that has moved in
         this step, the current one of each that has not, within reach of some candidate; agents the
-        agent's box overlaps already are left out (no move can undo that overlap)."""
+        agent's box overlaps already are left out (no move can undo that overlap), and ``[n]`` says which
+        agents overlap one."""
         n = len(rr)
         t1 = tt + 1
         now, valid_now, valid_after = rs.xyh[rr, :, tt], rs.valid[rr, :, tt], rs.valid[rr, :, t1]
@@ -175,15 +176,18 @@ class GuardGeometry:
         d = np.hypot(state[..., 0] - origin[:, None, 0], state[..., 1] - origin[:, None, 1])
         near = present & (d < extent[:, None] + half_diagonal(sizes))
         near[np.arange(n), who] = False
+        tangled = np.zeros(n, bool)
         i, j = np.nonzero(near)
         if len(i):
-            near[i, j] = ~box_collisions(origin[i], size[i], state[i, j], sizes[i, j])
+            overlap = box_collisions(origin[i], size[i], state[i, j], sizes[i, j])
+            near[i, j] = ~overlap
+            tangled[i[overlap]] = True
         k = int(near.sum(axis=1).max(initial=0))
         if k == 0:
-            return np.zeros((n, 0, 3)), np.ones((n, 0, 2)), np.zeros((n, 0), bool)
+            return np.zeros((n, 0, 3)), np.ones((n, 0, 2)), np.zeros((n, 0), bool), tangled
         idx, real = nearest_first(np.where(near, d, np.inf), k)
         rows = np.arange(n)[:, None]
-        return state[rows, idx], sizes[rows, idx], real
+        return state[rows, idx], sizes[rows, idx], real, tangled
 
     def blocked(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For pairs ``sel [m]`` and their candidate ``tokens [m,c]``: which would overlap an obstacle, and
