@@ -34,10 +34,11 @@ def test_parallel_decoding_draws_the_sequential_tokens_in_fewer_calls(guard: boo
     np.testing.assert_array_equal(par_tokens, seq_tokens)
     np.testing.assert_array_equal(par_xyh, seq_xyh)
     # 5 sampled agents a step (the last enters late): 5 calls a step sequentially, fewer in parallel (the
-    # untrained tiny model's draws barely repeat, and with the guard its random draws, cars within 0.75 m
-    # of the kerb, are often masked away from the drafts; the shipped model needs about 2 a step, below)
+    # untrained tiny model's draws barely repeat, and with the guard its random draws, vehicles and the
+    # cyclist 0.75 m from the kerb, are mostly masked away from the drafts, so a draft rarely survives;
+    # the shipped model needs about 2 a step, below)
     assert seq_calls == 8 * 5
-    assert par_calls <= (0.85 if guard else 0.7) * seq_calls
+    assert par_calls < seq_calls if guard else par_calls <= 0.7 * seq_calls
 
 
 def test_parallel_decoding_waits_for_an_external_agent_in_the_middle() -> None:
