@@ -97,7 +97,10 @@ def test_rollout_and_nll_commands_with_the_shipped_model(tmp_path, capsys) -> No
     out = tmp_path / "r.gif"
     args = ["rollout", "--scenario", str(path), "--horizon", "6", "--out", str(out), "--json"]
     assert main(args) == 0
-    assert _json(capsys)["horizon"] == 6 and out.stat().st_size > 1000
+    shown = _json(capsys)
+    assert shown["horizon"] == 6 and shown["guard"] and shown["green_rule"] and out.stat().st_size > 1000
+    assert main([*args, "--guard", "off", "--no-green-rule"]) == 0  # the model alone
+    assert not _json(capsys)["guard"]
     nll_args = ["nll", "--data", str(tmp_path / "d"), "--windows", "4", "--cache-dtype", "bfloat16"]
     assert main([*nll_args, "--compute-dtype", "bfloat16", "--json", "--quiet"]) == 0
     result = _json(capsys)

@@ -156,13 +156,26 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
         1,
         horizon,
         config=SamplingConfig(
-            args.temperature, args.top_p, args.cache_dtype, seed=args.seed, compute_dtype=args.compute_dtype
+            args.temperature,
+            args.top_p,
+            args.cache_dtype,
+            seed=args.seed,
+            compute_dtype=args.compute_dtype,
+            guard=args.guard == "on",
+            guard_green=not args.no_green_rule,
         ),
     )
     out = save_render(
         scene, args.out, xyh=res.xyh[0], valid=res.valid[0], config=RenderConfig(follow_sdc=args.follow_sdc)
     )
-    return {"scene": scene.scenario_id, "agents": scene.num_agents, "horizon": horizon, "out": str(out)}
+    return {
+        "scene": scene.scenario_id,
+        "agents": scene.num_agents,
+        "horizon": horizon,
+        "guard": args.guard == "on",
+        "green_rule": not args.no_green_rule,
+        "out": str(out),
+    }
 
 
 def add_eval_commands(add: AddCommand) -> None:
@@ -252,6 +265,8 @@ def add_eval_commands(add: AddCommand) -> None:
     )
     add_sampling_args(p)
     p.add_argument("--follow-sdc", action="store_true")
+    p.add_argument("--guard", choices=("on", "off"), default="on", help="guarded sampling (default: on)")
+    p.add_argument("--no-green-rule", action="store_true", help="the guard without its green-light rule")
     add_map_coverage_command(add)
 
 
