@@ -16,6 +16,7 @@ from trajeglish_env.model import TrajeglishModel
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.tokenizer.baselines import xyh_grid_templates
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+from trajeglish_env.training import run_records
 from trajeglish_env.training.train import TrainConfig, train
 
 
@@ -254,6 +255,6 @@ def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
         next(model.parameters())[0] = float("nan")
     optimizer = torch.optim.AdamW(model.parameters())
     with pytest.raises(RuntimeError, match="not finite at step 7"):
-        facts = train_module._RunFacts(train_scenes=0, val_scenes=0, sources=(), processes=1, init=None)
-        train_module._save(tmp_path / "c.pt", model, grid_vocabulary(), optimizer, _quick(), 7, [], facts)
+        facts = run_records.RunFacts(train_scenes=0, val_scenes=0, sources=(), processes=1, init=None)
+        run_records.save_last(tmp_path / "c.pt", model, grid_vocabulary(), optimizer, _quick(), 7, [], facts)
     assert not (tmp_path / "c.pt").exists()

@@ -26,7 +26,9 @@ from trajeglish_env.cli_args import (
     one_line,
     output_dir,
     positive_float,
+    probability,
     scene_at,
+    unit_float,
     with_map_args,
 )
 from trajeglish_env.cli_eval import GUARD_CHOICES, add_eval_commands, checkpoints
@@ -118,6 +120,10 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         shard_cache=args.shard_cache,
         signal_lr_scale=args.signal_lr_scale,
         repeat=parse_repeat(args.repeat),
+        closed_loop_top_k=args.closed_loop_top_k,
+        closed_loop_recovery=args.closed_loop_recovery,
+        closed_loop_along_recovery=args.closed_loop_along_recovery,
+        closed_loop_teacher_forced=not args.closed_loop_only,
     )
     ranks = init_ranks(rank_device())
     result = train(
@@ -295,6 +301,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--val-every", type=POSITIVE, default=200)
     p.add_argument("--checkpoint-every", type=POSITIVE, default=200)
     p.add_argument("--no-noise", action="store_true", help="argmin input tokens (no noisy tokenization)")
+    p.add_argument(
+        "--closed-loop-top-k",
+        type=NON_NEGATIVE,
+        default=0,
+        help="CAT-K closed-loop fine-tuning: every window is rolled out with the model's K most likely "
+        "tokens (the one nearest the log), then trained to return to the log (0: teacher forcing)",
+    )
+    p.add_argument(
+        "--closed-loop-recovery",
+        type=probability,
+        default=0.2,
+        help="share of the rolled-out state's sideways and heading offset from the log a closed-loop target "
+        "closes per step",
+    )
+    p.add_argument(
+        "--closed-loop-along-recovery",
+        type=unit_float,
+        default=0.0,
+        help="the same along the log's heading (0: targets move as the log does and keep the offset)",
+    )
+    p.add_argument(
+        "--closed-loop-only",
+        action="store_true",
+        help="train on the closed-loop windows alone (default: beside the batch's teacher-forced ones)",
+    )
     p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
     add_budget_and_mix_args(p)
     p.add_argument(

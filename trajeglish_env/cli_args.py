@@ -92,6 +92,17 @@ def probability(text: str) -> float:
     return value
 
 
+def unit_float(text: str) -> float:
+    """Argument type: a number in [0, 1] (a share)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 <= value <= 1:  # NaN fails too
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
+    return value
+
+
 POSITIVE = integer_at_least(1)
 NON_NEGATIVE = integer_at_least(0)
 

@@ -44,10 +44,12 @@ from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
+from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
 from trajeglish_env.training.curves import plot_curve
 from trajeglish_env.training.curves import write_metrics as _write_metrics
 from trajeglish_env.training.dataset import SceneStore, WindowConfig, collate_windows
 from trajeglish_env.training.kind_repeat import window_order
+from trajeglish_env.training.run_records import run_facts, save_last, training_info
 from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
 
@@ -79,10 +81,30 @@ class TrainConfig:
     # an already trained model (train --init CKPT --signal-input) and must catch up with the rest
     signal_lr_scale: float = 1.0
     repeat: tuple[tuple[str, int], ...] = ()  # scene kinds drawn N times an epoch (training/kind_repeat.py)
+    # CAT-K closed-loop fine-tuning (training/closed_loop.py): 0 = teacher forcing; K = every window rolled
+    # out with the model's top-K tokens nearest the log, trained to return to it (recovery, max_drift)
+    closed_loop_top_k: int = 0
+    closed_loop_recovery: float = 0.2
+    closed_loop_along_recovery: float = 0.0
+    closed_loop_max_drift: float = 2.0
+    closed_loop_teacher_forced: bool = True
 
     def __post_init__(self) -> None:
         if not self.signal_lr_scale > 0:
             raise ValueError(f"TrainConfig.signal_lr_scale must be > 0, got {self.signal_lr_scale}")
+        self.closed_loop()  # ClosedLoopConfig checks its settings
+
+    def closed_loop(self) -> ClosedLoopConfig | None:
+        """The CAT-K settings, or None for teacher forcing."""
+        if not self.closed_loop_top_k:
+            return None
+        return ClosedLoopConfig(
+            self.closed_loop_top_k,
+            self.closed_loop_recovery,
+            self.closed_loop_along_recovery,
+            self.closed_loop_max_drift,
+            self.closed_loop_teacher_forced,
+        )
 
     def lr_at(self, step: int) -> float:
         """Learning rate at ``step``: linear warmup, then linear decay to 0 at ``steps``."""
@@ -208,7 +230,7 @@ def train(
     check_compatible(model_config, vocabulary, where="train: --vocab")
     train_scenes, val_scenes = _training_scenes(data, val_data, config)
 
-    facts = _run_facts(train_scenes, val_scenes, dd.world, start_ckpt)
+    facts = run_facts(train_scenes, val_scenes, dd.world, start_ckpt)
     torch.manual_seed(config.seed)
     model = TrajeglishModel(model_config).to(device)
     optimizer = torch.optim.AdamW(_param_groups(model, config), lr=config.lr, betas=(0.9, 0.95))
@@ -279,8 +301,11 @@ def train(
     # at least 10 steps and a tenth of the budget: the loaders' first, prefetched batches come faster
     probe = (5, 15, 0.1 * (time_limit or 0.0)) if fit_steps and start_step == 0 else None
     probe_t = 0.0
+    closed_loop = config.closed_loop()
     for batch in loader:
         batch = _batch_to(batch, device)
+        if closed_loop is not None:  # inputs: the model's own rollout; targets: the way back to the log
+            batch = closed_loop_batch(model, batch, vocabulary, closed_loop)
         for group in optimizer.param_groups:
             group["lr"] = config.lr_at(step) * group.get("lr_scale", 1.0)
         with autocast:
@@ -349,7 +374,7 @@ def train(
                     {k: f"{v:.3g}" for k, v in row.items() if k in ("loss", "val_nll", "tokens_per_s")}
                 )
             if step % config.checkpoint_every == 0 or final:
-                _save(
+                save_last(
                     last,
                     model,
                     vocabulary,
@@ -371,7 +396,7 @@ def train(
         result["steps_fitted_to_time"] = config.steps
     if dd.main:
         final = out / "model.pt"
-        info = _training_info(config, step, history, facts)
+        info = training_info(config, step, history, facts)
         info["seconds"] = round(elapsed, 1)
         save_checkpoint(final, model, vocabulary, training=info)
         plot_curve(history, out / "training_curve.png")
@@ -418,17 +443,6 @@ def _rank0_says(flag: bool, device: torch.device, world: int) -> bool:
     return flag
 
 
-@dataclass(frozen=True)
-class _RunFacts:
-    """What a run's checkpoints record about its data and setup (computed once)."""
-
-    train_scenes: int
-    val_scenes: int
-    sources: tuple[str, ...]
-    processes: int
-    init: str | None
-
-
 def _training_scenes(
     data: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     val_data: str | os.PathLike[str] | None,
@@ -452,48 +466,3 @@ def _training_scenes(
             break
         val.extend(load_scenarios(file)[: config.val_windows - len(val)])
     return ShardedScenes(train_files, config.shard_cache), val
-
-
-def _run_facts(
-    train: Sequence[Scenario], val: Sequence[Scenario], world: int, init: Checkpoint | None
-) -> _RunFacts:
-    sources = tuple(
-        train.all_sources() if isinstance(train, ShardedScenes) else sorted({s.source for s in train})
-    )
-    path = None if init is None else str(init.path or "checkpoint")
-    return _RunFacts(len(train), len(val), sources, world, path)
-
-
-def _training_info(config: TrainConfig, step: int, history: list[dict], facts: _RunFacts) -> dict[str, Any]:
-    info = {
-        "train_config": dataclasses.asdict(config),
-        "step": step,
-        "train_scenes": facts.train_scenes,
-        "val_scenes": facts.val_scenes,
-        "sources": list(facts.sources),
-        "processes": facts.processes,
-        "val_nll": next((h["val_nll"] for h in reversed(history) if "val_nll" in h), None),
-        "torch": str(torch.__version__),
-        "device": "cuda" if torch.cuda.is_available() else "cpu",
-    }
-    if facts.init is not None:
-        info["init"] = facts.init
-    return info
-
-
-def _save(
-    path: Path,
-    model: TrajeglishModel,
-    vocabulary: MotionVocabulary,
-    optimizer: torch.optim.Optimizer,
-    config: TrainConfig,
-    step: int,
-    history: list[dict],
-    facts: _RunFacts,
-) -> None:
-    bad = [name for name, p in model.named_parameters() if not torch.isfinite(p).all()]
-    if bad:
-        raise RuntimeError(f"train: weights {bad[:3]} are not finite at step {step}; {path} not overwritten")
-    trainer = {"train_config": dataclasses.asdict(config), "step": step, "history": history}
-    info = _training_info(config, step, history, facts)
-    save_checkpoint(path, model, vocabulary, training=info, optimizer=optimizer.state_dict(), trainer=trainer)
