@@ -52,6 +52,10 @@
 #                  kept from RUN_IN when resuming (setting another value is an error), as the SIGNAL_ ones are.
 #   REPEAT         scene kinds drawn N times an epoch, e.g. "sumo=3 highway/roundabout=2" (`train --repeat`;
 #                  SUMO's share when only highway-env scenes are generated here) [none]; kept when resuming
+#   CLOSED_LOOP    K >= 1: CAT-K closed-loop fine-tuning (`train --closed-loop-top-k K`: each batch is first
+#                  rolled out by the model, its K most likely tokens nearest the log, and trained to return
+#                  to the log, beside its teacher-forced windows); use with INIT; 0: teacher forcing [0];
+#                  kept when resuming
 #   FIT_STEPS      1: the first call's step rate fits the schedule's length to its training budget (`train
 #                  --fit-steps`; STEPS is then the most), so the learning rate reaches 0 as that call ends;
 #                  0: the schedule runs STEPS, over as many calls as it takes (RUN_IN) [1]
@@ -75,7 +79,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest)
 declare -A GIVEN=()
-for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do
+for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
 done
 
@@ -115,7 +119,7 @@ RESUME=()
 if [ -n "$RUN_IN" ]; then
     SAVED=$("$PYTHON" trajeglish_env/device_job.py saved "$RUN_IN") || exit 2
     eval "$SAVED"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do
         s=SAVED_$v
         [ -n "${!s:-}" ] || continue
         if [ -n "${GIVEN[$v]:-}" ] && [ "${GIVEN[$v]}" != "${!s}" ]; then
@@ -153,6 +157,12 @@ MAP_SELECT=${MAP_SELECT:-}
 MAP_STRIDE=${MAP_STRIDE:-}
 FIT_STEPS=${FIT_STEPS:-1}
 REPEAT=${REPEAT:-}
+CLOSED_LOOP=${CLOSED_LOOP:-0}
+case $CLOSED_LOOP in
+'' | *[!0-9]*) die "CLOSED_LOOP=$CLOSED_LOOP: expected a number of tokens K (0: teacher forcing)" ;;
+esac
+CLOSED_ARGS=()
+[ "$CLOSED_LOOP" = 0 ] || CLOSED_ARGS=(--closed-loop-top-k "$CLOSED_LOOP")
 REPEAT_ARGS=()
 # shellcheck disable=SC2206 # REPEAT is a list of KIND=N words
 [ -z "$REPEAT" ] || REPEAT_ARGS=(--repeat $REPEAT)
@@ -187,7 +197,7 @@ case $SIGNAL_INPUT in
 esac
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT", scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh
@@ -297,7 +307,7 @@ rc=0
 "$PYTHON" -m trajeglish_env.cli train --json --quiet --data "${HAVE[@]}" --out "$RUN" --preset "$PRESET" \
     --steps "$STEPS" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --seed "$SEED" \
     --workers "$TRAIN_WORKERS" --val-every "$VAL_EVERY" --checkpoint-every "$CKPT_EVERY" \
-    --minutes "$(calc "$TRAIN_S / 60")" "${FIT_ARGS[@]}" "${REPEAT_ARGS[@]}" "${VAL_ARGS[@]}" "${RESUME[@]}" "${INIT_ARGS[@]}" "${SIGNAL_ARGS[@]}" "${VOCAB_ARGS[@]}" "${MAP_ARGS[@]}" >"$WORK/train.json" || rc=$?
+    --minutes "$(calc "$TRAIN_S / 60")" "${FIT_ARGS[@]}" "${REPEAT_ARGS[@]}" "${CLOSED_ARGS[@]}" "${VAL_ARGS[@]}" "${RESUME[@]}" "${INIT_ARGS[@]}" "${SIGNAL_ARGS[@]}" "${VOCAB_ARGS[@]}" "${MAP_ARGS[@]}" >"$WORK/train.json" || rc=$?
 [ "$rc" = 0 ] || say "train failed (exit code $rc); packing what was checkpointed"
 cat "$WORK/train.json"
 
@@ -315,7 +325,7 @@ cat "$WORK/train.json"
     echo "gen_seconds=$GEN_TOOK"
     echo "train_seconds=$((SECONDS - T_TRAIN))"
     echo "train_workers=$TRAIN_WORKERS"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT; do echo "param.$v=${!v}"; done
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do echo "param.$v=${!v}"; done
 } >"$WORK/call.env"
 say "packing into $OUT"
 "$PYTHON" trajeglish_env/device_job.py pack "$RUN" "$OUT" --facts "$WORK/call.env" \

@@ -144,6 +144,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         MAP_SELECT="agents",
         MAP_STRIDE="4",
         REPEAT="highway=2",
+        CLOSED_LOOP="3",
     )
     assert job.returncode == 0, job.stdout[-3000:]
     ckpt = load_checkpoint(tmp_path / "out-v" / "model.pt")
@@ -156,6 +157,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert summary["params"]["FIT_STEPS"] == "1"  # the default: the schedule fitted to the call's budget
     assert summary["params"]["REPEAT"] == "highway=2"  # kept for a resumed call (`train --repeat`)
     assert tuple(map(tuple, ckpt.training["train_config"]["repeat"])) == (("highway", 2),)
+    assert summary["params"]["CLOSED_LOOP"] == "3"  # CAT-K windows, kept for a resumed call
+    assert ckpt.training["train_config"]["closed_loop_top_k"] == 3
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
     assert clash.returncode == 2 and "keeps its checkpoint's vocabulary" in clash.stdout
     bad = _job(tmp_path, "vb", VOCAB="big")
@@ -164,6 +167,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert bad_map.returncode == 2 and "MAP_SELECT=lanes: expected frame or agents" in bad_map.stdout
     bad_stride = _job(tmp_path, "vs", MAP_STRIDE="0")
     assert bad_stride.returncode == 2 and "MAP_STRIDE=0: expected a whole number >= 1" in bad_stride.stdout
+    bad_closed = _job(tmp_path, "vc", CLOSED_LOOP="-1")
+    assert bad_closed.returncode == 2 and "CLOSED_LOOP=-1: expected a number of tokens" in bad_closed.stdout
     bad_fit = _job(tmp_path, "vf", FIT_STEPS="yes")
     assert bad_fit.returncode == 2 and "FIT_STEPS=yes: expected 0 or 1" in bad_fit.stdout
 

@@ -71,6 +71,7 @@ SAVED = (
     "MAP_STRIDE",
     "FIT_STEPS",
     "REPEAT",
+    "CLOSED_LOOP",
 )
 
 
