@@ -5,9 +5,10 @@ meets states it never learned to recover from: a vehicle a little off its lane k
 each training window out with the model being trained, taking at every (step, agent) the one of its
 ``top_k`` most likely tokens whose next box lies nearest (mean corner distance) the logged next state; the
 window is then trained with those rolled-out tokens as inputs and, as targets, the tokens that lead from
-the rolled-out states back to the log (the argmin template from the rolled-out state at ``t`` to the logged
-state at ``t + 1``). The rollout follows the model's own decoding order (agents one at a time within a
-step, through the decoder cache), so inputs are exactly what the model would have produced.
+the rolled-out states back toward the log (:func:`recovery_aims`: a 0.1 s token closes a share of the
+offset, not all of it as CAT-K's 0.5 s tokens do). The rollout follows the model's own decoding order
+(agents one at a time within a step, through the decoder cache), so inputs are exactly what the model would
+have produced. Results: docs/evaluation.md, "Closed-loop fine-tuning (CAT-K)".
 """
 
 from __future__ import annotations
@@ -150,7 +151,7 @@ def recovery_targets(
     targets = np.full(moving.shape, -1, dtype=np.int64)
     near = np.linalg.norm(states[..., :-1, :2] - logged[..., :-1, :2], axis=-1) <= config.max_drift
     bi, ai, ti = np.nonzero(moving & near)
-    aim = recovery_aims(states[bi, ai], logged[bi, ai], config)[np.arange(len(ti)), ti]
+    aim = recovery_aims(states, logged, config)[bi, ai, ti]
     local = to_local(states[bi, ai, ti], aim)
     for k in np.unique(kind[bi, ai]).tolist():
         sel = kind[bi, ai] == k
