@@ -318,7 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--closed-loop-along-recovery",
         type=unit_float,
-        default=0.0,
+        default=0.2,
         help="the same along the log's heading (0: targets move as the log does and keep the offset)",
     )
     p.add_argument(

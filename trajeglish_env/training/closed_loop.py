@@ -8,7 +8,7 @@ window is then trained with those rolled-out tokens as inputs and, as targets, t
 the rolled-out states back toward the log (:func:`recovery_aims`: a 0.1 s token closes a share of the
 offset, not all of it as CAT-K's 0.5 s tokens do). The rollout follows the model's own decoding order
 (agents one at a time within a step, through the decoder cache), so inputs are exactly what the model would
-have produced. Results: docs/evaluation.md, "Closed-loop fine-tuning (CAT-K)".
+have produced. Results: docs/evaluation.md, "Closed-loop fine-tuning (CAT-K) on this machine".
 """
 
 from __future__ import annotations
@@ -32,13 +32,14 @@ class ClosedLoopConfig:
     rolled-out state's sideways and heading offset from the log per step (1: all at once, as CAT-K with its
     0.5 s tokens; a 0.1 s token cannot close a metre in one step, so the default spreads it over about half
     a second) and ``along_recovery`` of its offset along the log's heading (0: the target moves as the log
-    does and keeps the offset: how far ahead the log is cannot be read from the scene, while a lane can);
+    does and keeps the offset; the same share as sideways returns every agent toward its log at one rate, so
+    the gaps between rolled-out neighbours return toward the logged ones: fewer collisions, measured);
     offsets beyond ``max_drift`` metres are not trained on. ``teacher_forced``: the batch keeps its
     teacher-forced windows beside the closed-loop ones, so the log's own likelihood stays trained."""
 
     top_k: int = 5
     recovery: float = 0.2
-    along_recovery: float = 0.0
+    along_recovery: float = 0.2
     max_drift: float = 2.0
     teacher_forced: bool = True
 

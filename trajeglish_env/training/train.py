@@ -85,7 +85,7 @@ class TrainConfig:
     # out with the model's top-K tokens nearest the log, trained to return to it (recovery, max_drift)
     closed_loop_top_k: int = 0
     closed_loop_recovery: float = 0.2
-    closed_loop_along_recovery: float = 0.0
+    closed_loop_along_recovery: float = 0.2
     closed_loop_max_drift: float = 2.0
     closed_loop_teacher_forced: bool = True
 
