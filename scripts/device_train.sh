@@ -35,6 +35,8 @@
 #   SIGNAL_INPUT   1: the model reads traffic-signal states (`train --signal-input`; with INIT, the
 #                  checkpoint's model extended with that input) [0]
 #   SIGNAL_LR_SCALE  learning-rate multiplier of the signal embedding (`--signal-lr-scale`) [1]
+#   NEIGHBOUR_INPUT  1: every decoder position reads its agent's velocity and nearest neighbours' relative
+#                  states (`train --neighbour-input`; with INIT, the checkpoint's model extended with it) [0]
 #   VOCAB          a new run without INIT: fit a vocabulary of this many tokens per class on the
 #                  training scenes (`tokenizer fit`, with its motion-envelope cover) and train on it; 0:
 #                  the shipped 384 [0]. The README's choice for a model trained from scratch:
@@ -79,7 +81,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest)
 declare -A GIVEN=()
-for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do
+for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
 done
 
@@ -119,7 +121,7 @@ RESUME=()
 if [ -n "$RUN_IN" ]; then
     SAVED=$("$PYTHON" trajeglish_env/device_job.py saved "$RUN_IN") || exit 2
     eval "$SAVED"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do
         s=SAVED_$v
         [ -n "${!s:-}" ] || continue
         if [ -n "${GIVEN[$v]:-}" ] && [ "${GIVEN[$v]}" != "${!s}" ]; then
@@ -149,6 +151,7 @@ VAL_EVERY=${VAL_EVERY:-500}
 CKPT_EVERY=${CKPT_EVERY:-250}
 SIGNAL_INPUT=${SIGNAL_INPUT:-0}
 SIGNAL_LR_SCALE=${SIGNAL_LR_SCALE:-1}
+NEIGHBOUR_INPUT=${NEIGHBOUR_INPUT:-0}
 VOCAB=${VOCAB:-0}
 EXTEND=${EXTEND:-0}
 COVER_RADIUS=${COVER_RADIUS:-0.045}
@@ -195,9 +198,14 @@ case $SIGNAL_INPUT in
 1) SIGNAL_ARGS=(--signal-input --signal-lr-scale "$SIGNAL_LR_SCALE") ;;
 *) die "SIGNAL_INPUT=$SIGNAL_INPUT: expected 0 or 1" ;;
 esac
+case $NEIGHBOUR_INPUT in
+0) ;;
+1) SIGNAL_ARGS+=(--neighbour-input) ;;
+*) die "NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT: expected 0 or 1" ;;
+esac
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh
@@ -325,7 +333,7 @@ cat "$WORK/train.json"
     echo "gen_seconds=$GEN_TOOK"
     echo "train_seconds=$((SECONDS - T_TRAIN))"
     echo "train_workers=$TRAIN_WORKERS"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do echo "param.$v=${!v}"; done
+    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do echo "param.$v=${!v}"; done
 } >"$WORK/call.env"
 say "packing into $OUT"
 "$PYTHON" trajeglish_env/device_job.py pack "$RUN" "$OUT" --facts "$WORK/call.env" \

@@ -50,6 +50,19 @@ def tiny() -> Checkpoint:
     return tiny_checkpoint()
 
 
+def record_encoded(monkeypatch: pytest.MonkeyPatch, model: TrajeglishModel) -> list:
+    """Make ``model.encode_into`` record every scene it encodes; returns the list it fills."""
+    scenes: list = []
+    encode = model.encode_into
+
+    def spy(cache, scene):  # type: ignore[no-untyped-def]
+        scenes.append(scene)
+        return encode(cache, scene)
+
+    monkeypatch.setattr(model, "encode_into", spy)
+    return scenes
+
+
 def tiny_kwargs(**overrides: object) -> dict:
     """Env keyword arguments for Trajeglish NPCs of the tiny model, 8-step episodes."""
     return {"npc": TrajeglishNPC(tiny()), "max_cycles": 8, **overrides}

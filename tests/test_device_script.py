@@ -102,13 +102,24 @@ def test_a_call_trains_and_a_second_call_resumes(tmp_path: Path) -> None:
 @pytest.mark.skipif(BASH is None, reason="needs bash")
 def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
     _carry_scenes(tmp_path, 4)
-    job = _job(tmp_path, "init", PRESET="small", INIT="shipped", STEPS="3", BATCH="2", SIGNAL_INPUT="1")
+    job = _job(
+        tmp_path,
+        "init",
+        PRESET="small",
+        INIT="shipped",
+        STEPS="3",
+        BATCH="2",
+        SIGNAL_INPUT="1",
+        NEIGHBOUR_INPUT="1",
+    )
     assert job.returncode == 0, job.stdout[-3000:]
     tuned = load_checkpoint(tmp_path / "out-init" / "model.pt")
     assert tuned.training["init"] == str(pretrained_path()) and tuned.training["step"] >= 1
     assert tuned.config.signal_input  # the shipped model, extended with the signal input
+    assert tuned.config.neighbour_input  # and with the neighbour input
     summary = json.loads((tmp_path / "out-init" / "summary.json").read_text())
     assert summary["params"]["SIGNAL_INPUT"] == "1"  # kept for a resumed call
+    assert summary["params"]["NEIGHBOUR_INPUT"] == "1"
     missing = _job(tmp_path, "noinit", INIT=str(tmp_path / "absent.pt"))
     assert missing.returncode == 2 and "INIT=" in missing.stdout and "no such checkpoint" in missing.stdout
 
@@ -145,6 +156,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         MAP_STRIDE="4",
         REPEAT="highway=2",
         CLOSED_LOOP="3",
+        NEIGHBOUR_INPUT="1",
     )
     assert job.returncode == 0, job.stdout[-3000:]
     ckpt = load_checkpoint(tmp_path / "out-v" / "model.pt")
@@ -159,6 +171,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert tuple(map(tuple, ckpt.training["train_config"]["repeat"])) == (("highway", 2),)
     assert summary["params"]["CLOSED_LOOP"] == "3"  # CAT-K windows, kept for a resumed call
     assert ckpt.training["train_config"]["closed_loop_top_k"] == 3
+    assert ckpt.config.neighbour_input  # CAT-K windows of a model that reads its neighbours
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
     assert clash.returncode == 2 and "keeps its checkpoint's vocabulary" in clash.stdout
     bad = _job(tmp_path, "vb", VOCAB="big")
@@ -179,6 +192,8 @@ def test_bad_setups_fail_with_one_clear_line(tmp_path: Path) -> None:
     assert no_out.returncode == 2 and "OUT is not set" in no_out.stdout
     bad_signal = _job(tmp_path, "s", SIGNAL_INPUT="yes")
     assert bad_signal.returncode == 2 and "SIGNAL_INPUT=yes: expected 0 or 1" in bad_signal.stdout
+    bad_neighbours = _job(tmp_path, "n", NEIGHBOUR_INPUT="2")
+    assert bad_neighbours.returncode == 2 and "NEIGHBOUR_INPUT=2: expected 0 or 1" in bad_neighbours.stdout
     if not torch.cuda.is_available():
         no_cuda = _job(tmp_path, "y", DEVICE="cuda")
         assert no_cuda.returncode == 2 and "DEVICE=cuda but torch" in no_cuda.stdout

@@ -5,10 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from helpers import straight_road_scene, tiny_checkpoint
+from helpers import record_encoded, straight_road_scene, tiny_checkpoint
 
-from trajeglish_env.model import SceneInputs
-from trajeglish_env.model.layers import DecoderCache
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import RolloutEngine
 from trajeglish_env.sampler.sampling import counter_uniform, nucleus_mask, sample_with_uniform
@@ -46,14 +44,7 @@ def test_greedy_rollout_is_a_fixed_point_of_the_teacher_forced_model(
     model = ckpt.model
     sc = straight_road_scene(num_agents=5, steps=30)
     controlled = np.array([True, False, True, True, False])
-    scenes: list[SceneInputs] = []
-    encode = model.encode_into
-
-    def spy(cache: DecoderCache, scene: SceneInputs) -> torch.Tensor:
-        scenes.append(scene)
-        return encode(cache, scene)
-
-    monkeypatch.setattr(model, "encode_into", spy)
+    scenes = record_encoded(monkeypatch, model)
     config = SamplingConfig(temperature=0.0, prime_steps=3, guard=False)  # the model's own argmax
     horizon = config.every(model.cfg.steps)  # one window: it is never rebuilt
     engine = RolloutEngine(ckpt, sc, 2, horizon, controlled, config=config)

@@ -19,6 +19,7 @@ import torch
 
 from trajeglish_env.model.config import ModelConfig, Variant
 from trajeglish_env.model.encoder import SIGNAL_PARAMS
+from trajeglish_env.model.neighbours import NEIGHBOUR_PARAMS
 from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.tokenizer.extend import embedding_sources, is_extension
@@ -123,14 +124,15 @@ def check_compatible(cfg: ModelConfig, vocabulary: MotionVocabulary, where: str)
 
 
 def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary) -> None:
-    """A run started from ``ckpt`` (fine-tuning) must keep its config (but may add the signal input, or
-    choose its windows' map chunks another way), vocabulary (or extend it: ``tokenizer.extend``, with
-    ``vocab_size`` and ``token_bias`` to match) and finite weights; otherwise raise a
+    """A run started from ``ckpt`` (fine-tuning) must keep its config (but may add the signal or neighbour
+    input, or choose its windows' map chunks another way), vocabulary (or extend it: ``tokenizer.extend``,
+    with ``vocab_size`` and ``token_bias`` to match) and finite weights; otherwise raise a
     :class:`CheckpointError` naming what differs."""
     where = f"--init {ckpt.path or 'checkpoint'}"
     theirs_cfg, ours_cfg = _plain_config(ckpt.config), _plain_config(cfg)
-    if cfg.signal_input and not ckpt.config.signal_input:
-        theirs_cfg["signal_input"] = True  # an added input (its weights start at zero): see extends_with
+    for added in ("signal_input", "neighbour_input"):  # added inputs (their weights start at zero)
+        if getattr(cfg, added) and not getattr(ckpt.config, added):
+            theirs_cfg[added] = True
     theirs_cfg["map_select"] = cfg.map_select  # which chunks a window holds, and their points: inputs,
     theirs_cfg["map_stride"] = cfg.map_stride  # not weights
     extended = is_extension(ckpt.vocabulary, vocabulary)
@@ -160,11 +162,12 @@ def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary)
 
 
 def load_into(model: TrajeglishModel, ckpt: Checkpoint, vocabulary: MotionVocabulary | None = None) -> None:
-    """Load ``ckpt``'s weights into ``model``, whose config is ``ckpt``'s or extends it with the signal
-    input (:func:`check_init`): the added weights keep their initial values (zeros). With ``vocabulary``
-    extending the checkpoint's (``tokenizer.extend``), each added token starts as a copy of the nearest
-    old template of its class, and the bias of each old token and its copies is ``-log`` of their number
-    (plus the old bias): the extended model gives every old token's group the old token's probability."""
+    """Load ``ckpt``'s weights into ``model``, whose config is ``ckpt``'s or extends it with the signal or
+    neighbour input (:func:`check_init`): the added weights keep their initial values (their output zero).
+    With ``vocabulary`` extending the checkpoint's (``tokenizer.extend``), each added token starts as a copy
+    of the nearest old template of its class, and the bias of each old token and its copies is ``-log`` of
+    their number (plus the old bias): the extended model gives every old token's group the old token's
+    probability."""
     state = ckpt.model.state_dict()
     if vocabulary is not None and is_extension(ckpt.vocabulary, vocabulary):
         if not model.cfg.token_bias:
@@ -181,8 +184,14 @@ def load_into(model: TrajeglishModel, ckpt: Checkpoint, vocabulary: MotionVocabu
             bias = bias + state["token_bias"].view(ckpt.config.num_kinds, -1)[kinds, sources]
         state["token_bias"] = bias.reshape(-1)
     missing, unexpected = model.load_state_dict(state, strict=False)
-    added = [k for k in missing if k.startswith(SIGNAL_PARAMS)]
-    if unexpected or len(added) != len(missing) or (added and not model.cfg.signal_input):
+    signal = [k for k in missing if k.startswith(SIGNAL_PARAMS)]
+    neighbours = [k for k in missing if k.startswith(NEIGHBOUR_PARAMS)]
+    if (
+        unexpected
+        or len(signal) + len(neighbours) != len(missing)
+        or (signal and not model.cfg.signal_input)
+        or (neighbours and not model.cfg.neighbour_input)
+    ):
         raise CheckpointError(
             f"--init {ckpt.path or 'checkpoint'}: weights do not fit the model (missing {missing[:3]}, "
             f"unexpected {unexpected[:3]})"

@@ -106,6 +106,8 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         model_config = dataclasses.replace(model_config, vocab_size=vocabulary.size, token_bias=True)
     if args.signal_input:
         model_config = dataclasses.replace(model_config, signal_input=True)
+    if args.neighbour_input:
+        model_config = dataclasses.replace(model_config, neighbour_input=True)
     model_config = with_map_args(model_config, args)
     config = TrainConfig(
         steps=args.steps,
@@ -284,6 +286,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the model reads the traffic signals' states (ModelConfig.signal_input); with --init, the "
         "checkpoint's model is extended with it",
+    )
+    p.add_argument(
+        "--neighbour-input",
+        action="store_true",
+        help="every decoder position also reads its agent's velocity and nearest neighbours' relative "
+        "states (ModelConfig.neighbour_input); with --init, the checkpoint's model is extended with it",
     )
     p.add_argument(
         "--signal-lr-scale",

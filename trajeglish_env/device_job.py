@@ -63,6 +63,7 @@ SAVED = (
     "CKPT_EVERY",
     "SIGNAL_INPUT",
     "SIGNAL_LR_SCALE",
+    "NEIGHBOUR_INPUT",
     "VOCAB",
     "EXTEND",
     "COVER_RADIUS",

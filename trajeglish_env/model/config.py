@@ -42,7 +42,12 @@ class ModelConfig:
     ``token_bias``: the tied output head adds a learned bias per token. A model whose vocabulary was
     extended (``tokenizer.extend``) gets it: each added token starts as a copy of the nearest old one, and
     the bias (``-log`` of the copies) keeps every old token's probability, now shared by its copies, as it
-    was, so the extended model starts as the trained one did."""
+    was, so the extended model starts as the trained one did.
+
+    ``neighbour_input``: every decoder position also reads its agent's velocity and its nearest neighbours'
+    states relative to it at the step it moves from (:mod:`~trajeglish_env.model.neighbours`); the added
+    weights' output starts at zero, so a model extended with it (``train --init CKPT --neighbour-input``)
+    starts as ``CKPT`` did."""
 
     d_model: int = 512
     num_heads: int = 8
@@ -64,6 +69,7 @@ class ModelConfig:
     map_select: str = "frame"
     map_stride: int = 1
     token_bias: bool = False
+    neighbour_input: bool = False
 
     def __post_init__(self) -> None:
         if self.d_model % self.num_heads:
@@ -85,8 +91,9 @@ class ModelConfig:
             object.__setattr__(self, "variant", Variant(self.variant))
         if not isinstance(self.token_bias, bool):
             raise TypeError(f"ModelConfig.token_bias must be a bool, got {self.token_bias!r}")
-        if not isinstance(self.signal_input, bool):
-            raise TypeError(f"ModelConfig.signal_input must be a bool, got {self.signal_input!r}")
+        for name in ("signal_input", "neighbour_input"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"ModelConfig.{name} must be a bool, got {getattr(self, name)!r}")
         if isinstance(self.map_stride, bool) or not isinstance(self.map_stride, int) or self.map_stride < 1:
             raise ValueError(f"ModelConfig.map_stride must be an int >= 1, got {self.map_stride!r}")
         if self.map_select not in MAP_SELECT:

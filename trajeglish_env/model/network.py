@@ -20,6 +20,7 @@ from trajeglish_env.model.config import ModelConfig, Variant
 from trajeglish_env.model.encoder import SceneEncoder, SceneInputs
 from trajeglish_env.model.layers import DecoderBlock, DecoderCache, Linear, RowGroup, invariant_linear
 from trajeglish_env.model.masks import START, decoder_mask, teacher_inputs
+from trajeglish_env.model.neighbours import NeighbourEncoder, NeighbourView
 
 
 def additive_mask(allowed: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
@@ -49,6 +50,7 @@ class TrajeglishModel(nn.Module):
         # (earlier in the sequence, so allowed) is added through its own projection: it tells the model the
         # agent's current motion directly instead of through an attention look-up that is slow to learn.
         self.own_previous = Linear(c, c) if cfg.variant is Variant.TRAJEGLISH else None
+        self.neighbours = NeighbourEncoder(c) if cfg.neighbour_input else None
         self.blocks = nn.ModuleList(
             DecoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout) for _ in range(cfg.decoder_layers)
         )
@@ -104,21 +106,35 @@ class TrajeglishModel(nn.Module):
         slot = agents.gather(1, (index % a)[..., None].expand(-1, -1, agents.shape[-1]))
         return self.time(index // a) + self.target_agent(slot)
 
-    def _decoder_inputs(self, carried_ids: torch.Tensor, own_ids: torch.Tensor) -> torch.Tensor:
+    def _decoder_inputs(
+        self, carried_ids: torch.Tensor, own_ids: torch.Tensor, view: NeighbourView | None = None
+    ) -> torch.Tensor:
         """Embeddings of the tokens positions carry (the start token where :data:`START`), plus, for the
-        trajeglish variant, the projected previous token of each position's own agent."""
+        trajeglish variant, the projected previous token of each position's own agent, plus (with
+        ``neighbour_input``) what each position's agent sees of its neighbours (``view [B,n]``)."""
         is_start = (carried_ids == START)[..., None]
         x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
         if self.own_previous is not None:
             x = x + self.own_previous(self.embed_tokens(own_ids))
+        if self.neighbours is not None:
+            if view is None:
+                raise ValueError(
+                    "this model reads its agents' neighbours (ModelConfig.neighbour_input): pass their view "
+                    "(trajeglish_env.model.neighbours)"
+                )
+            x = x + self.neighbours(view).to(x.dtype)
         return x
 
     # ---------------------------------------------------------------------------------- training
-    def forward(self, scene: SceneInputs, input_tokens: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, scene: SceneInputs, input_tokens: torch.Tensor, view: NeighbourView | None = None
+    ) -> torch.Tensor:
         """Teacher-forced logits ``[B,T,A,V]`` for targets at every (step, agent slot).
 
         ``input_tokens [B,A,T]`` class-local ids of the tokens fed as input (the noisy ones in training;
-        ``-1`` where unobserved); position (t, a) never sees its own or later tokens.
+        ``-1`` where unobserved); position (t, a) never sees its own or later tokens. ``view [B,T,A]``:
+        the neighbour features (:func:`~trajeglish_env.model.neighbours.window_view`), read by models with
+        ``neighbour_input``.
         """
         b, a, t = input_tokens.shape
         if a > self.cfg.max_agents or t > self.cfg.steps:
@@ -127,7 +143,8 @@ class TrajeglishModel(nn.Module):
             )
         memory, memory_mask, agents = self.encoder(scene)
         ids = self.global_ids(input_tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, t * a)
-        x = self._decoder_inputs(*teacher_inputs(self.cfg.variant, ids, a))
+        flat = None if view is None else view.index(slice(None), slice(0, t)).flat_time_major()
+        x = self._decoder_inputs(*teacher_inputs(self.cfg.variant, ids, a), flat)
         x = x + self._positions(agents, torch.arange(t * a, device=x.device))
         mask = (
             decoder_mask(self.cfg.variant, t, a, x.device)
@@ -142,10 +159,14 @@ class TrajeglishModel(nn.Module):
         return self.class_logits(x.view(b, t, a, -1), kind)
 
     def loss(
-        self, scene: SceneInputs, input_tokens: torch.Tensor, targets: torch.Tensor
+        self,
+        scene: SceneInputs,
+        input_tokens: torch.Tensor,
+        targets: torch.Tensor,
+        view: NeighbourView | None = None,
     ) -> tuple[torch.Tensor, int]:
         """Mean cross-entropy (nats) over observed targets ``[B,A,T]`` (``-1`` ignored) and their count."""
-        logits = self.forward(scene, input_tokens)
+        logits = self.forward(scene, input_tokens, view)
         tgt = targets.transpose(1, 2)  # [B,T,A]
         tgt = torch.where(scene.agent_mask[:, None, :], tgt, torch.full_like(tgt, -1))
         n = int((tgt >= 0).sum())
@@ -190,13 +211,18 @@ class TrajeglishModel(nn.Module):
 
     @torch.no_grad()
     def prime(
-        self, cache: DecoderCache, agents: torch.Tensor, carried_ids: torch.Tensor, own_ids: torch.Tensor
+        self,
+        cache: DecoderCache,
+        agents: torch.Tensor,
+        carried_ids: torch.Tensor,
+        own_ids: torch.Tensor,
+        view: NeighbourView | None = None,
     ) -> None:
         """Store positions ``0 .. n-1`` of every row (teacher forcing a window's known steps) without
         computing their outputs: the last layer stops once its keys and values are stored."""
         b, n = carried_ids.shape
         start, count = np.zeros(b, dtype=np.int64), np.full(b, n, dtype=np.int64)
-        self._decode(cache, agents, carried_ids, own_ids, start, count, outputs=False)
+        self._decode(cache, agents, carried_ids, own_ids, start, count, outputs=False, view=view)
 
     @torch.no_grad()
     def decode_at(
@@ -207,6 +233,7 @@ class TrajeglishModel(nn.Module):
         own_ids: torch.Tensor,
         start: np.ndarray,
         count: np.ndarray,
+        view: NeighbourView | None = None,
     ) -> torch.Tensor:
         """Hidden states ``[B,n,C]`` (logits: :meth:`class_logits`) of a chunk of positions per row: row
         ``b`` decodes positions ``start[b] .. start[b]+count[b]-1`` of its own window (``count`` 0: the row
@@ -217,8 +244,9 @@ class TrajeglishModel(nn.Module):
         ids of the same agents' tokens one step earlier (-1: none; only the trajeglish variant uses them).
         ``start``/``count`` are host arrays (no device sync). Rows whose chunks end in the same model step
         attend together over the keys up to the end of that step (masked), so every shape a row meets
-        depends on that row alone and its result never depends on the other rows of the batch."""
-        out = self._decode(cache, agents, carried_ids, own_ids, start, count, outputs=True)
+        depends on that row alone and its result never depends on the other rows of the batch. ``view
+        [B,n]``: the positions' neighbour features (models with ``neighbour_input``)."""
+        out = self._decode(cache, agents, carried_ids, own_ids, start, count, outputs=True, view=view)
         assert out is not None
         return out
 
@@ -231,6 +259,7 @@ class TrajeglishModel(nn.Module):
         start: np.ndarray,
         count: np.ndarray,
         outputs: bool,
+        view: NeighbourView | None = None,
     ) -> torch.Tensor | None:
         """:meth:`decode_at`; with ``outputs`` False the last layer only stores its keys and values."""
         n, a = carried_ids.shape[1], agents.shape[1]
@@ -248,6 +277,7 @@ class TrajeglishModel(nn.Module):
             rows_np = np.flatnonzero(busy)
             cache_of = torch.from_numpy(rows_np).to(dev)
             carried_ids, own_ids, agents = carried_ids[cache_of], own_ids[cache_of], agents[cache_of]
+            view = None if view is None else view.index(cache_of)
             start, count, busy = start[rows_np], count[rows_np], busy[rows_np]
             cross_k = [k[cache_of] for k in cross_k]
             cross_v = [v[cache_of] for v in cross_v]
@@ -276,7 +306,7 @@ class TrajeglishModel(nn.Module):
             groups.append(RowGroup(index, keys, mask, positions, writes, span, cache_of))
         index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
         index = index.clamp(max=cache.capacity - 1)
-        x = self._decoder_inputs(carried_ids, own_ids) + self._positions(agents, index)
+        x = self._decoder_inputs(carried_ids, own_ids, view) + self._positions(agents, index)
         # a memory with nothing masked needs no mask (the same numbers: SDPA adds zeros otherwise)
         cross_mask = None if cache.memory_full else additive_mask(memory_mask, cross_k[0].dtype)
         last = len(self.blocks) - 1

@@ -259,7 +259,11 @@ class BatchEngine(WindowedRows):
         A = self.cfg.max_agents
         tau = self.now - w.start
         ahead = np.zeros(self.B, bool)
-        if self._draft is not None and int((count > 0).sum()) * A <= LOOK_AHEAD_MAX_POSITIONS:
+        if (
+            self._draft is not None
+            and not self.cfg.neighbour_input  # the next step's states are not known yet
+            and int((count > 0).sum()) * A <= LOOK_AHEAD_MAX_POSITIONS
+        ):
             # chunks that end the step look one step ahead (parallel.look_ahead_rows)
             ahead = look_ahead_rows(count, self._slot, tau, self.now, self.end, A, self.cfg.steps)
         extent = count + A * ahead
@@ -279,7 +283,8 @@ class BatchEngine(WindowedRows):
                 np.arange(self.B), w.slots, w.start, np.where(guess, positions - A, 0)
             )
             carried = torch.where(torch.from_numpy(guess).to(self.device), carried_now, carried)
-        hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, extent)
+        view = self._view(np.arange(self.B), w.slots, w.start, positions)
+        hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, extent, view)
         self.model_calls += 1
         slots = positions % A
         if ahead.any():

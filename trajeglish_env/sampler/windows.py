@@ -15,6 +15,7 @@ from trajeglish_env.geometry import to_local
 from trajeglish_env.model.layers import DecoderCache
 from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks, signal_classes
 from trajeglish_env.model.masks import START, input_shift
+from trajeglish_env.model.neighbours import NeighbourView, neighbour_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.sampler.rows import RowSpec, RowStates
 from trajeglish_env.sampler.subsets import SubsetPlan, plan_subsets
@@ -219,6 +220,30 @@ class WindowedRows(RowStates):
         own = np.where(tau > 0, own, -1)
         return torch.from_numpy(carried).to(self.device), torch.from_numpy(own).to(self.device)
 
+    def _view(
+        self, rows: np.ndarray, slots: np.ndarray, s0: np.ndarray, positions: np.ndarray
+    ) -> NeighbourView | None:
+        """Neighbour features ``[r,n]`` of window ``positions [r,n]`` (models with ``neighbour_input``;
+        else None): each position's agent reads the model's states of its window's agents at its step."""
+        if not self.cfg.neighbour_input:
+            return None
+        A = self.cfg.max_agents
+        tau = positions // A
+        steps = np.minimum(s0[:, None] + tau, self.T - 1)[:, :, None]  # [r,n,1]
+        real = slots >= 0
+        r_ix, a_ix = rows[:, None, None], np.where(real, slots, 0)[:, None, :]  # [r,1,1], [r,1,A]
+
+        def at(step: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+            ok = self.valid[r_ix, a_ix, step] & real[:, None, :]  # [r,n,A]
+            return torch.from_numpy(self.mxyh[r_ix, a_ix, step]), torch.from_numpy(ok)
+
+        (cur, ok), (prev, prev_ok) = at(steps), at(np.maximum(steps - 1, 0))
+        prev_ok &= torch.from_numpy(tau > 0)[..., None]  # a window's first step reads no velocity
+        size = torch.from_numpy(self.size[r_ix, a_ix]).expand(-1, positions.shape[1], -1, -1)
+        focal = torch.from_numpy(positions % A)[..., None]  # [r,n,1]
+        view = neighbour_view(cur, ok, prev, prev_ok, size, focal)
+        return NeighbourView(*(x[:, :, 0].to(self.device) for x in (view.own, view.pairs, view.mask)))
+
     def _prime(
         self,
         cache: DecoderCache,
@@ -232,7 +257,7 @@ class WindowedRows(RowStates):
         A = self.cfg.max_agents
         positions = np.broadcast_to(np.arange(steps * A), (len(rows), steps * A))
         carried, own = self._inputs(rows, slots, s0, positions)
-        self.model.prime(cache, agents, carried, own)
+        self.model.prime(cache, agents, carried, own, self._view(rows, slots, s0, positions))
 
 
 def _row_blocks(rows: np.ndarray, size: int) -> list[slice]:

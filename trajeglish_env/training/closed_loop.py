@@ -20,6 +20,7 @@ import torch
 
 from trajeglish_env.geometry import to_global, to_local
 from trajeglish_env.model.masks import START, input_shift
+from trajeglish_env.model.neighbours import NeighbourView, neighbour_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.tokenizer.distance import corner_distance
 from trajeglish_env.tokenizer.nearest import nearest_templates
@@ -94,6 +95,7 @@ def closed_loop_rollout(
         start, count = np.zeros(b, dtype=np.int64), np.ones(b, dtype=np.int64)
         rows_all = np.arange(b)
         for t in range(s - 1):
+            view = _step_view(model, states, size, t)
             for slot in range(a):
                 p = t * a + slot
                 q = p - shift
@@ -107,6 +109,7 @@ def closed_loop_rollout(
                     torch.from_numpy(own[:, None]).to(dev),
                     start,
                     count,
+                    None if view is None else view.index(slice(None), slice(slot, slot + 1)),
                 )
                 rows = rows_all[moving[:, slot, t]]
                 if not len(rows):
@@ -126,6 +129,21 @@ def closed_loop_rollout(
     finally:
         model.train(was_training)
     return tokens, states
+
+
+def _step_view(model: TrajeglishModel, states: np.ndarray, size: np.ndarray, t: int) -> NeighbourView | None:
+    """Neighbour features ``[B,A]`` at step ``t`` of the rollout's states (NaN: absent), as the sampler
+    computes them; None for a model without ``neighbour_input``."""
+    if not model.cfg.neighbour_input:
+        return None
+    cur = torch.from_numpy(np.nan_to_num(states[:, :, t]))
+    ok = torch.from_numpy(~np.isnan(states[:, :, t, 0]))
+    before = max(t - 1, 0)
+    prev = torch.from_numpy(np.nan_to_num(states[:, :, before]))
+    prev_ok = torch.from_numpy(~np.isnan(states[:, :, before, 0])) & (t > 0)
+    view = neighbour_view(cur, ok, prev, prev_ok, torch.from_numpy(size))
+    dev = model.start.device
+    return NeighbourView(view.own.to(dev), view.pairs.to(dev), view.mask.to(dev))
 
 
 def recovery_aims(states: np.ndarray, logged: np.ndarray, config: ClosedLoopConfig) -> np.ndarray:
@@ -185,6 +203,10 @@ def closed_loop_batch(
     closed = dict(batch)
     closed["input_tokens"] = torch.from_numpy(tokens).to(dev)
     closed["tokens"] = torch.from_numpy(targets).to(dev)
+    if model.cfg.neighbour_input:  # the rolled-out windows read their neighbours where the rollout put them
+        logged = batch["agent_xyh"]
+        rolled = torch.from_numpy(states).to(device=dev, dtype=logged.dtype)
+        closed["agent_xyh"] = torch.where(torch.isnan(rolled), logged, rolled)
     if not config.teacher_forced:
         return closed
     return {k: torch.cat([v, closed[k]]) for k, v in batch.items()}

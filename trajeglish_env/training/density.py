@@ -20,6 +20,7 @@ from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.model.layers import linear_compute
 from trajeglish_env.model.map_chunks import RED_CLASS
 from trajeglish_env.model.masks import teacher_inputs
+from trajeglish_env.model.neighbours import batch_view
 from trajeglish_env.model.network import SceneInputs
 from trajeglish_env.scenario import AgentKind, Scenario
 from trajeglish_env.scenario_io import atomic_path
@@ -55,7 +56,7 @@ def token_nll(
         red = (scene.map_signal == RED_CLASS).any(-1)  # [B]
         if not signals:
             scene = dataclasses.replace(scene, map_signal=torch.zeros_like(scene.map_signal))
-        logits = model(scene, batch["input_tokens"])  # [B,T,A,V]
+        logits = model(scene, batch["input_tokens"], batch_view(model.cfg.neighbour_input, batch))
         tgt = batch["tokens"].transpose(1, 2)  # [B,T,A]
         ok = (tgt >= 0) & scene.agent_mask[:, None, :]
         nll = F.cross_entropy(logits[ok], tgt[ok], reduction="none")
@@ -110,7 +111,9 @@ def _cached_nll(
         scene = SceneInputs.from_batch(batch)
         inputs = batch["input_tokens"]
         b, a, t = inputs.shape
-        full = model(scene, inputs)  # [B,T,A,V]
+        view = batch_view(model.cfg.neighbour_input, batch)
+        full = model(scene, inputs, view)  # [B,T,A,V]
+        flat = None if view is None else view.flat_time_major()
         ids = model.global_ids(inputs, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, t * a)
         carried, own = teacher_inputs(model.cfg.variant, ids, a)
         cache = model.empty_cache(b, cache_dtype)
@@ -120,7 +123,8 @@ def _cached_nll(
         for s in range(t):
             chunk = slice(s * a, (s + 1) * a)
             start, count = np.full(b, s * a), np.full(b, a)
-            hidden = model.decode_at(cache, agents, carried[:, chunk], own[:, chunk], start, count)
+            part = None if flat is None else flat.index(slice(None), chunk)
+            hidden = model.decode_at(cache, agents, carried[:, chunk], own[:, chunk], start, count, part)
             steps.append(model.class_logits(hidden, scene.agent_kind))
         cached = torch.stack(steps, dim=1)  # [B,T,A,V]
         tgt = batch["tokens"].transpose(1, 2)

@@ -39,6 +39,7 @@ from trajeglish_env.checkpoint import (
 from trajeglish_env.distributed import init_ranks, rank_device
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.encoder import SIGNAL_PARAMS
+from trajeglish_env.model.neighbours import batch_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import load_scenarios
@@ -148,7 +149,8 @@ class _LossModule(nn.Module):
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         scene = SceneInputs.from_batch(batch)
-        mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"])
+        view = batch_view(self.model.cfg.neighbour_input, batch)
+        mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"], view)
         return mean * n, torch.tensor(float(n), device=mean.device)
 
 
@@ -183,7 +185,8 @@ def validation_nll(
         batch = _batch_to(
             collate_windows([ds[g] for g in range(first, min(windows, first + batch_size))]), device
         )
-        mean, n = model.loss(SceneInputs.from_batch(batch), batch["input_tokens"], batch["tokens"])
+        view = batch_view(model.cfg.neighbour_input, batch)
+        mean, n = model.loss(SceneInputs.from_batch(batch), batch["input_tokens"], batch["tokens"], view)
         total += float(mean) * n
         count += n
     model.train(was_training)
