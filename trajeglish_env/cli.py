@@ -242,7 +242,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument("--workers", type=POSITIVE, default=1, help="parallel processes")
     p.add_argument("--source", choices=("highway", "sumo"), default="highway")
-    p.add_argument("--kinds", help="comma-separated scene kinds (default: all kinds of the source)")
+    p.add_argument(
+        "--kinds",
+        help="comma-separated scene kinds (default: all kinds of the source; highway also takes KIND+stop, "
+        "the kind with a hard stop event, see sources/highway_stops.py)",
+    )
     p.add_argument("--scenes-per-shard", type=POSITIVE, default=8)
 
     p = add("convert-womd", cmd_convert_womd, "convert Waymo Open Motion Dataset TFRecords to shard files")

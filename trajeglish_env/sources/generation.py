@@ -34,7 +34,8 @@ SOURCES = {"highway": "trajeglish_env.sources.highway", "sumo": "trajeglish_env.
 
 
 class SceneSource(Protocol):
-    """What a scene-source module provides: its scene kinds and a pure shard generator."""
+    """What a scene-source module provides: its scene kinds (default ones; an optional ``EXTRA_KINDS``
+    tuple lists kinds taken only when asked for) and a pure shard generator."""
 
     KINDS: tuple[str, ...]
 
@@ -141,11 +142,10 @@ def generate(
     ranks = ranks or Ranks()
     source = load_source(config.source)
     kinds = config.kinds or source.KINDS
-    unknown = sorted(set(kinds) - set(source.KINDS))
+    known = tuple(source.KINDS) + tuple(getattr(source, "EXTRA_KINDS", ()))
+    unknown = sorted(set(kinds) - set(known))
     if unknown:
-        raise ValueError(
-            f"--kinds: unknown {config.source} scene kinds {unknown}; expected some of {source.KINDS}"
-        )
+        raise ValueError(f"--kinds: unknown {config.source} scene kinds {unknown}; expected some of {known}")
     if config.scenes < 1 or config.scenes_per_shard < 1:
         raise ValueError("--scenes and scenes_per_shard must be >= 1")
     config = GenerationConfig(

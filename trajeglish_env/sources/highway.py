@@ -48,11 +48,19 @@ from trajeglish_env.sources.highway_kinds import (
     SceneIDMVehicle,
     as_scene_vehicle,
     base_env_config,
-    check_kind,
 )
 from trajeglish_env.sources.highway_map import network_polylines
+from trajeglish_env.sources.highway_stops import (
+    STOP_SUFFIX,
+    StopEvent,
+    choose_stopper,
+    draw_stop_event,
+    split_kind,
+    start_stop,
+)
 
 __all__ = [
+    "EXTRA_KINDS",
     "KINDS",
     "HighwaySceneConfig",
     "SceneCrashError",
@@ -63,6 +71,8 @@ __all__ = [
 
 SOURCE = "highway"
 GENERATOR_VERSION = 2  # 2: rounded kerb corners (HighwaySceneConfig.kerb_radius)
+# Kinds accepted by ``--kinds`` but not drawn by default: each base kind with a stop event (highway_stops).
+EXTRA_KINDS: tuple[str, ...] = tuple(kind + STOP_SUFFIX for kind in KINDS)
 
 
 class SceneCrashError(RuntimeError):
@@ -149,9 +159,10 @@ class _Recording:
 
 
 def _simulate(
-    env: AbstractEnv, spec: KindSpec, sdc: Vehicle, config: HighwaySceneConfig
+    env: AbstractEnv, spec: KindSpec, sdc: Vehicle, config: HighwaySceneConfig, stop: StopEvent | None = None
 ) -> _Recording | None:
-    """Warm up, then record ``config.steps`` states of every vehicle; None if the sdc crashes."""
+    """Warm up, then record ``config.steps`` states of every vehicle; None if the sdc crashes. With a
+    ``stop`` event, its vehicle starts braking to a stop at the event's recorded step."""
     road = env.road
     sim_dt = config.dt / config.substeps
     warmup = int(round(config.warmup_seconds / sim_dt))
@@ -174,6 +185,10 @@ def _simulate(
         if k < warmup or (k - warmup) % config.substeps:
             continue
         t = (k - warmup) // config.substeps
+        if stop is not None and t == stop.step:
+            stopper = choose_stopper(road, sdc, stop)
+            if stopper is not None:
+                start_stop(stopper, stop)
         for v in road.vehicles:
             row = rows.get(id(v))
             if row is None:
@@ -219,6 +234,7 @@ def _tracks_to_predict(
 
 def _attempt(kind: str, seed: int, attempt: int, config: HighwaySceneConfig) -> Scenario | None:
     """Build and record one try of a scene; None when it has to be retried (a crash)."""
+    kind, stops = split_kind(kind)
     spec = KIND_SPECS[kind]
     env_seed, config_seed = np.random.SeedSequence([seed, attempt]).generate_state(2)
     rng = np.random.default_rng(int(config_seed))
@@ -236,7 +252,8 @@ def _attempt(kind: str, seed: int, attempt: int, config: HighwaySceneConfig) -> 
         ego_index = int(rng.integers(n // 4, max(n // 2, n // 4 + 1)))
     sdc = road.vehicles[ego_index]
     env.controlled_vehicles = [sdc]
-    recording = _simulate(env, spec, sdc, config)
+    stop = draw_stop_event(seed, attempt, config.current_index, config.steps) if stops else None
+    recording = _simulate(env, spec, sdc, config, stop)
     if recording is None:
         return None
     xyh = _to_scenario_frame(recording.xyh, recording.valid)
@@ -260,7 +277,7 @@ def _attempt(kind: str, seed: int, attempt: int, config: HighwaySceneConfig) -> 
         sdc=sdc_index,
         polylines=map_lines.polylines,
         polyline_kinds=map_lines.kinds,
-        scenario_id=f"{SOURCE}-{kind}-{seed}",
+        scenario_id=f"{SOURCE}-{kind}{STOP_SUFFIX if stops else ''}-{seed}",
         source=SOURCE,
         dt=float(config.dt),
         current_index=int(config.current_index),
@@ -268,13 +285,20 @@ def _attempt(kind: str, seed: int, attempt: int, config: HighwaySceneConfig) -> 
     )
 
 
+def _check_kind(kind: str) -> None:
+    """A ValueError naming the known kinds unless ``kind`` is one of KINDS or EXTRA_KINDS."""
+    if kind not in KINDS and kind not in EXTRA_KINDS:
+        raise ValueError(f"unknown highway scene kind {kind!r}; expected one of {KINDS + EXTRA_KINDS}")
+
+
 def generate_scene(kind: str, seed: int, config: HighwaySceneConfig = HighwaySceneConfig()) -> Scenario:
-    """Simulate one scene of ``kind`` (one of :data:`KINDS`); a pure function of its arguments.
+    """Simulate one scene of ``kind`` (one of :data:`KINDS` or :data:`EXTRA_KINDS`); a pure function of its
+    arguments.
 
     A crash involving the ego (or, with ``config.reject_any_crash``, any kept vehicle) retries with a
     seed derived from (seed, attempt); after ``config.max_attempts`` tries a SceneCrashError is raised.
     """
-    check_kind(kind)
+    _check_kind(kind)
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     for attempt in range(config.max_attempts):
@@ -294,7 +318,7 @@ def generate_shard(kinds: tuple[str, ...], seed: int, shard_index: int, count: i
     """
     kinds = tuple(kinds) or KINDS
     for kind in kinds:
-        check_kind(kind)
+        _check_kind(kind)
     if count < 0:
         raise ValueError(f"count must be >= 0, got {count}")
     scenes = []

@@ -59,6 +59,14 @@ class SceneIDMVehicle(IDMVehicle):
     LANE_CHANGE_MIN_ACC_GAIN = 0.2
     LANE_CHANGE_MAX_BRAKING_IMPOSED = 2.0
     LANE_CHANGE_DELAY = 1.0
+    stop_decel = 0.0  # > 0: brake at this rate (m/s^2) to a stop and hold (highway_stops.start_stop)
+
+    def act(self, action: dict | str | None = None) -> None:
+        """IDM/MOBIL, or a constant braking rate once a stop event has started (steering still follows
+        the lane)."""
+        super().act(action)
+        if self.stop_decel > 0 and not self.crashed:
+            self.action["acceleration"] = -self.stop_decel
 
     def step(self, dt: float) -> None:
         """Advance the bicycle model by ``dt`` seconds, never below zero speed."""
