@@ -72,8 +72,7 @@ def choose_stopper(road: Road, sdc: Vehicle, event: StopEvent) -> Vehicle | None
     near = [
         v
         for v in moving
-        if np.linalg.norm(v.position - sdc.position) <= event.near_sdc
-        and _has_close_follower(road, v, event)
+        if np.linalg.norm(v.position - sdc.position) <= event.near_sdc and _has_close_follower(road, v, event)
     ]
     if not near:
         return None
