@@ -4,16 +4,21 @@ holds, the traffic behind it reacts, and nothing before the event differs from t
 from __future__ import annotations
 
 import functools
+import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
+from helpers import REPO
 
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.scenario import Scenario, scene_kind
+from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.sources import highway
 from trajeglish_env.sources.generation import GenerationConfig, generate
 from trajeglish_env.sources.highway import EXTRA_KINDS, KINDS, generate_scene
-from trajeglish_env.sources.highway_stops import draw_stop_event, split_kind
+from trajeglish_env.sources.highway_stops import draw_stop_event, split_kind, stop_event_in
 from trajeglish_env.training.kind_repeat import repeat_counts
 
 SEED = 2  # highway+stop seed 2: the sdc stops from about 20 m/s, on the first try
@@ -42,9 +47,11 @@ def test_kinds_and_names() -> None:
     assert EXTRA_KINDS == tuple(k + "+stop" for k in KINDS)
     assert split_kind("two-way+stop") == ("two-way", True) and split_kind("two-way") == ("two-way", False)
     sc = scene("highway+stop")
-    assert sc.scenario_id == f"highway-highway+stop-{SEED}"
+    assert sc.scenario_id == f"highway-highway+stop-{SEED}-stop-a{sc.track_id[sc.sdc]}-t10"  # who and when
     assert scene_kind(sc) == "highway/highway+stop"
     assert repeat_counts([sc, scene("highway")], (("highway/highway+stop", 3),)).tolist() == [3, 1]
+    quiet = generate_scene("merge+stop", 2)  # no vehicle with a follower close behind: no event, no suffix
+    assert quiet.scenario_id == "highway-merge+stop-2" and stop_event_in(quiet) is None
     with pytest.raises(ValueError, match=r"unknown highway scene kind 'highway\+go'.*highway\+stop"):
         generate_scene("highway+go", 0)
 
@@ -54,6 +61,8 @@ def test_a_vehicle_brakes_to_a_stop_and_holds_and_its_follower_reacts() -> None:
     event = draw_stop_event(SEED, 0, sc.current_index, sc.num_steps)
     assert sc.current_index - 5 <= event.step <= sc.current_index + 30 and 3.0 <= event.decel <= 6.0
     i = _stopper(sc, event.step, event.decel)
+    assert stop_event_in(sc) == (i, event.step) and i == sc.sdc
+    assert stop_event_in(scene("highway")) is None
     speed = sc.speed()
     assert speed[i, event.step] > 10.0  # it was moving
     stopped = np.flatnonzero(speed[i] < 0.01)
@@ -92,3 +101,17 @@ def test_generate_takes_stop_kinds_only_when_asked(tmp_path) -> None:
     assert all("+stop" not in k for k in highway.KINDS)
     with pytest.raises(ValueError, match=r"unknown highway scene kinds \['u-turn\+go'\]"):
         generate(GenerationConfig("highway", 1, kinds=("u-turn+go",)), tmp_path / "x", progress=False)
+
+
+def test_stop_probe_script(tmp_path) -> None:
+    """scripts/stop_probe.py: the stopper replays its log, the model drives the rest; guarded, none hit it."""
+    save_scenarios(tmp_path / "stop" / "s.scn.npz", [scene("highway+stop", 1)])  # stops at step 27
+    save_scenarios(tmp_path / "base" / "s.scn.npz", [scene("highway", 1)])
+    script = [sys.executable, str(REPO / "scripts" / "stop_probe.py"), "--rollouts", "2", "--json"]
+    done = subprocess.run(
+        [*script, "--data", str(tmp_path / "stop"), "--guard"], capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == {"scenes": 1, "rollouts": 2, "hits": 0, "rate": 0.0}
+    done = subprocess.run([*script, "--data", str(tmp_path / "base")], capture_output=True, text=True)
+    assert done.returncode != 0 and "no +stop scene with its event after the current step" in done.stderr

@@ -57,6 +57,7 @@ from trajeglish_env.sources.highway_stops import (
     draw_stop_event,
     split_kind,
     start_stop,
+    stop_id_suffix,
 )
 
 __all__ = [
@@ -156,6 +157,7 @@ class _Recording:
     size: np.ndarray
     crashed: np.ndarray
     sdc: int
+    stopper: int | None = None  # row of a stop event's vehicle
 
 
 def _simulate(
@@ -172,6 +174,7 @@ def _simulate(
     tracked: list[Vehicle] = []  # keeps every recorded vehicle alive, so id() values stay unique
     records: list[tuple[int, int, float, float, float]] = []
     crashed: set[int] = set()
+    stopper = None
     for k in range(last + 1):
         if k > 0:
             if spec.spawns_traffic and k % policy_period == 0:
@@ -205,7 +208,8 @@ def _simulate(
     valid[row, step] = True
     size = np.array([[v.LENGTH, v.WIDTH] for v in tracked], dtype=np.float64)
     crashed_mask = np.isin(np.arange(len(tracked)), sorted(crashed))
-    return _Recording(xyh, valid, size, crashed_mask, rows[id(sdc)])
+    stop_row = None if stopper is None else rows[id(stopper)]
+    return _Recording(xyh, valid, size, crashed_mask, rows[id(sdc)], stop_row)
 
 
 def _to_scenario_frame(xyh: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -277,7 +281,8 @@ def _attempt(kind: str, seed: int, attempt: int, config: HighwaySceneConfig) -> 
         sdc=sdc_index,
         polylines=map_lines.polylines,
         polyline_kinds=map_lines.kinds,
-        scenario_id=f"{SOURCE}-{kind}{STOP_SUFFIX if stops else ''}-{seed}",
+        scenario_id=f"{SOURCE}-{kind}{STOP_SUFFIX if stops else ''}-{seed}"
+        + stop_id_suffix(stop, recording.stopper if recording.stopper in index else None),
         source=SOURCE,
         dt=float(config.dt),
         current_index=int(config.current_index),

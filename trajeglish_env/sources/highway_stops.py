@@ -12,7 +12,9 @@ the source's default kinds: ask for them with ``generate --kinds highway+stop ..
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from highway_env.road.road import Road
@@ -84,3 +86,17 @@ def start_stop(vehicle: Vehicle, event: StopEvent) -> None:
     vehicle.stop_decel = event.decel
     vehicle.enable_lane_change = False
     vehicle.target_lane_index = vehicle.lane_index
+
+
+def stop_id_suffix(event: StopEvent | None, track: int | None) -> str:
+    """What a ``+stop`` scene's id gets after its seed: ``-stop-a{track}-t{step}`` naming the vehicle that
+    stopped (its track id) and the recorded step it began, or nothing when no vehicle qualified."""
+    return "" if event is None or track is None else f"-stop-a{track}-t{event.step}"
+
+
+def stop_event_in(scene: Any) -> tuple[int, int] | None:
+    """``(agent index, step)`` of the stop event a generated ``+stop`` scene records in its id, else None."""
+    match = re.search(r"\+stop-\d+-stop-a(\d+)-t(\d+)$", scene.scenario_id)
+    if match is None:
+        return None
+    return scene.agent_index(int(match.group(1))), int(match.group(2))
