@@ -105,13 +105,21 @@ def test_generate_takes_stop_kinds_only_when_asked(tmp_path) -> None:
 
 def test_stop_probe_script(tmp_path) -> None:
     """scripts/stop_probe.py: the stopper replays its log, the model drives the rest; guarded, none hit it."""
-    save_scenarios(tmp_path / "stop" / "s.scn.npz", [scene("highway+stop", 1)])  # stops at step 27
+    save_scenarios(tmp_path / "stop" / "s.scn.npz", [scene("u-turn+stop", 3)])  # stops at step 25
     save_scenarios(tmp_path / "base" / "s.scn.npz", [scene("highway", 1)])
     script = [sys.executable, str(REPO / "scripts" / "stop_probe.py"), "--rollouts", "2", "--json"]
     done = subprocess.run(
         [*script, "--data", str(tmp_path / "stop"), "--guard"], capture_output=True, text=True
     )
     assert done.returncode == 0, done.stderr
-    assert json.loads(done.stdout) == {"scenes": 1, "rollouts": 2, "hits": 0, "rate": 0.0}
+    result = json.loads(done.stdout)
+    assert {k: result[k] for k in ("scenes", "rollouts", "hits", "rate")} == {
+        "scenes": 1,
+        "rollouts": 2,
+        "hits": 0,
+        "rate": 0.0,
+    }
+    assert result["reaction_tokens"] > 0  # the car behind slows within the window: its tokens are scored
+    assert result["reaction_nll_with_stopper"] > 0 and result["reaction_nll_without_stopper"] > 0
     done = subprocess.run([*script, "--data", str(tmp_path / "base")], capture_output=True, text=True)
     assert done.returncode != 0 and "no +stop scene with its event after the current step" in done.stderr
