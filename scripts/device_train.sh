@@ -24,6 +24,8 @@
 #   SCENES         highway-env training scenes to generate at most (0: none) [4000]
 #   GEN_MINUTES    generation stops after this, keeping the finished shards [1.5]
 #   SUMO_SCENES    SUMO scenes to generate: auto (SCENES/4 where SUMO is installed, else none) | N [auto]
+#   STOP_SCENES    highway-env scenes with a hard stop event (every `KIND+stop` kind: a vehicle brakes to a
+#                  stop in front of a follower) generated beside the others, seed GEN_SEED + 5000 [0]
 #   VAL_SCENES     held-out highway-env scenes (fixed seed VAL_SEED, the same in every call) [SCENES/20
 #                  within 8..64]; 0: hold out every 20th training scene instead
 #   DATA_IN        carried scenes: DATA_IN/train/** is trained on, DATA_IN/val/** held out
@@ -90,6 +92,8 @@ MINUTES=${MINUTES:-9}
 SCENES=${SCENES:-4000}
 GEN_MINUTES=${GEN_MINUTES:-1.5}
 SUMO_SCENES=${SUMO_SCENES:-auto}
+STOP_SCENES=${STOP_SCENES:-0}
+[[ "$STOP_SCENES" =~ ^[0-9]+$ ]] || die "STOP_SCENES=$STOP_SCENES: expected a whole number of scenes"
 VAL_SEED=${VAL_SEED:-90001}
 WHEELS=${WHEELS:-.whl}
 SITE=${SITE:-/tmp/site}
@@ -226,10 +230,11 @@ TRAIN_WORKERS=${TRAIN_WORKERS:-$((CORES > 1 ? CORES - 1 : 0))}
 DATA=$WORK/data
 [ -z "$DATA_IN" ] || [ -d "$DATA_IN" ] || die "DATA_IN=$DATA_IN: no such folder (carry it: carry [\"$DATA_IN\"])"
 VAL_SCENES=${VAL_SCENES:-$(calc "int(($SCENES / 20 < 8) ? 8 : (($SCENES / 20 > 64) ? 64 : $SCENES / 20))")}
-gen() { # source scenes seed out workers seconds: finished shards stay when the time is up
-    local rc=0
+gen() { # source scenes seed out workers seconds [kinds]: finished shards stay when the time is up
+    local rc=0 kinds=()
+    [ -z "${7:-}" ] || kinds=(--kinds "$7")
     timeout --kill-after=15 "$6" "$PYTHON" -m trajeglish_env.cli generate --quiet --source "$1" \
-        --scenes "$2" --seed "$3" --out "$4" --workers "$5" >/dev/null || rc=$?
+        --scenes "$2" --seed "$3" --out "$4" --workers "$5" "${kinds[@]}" >/dev/null || rc=$?
     [ "$rc" = 0 ] || [ "$rc" = 124 ] || die "generate --source $1 --out $4 failed (exit code $rc)"
     [ "$rc" = 0 ] || say "$(basename "$4"): time is up after $6 s; keeping the finished shards"
 }
@@ -259,6 +264,12 @@ fi
 if [ "$SUMO_SCENES" -gt 0 ]; then
     TRAIN_DIRS+=("$DATA/sumo-s$GEN_SEED-n$SUMO_SCENES")
     gen sumo "$SUMO_SCENES" "$GEN_SEED" "${TRAIN_DIRS[-1]}" "$(((GEN_WORKERS + 3) / 4))" "$GEN_S" &
+    PIDS+=($!)
+fi
+if [ "$STOP_SCENES" -gt 0 ]; then
+    STOP_KINDS=$("$PYTHON" -c "from trajeglish_env.sources.highway import EXTRA_KINDS; print(','.join(EXTRA_KINDS))")
+    TRAIN_DIRS+=("$DATA/stop-s$((GEN_SEED + 5000))-n$STOP_SCENES")
+    gen highway "$STOP_SCENES" "$((GEN_SEED + 5000))" "${TRAIN_DIRS[-1]}" "$(((GEN_WORKERS + 3) / 4))" "$GEN_S" "$STOP_KINDS" &
     PIDS+=($!)
 fi
 for pid in "${PIDS[@]}"; do wait "$pid" || exit 2; done

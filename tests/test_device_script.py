@@ -18,7 +18,7 @@ from helpers import REPO, grid_vocabulary, straight_road_scene, tiny_checkpoint,
 from trajeglish_env import device_job
 from trajeglish_env.checkpoint import load_checkpoint, pretrained_path, save_checkpoint
 from trajeglish_env.cores import can_fork
-from trajeglish_env.scenario_io import save_scenarios
+from trajeglish_env.scenario_io import save_scenarios, scenario_ids
 from trajeglish_env.training.train import TrainConfig, train
 
 BASH = shutil.which("bash")
@@ -72,13 +72,16 @@ def _carry_scenes(tmp: Path, n: int) -> None:
 def test_a_call_trains_and_a_second_call_resumes(tmp_path: Path) -> None:
     _carry_scenes(tmp_path, 6)
 
-    # two highway-env scenes generated, six carried; the schedule of STEPS goes on over several calls
-    first = _job(tmp_path, "1", SCENES="2", FIT_STEPS="0")
+    # two highway-env scenes and two with a stop event generated, six carried; the schedule of STEPS goes
+    # on over several calls
+    first = _job(tmp_path, "1", SCENES="2", STOP_SCENES="2", FIT_STEPS="0")
     assert first.returncode == 0, first.stdout[-3000:]
     out1 = tmp_path / "out-1"
     summary1 = json.loads((out1 / "summary.json").read_text())
     assert summary1["step"] >= 1 and summary1["params"]["PRESET"] == "tiny"
-    assert summary1["train_scenes"] == 8 - 1  # every 20th scene (the first) held out
+    assert summary1["train_scenes"] == 10 - 1  # every 20th scene (the first) held out
+    (stops,) = (tmp_path / "work-1").rglob("stop-s*-n2")
+    assert all("+stop" in sid for f in stops.glob("*.scn.npz") for sid in scenario_ids(f))
     assert "highway" in summary1["sources"]
     ckpt = load_checkpoint(out1 / "model.pt")
     assert ckpt.config.d_model == tiny_config().d_model and ckpt.training["step"] == summary1["step"]
@@ -192,6 +195,8 @@ def test_bad_setups_fail_with_one_clear_line(tmp_path: Path) -> None:
     assert no_out.returncode == 2 and "OUT is not set" in no_out.stdout
     bad_signal = _job(tmp_path, "s", SIGNAL_INPUT="yes")
     assert bad_signal.returncode == 2 and "SIGNAL_INPUT=yes: expected 0 or 1" in bad_signal.stdout
+    bad_stops = _job(tmp_path, "t", STOP_SCENES="some")
+    assert bad_stops.returncode == 2 and "STOP_SCENES=some: expected a whole number" in bad_stops.stdout
     bad_neighbours = _job(tmp_path, "n", NEIGHBOUR_INPUT="2")
     assert bad_neighbours.returncode == 2 and "NEIGHBOUR_INPUT=2: expected 0 or 1" in bad_neighbours.stdout
     if not torch.cuda.is_available():
