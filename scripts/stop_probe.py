@@ -30,9 +30,9 @@ from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.rollouts import rollout
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.sources.highway_stops import stop_event_in
-from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.training.dataset import SceneStore, collate_windows, make_window
 from trajeglish_env.training.train import window_config
+from trajeglish_env.training.training_data import with_tokens
 
 SKIP = 6  # window steps before the scored tokens: the reaction needs the stop to have begun
 
@@ -56,15 +56,7 @@ def hits_stopper(
 @torch.no_grad()
 def _window_nll(ckpt: Checkpoint, window: dict[str, np.ndarray], scored: np.ndarray) -> np.ndarray:
     """NLL (nats) of the observed tokens of window slots ``scored`` from step SKIP on."""
-    mask = window["agent_mask"]
-    tok = tokenize(
-        ckpt.vocabulary,
-        window["agent_xyh"].astype(np.float64),
-        window["agent_valid"] & mask[:, None],
-        window["agent_size"].astype(np.float64),
-        window["agent_kind"],
-    )
-    batch = collate_windows([{**window, "tokens": tok.tokens, "input_tokens": tok.input_tokens}])
+    batch = collate_windows([with_tokens(dict(window), ckpt.vocabulary)])
     model = ckpt.model.eval()
     logits = model(
         SceneInputs.from_batch(batch), batch["input_tokens"], batch_view(model.cfg.neighbour_input, batch)

@@ -66,6 +66,7 @@ __all__ = [
     "HighwaySceneConfig",
     "SceneCrashError",
     "SceneIDMVehicle",
+    "check_kind",
     "generate_scene",
     "generate_shard",
 ]
@@ -290,7 +291,7 @@ def _attempt(kind: str, seed: int, attempt: int, config: HighwaySceneConfig) -> 
     )
 
 
-def _check_kind(kind: str) -> None:
+def check_kind(kind: str) -> None:
     """A ValueError naming the known kinds unless ``kind`` is one of KINDS or EXTRA_KINDS."""
     if kind not in KINDS and kind not in EXTRA_KINDS:
         raise ValueError(f"unknown highway scene kind {kind!r}; expected one of {KINDS + EXTRA_KINDS}")
@@ -303,7 +304,7 @@ def generate_scene(kind: str, seed: int, config: HighwaySceneConfig = HighwaySce
     A crash involving the ego (or, with ``config.reject_any_crash``, any kept vehicle) retries with a
     seed derived from (seed, attempt); after ``config.max_attempts`` tries a SceneCrashError is raised.
     """
-    _check_kind(kind)
+    check_kind(kind)
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     for attempt in range(config.max_attempts):
@@ -323,7 +324,7 @@ def generate_shard(kinds: tuple[str, ...], seed: int, shard_index: int, count: i
     """
     kinds = tuple(kinds) or KINDS
     for kind in kinds:
-        _check_kind(kind)
+        check_kind(kind)
     if count < 0:
         raise ValueError(f"count must be >= 0, got {count}")
     scenes = []

@@ -66,19 +66,29 @@ class TokenizedWindows(Dataset):
         epoch, scene_index = self.order(g)
         rng = np.random.default_rng([self.seed, epoch, scene_index])
         w = make_window(self.scenes[scene_index], self.window, rng, scene_index=scene_index)
-        mask = w["agent_mask"]
-        tok = tokenize(
-            self.vocabulary,
-            w["agent_xyh"].astype(np.float64),
-            w["agent_valid"] & mask[:, None],
-            w["agent_size"].astype(np.float64),
-            w["agent_kind"],
-            noise=self.noise,
-            rng=rng if self.noise is not None else None,
-        )
-        w["tokens"] = tok.tokens
-        w["input_tokens"] = tok.input_tokens
-        return w
+        return with_tokens(w, self.vocabulary, self.noise, rng)
+
+
+def with_tokens(
+    window: dict[str, np.ndarray],
+    vocabulary: MotionVocabulary,
+    noise: NoiseConfig | None = None,
+    rng: np.random.Generator | None = None,
+) -> dict[str, np.ndarray]:
+    """``window`` with ``tokens`` (argmin targets of its real agents' valid steps) and ``input_tokens``
+    (noisy with ``noise``, drawn from ``rng``) added in place."""
+    tok = tokenize(
+        vocabulary,
+        window["agent_xyh"].astype(np.float64),
+        window["agent_valid"] & window["agent_mask"][:, None],
+        window["agent_size"].astype(np.float64),
+        window["agent_kind"],
+        noise=noise,
+        rng=rng if noise is not None else None,
+    )
+    window["tokens"] = tok.tokens
+    window["input_tokens"] = tok.input_tokens
+    return window
 
 
 class StepBatchSampler(Sampler[list[int]]):
