@@ -66,8 +66,8 @@ def _has_close_follower(road: Road, vehicle: Vehicle, event: StopEvent) -> bool:
 
 def choose_stopper(road: Road, sdc: Vehicle, event: StopEvent) -> Vehicle | None:
     """The vehicle that stops: the sdc if it moves at ``min_speed`` or more with a follower close behind
-    (:func:`_has_close_follower`), else
-    one such vehicle within ``near_sdc`` m of the sdc (by ``event.pick``); None when there is none."""
+    (:func:`_has_close_follower`), else one such vehicle within ``near_sdc`` m of the sdc (by
+    ``event.pick``); None when there is none."""
     moving = [v for v in road.vehicles if not v.crashed and v.speed >= event.min_speed]
     if sdc in moving and _has_close_follower(road, sdc, event):
         return sdc
