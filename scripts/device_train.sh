@@ -60,6 +60,9 @@
 #                  rolled out by the model, its K most likely tokens nearest the log, and trained to return
 #                  to the log, beside its teacher-forced windows); use with INIT; 0: teacher forcing [0];
 #                  kept when resuming
+#   INTERACTION_WEIGHT  loss weight of the tokens of agents closing in on the agent ahead (`train
+#                  --interaction-weight`; docs/evaluation.md "Weighing the tokens of followers"); 1: plain
+#                  likelihood [1]; kept when resuming
 #   FIT_STEPS      1: the first call's step rate fits the schedule's length to its training budget (`train
 #                  --fit-steps`; STEPS is then the most), so the learning rate reaches 0 as that call ends;
 #                  0: the schedule runs STEPS, over as many calls as it takes (RUN_IN) [1]
@@ -81,9 +84,11 @@ calc() { awk "BEGIN { print $* }"; }
 REPO=$PWD
 command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
-# user-set schedule values (checked against a resumed run's before defaults fill the rest)
+# user-set schedule values (checked against a resumed run's before defaults fill the rest); a resumed run
+# keeps these (trajeglish_env/device_job.py SAVED)
+SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT"
 declare -A GIVEN=()
-for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do
+for v in $SAVED_VARS; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
 done
 
@@ -125,7 +130,7 @@ RESUME=()
 if [ -n "$RUN_IN" ]; then
     SAVED=$("$PYTHON" trajeglish_env/device_job.py saved "$RUN_IN") || exit 2
     eval "$SAVED"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do
+    for v in $SAVED_VARS; do
         s=SAVED_$v
         [ -n "${!s:-}" ] || continue
         if [ -n "${GIVEN[$v]:-}" ] && [ "${GIVEN[$v]}" != "${!s}" ]; then
@@ -170,6 +175,10 @@ case $CLOSED_LOOP in
 esac
 CLOSED_ARGS=()
 [ "$CLOSED_LOOP" = 0 ] || CLOSED_ARGS=(--closed-loop-top-k "$CLOSED_LOOP")
+INTERACTION_WEIGHT=${INTERACTION_WEIGHT:-1}
+[[ "$INTERACTION_WEIGHT" =~ ^[0-9]+([.][0-9]+)?$ ]] && [ "$(calc "($INTERACTION_WEIGHT >= 1)")" = 1 ] ||
+    die "INTERACTION_WEIGHT=$INTERACTION_WEIGHT: expected a loss weight >= 1 (1: plain likelihood)"
+[ "$INTERACTION_WEIGHT" = 1 ] || CLOSED_ARGS+=(--interaction-weight "$INTERACTION_WEIGHT")
 REPEAT_ARGS=()
 # shellcheck disable=SC2206 # REPEAT is a list of KIND=N words
 [ -z "$REPEAT" ] || REPEAT_ARGS=(--repeat $REPEAT)
@@ -209,7 +218,7 @@ case $NEIGHBOUR_INPUT in
 esac
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh
@@ -344,7 +353,7 @@ cat "$WORK/train.json"
     echo "gen_seconds=$GEN_TOOK"
     echo "train_seconds=$((SECONDS - T_TRAIN))"
     echo "train_workers=$TRAIN_WORKERS"
-    for v in PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP; do echo "param.$v=${!v}"; done
+    for v in $SAVED_VARS; do echo "param.$v=${!v}"; done
 } >"$WORK/call.env"
 say "packing into $OUT"
 "$PYTHON" trajeglish_env/device_job.py pack "$RUN" "$OUT" --facts "$WORK/call.env" \

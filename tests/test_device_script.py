@@ -160,6 +160,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         REPEAT="highway=2",
         CLOSED_LOOP="3",
         NEIGHBOUR_INPUT="1",
+        INTERACTION_WEIGHT="2.5",
     )
     assert job.returncode == 0, job.stdout[-3000:]
     ckpt = load_checkpoint(tmp_path / "out-v" / "model.pt")
@@ -175,6 +176,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert summary["params"]["CLOSED_LOOP"] == "3"  # CAT-K windows, kept for a resumed call
     assert ckpt.training["train_config"]["closed_loop_top_k"] == 3
     assert ckpt.config.neighbour_input  # CAT-K windows of a model that reads its neighbours
+    assert summary["params"]["INTERACTION_WEIGHT"] == "2.5"  # kept for a resumed call
+    assert ckpt.training["train_config"]["interaction_weight"] == 2.5
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
     assert clash.returncode == 2 and "keeps its checkpoint's vocabulary" in clash.stdout
     bad = _job(tmp_path, "vb", VOCAB="big")
@@ -185,6 +188,11 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert bad_stride.returncode == 2 and "MAP_STRIDE=0: expected a whole number >= 1" in bad_stride.stdout
     bad_closed = _job(tmp_path, "vc", CLOSED_LOOP="-1")
     assert bad_closed.returncode == 2 and "CLOSED_LOOP=-1: expected a number of tokens" in bad_closed.stdout
+    bad_weight = _job(tmp_path, "vw", INTERACTION_WEIGHT="0.5")
+    assert (
+        bad_weight.returncode == 2
+        and "INTERACTION_WEIGHT=0.5: expected a loss weight >= 1" in bad_weight.stdout
+    )
     bad_fit = _job(tmp_path, "vf", FIT_STEPS="yes")
     assert bad_fit.returncode == 2 and "FIT_STEPS=yes: expected 0 or 1" in bad_fit.stdout
 

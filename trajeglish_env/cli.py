@@ -22,6 +22,7 @@ from trajeglish_env.cli_args import (
     ArgParser,
     add_budget_and_mix_args,
     add_map_args,
+    at_least_one,
     auto_or_at_least,
     one_line,
     output_dir,
@@ -126,6 +127,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         closed_loop_recovery=args.closed_loop_recovery,
         closed_loop_along_recovery=args.closed_loop_along_recovery,
         closed_loop_teacher_forced=not args.closed_loop_only,
+        interaction_weight=args.interaction_weight,
     )
     ranks = init_ranks(rank_device())
     result = train(
@@ -337,6 +339,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--closed-loop-only",
         action="store_true",
         help="train on the closed-loop windows alone (default: beside the batch's teacher-forced ones)",
+    )
+    p.add_argument(
+        "--interaction-weight",
+        type=at_least_one,
+        default=1.0,
+        help="loss weight of the tokens of agents closing in on the agent ahead (within 4 s at the closing "
+        "speed, or under 0.6 s headway; 1: plain likelihood; validation NLL stays plain)",
     )
     p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
     add_budget_and_mix_args(p)

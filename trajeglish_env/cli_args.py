@@ -70,37 +70,35 @@ def auto_or_at_least(low: int) -> Callable[[str], int | str]:
     return parse
 
 
-def positive_float(text: str) -> float:
-    """Argument type: a finite number > 0."""
+def _float_where(text: str, ok: Callable[[float], bool], expected: str) -> float:
+    """``text`` as a number that satisfies ``ok`` (NaN never does), else an argparse error naming it."""
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    if math.isnan(value) or not ok(value):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return value
+
+
+def positive_float(text: str) -> float:
+    """Argument type: a finite number > 0."""
+    return _float_where(text, lambda v: math.isfinite(v) and v > 0, "a finite number > 0")
+
+
+def at_least_one(text: str) -> float:
+    """Argument type: a finite number >= 1 (a loss weight)."""
+    return _float_where(text, lambda v: math.isfinite(v) and v >= 1, "a finite number >= 1")
 
 
 def probability(text: str) -> float:
     """Argument type: a number in (0, 1] (nucleus sampling's top-p)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0 < value <= 1:  # NaN fails too
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1], got {text!r}")
-    return value
+    return _float_where(text, lambda v: 0 < v <= 1, "a number in (0, 1]")
 
 
 def unit_float(text: str) -> float:
     """Argument type: a number in [0, 1] (a share)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0 <= value <= 1:  # NaN fails too
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
-    return value
+    return _float_where(text, lambda v: 0 <= v <= 1, "a number in [0, 1]")
 
 
 POSITIVE = integer_at_least(1)

@@ -73,6 +73,7 @@ SAVED = (
     "FIT_STEPS",
     "REPEAT",
     "CLOSED_LOOP",
+    "INTERACTION_WEIGHT",
 )
 
 

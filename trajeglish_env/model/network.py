@@ -164,16 +164,26 @@ class TrajeglishModel(nn.Module):
         input_tokens: torch.Tensor,
         targets: torch.Tensor,
         view: NeighbourView | None = None,
-    ) -> tuple[torch.Tensor, int]:
-        """Mean cross-entropy (nats) over observed targets ``[B,A,T]`` (``-1`` ignored) and their count."""
+        weights: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, float]:
+        """Mean cross-entropy (nats) over observed targets ``[B,A,T]`` (``-1`` ignored) and their count; with
+        ``weights [B,A,T]`` (training's :mod:`~trajeglish_env.training.interaction_weights`) the weighted mean
+        and the observed targets' weight sum."""
         logits = self.forward(scene, input_tokens, view)
         tgt = targets.transpose(1, 2)  # [B,T,A]
         tgt = torch.where(scene.agent_mask[:, None, :], tgt, torch.full_like(tgt, -1))
-        n = int((tgt >= 0).sum())
-        loss = F.cross_entropy(
-            logits.reshape(-1, logits.shape[-1]), tgt.reshape(-1), ignore_index=-1, reduction="sum"
-        )
-        return loss / max(n, 1), n
+        if weights is None:
+            n = int((tgt >= 0).sum())
+            loss = F.cross_entropy(
+                logits.reshape(-1, logits.shape[-1]), tgt.reshape(-1), ignore_index=-1, reduction="sum"
+            )
+            return loss / max(n, 1), n
+        each = F.cross_entropy(
+            logits.reshape(-1, logits.shape[-1]), tgt.reshape(-1), ignore_index=-1, reduction="none"
+        )  # 0 where ignored
+        w = (weights.transpose(1, 2).reshape(-1) * (tgt.reshape(-1) >= 0)).to(each.dtype)
+        total = float(w.sum())
+        return (each * w).sum() / max(total, 1e-9), total
 
     # ---------------------------------------------------------------------------------- decoding
     def empty_cache(self, batch: int, dtype: torch.dtype) -> DecoderCache:

@@ -49,6 +49,7 @@ from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_ba
 from trajeglish_env.training.curves import plot_curve
 from trajeglish_env.training.curves import write_metrics as _write_metrics
 from trajeglish_env.training.dataset import SceneStore, WindowConfig, collate_windows
+from trajeglish_env.training.interaction_weights import interaction_weights
 from trajeglish_env.training.kind_repeat import window_order
 from trajeglish_env.training.run_records import run_facts, save_last, training_info
 from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
@@ -89,10 +90,15 @@ class TrainConfig:
     closed_loop_along_recovery: float = 0.2
     closed_loop_max_drift: float = 2.0
     closed_loop_teacher_forced: bool = True
+    # loss weight of the tokens of agents closing in on the agent ahead (training/interaction_weights.py):
+    # 1 = plain likelihood; the logged training loss is then the weighted mean, validation NLL stays plain
+    interaction_weight: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.signal_lr_scale > 0:
             raise ValueError(f"TrainConfig.signal_lr_scale must be > 0, got {self.signal_lr_scale}")
+        if not self.interaction_weight >= 1:
+            raise ValueError(f"TrainConfig.interaction_weight must be >= 1, got {self.interaction_weight}")
         self.closed_loop()  # ClosedLoopConfig checks its settings
 
     def closed_loop(self) -> ClosedLoopConfig | None:
@@ -143,14 +149,16 @@ def window_config(cfg: ModelConfig) -> WindowConfig:
 class _LossModule(nn.Module):
     """Wraps the model so that DDP sees one forward that returns (summed loss, token count)."""
 
-    def __init__(self, model: TrajeglishModel):
+    def __init__(self, model: TrajeglishModel, interaction_weight: float = 1.0):
         super().__init__()
         self.model = model
+        self.interaction_weight = interaction_weight
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         scene = SceneInputs.from_batch(batch)
         view = batch_view(self.model.cfg.neighbour_input, batch)
-        mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"], view)
+        weights = interaction_weights(batch, self.interaction_weight)
+        mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"], view, weights)
         return mean * n, torch.tensor(float(n), device=mean.device)
 
 
@@ -265,7 +273,7 @@ def train(
         if start_ckpt is not None:
             load_into(model, start_ckpt, vocabulary)
 
-    loss_module: nn.Module = _LossModule(model)
+    loss_module: nn.Module = _LossModule(model, config.interaction_weight)
     if dd.world > 1:
         loss_module = nn.parallel.DistributedDataParallel(
             loss_module, device_ids=[device.index] if device.type == "cuda" else None
