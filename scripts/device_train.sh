@@ -61,8 +61,8 @@
 #                  to the log, beside its teacher-forced windows); use with INIT; 0: teacher forcing [0];
 #                  kept when resuming
 #   INTERACTION_WEIGHT  loss weight of the tokens of agents closing in on the agent ahead (`train
-#                  --interaction-weight`; docs/evaluation.md "Weighing the tokens of followers"); 1: plain
-#                  likelihood [1]; kept when resuming
+#                  --interaction-weight`; docs/evaluation.md "Weighing the tokens of followers that close
+#                  in"); 1: plain likelihood [1]; kept when resuming
 #   FIT_STEPS      1: the first call's step rate fits the schedule's length to its training budget (`train
 #                  --fit-steps`; STEPS is then the most), so the learning rate reaches 0 as that call ends;
 #                  0: the schedule runs STEPS, over as many calls as it takes (RUN_IN) [1]

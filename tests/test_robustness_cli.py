@@ -67,6 +67,11 @@ CASES = [
         "argument --lr: expected a finite number > 0, got 'nan'",
     ),
     (
+        "train-interaction-weight-below-1",
+        ["train", "--data", "{tmp}/data", "--out", "{tmp}/run", "--interaction-weight", "0.5"],
+        "argument --interaction-weight: expected a finite number >= 1, got '0.5'",
+    ),
+    (
         "evaluate-rollouts-0",
         ["evaluate", "--data", "{tmp}/data", "--rollouts", "0", "--out", "{tmp}/ev"],
         "argument --rollouts: expected an integer >= 1, got '0'",

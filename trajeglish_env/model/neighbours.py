@@ -50,7 +50,7 @@ class NeighbourView:
         )
 
 
-def _rotate(v: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+def in_frame(v: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
     """Vectors ``v [...,2]`` in the frame of headings ``heading [...]``."""
     c, s = torch.cos(heading), torch.sin(heading)
     return torch.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1]], dim=-1)
@@ -82,8 +82,8 @@ def neighbour_view(
     vel = torch.where(moving, xy - prev_xyh[..., :2], torch.zeros_like(xy))
     known = moving.to(xy.dtype)
     f_xy, f_h, f_vel, f_known = pick(xy), pick(h)[..., 0], pick(vel), pick(known)
-    own = torch.cat([_rotate(f_vel, f_h), f_known], dim=-1)
-    rel = _rotate(xy[..., None, :, :] - f_xy[..., :, None, :], f_h[..., None])  # [...,m,A,2]
+    own = torch.cat([in_frame(f_vel, f_h), f_known], dim=-1)
+    rel = in_frame(xy[..., None, :, :] - f_xy[..., :, None, :], f_h[..., None])  # [...,m,A,2]
     dist = rel.norm(dim=-1)
     me = focal[..., None] == torch.arange(a, device=xyh.device)
     f_valid = pick(valid[..., None])[..., 0]
@@ -103,7 +103,7 @@ def neighbour_view(
             rel.gather(-2, near[..., None].expand(*near.shape, 2)) / POSITION_SCALE,
             torch.cos(dh)[..., None],
             torch.sin(dh)[..., None],
-            _rotate(them(vel) - f_vel[..., None, :], f_h[..., None]),
+            in_frame(them(vel) - f_vel[..., None, :], f_h[..., None]),
             them(known) * f_known[..., None, :],
             them(size) / SIZE_SCALE,
         ],

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import torch
 
+from trajeglish_env.model.neighbours import in_frame
+
 STEP_SECONDS = 0.1  # every scene source samples at 10 Hz (Scenario.dt)
 REACH = 40.0  # metres bumper to bumper
 LATERAL_MARGIN = 0.5  # metres beyond the two half widths
@@ -25,12 +27,6 @@ TIME_TO_CONTACT = 4.0  # seconds at the current closing speed
 MIN_CLOSING = 0.3  # m/s: slower closing is not closing in
 HEADWAY = 0.6  # seconds: following closer than this at any speed above MIN_SPEED
 MIN_SPEED = 1.0  # m/s
-
-
-def _rotate(v: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
-    """Vectors ``v [...,2]`` in the frame of headings ``heading [...]`` (broadcast)."""
-    c, s = torch.cos(heading), torch.sin(heading)
-    return torch.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1]], dim=-1)
 
 
 def closing_in(xyh: torch.Tensor, valid: torch.Tensor, size: torch.Tensor, steps: int) -> torch.Tensor:
@@ -44,8 +40,8 @@ def closing_in(xyh: torch.Tensor, valid: torch.Tensor, size: torch.Tensor, steps
     moving = ok & torch.cat([torch.zeros_like(ok[:, :1]), ok[:, :-1]], dim=1)  # [B,T,A]
     vel = (cur[..., :2] - prev[..., :2]) / STEP_SECONDS  # m/s
     heading = cur[..., 2]
-    rel = _rotate(cur[:, :, None, :, :2] - cur[:, :, :, None, :2], heading[..., None])  # [B,T,A(me),A,2]
-    rel_vel = _rotate(vel[:, :, None, :] - vel[:, :, :, None], heading[..., None])
+    rel = in_frame(cur[:, :, None, :, :2] - cur[:, :, :, None, :2], heading[..., None])  # [B,T,A(me),A,2]
+    rel_vel = in_frame(vel[:, :, None, :] - vel[:, :, :, None], heading[..., None])
     length, width = size[..., 0].double(), size[..., 1].double()  # [B,A]
     half_len = (length[:, :, None] + length[:, None, :]) / 2  # [B,A,A]
     half_wid = (width[:, :, None] + width[:, None, :]) / 2 + LATERAL_MARGIN
