@@ -63,6 +63,9 @@
 #   INTERACTION_WEIGHT  loss weight of the tokens of agents closing in on the agent ahead (`train
 #                  --interaction-weight`; docs/evaluation.md "Weighing the tokens of followers that close
 #                  in"); 1: plain likelihood [1]; kept when resuming
+#   HISTORY_DROPOUT  share of each window's agents whose input tokens are all hidden (`train
+#                  --history-dropout`; needs NEIGHBOUR_INPUT=1; docs/evaluation.md "Hiding an agent's own
+#                  motion"); 0: none [0]; kept when resuming
 #   FIT_STEPS      1: the first call's step rate fits the schedule's length to its training budget (`train
 #                  --fit-steps`; STEPS is then the most), so the learning rate reaches 0 as that call ends;
 #                  0: the schedule runs STEPS, over as many calls as it takes (RUN_IN) [1]
@@ -86,7 +89,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest); a resumed run
 # keeps these (trajeglish_env/device_job.py SAVED)
-SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT"
+SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT HISTORY_DROPOUT"
 declare -A GIVEN=()
 for v in $SAVED_VARS; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
@@ -179,6 +182,10 @@ INTERACTION_WEIGHT=${INTERACTION_WEIGHT:-1}
 [[ "$INTERACTION_WEIGHT" =~ ^[0-9]+([.][0-9]+)?$ ]] && [ "$(calc "($INTERACTION_WEIGHT >= 1)")" = 1 ] ||
     die "INTERACTION_WEIGHT=$INTERACTION_WEIGHT: expected a loss weight >= 1 (1: plain likelihood)"
 [ "$INTERACTION_WEIGHT" = 1 ] || CLOSED_ARGS+=(--interaction-weight "$INTERACTION_WEIGHT")
+HISTORY_DROPOUT=${HISTORY_DROPOUT:-0}
+[[ "$HISTORY_DROPOUT" =~ ^0*([.][0-9]+)?$ ]] && [ "$(calc "($HISTORY_DROPOUT < 1)")" = 1 ] ||
+    die "HISTORY_DROPOUT=$HISTORY_DROPOUT: expected a share in [0, 1) (0: none)"
+[ "$(calc "($HISTORY_DROPOUT > 0)")" = 0 ] || CLOSED_ARGS+=(--history-dropout "$HISTORY_DROPOUT")
 REPEAT_ARGS=()
 # shellcheck disable=SC2206 # REPEAT is a list of KIND=N words
 [ -z "$REPEAT" ] || REPEAT_ARGS=(--repeat $REPEAT)
@@ -216,9 +223,11 @@ case $NEIGHBOUR_INPUT in
 1) SIGNAL_ARGS+=(--neighbour-input) ;;
 *) die "NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT: expected 0 or 1" ;;
 esac
+[ "$(calc "($HISTORY_DROPOUT > 0)")" = 0 ] || [ "$NEIGHBOUR_INPUT" = 1 ] ||
+    die "HISTORY_DROPOUT=$HISTORY_DROPOUT needs NEIGHBOUR_INPUT=1 (a dropped agent's next tokens are told from its neighbours)"
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh

@@ -6,7 +6,9 @@
 - teacher-forced NLL of the tokens of the agents that react in the log (they slow by more than 3 m/s over
   a window that starts 0.4 s before the stop, or at it), from 0.6 s into the window, with the stopper in
   the window and with its slot masked out (the same window otherwise): how much the model's predictions
-  of the reaction use the vehicle that causes it.
+  of the reaction use the vehicle that causes it; and the same with the reacting agents' own input tokens
+  hidden (``hidden_*``: what a model trained with ``--history-dropout`` reads from the current states
+  alone, without the trend of its own last tokens).
 
     python scripts/stop_probe.py --data DIR [--ckpt FILE] [--rollouts 4] [--guard] [--json]
 """
@@ -54,9 +56,14 @@ def hits_stopper(
 
 
 @torch.no_grad()
-def _window_nll(ckpt: Checkpoint, window: dict[str, np.ndarray], scored: np.ndarray) -> np.ndarray:
-    """NLL (nats) of the observed tokens of window slots ``scored`` from step SKIP on."""
+def _window_nll(
+    ckpt: Checkpoint, window: dict[str, np.ndarray], scored: np.ndarray, hide: bool = False
+) -> np.ndarray:
+    """NLL (nats) of the observed tokens of window slots ``scored`` from step SKIP on (``hide``: with
+    their input tokens hidden, as ``train --history-dropout`` hides them)."""
     batch = collate_windows([with_tokens(dict(window), ckpt.vocabulary)])
+    if hide:
+        batch["input_tokens"][0, scored] = -1
     model = ckpt.model.eval()
     logits = model(
         SceneInputs.from_batch(batch), batch["input_tokens"], batch_view(model.cfg.neighbour_input, batch)
@@ -66,8 +73,11 @@ def _window_nll(ckpt: Checkpoint, window: dict[str, np.ndarray], scored: np.ndar
     return F.cross_entropy(logits[0, SKIP:, scored][seen], target[seen], reduction="none").numpy()
 
 
-def reaction_nll(ckpt: Checkpoint, scene: Scenario, stopper: int, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """NLL of the reacting agents' tokens with the stopper and with its slot masked (paired, same order)."""
+def reaction_nll(
+    ckpt: Checkpoint, scene: Scenario, stopper: int, step: int, hide: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """NLL of the reacting agents' tokens with the stopper and with its slot masked (paired, same order);
+    ``hide``: with the reacting agents' own input tokens hidden."""
     config = window_config(ckpt.model.cfg)
     speed = scene.speed()
     with_it, without = [], []
@@ -91,11 +101,11 @@ def reaction_nll(ckpt: Checkpoint, scene: Scenario, stopper: int, step: int) -> 
         scored = np.flatnonzero(np.isin(window["agent_track_id"], scene.track_id[reacting]))
         if not len(slot) or not len(scored):
             continue
-        with_it.append(_window_nll(ckpt, window, scored))
+        with_it.append(_window_nll(ckpt, window, scored, hide))
         masked = {k: v.copy() for k, v in window.items()}
         masked["agent_mask"][slot] = False
         masked["agent_valid"][slot] = False
-        without.append(_window_nll(ckpt, masked, scored))
+        without.append(_window_nll(ckpt, masked, scored, hide))
     return np.concatenate(with_it or [np.zeros(0)]), np.concatenate(without or [np.zeros(0)])
 
 
@@ -115,11 +125,13 @@ def main() -> None:
     events = [(s, e) for s, e in events if e is not None and e[1] > s.current_index]
     if not events:
         raise SystemExit(f"stop_probe: no +stop scene with its event after the current step in {args.data}")
-    hits, nll_with, nll_without = [], [], []
+    hits: list[np.ndarray] = []
+    nll: dict[bool, tuple[list[np.ndarray], list[np.ndarray]]] = {False: ([], []), True: ([], [])}
     for scene, (stopper, step) in tqdm(events, desc="stop probe"):
-        a, b = reaction_nll(ckpt, scene, stopper, step)
-        nll_with.append(a)
-        nll_without.append(b)
+        for hide, (nll_with, nll_without) in nll.items():
+            a, b = reaction_nll(ckpt, scene, stopper, step, hide)
+            nll_with.append(a)
+            nll_without.append(b)
         controlled = scene.valid[:, scene.current_index].copy()
         controlled[stopper] = False
         r = rollout(ckpt, scene, rollouts=args.rollouts, controlled=controlled, config=config)
@@ -131,14 +143,15 @@ def main() -> None:
         "hits": int(hit.sum()),
         "rate": float(hit.mean()),
     }
-    a, b = np.concatenate(nll_with), np.concatenate(nll_without)
-    diff = a - b
-    result["reaction_tokens"] = int(a.size)
-    if a.size:
-        result["reaction_nll_with_stopper"] = round(float(a.mean()), 4)
-        result["reaction_nll_without_stopper"] = round(float(b.mean()), 4)
-        result["reaction_nll_gain"] = round(float(-diff.mean()), 4)
-        result["reaction_nll_gain_se"] = round(float(diff.std() / np.sqrt(diff.size)), 4)
+    for hide, (nll_with, nll_without) in nll.items():
+        a, b = np.concatenate(nll_with), np.concatenate(nll_without)
+        diff, key = a - b, "hidden_reaction" if hide else "reaction"
+        result[f"{key}_tokens"] = int(a.size)
+        if a.size:
+            result[f"{key}_nll_with_stopper"] = round(float(a.mean()), 4)
+            result[f"{key}_nll_without_stopper"] = round(float(b.mean()), 4)
+            result[f"{key}_nll_gain"] = round(float(-diff.mean()), 4)
+            result[f"{key}_nll_gain_se"] = round(float(diff.std() / np.sqrt(diff.size)), 4)
     print(
         json.dumps(result)
         if args.json

@@ -161,6 +161,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         CLOSED_LOOP="3",
         NEIGHBOUR_INPUT="1",
         INTERACTION_WEIGHT="2.5",
+        HISTORY_DROPOUT="0.3",
     )
     assert job.returncode == 0, job.stdout[-3000:]
     ckpt = load_checkpoint(tmp_path / "out-v" / "model.pt")
@@ -178,6 +179,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert ckpt.config.neighbour_input  # CAT-K windows of a model that reads its neighbours
     assert summary["params"]["INTERACTION_WEIGHT"] == "2.5"  # kept for a resumed call
     assert ckpt.training["train_config"]["interaction_weight"] == 2.5
+    assert summary["params"]["HISTORY_DROPOUT"] == "0.3"  # kept for a resumed call
+    assert ckpt.training["train_config"]["history_dropout"] == 0.3
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
     assert clash.returncode == 2 and "keeps its checkpoint's vocabulary" in clash.stdout
     bad = _job(tmp_path, "vb", VOCAB="big")
@@ -193,6 +196,12 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         bad_weight.returncode == 2
         and "INTERACTION_WEIGHT=0.5: expected a loss weight >= 1" in bad_weight.stdout
     )
+    bad_dropout = _job(tmp_path, "vd", HISTORY_DROPOUT="1")
+    assert (
+        bad_dropout.returncode == 2 and "HISTORY_DROPOUT=1: expected a share in [0, 1)" in bad_dropout.stdout
+    )
+    alone = _job(tmp_path, "vn", HISTORY_DROPOUT="0.3")
+    assert alone.returncode == 2 and "HISTORY_DROPOUT=0.3 needs NEIGHBOUR_INPUT=1" in alone.stdout
     bad_fit = _job(tmp_path, "vf", FIT_STEPS="yes")
     assert bad_fit.returncode == 2 and "FIT_STEPS=yes: expected 0 or 1" in bad_fit.stdout
 

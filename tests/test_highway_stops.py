@@ -121,5 +121,9 @@ def test_stop_probe_script(tmp_path) -> None:
     }
     assert result["reaction_tokens"] > 0  # the car behind slows within the window: its tokens are scored
     assert result["reaction_nll_with_stopper"] > 0 and result["reaction_nll_without_stopper"] > 0
+    # the same tokens with the reacting agents' own inputs hidden: harder to predict for the shipped model,
+    # which was never trained without them
+    assert result["hidden_reaction_tokens"] == result["reaction_tokens"]
+    assert result["hidden_reaction_nll_with_stopper"] > result["reaction_nll_with_stopper"]
     done = subprocess.run([*script, "--data", str(tmp_path / "base")], capture_output=True, text=True)
     assert done.returncode != 0 and "no +stop scene with its event after the current step" in done.stderr

@@ -72,6 +72,11 @@ CASES = [
         "argument --interaction-weight: expected a finite number >= 1, got '0.5'",
     ),
     (
+        "train-history-dropout-1",
+        ["train", "--data", "{tmp}/data", "--out", "{tmp}/run", "--history-dropout", "1"],
+        "argument --history-dropout: expected a number in [0, 1), got '1'",
+    ),
+    (
         "evaluate-rollouts-0",
         ["evaluate", "--data", "{tmp}/data", "--rollouts", "0", "--out", "{tmp}/ev"],
         "argument --rollouts: expected an integer >= 1, got '0'",

@@ -24,6 +24,7 @@ from trajeglish_env.cli_args import (
     add_map_args,
     at_least_one,
     auto_or_at_least,
+    below_one,
     one_line,
     output_dir,
     positive_float,
@@ -128,6 +129,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         closed_loop_along_recovery=args.closed_loop_along_recovery,
         closed_loop_teacher_forced=not args.closed_loop_only,
         interaction_weight=args.interaction_weight,
+        history_dropout=args.history_dropout,
     )
     ranks = init_ranks(rank_device())
     result = train(
@@ -346,6 +348,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="loss weight of the tokens of agents closing in on the agent ahead (within 4 s at the closing "
         "speed, or under 0.6 s headway; 1: plain likelihood; validation NLL stays plain)",
+    )
+    p.add_argument(
+        "--history-dropout",
+        type=below_one,
+        default=0.0,
+        help="share of each window's agents whose input tokens are all hidden, so that their next tokens are "
+        "learned from the current states the model reads (needs --neighbour-input; default 0)",
     )
     p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
     add_budget_and_mix_args(p)

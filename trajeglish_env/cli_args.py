@@ -91,6 +91,11 @@ def at_least_one(text: str) -> float:
     return _float_where(text, lambda v: math.isfinite(v) and v >= 1, "a finite number >= 1")
 
 
+def below_one(text: str) -> float:
+    """Argument type: a number in [0, 1) (a share that leaves something)."""
+    return _float_where(text, lambda v: 0 <= v < 1, "a number in [0, 1)")
+
+
 def probability(text: str) -> float:
     """Argument type: a number in (0, 1] (nucleus sampling's top-p)."""
     return _float_where(text, lambda v: 0 < v <= 1, "a number in (0, 1]")

@@ -74,6 +74,7 @@ SAVED = (
     "REPEAT",
     "CLOSED_LOOP",
     "INTERACTION_WEIGHT",
+    "HISTORY_DROPOUT",
 )
 
 

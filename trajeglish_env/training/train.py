@@ -93,12 +93,17 @@ class TrainConfig:
     # loss weight of the tokens of agents closing in on the agent ahead (training/interaction_weights.py):
     # 1 = plain likelihood; the logged training loss is then the weighted mean, validation NLL stays plain
     interaction_weight: float = 1.0
+    # share of each window's agents whose input tokens are all hidden (training_data.drop_histories): their
+    # next tokens must be told from the current states a neighbour_input model reads, not their own trend
+    history_dropout: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.signal_lr_scale > 0:
             raise ValueError(f"TrainConfig.signal_lr_scale must be > 0, got {self.signal_lr_scale}")
         if not self.interaction_weight >= 1:
             raise ValueError(f"TrainConfig.interaction_weight must be >= 1, got {self.interaction_weight}")
+        if not 0 <= self.history_dropout < 1:
+            raise ValueError(f"TrainConfig.history_dropout must be in [0, 1), got {self.history_dropout}")
         self.closed_loop()  # ClosedLoopConfig checks its settings
 
     def closed_loop(self) -> ClosedLoopConfig | None:
@@ -228,6 +233,11 @@ def train(
     """
     if fit_steps and time_limit is None:
         raise ValueError("train: fit_steps needs a time_limit (train --fit-steps needs --minutes)")
+    if config.history_dropout and not model_config.neighbour_input:
+        raise ValueError(
+            "train: history_dropout needs a model that reads its agents' neighbours (--neighbour-input): "
+            "without it a dropped agent's motion is known only at the window's first step"
+        )
     deadline = None if time_limit is None else time.perf_counter() + time_limit
     out = Path(out)
     device = rank_device()
@@ -281,7 +291,13 @@ def train(
     noise = NoiseConfig(config.noise_sigma, config.noise_top_p) if config.noisy_inputs else None
     order = window_order(train_scenes, config.repeat, config.shard_cache, config.seed)
     dataset = TokenizedWindows(
-        train_scenes, window_config(model_config), vocabulary, noise, config.seed, order
+        train_scenes,
+        window_config(model_config),
+        vocabulary,
+        noise,
+        config.seed,
+        order,
+        config.history_dropout,
     )
     sampler = StepBatchSampler(config.batch_size, start_step, config.steps, dd.rank, dd.world)
     loader = DataLoader(

@@ -49,7 +49,10 @@ class TokenizedWindows(Dataset):
         noise: NoiseConfig | None,
         seed: int,
         order: Callable[[int], tuple[int, int]] | None = None,
+        history_dropout: float = 0.0,
     ):
+        if not 0 <= history_dropout < 1:
+            raise ValueError(f"TokenizedWindows: history_dropout must be in [0, 1), got {history_dropout}")
         if not len(scenes):
             raise ValueError("TokenizedWindows: no scenes")
         self.scenes = scenes
@@ -58,6 +61,7 @@ class TokenizedWindows(Dataset):
         self.noise = noise
         self.seed = seed
         self.order = order or SampleOrder(len(scenes), seed)  # (epoch, scene) of each sample counter
+        self.history_dropout = history_dropout
 
     def __len__(self) -> int:  # a sampler provides the indices; any g >= 0 is valid
         return len(self.scenes)
@@ -66,7 +70,10 @@ class TokenizedWindows(Dataset):
         epoch, scene_index = self.order(g)
         rng = np.random.default_rng([self.seed, epoch, scene_index])
         w = make_window(self.scenes[scene_index], self.window, rng, scene_index=scene_index)
-        return with_tokens(w, self.vocabulary, self.noise, rng)
+        w = with_tokens(w, self.vocabulary, self.noise, rng)
+        if self.history_dropout:  # its own stream: the windows and noisy tokens stay those of p = 0
+            drop_histories(w, self.history_dropout, np.random.default_rng([self.seed, epoch, scene_index, 1]))
+        return w
 
 
 def with_tokens(
@@ -89,6 +96,17 @@ def with_tokens(
     window["tokens"] = tok.tokens
     window["input_tokens"] = tok.input_tokens
     return window
+
+
+def drop_histories(window: dict[str, np.ndarray], p: float, rng: np.random.Generator) -> np.ndarray:
+    """Hide the whole motion of each real agent of ``window`` with probability ``p``: its input tokens
+    become unobserved (-1) and its targets stay (``TrainConfig.history_dropout``). Such an agent's next
+    token can then be told only from what a model with ``neighbour_input`` reads of the current states (its
+    own velocity, the agents around it), not from the trend of its own last tokens, which in logged traffic
+    predicts a follower's braking once it has begun. Returns the dropped agents ``[A]``."""
+    drop = (rng.random(len(window["agent_mask"])) < p) & window["agent_mask"]
+    window["input_tokens"][drop] = -1
+    return drop
 
 
 class StepBatchSampler(Sampler[list[int]]):
