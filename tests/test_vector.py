@@ -14,7 +14,7 @@ from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
 from trajeglish_env.env.sb3 import SB3VecEnv
 from trajeglish_env.env.scenes import load_bundle
 from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv, auto_threads
-from trajeglish_env.model.layers import MIN_GEMM_ROWS, Linear, invariant_linear, linear_compute
+from trajeglish_env.model.layers import MIN_GEMM_ROWS, Attention, Linear, invariant_linear, linear_compute
 from trajeglish_env.model.masks import teacher_inputs
 from trajeglish_env.sampler import windows as windows_module
 from trajeglish_env.sampler.config import SamplingConfig, native_bfloat16
@@ -173,6 +173,23 @@ def test_linear_layers_multiply_in_the_compute_dtype_at_inference_only() -> None
             doubled = layer(x)
     want = torch.nn.functional.linear(x.bfloat16(), layer.weight.bfloat16()).float() + layer.bias
     assert torch.equal(doubled, want)
+    with torch.no_grad(), linear_compute(torch.bfloat16):  # a bfloat16 input: the same float32 result
+        assert torch.equal(layer(x.bfloat16()), doubled) and layer(x.bfloat16()).dtype == torch.float32
+
+
+def test_attention_over_a_bfloat16_cache_feeds_its_output_projection_without_a_round_trip() -> None:
+    """With bfloat16 keys/values and bfloat16 linear layers, attention's output goes to the output
+    projection in bfloat16: the very numbers of the float32 round trip (widening then rounding is exact)."""
+    torch.manual_seed(1)
+    attn = Attention(64, 4).eval()
+    x, context = torch.randn(3, 7, 64), torch.randn(3, 11, 64)
+    with torch.no_grad(), linear_compute(torch.bfloat16):
+        k, v = (t.bfloat16() for t in attn.keys_values(context))
+        got = attn.attend(x, k, v, None)
+        q = attn.split(attn.q(x)).bfloat16()
+        y = torch.nn.functional.scaled_dot_product_attention(q, k, v).float()  # the round trip
+        want = attn.out(y.transpose(1, 2).reshape(3, 7, 64))
+    assert got.dtype == torch.float32 and torch.equal(got, want)
 
 
 def test_compute_dtype_is_validated_and_resolved() -> None:

@@ -56,8 +56,9 @@ class Linear(nn.Linear):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if _COMPUTE and not torch.is_grad_enabled():
-            y = invariant_linear(x.to(_COMPUTE[-1]), self._weight_in(_COMPUTE[-1])).to(x.dtype)
-            return y if self.bias is None else y + self.bias
+            y = invariant_linear(x.to(_COMPUTE[-1]), self._weight_in(_COMPUTE[-1]))
+            # in the parameters' dtype whatever the input's; the bias sum widens y exactly: one op, not two
+            return y.to(self.weight.dtype) if self.bias is None else torch.add(self.bias, y)
         return invariant_linear(x, self.weight, self.bias)
 
     def _weight_in(self, dtype: torch.dtype) -> torch.Tensor:
@@ -93,7 +94,9 @@ class Attention(nn.Module):
         """Queries from ``x [B,N,C]`` against split keys/values; ``mask`` broadcastable to [B,H,N,K]."""
         q = self.split(self.q(x)).to(k.dtype)  # a reduced-precision cache computes in its own dtype
         p = self.dropout if self.training else 0.0
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p).to(x.dtype)
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
+        if not (_COMPUTE and _COMPUTE[-1] == y.dtype and not torch.is_grad_enabled()):
+            y = y.to(x.dtype)  # else the output projection multiplies in y's dtype: no round trip
         b, h, n, dh = y.shape
         return self.out(y.transpose(1, 2).reshape(b, n, h * dh))
 
