@@ -201,3 +201,29 @@ def test_green_rule_masks_standing_still_unless_a_box_is_ahead_or_overlapping(
         engine.xyh[0, other, t] = (x + ahead * np.cos(h), y + ahead * np.sin(h), h)
         again = engine.guard.geometry.pairs(engine, np.zeros(1, np.int64), np.array([agent]), np.array([t]))
         assert not again.depart[0]
+
+
+def test_rows_of_signalized_scenes_equal_their_solo_runs(grid_scenes: list[Scenario]) -> None:
+    """The signal rules are checked one scene at a time for all its rows: two rows of one signalized scene
+    and one of another give each the tokens of its solo run."""
+    import torch
+
+    from trajeglish_env.sampler.engine import BatchEngine, RowSpec
+
+    config = SamplingConfig(temperature=1.0, guard=True, compute_dtype="float32")
+    plan = [(0, 5), (1, 6), (0, 7)]  # (scene, seed)
+
+    def run(rows: list[tuple[int, int]]) -> BatchEngine:
+        engine = BatchEngine(tiny(), len(rows), config, cache_dtype=torch.float32)
+        for row, (i, seed) in enumerate(rows):
+            sc = grid_scenes[i]
+            engine.start_rows([row], RowSpec(sc, 12, sc.valid[:, sc.current_index].copy()), [seed])
+        engine.run()
+        return engine
+
+    batch = run(plan)
+    for row, (i, seed) in enumerate(plan):
+        solo = run([(i, seed)])
+        n = grid_scenes[i].num_agents
+        assert np.array_equal(batch.tokens[row, :n], solo.tokens[0, :n]), f"row {row}"
+    assert batch.guard.stats.masked > 0

@@ -142,12 +142,12 @@ class GuardGeometry:
         for row in np.unique(rr[riders]).tolist():
             sc = rs.scenes[row]
             ss = None if sc is None else self._signals.get(sc)
-            if ss is None:
-                continue
-            q = np.flatnonzero(riders & (rr == row))
+            if ss is not None:
+                signals[row] = ss
+        for ss, rows in _by_scene(signals, list(signals)):  # rows of one scene share its signals: one pass
+            q = np.flatnonzero(riders & np.isin(rr, rows))
             red[q] = ss.near_red(origin[q, :2], tt[q], extent[q]).any(axis=1)
             green[q] = ss.green_ahead(origin[q], size[q, 0], tt[q])
-            signals[row] = ss
         return red, green, signals
 
     def _neighbours(
@@ -212,12 +212,21 @@ class GuardGeometry:
             corners = box_corners(cand[q], size[q][:, None])
             off[q] = p.edges.beyond(pick, p.rows[pick], p.origin[pick], corners)
         red = p.red[sel]
-        for row in np.unique(p.rows[sel][red]).tolist():  # the rows' signals differ: one pass per row
-            q = np.flatnonzero(red & (p.rows[sel] == row))
-            pick, ss = sel[q], p.signals[row]
+        for ss, rows in _by_scene(p.signals, np.unique(p.rows[sel][red]).tolist()):  # one pass per scene
+            q = np.flatnonzero(red & np.isin(p.rows[sel], rows))
+            pick = sel[q]
             near = ss.near_red(p.origin[pick, :2], p.t[pick], p.extent[pick])
             off[q] |= ss.violations(p.origin[pick, :2], cand[q, :, :2], p.t[pick], near)
         go = p.depart[sel]
         if go.any():
             off[go] |= self.templates[kind[go, None], tokens[go], 0] < DEPART_STEP
         return collide, off
+
+
+def _by_scene(signals: dict[int, SceneSignals], rows: list[int]) -> list[tuple[SceneSignals, list[int]]]:
+    """``rows`` grouped by the signals they hold (``signals``: per row; rows of one scene share them)."""
+    groups: dict[int, tuple[SceneSignals, list[int]]] = {}
+    for row in rows:
+        ss = signals[row]
+        groups.setdefault(id(ss), (ss, []))[1].append(row)
+    return list(groups.values())
