@@ -131,8 +131,11 @@ class BatchEngine(WindowedRows):
         self._tokenize_supplied()
         if not self._in_step:
             self._hand_over(np.flatnonzero(stepping & (self.now == self.handover_step)))
-            self._hand_over_entering(stepping)
+            arrived, entered = self._hand_over_entering(stepping)
             rebuild = self._needs_windows()
+            late = ~rebuild[arrived]  # the agents that entered join a window of the rows not planned now
+            if late.any():
+                rebuild[self._admit(arrived[late], entered[late])] = True
             if rebuild.any():
                 self._build_windows(np.flatnonzero(rebuild))
             self._in_step = True
@@ -196,15 +199,15 @@ class BatchEngine(WindowedRows):
                 self.window_step[r] = -1
             self.handover[r] = False
 
-    def _hand_over_entering(self, stepping: np.ndarray) -> None:
+    def _hand_over_entering(self, stepping: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Agents of ``entering`` rows at their first logged step become controlled (the model drives them
-        from this step on, as at the log's end)."""
+        from this step on, as at the log's end); returns them as ``(rows, agents)``."""
         rows = np.flatnonzero(stepping)
         now = self.now[rows]
         arrived = self.entering[rows] & self.valid[rows, :, now]
         r, a = np.nonzero(arrived)
         if not len(r):
-            return
+            return r, a
         rows = rows[r]
         self.entering[rows, a] = False
         self.row_controlled[rows, a] = True
@@ -212,7 +215,7 @@ class BatchEngine(WindowedRows):
         future = (span >= self.now[rows, None]) & (span <= self.end[rows, None])
         self.known[rows, a] &= ~future[:, : self.T - 1]
         self.valid[rows, a] |= future & (span > self.now[rows, None])
-        self.window_step[rows] = -1  # plan the windows anew to hold them
+        return rows, a
 
     def _delay_blocked_entries(self, rows: np.ndarray) -> None:
         """Entering agents whose box, where the log brings them in at the next step, would overlap an agent

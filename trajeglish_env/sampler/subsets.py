@@ -108,3 +108,38 @@ def plan_subsets(
             overlap = (cands.shape[1] - overlap) * (cands.shape[1] + 1) + overlap
         centre = int(todo[np.argmax(overlap)])  # ties: the lowest index
     return SubsetPlan(np.stack(slots), np.array(centres, dtype=np.int64), np.array(order, dtype=np.int64))
+
+
+def admit(
+    plan: SubsetPlan, agent: int, positions: np.ndarray, protect: np.ndarray
+) -> tuple[SubsetPlan, int] | None:
+    """``plan`` with ``agent`` (active now, in no subset: one the log brings in) acting last in the subset
+    whose centre is nearest it that has room for it: a padding slot, else the slot of the member farthest
+    from it among those that act in an earlier subset (context there) and that ``protect [N]`` does not
+    keep (external agents). Returns the plan and the rank of the subset it changed, or None when no subset
+    has room (plan anew then). The other subsets and everyone's acting order stay as they were."""
+    k_all = plan.num_subsets
+    seen = np.zeros(len(positions), dtype=bool)
+    earlier = []  # per rank: which slots hold an agent of an earlier subset
+    for k in range(k_all):
+        row = plan.slots[k]
+        earlier.append((row >= 0) & seen[np.maximum(row, 0)])
+        seen[row[row >= 0]] = True
+    here = positions[agent]
+    reach = np.hypot(*(positions[plan.centres] - here).T)
+    for k in np.argsort(reach, kind="stable").tolist():
+        row = plan.slots[k]
+        if (row < 0).any():
+            drop = int(np.flatnonzero(row < 0)[0])
+        else:
+            context = earlier[k] & ~protect[row]
+            if not context.any():
+                continue
+            away = np.hypot(*(positions[row] - here).T)
+            drop = int(np.argmax(np.where(context, away, -np.inf)))
+        slots = plan.slots.copy()
+        slots[k] = np.append(np.delete(row, drop), agent)  # padding, acted, fresh: it acts last here
+        after = int(np.flatnonzero(plan.acting_order == row[-1])[0]) + 1  # the subset's last to act so far
+        order = np.insert(plan.acting_order, after, agent)
+        return SubsetPlan(slots, plan.centres, order), k
+    return None

@@ -18,7 +18,7 @@ from trajeglish_env.model.masks import START, input_shift
 from trajeglish_env.model.neighbours import NeighbourView, neighbour_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.sampler.rows import RowSpec, RowStates
-from trajeglish_env.sampler.subsets import SubsetPlan, plan_subsets
+from trajeglish_env.sampler.subsets import SubsetPlan, admit, plan_subsets
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
@@ -89,7 +89,6 @@ class WindowedRows(RowStates):
         since = self.now - self.window_step
         return self.stepping & ((self.window_step < 0) | ((since % self.every == 0) & (since != 0)))
 
-    @torch.no_grad()
     def _build_windows(self, rows: np.ndarray) -> None:
         """Plan subsets of ``rows`` at their step and encode + prime each subset rank for them."""
         A = self.cfg.max_agents
@@ -126,22 +125,60 @@ class WindowedRows(RowStates):
             w.start[rows] = s0
             has = counts > k
             w.slots[rows[~has]] = -1
-            for n in np.unique(t[has] - s0[has]):  # rows primed with the same number of steps
-                group = has & (t - s0 == n)
-                sub = rows[group]
-                slots = np.stack([plans[i].slots[k] for i in np.flatnonzero(group)])
-                centres = np.array([plans[i].centres[k] for i in np.flatnonzero(group)])
-                w.slots[sub] = slots
-                scene = self._scene_inputs(sub, slots, s0[group], centres)
-                for part in _row_blocks(sub, ROW_BLOCK):  # encoded and primed in place, block by block
-                    rows_part = slice(int(sub[part.start]), int(sub[part.stop - 1]) + 1)
-                    cache, part_scene = w.cache.rows(rows_part), scene.rows(part)
-                    agents = self.model.encode_into(cache, part_scene)
-                    if n:
-                        self._prime(cache, agents, sub[part], slots[part], s0[group][part], int(n))
-                    w.agents[rows_part] = agents
-                    w.kind[rows_part] = part_scene.agent_kind
-        for w in self.windows:  # every slot of every row real: the memory masks are all True
+            if has.any():
+                self._encode_rank(k, rows[has], [plans[i] for i in np.flatnonzero(has)])
+        self._note_full()
+
+    def _admit(self, rows: np.ndarray, agents: np.ndarray) -> np.ndarray:
+        """Give each of ``agents`` (of ``rows``), just become active (the log brings them in), a slot in an
+        existing window of its row (:func:`~trajeglish_env.sampler.subsets.admit`): it acts last there,
+        and only the windows that changed are encoded and primed anew, from ``prime`` steps back; the
+        others keep their contexts (and are rebuilt when they were due to be). Returns the rows where an
+        agent found no room: their windows are to be planned anew."""
+        changed: dict[int, list[int]] = {}
+        failed: list[int] = []
+        for b, a in zip(rows.tolist(), agents.tolist(), strict=True):
+            plan, here = self.plan[b], self.mxyh[b, :, self.now[b], :2]
+            got = None if plan is None else admit(plan, a, here, self.row_external[b])
+            if got is None:
+                failed.append(b)
+                continue
+            self.plan[b], k = got
+            changed.setdefault(k, []).append(b)
+        for k, members in sorted(changed.items()):
+            ranked = np.setdiff1d(members, failed)  # sorted, unique
+            if len(ranked):
+                self._encode_rank(k, ranked, [self.plan[b] for b in ranked])  # type: ignore[misc]
+        self._note_full()
+        return np.unique(np.asarray(failed, dtype=np.int64))
+
+    @torch.no_grad()
+    def _encode_rank(self, k: int, rows: np.ndarray, plans: list[SubsetPlan]) -> None:
+        """Encode subset rank ``k`` of ``rows`` (sorted; their ``plans``) and prime it with the known tokens
+        of the ``prime`` steps before their step."""
+        w = self.windows[k]
+        t = self.now[rows]
+        s0 = np.maximum(0, t - self.prime)
+        w.start[rows] = s0
+        for n in np.unique(t - s0):  # rows primed with the same number of steps
+            group = t - s0 == n
+            sub = rows[group]
+            slots = np.stack([plans[i].slots[k] for i in np.flatnonzero(group)])
+            centres = np.array([plans[i].centres[k] for i in np.flatnonzero(group)])
+            w.slots[sub] = slots
+            scene = self._scene_inputs(sub, slots, s0[group], centres)
+            for part in _row_blocks(sub, ROW_BLOCK):  # encoded and primed in place, block by block
+                rows_part = slice(int(sub[part.start]), int(sub[part.stop - 1]) + 1)
+                cache, part_scene = w.cache.rows(rows_part), scene.rows(part)
+                agents = self.model.encode_into(cache, part_scene)
+                if n:
+                    self._prime(cache, agents, sub[part], slots[part], s0[group][part], int(n))
+                w.agents[rows_part] = agents
+                w.kind[rows_part] = part_scene.agent_kind
+
+    def _note_full(self) -> None:
+        """Every slot of every row real: the memory masks are all True (the model skips them)."""
+        for w in self.windows:
             w.cache.memory_full = bool((w.slots >= 0).all())
 
     def _scene_inputs(
