@@ -14,10 +14,13 @@ from trajeglish_env.scenario import Scenario
 
 
 def test_an_agent_takes_a_padding_slot_and_acts_last_in_its_subset() -> None:
-    positions = np.array([[0.0, 0], [5, 0], [10, 0], [200, 0]])
+    positions = np.array([[0.0, 0], [5, 0], [10, 0], [30, 0]])
     active = np.array([True, True, True, False])
     plan = plan_subsets(positions, active, 5, 0)
     assert plan.slots.tolist() == [[-1, -1, 0, 1, 2]]
+    far = positions.copy()
+    far[3] = [200.0, 0.0]  # beyond ADMIT_REACH of every centre: its windows are to be planned anew
+    assert admit(plan, 3, far, np.zeros(4, bool)) is None
     got = admit(plan, 3, positions, np.zeros(4, bool))
     assert got is not None
     new, rank = got
@@ -88,3 +91,15 @@ def test_entering_agents_rebuild_only_the_window_they_join() -> None:
     assert engine.row_controlled[0, [8, 9]].all() and (engine.tokens[0, 8, cur + 4 : cur + 9] >= 0).all()
     again, _ = run(sc, 9)
     assert np.array_equal(engine.tokens, again.tokens)  # same seed, same rollout
+
+
+def test_an_agent_entering_far_from_every_window_has_the_row_planned_anew() -> None:
+    sc = entering_scene()
+    xyh = sc.xyh.copy()
+    xyh[9, :, 1] += 300.0  # car 9 enters 300 m beside the road: no window's centre is within reach
+    far = Scenario.from_arrays(xyh, sc.valid, sc.size, sc.kind, sdc=sc.sdc, current_index=sc.current_index)
+    engine, trace = run(far, 5)
+    cur = sc.current_index
+    now, before, after = trace[3]
+    assert now == cur + 3 and (after[: len(before)] == now - 2).all()  # every window restarted
+    assert int(engine.window_step[0]) == cur + 3 and engine.row_controlled[0, 9]

@@ -19,6 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 SUBSET_RULES = ("overlap", "cover")
+# An agent joins an existing subset only when its centre is this near (m): the model was trained on agents
+# within 60 m of a window's origin (the paper's appendix), and a window's map is chosen around its agents.
+ADMIT_REACH = 60.0
 
 
 @dataclass(frozen=True)
@@ -111,13 +114,14 @@ def plan_subsets(
 
 
 def admit(
-    plan: SubsetPlan, agent: int, positions: np.ndarray, protect: np.ndarray
+    plan: SubsetPlan, agent: int, positions: np.ndarray, protect: np.ndarray, reach: float = ADMIT_REACH
 ) -> tuple[SubsetPlan, int] | None:
     """``plan`` with ``agent`` (active now, in no subset: one the log brings in) acting last in the subset
-    whose centre is nearest it that has room for it: a padding slot, else the slot of the member farthest
-    from it among those that act in an earlier subset (context there) and that ``protect [N]`` does not
-    keep (external agents). Returns the plan and the rank of the subset it changed, or None when no subset
-    has room (plan anew then). The other subsets and everyone's acting order stay as they were."""
+    whose centre is nearest it (within ``reach`` m) that has room for it: a padding slot, else the slot of
+    the member farthest from it among those that act in an earlier subset (context there) and that
+    ``protect [N]`` does not keep (external agents). Returns the plan and the rank of the subset it changed,
+    or None when no subset has room (plan anew then). The other subsets and everyone's acting order stay as
+    they were."""
     k_all = plan.num_subsets
     seen = np.zeros(len(positions), dtype=bool)
     earlier = []  # per rank: which slots hold an agent of an earlier subset
@@ -126,8 +130,10 @@ def admit(
         earlier.append((row >= 0) & seen[np.maximum(row, 0)])
         seen[row[row >= 0]] = True
     here = positions[agent]
-    reach = np.hypot(*(positions[plan.centres] - here).T)
-    for k in np.argsort(reach, kind="stable").tolist():
+    away_k = np.hypot(*(positions[plan.centres] - here).T)
+    for k in np.argsort(away_k, kind="stable").tolist():
+        if away_k[k] > reach:
+            break
         row = plan.slots[k]
         if (row < 0).any():
             drop = int(np.flatnonzero(row < 0)[0])
