@@ -147,8 +147,9 @@ class WindowedRows(RowStates):
             changed.setdefault(k, []).append(b)
         for k, members in sorted(changed.items()):
             ranked = np.setdiff1d(members, failed)  # sorted, unique
+            plans = [p for b in ranked.tolist() if (p := self.plan[b]) is not None]  # every one admitted
             if len(ranked):
-                self._encode_rank(k, ranked, [self.plan[b] for b in ranked])  # type: ignore[misc]
+                self._encode_rank(k, ranked, plans)
         self._note_full()
         return np.unique(np.asarray(failed, dtype=np.int64))
 
