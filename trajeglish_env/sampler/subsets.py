@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 SUBSET_RULES = ("overlap", "cover")
-# An agent joins an existing subset only when its centre is this near (m): the model was trained on agents
-# within 60 m of a window's origin (the paper's appendix), and a window's map is chosen around its agents.
+# An agent joins an existing subset only when its centre is this near (m): training windows hold the agents
+# within 60 m of their frame agent (the paper's appendix; the training windows' ``agent_radius``).
 ADMIT_REACH = 60.0
 
 
