@@ -43,8 +43,9 @@ def test_a_full_subset_gives_up_its_farthest_context_member_never_an_external() 
     protect[3] = True  # an external agent stays in every context it is in
     new, _ = admit(plan, 7, positions, protect)  # type: ignore[misc]
     assert new.slots[2].tolist() == [3, 5, 6, 7]
-    full = plan_subsets(positions[:4], np.ones(4, bool), 4, 0)  # one subset, all acting in it: no room
-    assert admit(full, 3, positions[:4], np.zeros(4, bool)) is None
+    alone = np.arange(5) < 4  # one subset of agents 0-3, all acting in it: no room for agent 4
+    full = plan_subsets(positions[:5], alone, 4, 0)
+    assert full.slots.tolist() == [[0, 1, 2, 3]] and admit(full, 4, positions[:5], np.zeros(5, bool)) is None
 
 
 def entering_scene() -> Scenario:
