@@ -15,7 +15,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
-from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.sampler.rollouts import rollout
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import save_scenarios
@@ -24,11 +24,18 @@ from trajeglish_env.training.dataset import SceneStore
 SCENES_PER_SHARD = 16
 
 
-def guarded_scenes(ckpt: object, scene: Scenario, rollouts: int, seed: int) -> list[Scenario]:
-    """``rollouts`` copies of ``scene`` whose simulated agents follow guarded rollouts of ``ckpt``."""
+def guarded_scenes(
+    ckpt: object, scene: Scenario, rollouts: int, seed: int, temperature: float = DEFAULT_TEMPERATURE
+) -> list[Scenario]:
+    """``rollouts`` copies of ``scene`` whose simulated agents follow guarded rollouts of ``ckpt`` (drawn at
+    ``temperature``; 1 samples the guarded distribution itself)."""
     cur = scene.current_index
     res = rollout(
-        ckpt, scene, rollouts, scene.num_steps - cur - 1, config=SamplingConfig(guard=True, seed=seed)
+        ckpt,
+        scene,
+        rollouts,
+        scene.num_steps - cur - 1,
+        config=SamplingConfig(guard=True, seed=seed, temperature=temperature),
     )
     sim = scene.valid[:, cur]
     out = []
@@ -48,11 +55,12 @@ def main() -> None:
     p.add_argument("--ckpt", help="checkpoint (default: the shipped model)")
     p.add_argument("--rollouts", type=int, default=2, help="rollouts per scene")
     p.add_argument("--seed", type=int, default=1000)
+    p.add_argument("--temperature", type=float, default=DEFAULT_TEMPERATURE, help="sampling temperature")
     args = p.parse_args()
     ckpt = load_checkpoint(args.ckpt) if args.ckpt else load_pretrained()
     made: list[Scenario] = []
     for k, scene in enumerate(tqdm(SceneStore(args.data).scenes, desc="guarded rollouts")):
-        made += guarded_scenes(ckpt, scene, args.rollouts, args.seed + k)
+        made += guarded_scenes(ckpt, scene, args.rollouts, args.seed + k, args.temperature)
     out = Path(args.out)
     for i in range(0, len(made), SCENES_PER_SHARD):
         save_scenarios(out / f"guarded-{i // SCENES_PER_SHARD:05d}.scn.npz", made[i : i + SCENES_PER_SHARD])

@@ -31,3 +31,21 @@ def test_guarded_rollout_scenes(tmp_path: Path) -> None:
         assert s.valid[sim, cur + 1 :].all()  # the simulated agents exist through the rollout
         assert np.abs(s.xyh[sim, -1, :2] - scene.xyh[sim, -1, :2]).max() > 0.1  # and drove on their own
     assert not np.array_equal(made[0].xyh, made[1].xyh)  # two different rollouts
+
+
+def test_guarded_rollout_scenes_take_the_temperature() -> None:
+    """At temperature 0 every rollout is the guarded argmax one, whatever its seed; at 1 seeds differ."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("grs", REPO / "scripts" / "guarded_rollout_scenes.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    from trajeglish_env.checkpoint import load_pretrained
+
+    ckpt = load_pretrained()
+    scene = bundle_scene("highway-merge-999000")
+    cold = [module.guarded_scenes(ckpt, scene, 1, seed, temperature=0.0)[0].xyh for seed in (1, 2)]
+    hot = [module.guarded_scenes(ckpt, scene, 1, seed, temperature=1.0)[0].xyh for seed in (1, 2)]
+    np.testing.assert_array_equal(cold[0], cold[1])
+    assert not np.array_equal(hot[0], hot[1])
