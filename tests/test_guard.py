@@ -193,31 +193,3 @@ def test_fallbacks_drop_the_road_rule_then_the_guard() -> None:
     allowed = (plain[2::3] >= v // 2) & (plain[2::3] < v - 1)
     same = (tokens[2::3] == plain[2::3])[allowed].mean()  # 0.72: one number per draw keeps most tokens
     assert 0.5 < same < 1.0 and 0.3 < allowed.mean() < 0.7
-
-
-def test_a_grid_cell_lists_every_road_edge_segment_within_reach_of_its_points() -> None:
-    """The segments a road-edge list is chosen among (one grid cell's, on the shared WOMD scene's 5,251
-    edge segments) hold every segment within the reach of any point of the cell, and not the whole map."""
-    from helpers import womd_tfrecord
-
-    from trajeglish_env.batch_geometry import edge_rows, point_segment_distances
-    from trajeglish_env.sampler.guard_edges import GRID_CELL, GRID_REACH, SegmentGrid
-    from trajeglish_env.sources.womd import read_womd
-
-    scene = next(read_womd(womd_tfrecord()))
-    columns = edge_rows(road_edges(scene))[0]
-    grid = SegmentGrid(columns, GRID_REACH)
-    rng = np.random.default_rng(0)
-    centre = scene.xyh[scene.sdc, scene.current_index, :2]
-    points = centre + rng.uniform(-60, 60, (300, 2))
-    sizes = []
-    for p in points:
-        near = grid.near(p)
-        within = np.flatnonzero(point_segment_distances(columns, p) <= GRID_REACH)
-        assert np.isin(within, near).all(), p
-        assert (np.diff(near) > 0).all()  # ascending, as the lists keep them
-        sizes.append(len(near))
-    assert columns.shape[1] > 5000
-    assert np.mean(sizes) < columns.shape[1] / 3
-    assert len(grid.cells) < len(points)  # points share cells: each cell's list is found once
-    assert GRID_CELL > 0

@@ -44,6 +44,7 @@ from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.parallel import (
     LOOK_AHEAD_MAX_POSITIONS,
     accepted,
+    coupled_drafts,
     guard_view,
     look_ahead_rows,
     previous_tokens,
@@ -144,7 +145,10 @@ class BatchEngine(WindowedRows):
             self._draft = None
             if self.config.intra_step == "parallel":  # drafts: the look-ahead of the last step, else repeats
                 ahead = self._ahead if self._ahead is not None else np.full((self.B, self.N), -1)
-                self._draft = np.where(ahead >= 0, ahead, previous_tokens(self))
+                coupled = self._coupled_drafts()
+                self._draft = np.where(
+                    ahead >= 0, ahead, np.where(coupled >= 0, coupled, previous_tokens(self))
+                )
                 self._ahead = np.full((self.B, self.N), -1)
                 self._ahead_rank = np.full((self.B, self.N), np.iinfo(np.int64).max)
         A = self.cfg.max_agents
@@ -329,6 +333,7 @@ class BatchEngine(WindowedRows):
         self._draft[rr, who] = tok
         keep = cc <= last[rr]
         self._finish(rr[keep], who[keep], tt[keep], tok[keep])
+        self._keep_logits(rr[keep], who[keep], tt[keep], logits[torch.from_numpy(np.flatnonzero(keep))])
         return np.where(last >= 0, last + 1, count)
 
     def _draw_ahead(self, w: Window, hidden: torch.Tensor, where: np.ndarray, slots: np.ndarray) -> None:
@@ -348,6 +353,22 @@ class BatchEngine(WindowedRows):
         u = counter_uniform(self.seed[rr], t1, who)
         self._ahead[rr, who] = sample_with_uniform(logits, self.config.temperature, self.config.top_p, u)
         self._ahead_rank[rr, who] = self._rank
+
+    def _keep_logits(self, rr: np.ndarray, who: np.ndarray, tt: np.ndarray, logits: torch.Tensor) -> None:
+        """Keep the class logits ``[n,V]`` that agents ``who`` of rows ``rr`` drew their tokens of steps
+        ``tt`` from: the next step drafts from them (:func:`~.parallel.coupled_drafts`)."""
+        if self._drawn_logits.shape[:2] != (self.B, self.N) or self._drawn_logits.shape[2] != logits.shape[1]:
+            self._drawn_logits = np.zeros((self.B, self.N, logits.shape[1]), np.float32)
+            self._drawn_at = np.full((self.B, self.N), -1, np.int64)
+        self._drawn_logits[rr, who] = logits.numpy()
+        self._drawn_at[rr, who] = tt
+
+    def _coupled_drafts(self) -> np.ndarray:
+        """:func:`~trajeglish_env.sampler.parallel.coupled_drafts` of the kept logits."""
+        if self._drawn_at.shape != (self.B, self.N):
+            return np.full((self.B, self.N), -1, np.int64)
+        config = self.config
+        return coupled_drafts(self, self._drawn_logits, self._drawn_at, config.temperature, config.top_p)
 
     def _finish(self, rr: np.ndarray, who: np.ndarray, tt: np.ndarray, tok: np.ndarray) -> None:
         """Record the drawn tokens ``tok`` of agents ``who`` of rows ``rr`` at steps ``tt`` and states."""

@@ -17,9 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from trajeglish_env.batch_geometry import PaddedRows, latest_states, nearest_first
+from trajeglish_env.edge_cells import EdgeCells
 from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
-from trajeglish_env.sampler.guard_edges import EdgeLists, RoadView, road_view
+from trajeglish_env.sampler.guard_edges import RoadView, road_view
 from trajeglish_env.sampler.guard_signals import DEPART_STEP, SceneSignals, SignalCache
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.scenario import AgentKind
@@ -93,7 +94,7 @@ class GuardGeometry:
         self.move = np.hypot(self.templates[..., 0], self.templates[..., 1]).max(axis=1)  # per class
         self._columns = PaddedRows(0.0, last=True)
         self._links = PaddedRows(-1, last=True)
-        self._lists = EdgeLists()
+        self._cells = EdgeCells()
         self._signals = SignalCache()
 
     def pairs(
@@ -116,9 +117,7 @@ class GuardGeometry:
         )
         corners = box_corners(origin, size)
         wheeled = kind != AgentKind.PEDESTRIAN  # cyclists keep to the road as vehicles do
-        edges = road_view(
-            self._lists, rs, rr, who, origin, corners, extent, wheeled, padded, self.road_margin
-        )
+        edges = road_view(self._cells, rs, rr, origin, corners, extent, wheeled, padded, self.road_margin)
         red, depart, signals = self._lights(rs, rr, tt, origin, size, extent, wheeled)
         if self.green_rule and depart.any():  # one overlapping another box already is not pushed on
             depart &= way_clear(origin, size, *near) & ~tangled
@@ -210,7 +209,7 @@ class GuardGeometry:
         if len(q):
             pick = sel[q]
             corners = box_corners(cand[q], size[q][:, None])
-            off[q] = p.edges.beyond(pick, p.rows[pick], p.origin[pick], corners)
+            off[q] = p.edges.beyond(pick, corners)
         red = p.red[sel]
         for ss, rows in _by_scene(p.signals, np.unique(p.rows[sel][red]).tolist()):  # one pass per scene
             q = np.flatnonzero(red & np.isin(p.rows[sel], rows))

@@ -16,7 +16,10 @@ positions of the next step (their inputs guessed from this step's drafts), and d
 next step's numbers, the drafts that step starts from (:func:`look_ahead_rows`). Most of them are right,
 so a step of a scene whose agents are all NPCs costs about one model call. The look-ahead doubles the
 positions of a call, so it is only taken while a call is small enough for its fixed cost to dominate
-(:data:`LOOK_AHEAD_MAX_POSITIONS`). Without one, an agent's draft is its token of the step before.
+(:data:`LOOK_AHEAD_MAX_POSITIONS`). Without one, an agent's draft is drawn from its distribution of the
+step before with its number of this step (:func:`coupled_drafts`): where the distribution moved little,
+the same number inverts both to the same token (its token of the step before, drawn with another number,
+agrees less often); an agent without one drafts its token of the step before.
 
 Guarded sampling (:mod:`~trajeglish_env.sampler.guard`) reads, for each agent, the next states of the
 agents that moved before it: in a parallel call those are the drafted states of its predecessors in the
@@ -26,9 +29,11 @@ run, which :func:`guard_view` supplies per agent.
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from trajeglish_env.geometry import to_global
 from trajeglish_env.sampler.rows import RowStates
+from trajeglish_env.sampler.sampling import counter_uniform, sample_with_uniform
 
 # Calls of at most this many rows x agent slots look one step ahead: a 24-agent scene then takes 1.2 calls
 # a step instead of 2.1, and a batch of 8 runs 15 % faster; from 32 such scenes on, a call's cost is its
@@ -44,6 +49,20 @@ def previous_tokens(rs: RowStates) -> np.ndarray:
     tok = rs.tokens[r, :, t[:, None]][:, 0] if rs.tokens.shape[2] else np.full((rs.B, rs.N), -1)
     ok = rs.known[r, :, t[:, None]][:, 0] & (rs.now > 0)[:, None]
     return np.where(ok, tok, -1)
+
+
+def coupled_drafts(
+    rs: RowStates, logits: np.ndarray, drawn_at: np.ndarray, temperature: float, top_p: float
+) -> np.ndarray:
+    """Drafts ``[B,N]`` for the step each row is at (-1: none): where an agent's token of the step before
+    was drawn (in parallel) from class logits ``logits [B,N,V]`` (``drawn_at [B,N]``: the step of the
+    draw), the draw of those logits at its number of this step."""
+    out = np.full((rs.B, rs.N), -1, np.int64)
+    rr, aa = np.nonzero((drawn_at == (rs.now - 1)[:, None]) & (rs.now > 0)[:, None])
+    if len(rr):
+        u = counter_uniform(rs.seed[rr], rs.now[rr], aa)
+        out[rr, aa] = sample_with_uniform(torch.from_numpy(logits[rr, aa]), temperature, top_p, u)
+    return out
 
 
 def look_ahead_rows(

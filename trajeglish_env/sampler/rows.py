@@ -72,6 +72,9 @@ class RowStates:
         self._draft: np.ndarray | None = None
         self._ahead: np.ndarray | None = None  # drafts [B,N] for the next step, drawn looking ahead
         self._ahead_rank = np.zeros((0, 0), np.int64)  # [B,N] the subset rank that drew each of them
+        # [B,N,V] the class logits each agent's last token was drawn from in parallel, and [B,N] its step
+        self._drawn_logits = np.zeros((0, 0, 0), np.float32)
+        self._drawn_at = np.zeros((0, 0), np.int64)
 
     def _allocate(self, n: int, t: int) -> None:
         """Grow the per-row arrays to ``n`` agents and ``t`` steps (padding: absent, decided)."""
@@ -109,6 +112,8 @@ class RowStates:
         self._draft = self._ahead = None
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         seeds = np.asarray(seeds, dtype=np.uint64).reshape(-1)
+        if len(self._drawn_at):
+            self._drawn_at[rows[(rows >= 0) & (rows < self.B)]] = -1  # a restarted row drafts afresh
         if len(rows) != len(seeds) or ((rows < 0) | (rows >= self.B)).any():
             raise ValueError(
                 f"start_rows: {len(rows)} rows in 0..{self.B - 1} need as many seeds, got {seeds}"
