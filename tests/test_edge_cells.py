@@ -73,7 +73,11 @@ def test_a_cleared_square_is_on_the_road() -> None:
     rng = np.random.default_rng(2)
     centres = rng.uniform([-10, -10], [70, 50], (400, 2))
     reach = np.full(len(centres), 6.0)
-    clear = cells.all_safe(np.repeat(maps, len(centres)), centres, reach)
+    on = np.repeat(maps, len(centres))
+    assert not cells.all_safe(on, centres, reach).any() and cells.slots == 0  # computes no block
+    grid = np.stack(np.meshgrid(np.arange(-20, 80, 2.0), np.arange(-20, 60, 2.0)), -1).reshape(-1, 2)
+    cells.locate(np.repeat(maps, len(grid)), grid)  # the blocks of the whole area, as queries compute them
+    clear = cells.all_safe(on, centres, reach)
     assert clear.sum() >= 10
     inside = (centres > reach[:, None]).all(axis=1) & (centres < np.array([60, 40]) - reach[:, None]).all(
         axis=1

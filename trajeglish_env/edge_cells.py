@@ -30,6 +30,7 @@ from trajeglish_env.metrics.road_edges import Z_STRETCH
 
 CELL = 0.5  # metres: a cell's side
 BLOCK = 16  # cells per block side: a block's cells are computed together, when a point first falls in it
+SUB = 4  # cells per side of the sub-blocks a block's segments are narrowed down over before its cells
 PAD = 40.0  # metres of grid around a map's road edges; points farther out are answered by a full scan
 MAX_BLOCKS = 1 << 18  # blocks per map at most (larger cells on a larger map)
 SLACK = 0.1  # metres to spare in the bounds: covers the reference's float32 rounding many times over
@@ -51,10 +52,20 @@ class MapGrid:
     table: int
 
 
+def _rows(columns: np.ndarray, rows: tuple[int, ...]) -> list[np.ndarray]:
+    """Rows ``rows`` of segment columns ``[7,S]`` (shared by every point) or ``[7,P,S]`` (per point) as
+    float64 arrays that broadcast against points ``[P,1]``."""
+    return [
+        columns[k].astype(np.float64)[None] if columns.ndim == 2 else columns[k].astype(np.float64)
+        for k in rows
+    ]
+
+
 def selection_distance(columns: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """``[P,S]`` the reference's selection distance (see the module docstring) from points ``x, y [P]``
-    to segments ``columns [7,S]``, in float64 (for bounds; the choice itself is made in float32)."""
-    ax, ay, az, dx, dy, dz, inverse = (columns[k].astype(np.float64)[None] for k in range(7))
+    to segments ``columns [7,S]`` (or ``[7,P,S]``: per point), in float64 (for bounds; the choice itself
+    is made in float32)."""
+    ax, ay, az, dx, dy, dz, inverse = _rows(columns, tuple(range(7)))
     ux, uy = x[:, None] - ax, y[:, None] - ay
     t = np.clip((ux * dx + uy * dy) * inverse, 0, 1)
     rx, ry, rz = ux - t * dx, uy - t * dy, float(Z_STRETCH) * (-az - t * dz)
@@ -62,8 +73,9 @@ def selection_distance(columns: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.
 
 
 def planar_distance(columns: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """``[P,S]`` 2-D distances (float64) from points ``x, y [P]`` to segments ``columns [7,S]``."""
-    ax, ay, dx, dy = (columns[k].astype(np.float64)[None] for k in (0, 1, 3, 4))
+    """``[P,S]`` 2-D distances (float64) from points ``x, y [P]`` to segments ``columns [7,S]`` (or
+    ``[7,P,S]``)."""
+    ax, ay, dx, dy = _rows(columns, (0, 1, 3, 4))
     ux, uy = x[:, None] - ax, y[:, None] - ay
     length2 = dx * dx + dy * dy
     t = np.clip(np.where(length2 > 0, (ux * dx + uy * dy) / np.where(length2 > 0, length2, 1), 0), 0, 1)
@@ -72,11 +84,20 @@ def planar_distance(columns: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.nda
 
 def line_side(columns: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """``[P,S]`` signed distances (float64) of points ``x, y [P]`` to the lines of segments ``columns
-    [7,S]``: negative on the left (the road side); +inf for a null segment (no side)."""
-    ax, ay, dx, dy = (columns[k].astype(np.float64)[None] for k in (0, 1, 3, 4))
+    [7,S]`` (or ``[7,P,S]``): negative on the left (the road side); +inf for a null segment (no side)."""
+    ax, ay, dx, dy = _rows(columns, (0, 1, 3, 4))
     length = np.hypot(dx, dy)
     cross = (x[:, None] - ax) * dy - (y[:, None] - ay) * dx
     return np.where(length > 0, cross / np.where(length > 0, length, 1), np.inf)
+
+
+def _listed(
+    columns: np.ndarray, slope: np.ndarray, x: np.ndarray, y: np.ndarray, radius: float
+) -> np.ndarray:
+    """``[P,S]`` the segments (``columns [7,S]`` or ``[7,P,S]``, Lipschitz constants ``slope`` alike; inf:
+    none) that can be the nearest one for some point within ``radius`` of a centre ``x, y [P]``."""
+    bound = (selection_distance(columns, x, y) + slope * radius).min(axis=1)
+    return planar_distance(columns, x, y) - radius <= bound[:, None] + SLACK
 
 
 def lipschitz(columns: np.ndarray) -> np.ndarray:
@@ -134,16 +155,16 @@ class EdgeCells:
         return len(self.maps) - 1
 
     # ----------------------------------------------------------------------------------------- cells
-    def cells_of(self, maps: np.ndarray, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+    def cells_of(self, maps: np.ndarray, ix: np.ndarray, iy: np.ndarray, compute: bool = True) -> np.ndarray:
         """Cell index (in the cell arrays) of cells ``ix, iy`` of ``maps`` (-1 outside a grid), their
-        blocks computed where they were not yet."""
+        blocks computed where they were not yet (``compute`` False: -1 for those)."""
         nbx, nby, table = (self.params[maps, k].astype(np.int64) for k in (3, 4, 5))
         bx, by = ix // BLOCK, iy // BLOCK
         inside = (ix >= 0) & (iy >= 0) & (bx < nbx) & (by < nby)
         block = np.where(inside, table + by * nbx + bx, 0)
         slot = np.where(inside, self.table[block], -1)
         missing = inside & (slot < 0)
-        if missing.any():
+        if compute and missing.any():
             for b in np.unique(block[missing]).tolist():
                 self._compute_block(b)
             slot = np.where(inside, self.table[block], -1)
@@ -157,31 +178,51 @@ class EdgeCells:
         return self.cells_of(maps, ix, iy)
 
     def _compute_block(self, block: int) -> None:
-        """Lists and safe flags of the cells of block ``block`` of the table (see the module docstring)."""
+        """Lists and safe flags of the cells of block ``block`` of the table (see the module docstring):
+        the segments that can be nearest in the block, then in each SUB x SUB cells of it, then in each
+        cell (each level's bound drawn from the level above)."""
         m = int(np.searchsorted(self.params[:, 5], block, side="right") - 1)
         grid = self.maps[m]
         local = block - grid.table
         bx, by = local % grid.nbx, local // grid.nbx
         side = grid.cell * BLOCK
-        cx0, cy0 = np.array([grid.x0 + (bx + 0.5) * side]), np.array([grid.y0 + (by + 0.5) * side])
         columns, slope = grid.columns, lipschitz(grid.columns)
-        radius = side * np.sqrt(0.5)
-        bound = (selection_distance(columns, cx0, cy0)[0] + slope * radius).min()
-        near = np.flatnonzero(planar_distance(columns, cx0, cy0)[0] - radius <= bound + SLACK)
+        cx0, cy0 = np.array([grid.x0 + (bx + 0.5) * side]), np.array([grid.y0 + (by + 0.5) * side])
+        near = _listed(columns, slope, cx0, cy0, side * np.sqrt(0.5))[0]
+        near = np.flatnonzero(near)
+        # sub-blocks of SUB x SUB cells, row by row
+        per = BLOCK // SUB
+        sy, sx = np.divmod(np.arange(per * per), per)
+        sub_side = grid.cell * SUB
+        sub = _listed(
+            columns[:, near],
+            slope[near],
+            grid.x0 + bx * side + (sx + 0.5) * sub_side,
+            grid.y0 + by * side + (sy + 0.5) * sub_side,
+            sub_side * np.sqrt(0.5),
+        )
+        width = max(int(sub.sum(axis=1).max()), 1)
+        order = np.argsort(~sub, axis=1, kind="stable")[:, :width]  # each sub-block's listed, ascending
+        real = np.take_along_axis(sub, order, 1)
         jy, jx = np.divmod(np.arange(BLOCK * BLOCK), BLOCK)  # cell order of a slot: row by row
+        owner = (jy // SUB) * per + jx // SUB
+        index = near[order][owner]  # [cells, width] candidate segments of each cell
         cx = grid.x0 + (bx * BLOCK + jx + 0.5) * grid.cell
         cy = grid.y0 + (by * BLOCK + jy + 0.5) * grid.cell
         r = grid.cell * np.sqrt(0.5)
-        cols = columns[:, near]
-        bound_cells = (selection_distance(cols, cx, cy) + slope[near] * r).min(axis=1)
-        listed = planar_distance(cols, cx, cy) - r <= bound_cells[:, None] + SLACK  # [cells, k]
+        cols = columns[:, index]  # [7, cells, width]
+        listed = _listed(cols, np.where(real[owner], slope[index], np.inf), cx, cy, r) & real[owner]
+        # safe: each cell's centre far enough on the road side of its listed segments and their neighbours
+        # (which give the sign beyond a segment's end), checked over the (cell, listed segment) pairs
+        at, j = np.nonzero(listed)
+        segment = index[at, j]
         clear = -(r + SLACK)
-        ok = line_side(cols, cx, cy) <= clear
-        for k in (0, 1):  # the neighbours that give the sign beyond a segment's end
-            other = grid.links[k, near]
-            ok &= (other < 0)[None] | (line_side(columns[:, np.maximum(other, 0)], cx, cy) <= clear)
+        ok = line_side(columns[:, segment][:, :, None], cx[at], cy[at])[:, 0] <= clear
+        for k in (0, 1):
+            other = grid.links[k, segment]
+            sides = line_side(columns[:, np.maximum(other, 0)][:, :, None], cx[at], cy[at])[:, 0]
+            ok &= (other < 0) | (sides <= clear)
         counts = listed.sum(axis=1)
-        _, j = np.nonzero(listed)
         slot = self.slots
         if (slot + 1) * BLOCK * BLOCK > len(self.start):
             grow = max(64, slot) * BLOCK * BLOCK
@@ -192,9 +233,9 @@ class EdgeCells:
         cells = slice(slot * BLOCK * BLOCK, (slot + 1) * BLOCK * BLOCK)
         self.start[cells] = self.used + np.concatenate([[0], np.cumsum(counts)[:-1]])
         self.length[cells] = counts
-        self.safe[cells] = (~listed | ok).all(axis=1)
+        self.safe[cells] = np.bincount(at[~ok], minlength=BLOCK * BLOCK) == 0
         self.block_safe[slot] = self.safe[cells].all()
-        self._append(near[j])
+        self._append(segment)  # row by row: each cell's segments, ascending
         self.table[block] = slot
         self.slots += 1
 
@@ -209,10 +250,11 @@ class EdgeCells:
     # --------------------------------------------------------------------------------------- queries
     def all_safe(self, maps: np.ndarray, centre: np.ndarray, reach: np.ndarray) -> np.ndarray:
         """``[n]`` True where every block that the square of half-side ``reach [n]`` around ``centre [n,2]``
-        on ``maps [n]`` touches holds only safe cells: every point within ``reach`` of the centre is then
-        on the road."""
-        if not len(maps):
-            return np.zeros(0, bool)
+        on ``maps [n]`` touches is computed and holds only safe cells: every point within ``reach`` of the
+        centre is then on the road. Computes no block (a block not computed yet counts as not safe): the
+        blocks a vehicle's candidates reach are computed when its corners are first measured."""
+        if not len(maps) or not self.slots:
+            return np.zeros(len(maps), bool)
         x0, y0, side = self.params[maps, 0], self.params[maps, 1], self.params[maps, 2] * BLOCK
         lo_x, lo_y, hi_x, hi_y = (
             np.floor((centre[:, k] + sign * reach - origin) / side).astype(np.int64)
@@ -224,7 +266,7 @@ class EdgeCells:
         by = np.broadcast_to(lo_y[:, None, None] + k[None, :, None], (len(maps), span, span))
         used = (bx <= hi_x[:, None, None]) & (by <= hi_y[:, None, None])
         many = np.broadcast_to(maps[:, None, None], bx.shape)
-        cells = self.cells_of(many[used], bx[used] * BLOCK, by[used] * BLOCK)  # each block's first cell
+        cells = self.cells_of(many[used], bx[used] * BLOCK, by[used] * BLOCK, compute=False)
         ok = np.ones(bx.shape, bool)
         ok[used] = (cells >= 0) & self.block_safe[np.maximum(cells, 0) // (BLOCK * BLOCK)]
         return ok.all(axis=(1, 2))

@@ -243,12 +243,15 @@ class DecoderBlock(nn.Module):
         cross_k: torch.Tensor,
         cross_v: torch.Tensor,
         memory_mask: torch.Tensor | None,
+        queries: slice = slice(None),
     ) -> torch.Tensor:
         """New positions ``x [B,n,C]`` through the cache: each :class:`RowGroup` stores its keys/values
-        and attends over its own cached prefix under its own mask (fixed key length per group)."""
+        and attends over its own cached prefix under its own mask (fixed key length per group). Returns
+        the outputs of positions ``queries`` only (every position stores its keys and values)."""
         h = self.norm_self(x)
         k, v = self.self_attn.keys_values(h)
         ck, cv, groups = cache
+        x, h = x[:, queries], h[:, queries]
         whole = len(groups) == 1 and groups[0].rows is None  # every row in one group: no scatter needed
         attended = h if whole else torch.zeros_like(h)
         for g in groups:
@@ -256,7 +259,7 @@ class DecoderBlock(nn.Module):
             g.store(ck, k)
             g.store(cv, v)
             keys, values = ck[in_cache, :, : g.keys], cv[in_cache, :, : g.keys]  # views: every row
-            out = self.self_attn.attend(h[rows], keys, values, g.mask)
+            out = self.self_attn.attend(h[rows], keys, values, g.mask[:, :, queries])
             if whole:
                 attended = out
             else:

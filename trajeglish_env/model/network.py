@@ -244,6 +244,7 @@ class TrajeglishModel(nn.Module):
         start: np.ndarray,
         count: np.ndarray,
         view: NeighbourView | None = None,
+        read: tuple[int, int] | None = None,
     ) -> torch.Tensor:
         """Hidden states ``[B,n,C]`` (logits: :meth:`class_logits`) of a chunk of positions per row: row
         ``b`` decodes positions ``start[b] .. start[b]+count[b]-1`` of its own window (``count`` 0: the row
@@ -255,8 +256,10 @@ class TrajeglishModel(nn.Module):
         ``start``/``count`` are host arrays (no device sync). Rows whose chunks end in the same model step
         attend together over the keys up to the end of that step (masked), so every shape a row meets
         depends on that row alone and its result never depends on the other rows of the batch. ``view
-        [B,n]``: the positions' neighbour features (models with ``neighbour_input``)."""
-        out = self._decode(cache, agents, carried_ids, own_ids, start, count, outputs=True, view=view)
+        [B,n]``: the positions' neighbour features (models with ``neighbour_input``). ``read = (first,
+        stop)``: only the outputs of input slots ``first .. stop - 1`` are read (the others are zeros; the
+        last layer stores their keys and values only, as priming does)."""
+        out = self._decode(cache, agents, carried_ids, own_ids, start, count, True, view, read)
         assert out is not None
         return out
 
@@ -270,6 +273,7 @@ class TrajeglishModel(nn.Module):
         count: np.ndarray,
         outputs: bool,
         view: NeighbourView | None = None,
+        read: tuple[int, int] | None = None,
     ) -> torch.Tensor | None:
         """:meth:`decode_at`; with ``outputs`` False the last layer only stores its keys and values."""
         n, a = carried_ids.shape[1], agents.shape[1]
@@ -325,6 +329,11 @@ class TrajeglishModel(nn.Module):
             if i == last and not outputs:
                 block.store_keys(x, kv)
                 return None
+            if i == last and read is not None and read != (0, n):
+                part = block.decode(x, kv, cross_k[i], cross_v[i], cross_mask, slice(*read))
+                x = part.new_zeros(part.shape[0], n, part.shape[-1])
+                x[:, read[0] : read[1]] = part
+                break
             x = block.decode(x, kv, cross_k[i], cross_v[i], cross_mask)
         if cache_of is None:
             return x

@@ -291,12 +291,13 @@ class BatchEngine(WindowedRows):
             )
             carried = torch.where(torch.from_numpy(guess).to(self.device), carried_now, carried)
         view = self._view(np.arange(self.B), w.slots, w.start, positions)
-        hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, extent, view)
-        self.model_calls += 1
         slots = positions % A
+        todo = inside & np.take_along_axis(sample, slots, 1)
+        read = self._read_span(todo | (decoded & ~inside & ahead[:, None]), n)
+        hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, extent, view, read)
+        self.model_calls += 1
         if ahead.any():
             self._draw_ahead(w, hidden, decoded & ~inside, slots)
-        todo = inside & np.take_along_axis(sample, slots, 1)
         if not todo.any():
             return count
         rr, cc = np.nonzero(todo)
@@ -353,6 +354,15 @@ class BatchEngine(WindowedRows):
         u = counter_uniform(self.seed[rr], t1, who)
         self._ahead[rr, who] = sample_with_uniform(logits, self.config.temperature, self.config.top_p, u)
         self._ahead_rank[rr, who] = self._rank
+
+    def _read_span(self, wanted: np.ndarray, n: int) -> tuple[int, int]:
+        """The input slots ``(first, stop)`` of a call whose outputs are read (``wanted [B,n]``): the known
+        agents that open a subset (those that acted in an earlier one) and padding are only context, so
+        the last layer computes their keys and values only. At least ``_min_queries`` slots."""
+        used = np.flatnonzero(wanted.any(axis=0))
+        first, stop = (int(used[0]), int(used[-1]) + 1) if len(used) else (0, 0)
+        stop = min(n, max(stop, first + self._min_queries))
+        return max(0, min(first, stop - self._min_queries)), stop
 
     def _keep_logits(self, rr: np.ndarray, who: np.ndarray, tt: np.ndarray, logits: torch.Tensor) -> None:
         """Keep the class logits ``[n,V]`` that agents ``who`` of rows ``rr`` drew their tokens of steps
