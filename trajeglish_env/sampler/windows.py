@@ -90,7 +90,57 @@ class WindowedRows(RowStates):
         return self.stepping & ((self.window_step < 0) | ((since % self.every == 0) & (since != 0)))
 
     def _build_windows(self, rows: np.ndarray) -> None:
-        """Plan subsets of ``rows`` at their step and encode + prime each subset rank for them."""
+        """Plan subsets of ``rows`` at their step and encode + prime each subset rank for them; rows whose
+        histories are identical (the rollouts of one scene at their first step) are built once and
+        copied."""
+        first, copies = self._identical_rows(rows)
+        self._build_distinct(first)
+        if len(copies):
+            self._copy_windows(first[copies[:, 1]], copies[:, 0])
+
+    def _identical_rows(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``rows`` reduced to one per group of identical ones (same scene, step and everything its windows
+        are built from), and ``[k,2]`` (row, index of its group's row) of the others."""
+        cheap = [(id(self.scenes[b]), id(self.chunks[b]), int(self.now[b]), int(self.first[b])) for b in rows]
+        shared = {k for k in cheap if cheap.count(k) > 1} if len(set(cheap)) < len(cheap) else set()
+        seen: dict[tuple[object, ...], int] = {}
+        kept: list[int] = []
+        copies: list[tuple[int, int]] = []
+        for b, base in zip(rows.tolist(), cheap, strict=True):
+            key: tuple[object, ...] = (b,)  # a row alone of its scene and step is kept as it is
+            if base in shared:
+                t = base[2]
+                history = (self.mxyh[b, :, : t + 1], self.valid[b, :, : t + 1], self.tokens[b, :, :t])
+                arrays = (*history, self.known[b, :, :t], self.row_priority[b], self.row_controlled[b])
+                arrays += (self.row_external[b], self.size[b], self.kind[b])
+                key = (*base, b"".join(a.tobytes() for a in arrays))
+            hit = seen.get(key)
+            if hit is None:
+                seen[key] = len(kept)
+                kept.append(b)
+            else:
+                copies.append((b, hit))
+        return np.array(kept, np.int64), np.array(copies, np.int64).reshape(-1, 2)
+
+    def _copy_windows(self, source: np.ndarray, target: np.ndarray) -> None:
+        """Give rows ``target`` the plans and windows (caches included) of rows ``source``."""
+        src, dst = torch.from_numpy(source).to(self.device), torch.from_numpy(target).to(self.device)
+        for b, a in zip(target.tolist(), source.tolist(), strict=True):
+            self.plan[b] = self.plan[a]
+        self.num_subsets[target] = self.num_subsets[source]
+        self.window_step[target] = self.window_step[source]
+        for w in self.windows:
+            w.slots[target], w.start[target] = w.slots[source], w.start[source]
+            w.agents[dst], w.kind[dst] = w.agents[src], w.kind[src]
+            c = w.cache
+            for part in (c.self_k, c.self_v, c.cross_k, c.cross_v):
+                for tensor in part:
+                    tensor[dst] = tensor[src]
+            c.memory_mask[dst] = c.memory_mask[src]
+        self._note_full()
+
+    def _build_distinct(self, rows: np.ndarray) -> None:
+        """:meth:`_build_windows` for rows built one by one."""
         A = self.cfg.max_agents
         t = self.now[rows]
         s0 = np.maximum(0, t - self.prime)
