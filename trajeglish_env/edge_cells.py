@@ -44,6 +44,8 @@ class MapGrid:
 
     columns: np.ndarray
     links: np.ndarray
+    wide: np.ndarray  # the columns in float64, for the bounds
+    slope: np.ndarray  # per segment: its Lipschitz constant (:func:`lipschitz`)
     cell: float
     x0: float
     y0: float
@@ -54,9 +56,9 @@ class MapGrid:
 
 def _rows(columns: np.ndarray, rows: tuple[int, ...]) -> list[np.ndarray]:
     """Rows ``rows`` of segment columns ``[7,S]`` (shared by every point) or ``[7,P,S]`` (per point) as
-    float64 arrays that broadcast against points ``[P,1]``."""
+    float64 arrays that broadcast against points ``[P,1]`` (no copy of float64 columns)."""
     return [
-        columns[k].astype(np.float64)[None] if columns.ndim == 2 else columns[k].astype(np.float64)
+        np.asarray(columns[k], np.float64)[None] if columns.ndim == 2 else np.asarray(columns[k], np.float64)
         for k in rows
     ]
 
@@ -147,7 +149,8 @@ class EdgeCells:
         cell = max(CELL, float(np.sqrt((hi_x - lo_x) * (hi_y - lo_y) / MAX_BLOCKS)) / BLOCK)
         nbx = int(np.ceil((hi_x - lo_x) / (cell * BLOCK)))
         nby = int(np.ceil((hi_y - lo_y) / (cell * BLOCK)))
-        grid = MapGrid(columns, links, cell, lo_x, lo_y, nbx, nby, len(self.table))
+        wide = columns.astype(np.float64)
+        grid = MapGrid(columns, links, wide, lipschitz(columns), cell, lo_x, lo_y, nbx, nby, len(self.table))
         self.table = np.concatenate([self.table, np.full(nbx * nby, -1, np.int64)])
         self.params = np.vstack([self.params, [lo_x, lo_y, cell, nbx, nby, grid.table]])
         self.maps.append(grid)
@@ -186,7 +189,7 @@ class EdgeCells:
         local = block - grid.table
         bx, by = local % grid.nbx, local // grid.nbx
         side = grid.cell * BLOCK
-        columns, slope = grid.columns, lipschitz(grid.columns)
+        columns, slope = grid.wide, grid.slope
         cx0, cy0 = np.array([grid.x0 + (bx + 0.5) * side]), np.array([grid.y0 + (by + 0.5) * side])
         near = _listed(columns, slope, cx0, cy0, side * np.sqrt(0.5))[0]
         near = np.flatnonzero(near)
