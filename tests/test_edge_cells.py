@@ -36,12 +36,12 @@ def tilted(edges: RoadEdges) -> tuple[np.ndarray, np.ndarray]:
     return edge_rows(RoadEdges(start, end, edges.previous, edges.following))
 
 
-@pytest.mark.parametrize("name", ["womd", "highway-roundabout-999001", "tilted"])
+@pytest.mark.parametrize("name", ["womd", "highway-roundabout-999001", "sumo-random-999000-0-0", "tilted"])
 def test_cells_give_the_reference_distance(name: str) -> None:
     if name == "womd":
         scene = next(read_womd(womd_tfrecord()))
     else:
-        scene = bundle_scene("highway-roundabout-999001")
+        scene = bundle_scene("highway-roundabout-999001" if name == "tilted" else name)
     edges = road_edges(scene)
     assert edges is not None
     columns, links = tilted(edges) if name == "tilted" else edge_rows(edges)
