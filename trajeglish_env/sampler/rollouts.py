@@ -4,8 +4,9 @@ window), optionally split over processes.
 A rollout's tokens depend only on its scene, settings and sub-stream (counter-based draws, batch-invariant
 inference), so rollouts ``0..R-1`` split into contiguous chunks, each sampled by its own engine (in a
 forked process with one torch thread), are exactly the rollouts one engine samples. On a 2-core machine two
-processes sample the shared WOMD scene's 32 x 80 rollouts in about 30 s against 49 s in one (the
-per-call costs of the engine, NumPy's guard geometry and Python, do not share a core)."""
+processes sample the shared WOMD scene's 32 x 80 rollouts in about 30 s against 49 s in one on a fast
+machine (44 s against 68 s on a slower one; the per-call costs of the engine, NumPy's guard geometry and
+Python, do not share a core)."""
 
 from __future__ import annotations
 
