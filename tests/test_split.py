@@ -452,7 +452,7 @@ def test_a_gpu_model_spawns_its_workers_and_goes_to_them_on_the_cpu(monkeypatch:
     assert shards_module.start_method(None, {"npc": TrajeglishNPC(tiny())}) == "fork"
     assert shards_module.start_method(None, {"npc": "idm"}) == "fork"
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # as on a GPU machine
-    prepared = shards_module.prepared_config(None, {"npc": npc}, "SplitEgoEnv").npc
+    prepared = shards_module.prepared_config(None, {"npc": npc}, "SplitEgoEnv", 4).npc
     assert prepared.device == "cuda"
     assert next(prepared.checkpoint.model.parameters()).device.type == "cpu"
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)

@@ -434,7 +434,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--compute-dtype",
         choices=COMPUTE_DTYPES,
         default="auto",
-        help="dtype the NPC model's linear layers multiply in (auto: bfloat16 where the CPU has it natively)",
+        help="dtype the NPC model's linear layers multiply in (auto: bfloat16 for batches of 16 rows or more "
+        "where the CPU has it natively)",
     )
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure")
     p.add_argument("--quick", action="store_true", help="tiny workloads (a smoke run)")

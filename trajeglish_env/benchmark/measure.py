@@ -235,7 +235,7 @@ def rollout_speed(ckpt: Any, scene: Any, rollouts: int, horizon: int, processes:
     rollout(ckpt, scene, rollouts, horizon, config=config, processes=processes)
     seconds = time.perf_counter() - start
     return {
-        "compute_dtype": dtype_name(config.torch_compute_dtype()),
+        "compute_dtype": dtype_name(config.torch_compute_dtype(rows=rollouts)),
         "agents": agents,
         "seconds": round(seconds, 2),
         "agent_steps_per_s": round(agents * horizon * rollouts / seconds, 1),
@@ -325,7 +325,7 @@ def env_speed(
         "device": device if model else None,
         "peak_gpu_mb": _peak_gpu_mb(device) if model else None,
         "cache_dtype": cache_dtype if model else None,
-        "compute_dtype": dtype_name(sampling.torch_compute_dtype()) if model else None,
+        "compute_dtype": dtype_name(sampling.torch_compute_dtype(device, rows=num_envs)) if model else None,
         "subsets": subsets if model else None,
         "guard": GUARDED[npc] if model else None,
         "timed_steps": steps,

@@ -100,10 +100,14 @@ def start_method(config: EnvConfig | None, options: dict[str, Any]) -> str:
     return "spawn" if on_gpu(config, options) else "fork"
 
 
-def prepared_config(config: EnvConfig | None, options: dict[str, Any], where: str) -> EnvConfig:
+def prepared_config(
+    config: EnvConfig | None, options: dict[str, Any], where: str, num_envs: int
+) -> EnvConfig:
     """The env's config with its NPC model loaded (and checked) here, once. Forked workers share it; for a
     model meant for a GPU the copy sent to the spawned workers is a CPU one (nothing here touches the GPU)
-    and ``TrajeglishNPC.device`` names the GPU, so each worker moves the model there itself."""
+    and ``TrajeglishNPC.device`` names the GPU, so each worker moves the model there itself. The sampling's
+    ``compute_dtype="auto"`` is resolved for all ``num_envs`` scenes, so that every shard decodes as one
+    process of them would (:meth:`~trajeglish_env.sampler.config.SamplingConfig.for_rows`)."""
     import torch
 
     gpu = on_gpu(config, options)
@@ -121,7 +125,9 @@ def prepared_config(config: EnvConfig | None, options: dict[str, Any], where: st
     if gpu and not torch.cuda.is_available():
         raise RuntimeError(f"{where}: the NPC model's device {device!r} needs CUDA, which this machine lacks")
     checkpoint = load_npc_checkpoint(settings.checkpoint, "cpu" if gpu else device)
-    return config.with_overrides(npc=replace(settings.with_checkpoint(checkpoint), device=device))
+    sampling = settings.sampling.for_rows(num_envs)
+    npc = replace(settings.with_checkpoint(checkpoint), device=device, sampling=sampling)
+    return config.with_overrides(npc=npc)
 
 
 class _Method:

@@ -234,7 +234,7 @@ class SplitEgoEnv(SplitWorkers, EgoVectorEnv):
         **options: Any,
     ):
         method = start_method(config, options)
-        config = prepared_config(config, options, "SplitEgoEnv")
+        config = prepared_config(config, options, "SplitEgoEnv", num_envs)
         check_single(config)
         shard = (scene_set(scenes), config, render_mode, torch_threads)
         spaces = self._start(BatchedEgoEnv, num_envs, processes, shard, _ego_spaces, method)
@@ -325,7 +325,7 @@ class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
         **options: Any,
     ):
         method = start_method(config, options)
-        config = prepared_config(config, options, "SplitParallelEnv")
+        config = prepared_config(config, options, "SplitParallelEnv", num_envs)
         shard = (scene_set(scenes), config, render_mode, torch_threads)
         start = self._start(BatchedParallelEnv, num_envs, processes, shard, _parallel_spaces, method)
         self._observation, self._actions = start

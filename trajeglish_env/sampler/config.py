@@ -3,7 +3,7 @@ evaluation (importing it loads no torch)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from trajeglish_env.sampler.subsets import SUBSET_RULES
@@ -22,9 +22,15 @@ GUARD_ROAD_MARGIN = 0.0
 # How the agents of a step are decoded (see :mod:`~trajeglish_env.sampler.parallel`): "parallel" (fixed-point
 # iteration over a whole run of agents per model call) or "sequential" (one model call per sampled agent).
 INTRA_STEP_MODES = ("parallel", "sequential")
-# The dtype the model's linear layers multiply in when sampling: "auto" is bfloat16 on a CPU with native
-# bfloat16 arithmetic (AVX512-BF16 / AMX: 4-7x float32's matrix throughput), float32 elsewhere.
+# The dtype the model's linear layers multiply in when sampling: "auto" is bfloat16 for batches of at least
+# AUTO_BFLOAT16_ROWS rows on a CPU with native bfloat16 arithmetic (AVX512-BF16 / AMX: 4-7x float32's
+# matrix throughput), float32 elsewhere.
 COMPUTE_DTYPES = ("auto", "float32", "bfloat16")
+# Below this many rows (scenes or rollouts decoded together) a call's matrices are small, and bfloat16's
+# casts and separate bias sums cost more than its faster products save: float32 steps a single env 16 %
+# faster (24 agents; the WOMD scene's AEC env 7 %) and 8 scenes 11 %, while 16 scenes gain 4 % and 32
+# scenes 5 % from bfloat16 (README "Float32 for small batches").
+AUTO_BFLOAT16_ROWS = 16
 
 
 def native_bfloat16() -> bool:
@@ -66,10 +72,11 @@ class SamplingConfig:
     shipped model; docs/architecture.md).
 
     ``compute_dtype``: the dtype the model's linear layers multiply in (:data:`COMPUTE_DTYPES`; inputs and
-    weights rounded to it, float32 accumulation). ``"auto"`` (default) is bfloat16 where the CPU does it
-    natively (about 1.2x faster stepping; the shipped model's held-out NLL moves by about 1e-4 nats, see
-    docs/architecture.md), else float32; a rollout then depends on that choice, so set ``"float32"``
-    for rollouts identical across machines of either kind. CUDA devices always compute in float32."""
+    weights rounded to it, float32 accumulation). ``"auto"`` (default) is bfloat16 for batches of at least
+    :data:`AUTO_BFLOAT16_ROWS` rows where the CPU does it natively (the shipped model's held-out NLL moves by
+    about 1e-4 nats, see docs/architecture.md), else float32; a rollout then depends on that choice, so
+    set ``"float32"`` for rollouts identical across machines of either kind and batches of any size. CUDA
+    devices always compute in float32."""
 
     temperature: float = DEFAULT_TEMPERATURE
     top_p: float = 1.0
@@ -119,15 +126,23 @@ class SamplingConfig:
 
         return getattr(torch, self.cache_dtype)
 
-    def torch_compute_dtype(self, device: Any = "cpu") -> Any:
-        """The torch dtype the linear layers multiply in on ``device`` (``"auto"`` resolved)."""
+    def torch_compute_dtype(self, device: Any = "cpu", rows: int | None = None) -> Any:
+        """The torch dtype the linear layers multiply in on ``device`` for a batch of ``rows`` rows
+        (``"auto"`` resolved; ``rows`` None: a large batch)."""
         import torch
 
         if torch.device(device).type != "cpu":
             return torch.float32
-        if self.compute_dtype == "auto":
-            return torch.bfloat16 if native_bfloat16() else torch.float32
-        return getattr(torch, self.compute_dtype)
+        return getattr(torch, self.for_rows(rows).compute_dtype)
+
+    def for_rows(self, rows: int | None) -> SamplingConfig:
+        """This config with ``compute_dtype="auto"`` resolved for a CPU batch of ``rows`` rows (None: a
+        large batch): what split envs and split rollouts hand their workers, so that each shard decodes
+        in the dtype one process of all the rows would."""
+        if self.compute_dtype != "auto":
+            return self
+        large = rows is None or rows >= AUTO_BFLOAT16_ROWS
+        return replace(self, compute_dtype="bfloat16" if large and native_bfloat16() else "float32")
 
     def prime(self, model_steps: int) -> int:
         """Steps of known motion re-fed when a window (re)starts."""

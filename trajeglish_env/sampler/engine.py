@@ -85,7 +85,7 @@ class BatchEngine(WindowedRows):
         every, prime = config.every(steps), config.prime(steps)
         super().__init__(model, ckpt.vocabulary, rows, prime, every, config.subsets, cache_dtype)
         self.config = config
-        self._compute_dtype = config.torch_compute_dtype(self.device)
+        self._compute_dtype = config.torch_compute_dtype(self.device, rows)
         # the float32 single-query attention kernel rounds differently from the multi-query one: pad to 2
         # queries so that a row's result never depends on the chunk lengths of the other rows
         self._min_queries = 1 if cache_dtype == torch.bfloat16 else 2

@@ -72,7 +72,8 @@ def rollout(
         np.asarray(controlled, dtype=bool),
         current,
         priority,
-        config or SamplingConfig(),
+        # "auto" resolved for all the rollouts: split over processes, each chunk decodes as one process would
+        (config or SamplingConfig()).for_rows(rollouts),
     )
     count = auto_processes(rollouts) if processes == "auto" else _checked_processes(processes)
     on_cpu = next(ckpt.model.parameters()).device.type == "cpu"  # never fork a CUDA context
