@@ -9,7 +9,13 @@ from helpers import record_encoded, straight_road_scene, tiny_checkpoint
 
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import RolloutEngine
-from trajeglish_env.sampler.sampling import counter_uniform, nucleus_mask, sample_with_uniform
+from trajeglish_env.sampler.sampling import (
+    counter_uniform,
+    nucleus_mask,
+    sample_from_probs,
+    sample_with_uniform,
+    token_probs,
+)
 
 
 def test_temperature_zero_is_argmax_and_small_temperature_approaches_it() -> None:
@@ -32,6 +38,20 @@ def test_nucleus_keeps_the_smallest_set_with_enough_mass() -> None:
     draws = sample_with_uniform(probs[:1].log().expand(2000, 4), 1.0, 0.8, u)
     assert set(draws.tolist()) == {1, 2}
     assert abs((draws == 1).mean() - 0.5 / 0.8) < 0.04
+
+
+def test_probabilities_are_computed_once_and_drawn_from_alike() -> None:
+    """The guard draws from :func:`token_probs` it shares with its checks: the same tokens as the logits."""
+    logits = torch.randn(64, 384, generator=torch.Generator().manual_seed(1)) * 3
+    u = counter_uniform(np.full(64, 7, np.uint64), np.arange(64), np.zeros(64))
+    probs = token_probs(logits, 0.75)
+    assert probs.dtype == torch.float64 and torch.allclose(probs.sum(-1), torch.ones(64, dtype=torch.float64))
+    for top_p in (1.0, 0.9):
+        drawn = sample_from_probs(probs, top_p, u)
+        assert np.array_equal(drawn, sample_with_uniform(logits, 0.75, top_p, u))
+    assert len(set(drawn.tolist())) > 20  # draws, not one argmax
+    with pytest.raises(ValueError, match="temperature must be > 0 for probabilities, got 0"):
+        token_probs(logits, 0.0)
 
 
 @pytest.mark.parametrize("variant", ["trajeglish", "no-intra"])

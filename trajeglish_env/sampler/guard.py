@@ -31,7 +31,7 @@ import torch
 
 from trajeglish_env.sampler.guard_geometry import GuardGeometry, Pairs
 from trajeglish_env.sampler.rows import RowStates
-from trajeglish_env.sampler.sampling import sample_with_uniform
+from trajeglish_env.sampler.sampling import sample_from_probs, sample_with_uniform, token_probs
 
 # the most likely candidates checked first, then more where the draw is not decided yet, then all: the
 # shipped model's draws are mostly decided by 6 (the check's cost grows with the candidates; 16, 64 before:
@@ -85,7 +85,8 @@ class SamplingGuard:
         agents that moved before it ``[n,N]`` and their next states ``[n,N,3]`` (default: the rows'
         state, i.e. one pair per row, as in sequential decoding; :func:`~trajeglish_env.sampler.parallel.
         guard_view` for a parallel call)."""
-        tokens = sample_with_uniform(logits, temperature, top_p, uniform)
+        probs = None if temperature == 0 else token_probs(logits, temperature)  # shared by the lazy passes
+        tokens = logits.argmax(-1).numpy() if probs is None else sample_from_probs(probs, top_p, uniform)
         pairs = self.geometry.pairs(rs, rows, agents, t, view)
         guarded = np.flatnonzero(pairs.guarded)
         self.stats.sampled += len(rows)
@@ -94,17 +95,18 @@ class SamplingGuard:
             return tokens
         plain = tokens[guarded]
         sub = logits[torch.from_numpy(guarded)]
+        sub_probs = None if probs is None else probs[torch.from_numpy(guarded)].numpy()
         chosen, done = plain.copy(), np.zeros(len(guarded), bool)
         lazy = temperature == 0 or top_p == 1.0  # a masked nucleus depends on every candidate
         for k in [k for k in LAZY_CANDIDATES if k < logits.shape[1]] if lazy else ():
             rest = np.flatnonzero(~done)
             if not len(rest):
                 break
-            sel, lg = guarded[rest], sub[torch.from_numpy(rest)]
-            if temperature == 0:
-                chosen[rest], done[rest] = self._lazy_argmax(pairs, sel, lg, k)
+            sel = guarded[rest]
+            if sub_probs is None:
+                chosen[rest], done[rest] = self._lazy_argmax(pairs, sel, sub[torch.from_numpy(rest)], k)
             else:
-                chosen[rest], done[rest] = self._lazy_draw(pairs, sel, lg, k, temperature, uniform[sel])
+                chosen[rest], done[rest] = self._lazy_draw(pairs, sel, sub_probs[rest], k, uniform[sel])
         rest = np.flatnonzero(~done)
         if len(rest):
             chosen[rest] = self._full_draw(
@@ -132,14 +134,13 @@ class SamplingGuard:
         self,
         pairs: Pairs,
         sel: np.ndarray,
-        logits: torch.Tensor,
+        probs: np.ndarray,
         k: int,
-        temperature: float,
         uniform: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The draw of the fully masked distribution where the ``k`` most likely candidates decide it (see
-        the module docstring); ``done [m]`` says where."""
-        probs = torch.softmax(logits.double() / temperature, dim=-1).numpy()
+        """The draw of the fully masked distribution (``probs [m,V]``: :func:`token_probs` of the pairs)
+        where the ``k`` most likely candidates decide it (see the module docstring); ``done [m]`` says
+        where."""
         m, v = probs.shape
         k = min(k, v)
         top = np.argpartition(-probs, k - 1, axis=1)[:, :k]

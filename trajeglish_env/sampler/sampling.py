@@ -47,6 +47,24 @@ def counter_uniform(seed: np.ndarray, step: np.ndarray, agent: np.ndarray) -> np
     return (x >> np.uint64(11)).astype(np.float64) * 2.0**-53
 
 
+def token_probs(logits: torch.Tensor, temperature: float) -> torch.Tensor:
+    """Probabilities ``[n, V]`` (float64) of logits ``[n, V]`` at ``temperature > 0``: what every draw of
+    :func:`sample_from_probs` inverts (computed once a call, the guard's checks read them too)."""
+    if temperature <= 0:
+        raise ValueError(f"temperature must be > 0 for probabilities, got {temperature}")
+    return torch.softmax(logits.double() / temperature, dim=-1)
+
+
+def sample_from_probs(probs: torch.Tensor, top_p: float, uniform: np.ndarray) -> np.ndarray:
+    """Token ids ``[n]`` drawn from :func:`token_probs` ``[n, V]`` by inverting each row's CDF at
+    ``uniform [n]`` (float64), within the nucleus ``top_p``."""
+    if top_p < 1.0:
+        probs = probs * nucleus_mask(probs, top_p)
+    cdf = probs.cumsum(-1)
+    u = torch.from_numpy(np.asarray(uniform, dtype=np.float64))[:, None] * cdf[:, -1:]
+    return torch.searchsorted(cdf, u, right=True).clamp_(max=probs.shape[-1] - 1)[:, 0].numpy()
+
+
 def sample_with_uniform(
     logits: torch.Tensor, temperature: float, top_p: float, uniform: np.ndarray
 ) -> np.ndarray:
@@ -56,9 +74,4 @@ def sample_with_uniform(
         raise ValueError(f"temperature must be >= 0, got {temperature}")
     if temperature == 0:
         return logits.argmax(-1).numpy()
-    probs = torch.softmax(logits.double() / temperature, dim=-1)
-    if top_p < 1.0:
-        probs = probs * nucleus_mask(probs, top_p)
-    cdf = probs.cumsum(-1)
-    u = torch.from_numpy(np.asarray(uniform, dtype=np.float64))[:, None] * cdf[:, -1:]
-    return torch.searchsorted(cdf, u, right=True).clamp_(max=logits.shape[-1] - 1)[:, 0].numpy()
+    return sample_from_probs(token_probs(logits, temperature), top_p, uniform)
