@@ -15,6 +15,7 @@ from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.metrics.road_edges import signed_distance_to_road_edges
 from trajeglish_env.sampler import guard as guard_module
+from trajeglish_env.sampler import sampling
 from trajeglish_env.sampler.config import GUARD_ROAD_MARGIN, SamplingConfig
 from trajeglish_env.sampler.engine import BatchEngine, RolloutEngine, RowSpec
 from trajeglish_env.scenario import AgentKind
@@ -138,6 +139,44 @@ def test_lazy_checks_draw_what_the_full_mask_draws(
     stats = lazy.guard.stats
     assert stats.masked > 10 and stats.full < stats.guarded / 2  # lazily decided, and the guard mattered
     assert full.guard.stats.full == full.guard.stats.guarded
+
+
+class _FixedMask:
+    """A guard geometry whose ``blocked`` reads a fixed mask ``[m,V]`` (pairs by index)."""
+
+    def __init__(self, blocked: np.ndarray):
+        self.mask = blocked
+
+    def blocked(self, pairs: object, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        hit = self.mask[sel[:, None], tokens]
+        return hit, np.zeros_like(hit)
+
+
+@pytest.mark.parametrize("vocab", [384, 2048])
+def test_a_decided_lazy_draw_is_the_full_masked_draw_even_at_token_boundaries(vocab: int) -> None:
+    """Peaked distributions (as a trained model's), random masks, numbers placed within 1e-9 of a token
+    boundary of the masked CDF: wherever a lazy pass says it decided the draw, its token is the full mask's
+    draw."""
+    rng = np.random.default_rng(7)
+    m = 600
+    logits = torch.from_numpy(rng.normal(size=(m, vocab)) * rng.choice([4.0, 8.0, 16.0], size=(m, 1)))
+    blocked = rng.random((m, vocab)) < rng.choice([0.02, 0.3, 0.7], size=(m, 1))
+    probs = sampling.token_probs(logits, 0.75)
+    masked = probs.numpy() * ~blocked
+    cum = np.cumsum(masked, axis=1) / masked.sum(axis=1, keepdims=True)
+    edge = cum[np.arange(m), rng.integers(0, vocab, m)]
+    uniform = np.clip(edge + rng.choice([-1e-9, 0.0, 1e-9, 0.01], size=m), 0.0, 1.0 - 1e-16)
+    guard = guard_module.SamplingGuard(_FixedMask(blocked))  # type: ignore[arg-type]
+    masked_logits = logits.masked_fill(torch.from_numpy(blocked), -np.inf)
+    want = sampling.sample_with_uniform(masked_logits, 0.75, 1.0, uniform)
+    probs_np, cdf_np = probs.numpy(), probs.cumsum(-1).numpy()
+    decided = np.zeros(m, bool)
+    for k in (6, 24, 96, 384):
+        rest = np.flatnonzero(~decided)
+        chosen, done = guard._lazy_draw(None, rest, probs_np[rest], cdf_np[rest], k, uniform[rest])  # type: ignore[arg-type]
+        assert np.array_equal(chosen[done], want[rest[done]])
+        decided[rest[done]] = True
+    assert decided.mean() > 0.3  # the passes decide many pairs (near a boundary they cannot)
 
 
 def test_guarded_rows_equal_their_solo_runs() -> None:

@@ -168,9 +168,9 @@ def test_the_guards_lazy_passes_draw_what_the_full_mask_draws_in_a_larger_vocabu
     passes: list[int] = []
     original = guard_module.SamplingGuard._lazy_draw
 
-    def counted(self, pairs, sel, logits, k, *rest):  # noqa: ANN001, ANN202
+    def counted(self, pairs, sel, probs, cdf, k, *rest):  # noqa: ANN001, ANN202
         passes.append(k)
-        return original(self, pairs, sel, logits, k, *rest)
+        return original(self, pairs, sel, probs, cdf, k, *rest)
 
     monkeypatch.setattr(guard_module.SamplingGuard, "_lazy_draw", counted)
     lazy = RolloutEngine(extended_ckpt, sc, 2, 12, active, config=config)

@@ -310,9 +310,10 @@ class EdgeCells:
         first = np.concatenate([[0], np.cumsum(length)[:-1]])
         owner = np.repeat(np.arange(len(cells)), length)
         seg = self.flat[np.repeat(self.start[cells] - first, length) + np.arange(len(owner))]
-        cols = columns[rows[owner][:, None], np.arange(7)[None, :], seg[:, None]][:, :, None]  # [pairs,7,1]
+        cols = columns[rows[owner], :, seg][:, :, None]  # [pairs,7,1]
         d2 = selection_d2(cols, pts[owner, 0, None], pts[owner, 1, None])[:, 0, 0]
         low = np.minimum.reduceat(d2, first)
         hits = np.flatnonzero(d2 == low[owner])
-        _, pick = np.unique(owner[hits], return_index=True)  # the first pair (lowest segment) per point
-        return seg[hits[pick]]
+        lead = np.ones(len(hits), bool)  # the first pair (lowest segment) per point: pairs are by point
+        lead[1:] = owner[hits[1:]] != owner[hits[:-1]]
+        return seg[hits[lead]]

@@ -115,20 +115,30 @@ def _nearest_d2(
     """``[C]`` squared distance from each chunk's nearest point to the nearest of ``anchors [A,2]``, measured
     only where it can matter (inf elsewhere): for chunks whose bounding circle reaches within ``radius`` of
     an anchor and, with ``keep``, within the ``keep``-th smallest upper bound of the chunks' distances (at
-    least ``keep`` chunks lie that near, so no chunk beyond it is among the nearest ``keep``). On the
-    shared WOMD scene's map a window's 64 nearest of 1,193 chunks need 276 measured."""
+    least ``keep`` chunks lie that near, so no chunk beyond it is among the nearest ``keep``); and for each
+    such chunk, only from the anchors that can be its nearest (those whose lower bound is within the
+    chunk's upper bound). On the shared WOMD scene's map a window's 64 nearest of 1,193 chunks need 220-320
+    measured, from 3 of the window's 24 agents each on average (4.5 -> 0.6 ms a window)."""
     best = np.full(len(chunks.points), np.inf)
     centre, reach = chunks.bounds
-    gap = np.sqrt(((centre[:, None, :] - anchors[None]) ** 2).sum(-1).min(axis=1))  # centre to nearest anchor
+    dx, dy = centre[:, 0, None] - anchors[None, :, 0], centre[:, 1, None] - anchors[None, :, 1]
+    gaps2 = dx * dx + dy * dy  # [C,A] squared centre-to-anchor distances
+    gap = np.sqrt(gaps2.min(axis=1))
     limit = radius
     if keep is not None and 0 < keep < len(gap):
         limit = min(limit, float(np.partition(gap + reach, keep - 1)[keep - 1]))
     near = np.flatnonzero(gap - reach <= limit + _BOUND_SLACK)
-    points, mask = chunks.points[near], chunks.mask[near]
-    for lo in range(0, len(anchors), 8):  # [C,P,8] at a time: bounded memory on large maps
-        a = anchors[lo : lo + 8]
-        d2 = ((points[:, :, None, :] - a[None, None]) ** 2).sum(-1).min(-1)
-        best[near] = np.minimum(best[near], np.where(mask, d2, np.inf).min(-1))
+    if not len(near):
+        return best
+    # an anchor farther from a chunk's circle than the nearest anchor's far side cannot be its nearest
+    low = np.sqrt(gaps2[near]) - reach[near, None]
+    pair, anchor = np.nonzero(low <= (gap[near] + reach[near] + _BOUND_SLACK)[:, None])
+    chunk = near[pair]
+    d2 = ((chunks.points[chunk] - anchors[anchor][:, None, :]) ** 2).sum(-1)  # [pairs,P]
+    d2 = np.where(chunks.mask[chunk], d2, np.inf).min(axis=1)
+    nearest = np.full(len(near), np.inf)
+    np.minimum.at(nearest, pair, d2)
+    best[near] = nearest
     return best
 
 

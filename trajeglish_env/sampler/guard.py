@@ -31,7 +31,12 @@ import torch
 
 from trajeglish_env.sampler.guard_geometry import GuardGeometry, Pairs
 from trajeglish_env.sampler.rows import RowStates
-from trajeglish_env.sampler.sampling import sample_from_probs, sample_with_uniform, token_probs
+from trajeglish_env.sampler.sampling import (
+    sample_from_cdf,
+    sample_from_probs,
+    sample_with_uniform,
+    token_probs,
+)
 
 # the most likely candidates checked first, then more where the draw is not decided yet, then all: the
 # shipped model's draws are mostly decided by 6 (the check's cost grows with the candidates; 16, 64 before:
@@ -85,8 +90,16 @@ class SamplingGuard:
         agents that moved before it ``[n,N]`` and their next states ``[n,N,3]`` (default: the rows'
         state, i.e. one pair per row, as in sequential decoding; :func:`~trajeglish_env.sampler.parallel.
         guard_view` for a parallel call)."""
-        probs = None if temperature == 0 else token_probs(logits, temperature)  # shared by the lazy passes
-        tokens = logits.argmax(-1).numpy() if probs is None else sample_from_probs(probs, top_p, uniform)
+        lazy = temperature == 0 or top_p == 1.0  # a masked nucleus depends on every candidate
+        probs = cdf = None  # the draw's probabilities and CDF, shared by the lazy passes
+        if temperature == 0:
+            tokens = logits.argmax(-1).numpy()
+        elif lazy:
+            probs = token_probs(logits, temperature)
+            cdf = probs.cumsum(-1)
+            tokens = sample_from_cdf(cdf, uniform)
+        else:
+            tokens = sample_from_probs(token_probs(logits, temperature), top_p, uniform)
         pairs = self.geometry.pairs(rs, rows, agents, t, view)
         guarded = np.flatnonzero(pairs.guarded)
         self.stats.sampled += len(rows)
@@ -95,18 +108,21 @@ class SamplingGuard:
             return tokens
         plain = tokens[guarded]
         sub = logits[torch.from_numpy(guarded)]
-        sub_probs = None if probs is None else probs[torch.from_numpy(guarded)].numpy()
+        at = torch.from_numpy(guarded)
+        sub_probs = None if probs is None else probs[at].numpy()
+        sub_cdf = None if cdf is None else cdf[at].numpy()
         chosen, done = plain.copy(), np.zeros(len(guarded), bool)
-        lazy = temperature == 0 or top_p == 1.0  # a masked nucleus depends on every candidate
         for k in [k for k in LAZY_CANDIDATES if k < logits.shape[1]] if lazy else ():
             rest = np.flatnonzero(~done)
             if not len(rest):
                 break
             sel = guarded[rest]
-            if sub_probs is None:
+            if sub_probs is None or sub_cdf is None:
                 chosen[rest], done[rest] = self._lazy_argmax(pairs, sel, sub[torch.from_numpy(rest)], k)
             else:
-                chosen[rest], done[rest] = self._lazy_draw(pairs, sel, sub_probs[rest], k, uniform[sel])
+                chosen[rest], done[rest] = self._lazy_draw(
+                    pairs, sel, sub_probs[rest], sub_cdf[rest], k, uniform[sel]
+                )
         rest = np.flatnonzero(~done)
         if len(rest):
             chosen[rest] = self._full_draw(
@@ -135,34 +151,43 @@ class SamplingGuard:
         pairs: Pairs,
         sel: np.ndarray,
         probs: np.ndarray,
+        cdf: np.ndarray,
         k: int,
         uniform: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The draw of the fully masked distribution (``probs [m,V]``: :func:`token_probs` of the pairs)
-        where the ``k`` most likely candidates decide it (see the module docstring); ``done [m]`` says
-        where."""
+        """The draw of the fully masked distribution (``probs [m,V]``: :func:`token_probs` of the pairs,
+        ``cdf [m,V]`` their cumulative sums) where the ``k`` most likely candidates decide it (see the module
+        docstring); ``done [m]`` says where. Beyond choosing the candidates, O(k) a pair: the bounds at a
+        token are read from the CDF and the checked candidates (no V-sized pass)."""
         m, v = probs.shape
         k = min(k, v)
         top = np.argpartition(-probs, k - 1, axis=1)[:, :k]
         rows = np.arange(m)[:, None]
         chosen, done = np.zeros(m, np.int64), np.zeros(m, bool)
-        try_ = np.flatnonzero(probs[rows, top].sum(axis=1) >= LAZY_MIN_MASS)  # else the bounds are too loose
+        mass = probs[rows, top]
+        try_ = np.flatnonzero(mass.sum(axis=1) >= LAZY_MIN_MASS)  # else the bounds are too loose
         if not len(try_):
             return chosen, done
-        probs, top, rows, uniform = probs[try_], top[try_], rows[: len(try_)], uniform[try_]
+        top, mass, cdf, uniform = top[try_], mass[try_], cdf[try_], uniform[try_]
         collide, off = self.geometry.blocked(pairs, sel[try_], top)
-        allowed = np.zeros(probs.shape)
-        unknown = np.ones(probs.shape)
-        allowed[rows, top] = ~(collide | off)
-        unknown[rows, top] = 0.0
-        sure, maybe = probs * allowed, probs * unknown
-        z, eps = sure.sum(axis=1), maybe.sum(axis=1)
-        low, high = np.cumsum(sure, axis=1), np.cumsum(sure + maybe, axis=1)
-        earliest = np.argmax(high > (uniform * z - _SLACK)[:, None], axis=1)
-        past = low > (uniform * (z + eps) + _SLACK)[:, None]
-        latest = np.argmax(past, axis=1)
+        order = np.argsort(top, axis=1)  # the checked candidates in token order
+        top, mass = np.take_along_axis(top, order, 1), np.take_along_axis(mass, order, 1)
+        ok = np.take_along_axis(~(collide | off), order, 1)
+        sure = np.where(ok, mass, 0.0)
+        z = sure.sum(axis=1)  # allowed for sure; eps: unchecked, either way
+        eps = np.maximum(cdf[:, -1] - mass.sum(axis=1), 0.0)
+        # the masked draw's token is at most the first allowed candidate whose allowed mass up to it beats
+        # the largest threshold (``latest``) ...
+        past = np.cumsum(sure, axis=1) > (uniform * (z + eps) + _SLACK)[:, None]
+        first = np.argmax(past, axis=1)
+        r = np.arange(len(try_))
+        latest = top[r, first]
+        # ... and at least it when all the mass before it, less the candidates found blocked, stays under
+        # the smallest one
+        blocked_before = np.where(~ok & (top < latest[:, None]), mass, 0.0).sum(axis=1)
+        before = np.where(latest > 0, cdf[r, np.maximum(latest - 1, 0)] - blocked_before, -np.inf)
         chosen[try_] = latest
-        done[try_] = (z > 0) & past.any(axis=1) & (earliest == latest)
+        done[try_] = (z > 0) & past.any(axis=1) & (before <= uniform * z - _SLACK)
         return chosen, done
 
     def _full_draw(

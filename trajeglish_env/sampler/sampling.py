@@ -60,9 +60,14 @@ def sample_from_probs(probs: torch.Tensor, top_p: float, uniform: np.ndarray) ->
     ``uniform [n]`` (float64), within the nucleus ``top_p``."""
     if top_p < 1.0:
         probs = probs * nucleus_mask(probs, top_p)
-    cdf = probs.cumsum(-1)
+    return sample_from_cdf(probs.cumsum(-1), uniform)
+
+
+def sample_from_cdf(cdf: torch.Tensor, uniform: np.ndarray) -> np.ndarray:
+    """Token ids ``[n]``: the first token whose cumulative probability ``cdf [n, V]`` exceeds ``uniform [n]``
+    times the row's total (the draw of :func:`sample_from_probs` when its CDF is at hand)."""
     u = torch.from_numpy(np.asarray(uniform, dtype=np.float64))[:, None] * cdf[:, -1:]
-    return torch.searchsorted(cdf, u, right=True).clamp_(max=probs.shape[-1] - 1)[:, 0].numpy()
+    return torch.searchsorted(cdf, u, right=True).clamp_(max=cdf.shape[-1] - 1)[:, 0].numpy()
 
 
 def sample_with_uniform(
