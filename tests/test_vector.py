@@ -14,7 +14,14 @@ from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
 from trajeglish_env.env.sb3 import SB3VecEnv
 from trajeglish_env.env.scenes import load_bundle
 from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv, auto_threads
-from trajeglish_env.model.layers import MIN_GEMM_ROWS, Attention, Linear, invariant_linear, linear_compute
+from trajeglish_env.model.layers import (
+    MIN_GEMM_ROWS,
+    Attention,
+    Linear,
+    bucket_rows,
+    invariant_linear,
+    linear_compute,
+)
 from trajeglish_env.model.masks import teacher_inputs
 from trajeglish_env.sampler import windows as windows_module
 from trajeglish_env.sampler.config import SamplingConfig, native_bfloat16
@@ -175,6 +182,23 @@ def test_linear_layers_multiply_in_the_compute_dtype_at_inference_only() -> None
     assert torch.equal(doubled, want)
     with torch.no_grad(), linear_compute(torch.bfloat16):  # a bfloat16 input: the same float32 result
         assert torch.equal(layer(x.bfloat16()), doubled) and layer(x.bfloat16()).dtype == torch.float32
+
+
+def test_reduced_precision_rows_are_padded_to_few_buckets_without_changing_a_row() -> None:
+    """Inside linear_compute(bfloat16) the rows are padded to buckets (oneDNN compiles a kernel per
+    shape): every count of rows 1 .. 300 gives each row the numbers it has among 300, 1 .. 1,024 rows meet
+    at most 41 shapes, and no bucket pads more than 1/8 beyond 32 rows."""
+    torch.manual_seed(2)
+    layer = Linear(48, 64)
+    x = torch.randn(300, 48)
+    with torch.no_grad(), linear_compute(torch.bfloat16):
+        full = layer(x)
+        for rows in range(1, 301):
+            assert torch.equal(layer(x[:rows]), full[:rows]), rows
+    buckets = [bucket_rows(r) for r in range(1, 1025)]
+    assert len(set(buckets)) <= 41 and all(b >= r for r, b in zip(range(1, 1025), buckets, strict=True))
+    assert all(b * 8 <= r * 9 for r, b in zip(range(33, 1025), buckets[32:], strict=True))
+    assert bucket_rows(33) == 36 and bucket_rows(1000) == 1024 and bucket_rows(5) == MIN_GEMM_ROWS
 
 
 def test_attention_over_a_bfloat16_cache_feeds_its_output_projection_without_a_round_trip() -> None:

@@ -48,6 +48,28 @@ def invariant_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
     return F.linear(padded, weight, bias)[:rows].reshape(*x.shape[:-1], weight.shape[0])
 
 
+def bucket_rows(rows: int) -> int:
+    """``rows`` rounded up to a bucket: at least MIN_GEMM_ROWS, then 8 buckets per doubling (at most 1/8
+    padding), so a decoding run meets a few dozen row counts per layer instead of hundreds."""
+    if rows <= MIN_GEMM_ROWS:
+        return MIN_GEMM_ROWS
+    step = 1 << max(rows.bit_length() - 4, 0)
+    return -(-rows // step) * step
+
+
+def bucketed_linear(x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``x @ weight.T`` (no bias) in ``weight``'s dtype, the rows padded with zeros to :func:`bucket_rows`:
+    oneDNN compiles (about 1 ms) and caches a kernel per matrix shape and keeps 1,024, so unbounded row
+    counts make it compile and evict all along; the padding rides on the dtype conversion's copy. A row's
+    numbers do not depend on the padding (the kernels are per row above MIN_GEMM_ROWS rows)."""
+    k = x.shape[-1]
+    rows = x.numel() // max(k, 1)
+    padded = x.new_empty(bucket_rows(rows), k, dtype=weight.dtype)
+    padded[:rows].copy_(x.reshape(rows, k))
+    padded[rows:].zero_()
+    return F.linear(padded, weight)[:rows].reshape(*x.shape[:-1], weight.shape[0])
+
+
 class Linear(nn.Linear):
     """``nn.Linear`` (same parameters) that is batch-invariant at inference, and multiplies in the dtype
     of :func:`linear_compute` there."""
@@ -56,7 +78,7 @@ class Linear(nn.Linear):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if _COMPUTE and not torch.is_grad_enabled():
-            y = invariant_linear(x.to(_COMPUTE[-1]), self._weight_in(_COMPUTE[-1]))
+            y = bucketed_linear(x, self._weight_in(_COMPUTE[-1]))
             # in the parameters' dtype whatever the input's: widening y is exact, and the bias is added in
             # place (the numbers of a mixed-dtype sum, which costs up to 1.4x a widening and an add)
             y = y.to(self.weight.dtype)
