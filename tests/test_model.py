@@ -228,3 +228,46 @@ def test_idle_rows_are_left_out_of_a_decoding_call_and_untouched() -> None:
     for r in (1, 3):
         assert not hidden[r].any()
         assert all(torch.equal(caches[0].self_k[k][r], before[k][r]) for k in range(len(model.blocks)))
+
+
+def test_busy_rows_read_their_cache_rows_as_runs_of_views_with_the_gathered_numbers() -> None:
+    """A partly busy call attends run by run over views of consecutive cache rows (no copy of the cache):
+    rows 0, 2-3 and 5 of 6 (three runs, one of two rows) give, bit for bit, the outputs and caches of a
+    call with every row busy, in bfloat16 caches and products as the engines decode."""
+    from trajeglish_env.model.layers import Attention, linear_compute, row_runs
+
+    assert row_runs(np.array([0, 2, 3, 5])) == ((0, 1, 0), (1, 3, 2), (3, 4, 5))
+    assert row_runs(np.array([4, 5, 6])) == ((0, 3, 4),)
+    torch.manual_seed(3)
+    cfg = preset("tiny")
+    model = TrajeglishModel(cfg).eval()
+    b, a = 6, cfg.max_agents
+    scene, tokens = random_scene(cfg, b=b, padded=2, seed=4)
+    ids = model.global_ids(tokens, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, -1)
+    carried, own = teacher_inputs(cfg.variant, ids, a)
+    prefix = a + 2
+    caches = [model.empty_cache(b, torch.bfloat16) for _ in range(2)]
+    with torch.no_grad(), linear_compute(torch.bfloat16):
+        agents = [model.encode_into(cache, scene) for cache in caches]
+        for cache, emb in zip(caches, agents, strict=True):
+            model.prime(cache, emb, carried[:, :prefix], own[:, :prefix])
+        busy = np.array([True, False, True, True, False, True])
+        start, count = np.full(b, prefix), np.where(busy, a - 2, 0)
+        inputs = carried[:, prefix : prefix + a - 2], own[:, prefix : prefix + a - 2]
+        hidden = model.decode_at(caches[0], agents[0], *inputs, start, count)
+        ref = model.decode_at(caches[1], agents[1], *inputs, start, np.full(b, a - 2))
+        for r in np.flatnonzero(busy):
+            assert torch.equal(hidden[r], ref[r])
+            for k in range(len(model.blocks)):
+                assert torch.equal(caches[0].self_k[k][r], caches[1].self_k[k][r])
+        # the attention alone: runs of views against the gathered rows
+        attn = Attention(cfg.d_model, cfg.num_heads).eval()
+        k, v = caches[1].self_k[0], caches[1].self_v[0]
+        rows = np.flatnonzero(busy)
+        x = torch.randn(len(rows), 3, cfg.d_model)
+        keys = prefix + 3
+        mask = torch.rand(len(rows), 1, 3, keys) > 0.3
+        mask[..., 0] = True
+        got = attn.attend_runs(x, k, v, keys, mask, row_runs(rows))
+        want = attn.attend(x, k[rows, :, :keys], v[rows, :, :keys], mask)
+    assert torch.equal(got, want)

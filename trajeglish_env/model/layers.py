@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -118,9 +119,35 @@ class Attention(nn.Module):
         """Queries from ``x [B,N,C]`` against split keys/values; ``mask`` broadcastable to [B,H,N,K]."""
         q = self.split(self.q(x)).to(k.dtype)  # a reduced-precision cache computes in its own dtype
         p = self.dropout if self.training else 0.0
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
+        return self._project(F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p), x.dtype)
+
+    def attend_runs(
+        self,
+        x: torch.Tensor,
+        k: torch.Tensor,
+        v: torch.Tensor,
+        keys: int,
+        mask: torch.Tensor | None,
+        runs: tuple[tuple[int, int, int], ...],
+    ) -> torch.Tensor:
+        """:meth:`attend` (inference) of rows ``x [g,N,C]`` whose keys/values are rows of the full caches
+        ``k``/``v [B,H,L,Dh]``: each run ``(first, stop, row)`` of them reads cache rows ``row ..`` and
+        keys ``0 .. keys - 1`` as views, so no cache rows are copied (the same numbers: attention is per
+        row). ``mask``: per row of ``x`` (``[g,1,N,keys]``), or None."""
+        q = self.split(self.q(x)).to(k.dtype)
+        y = q.new_empty(q.shape)
+        for first, stop, row in runs:
+            last = row + stop - first
+            part = None if mask is None else mask[first:stop]
+            y[first:stop] = F.scaled_dot_product_attention(
+                q[first:stop], k[row:last, :, :keys], v[row:last, :, :keys], attn_mask=part
+            )
+        return self._project(y, x.dtype)
+
+    def _project(self, y: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        """The output projection of attention's result ``y [B,H,N,Dh]``."""
         if not (_COMPUTE and _COMPUTE[-1] == y.dtype and not torch.is_grad_enabled()):
-            y = y.to(x.dtype)  # else the output projection multiplies in y's dtype: no round trip
+            y = y.to(dtype)  # else the output projection multiplies in y's dtype: no round trip
         b, h, n, dh = y.shape
         return self.out(y.transpose(1, 2).reshape(b, n, h * dh))
 
@@ -206,6 +233,9 @@ class RowGroup:
     # set when every batch row stores its first ``span[1]`` inputs at positions ``span[0]`` onwards
     span: tuple[int, int] | None = None
     cache_of: torch.Tensor | None = None
+    # when the group is not every cache row: runs ``(first, stop, row)`` of its rows (in group order)
+    # that are consecutive cache rows from ``row`` on, which attention reads as views instead of a copy
+    runs: tuple[tuple[int, int, int], ...] | None = None
 
     def store(self, cache: torch.Tensor, new: torch.Tensor) -> None:
         """Write the group's new keys (or values) ``new [B,H,n,Dh]`` into ``cache [B,H,L,Dh]``."""
@@ -228,6 +258,14 @@ class RowGroup:
         if self.cache_of is None:
             return self.select
         return self.cache_of if self.rows is None else self.cache_of[self.rows]
+
+
+def row_runs(cache_rows: np.ndarray) -> tuple[tuple[int, int, int], ...]:
+    """Runs ``(first, stop, row)`` of ``cache_rows`` (increasing): entries ``first .. stop - 1`` are the
+    consecutive cache rows ``row ..``."""
+    breaks = np.flatnonzero(np.diff(cache_rows) != 1) + 1
+    starts, stops = np.r_[0, breaks], np.r_[breaks, len(cache_rows)]
+    return tuple((int(a), int(b), int(cache_rows[a])) for a, b in zip(starts, stops, strict=True))
 
 
 # one layer's cache in a decoding call: its keys and values [B,H,L,Dh] and the call's row groups
@@ -268,10 +306,13 @@ class DecoderBlock(nn.Module):
         cross_v: torch.Tensor,
         memory_mask: torch.Tensor | None,
         queries: slice = slice(None),
+        cross_runs: tuple[tuple[int, int, int], ...] | None = None,
     ) -> torch.Tensor:
         """New positions ``x [B,n,C]`` through the cache: each :class:`RowGroup` stores its keys/values
         and attends over its own cached prefix under its own mask (fixed key length per group). Returns
-        the outputs of positions ``queries`` only (every position stores its keys and values)."""
+        the outputs of positions ``queries`` only (every position stores its keys and values).
+        ``cross_runs``: ``cross_k``/``cross_v`` are the whole cache's, read by runs of rows (see
+        :meth:`Attention.attend_runs`)."""
         h = self.norm_self(x)
         k, v = self.self_attn.keys_values(h)
         ck, cv, groups = cache
@@ -279,16 +320,19 @@ class DecoderBlock(nn.Module):
         whole = len(groups) == 1 and groups[0].rows is None  # every row in one group: no scatter needed
         attended = h if whole else torch.zeros_like(h)
         for g in groups:
-            rows, in_cache = g.select, g.cache_select
+            rows, mask = g.select, g.mask[:, :, queries]
             g.store(ck, k)
             g.store(cv, v)
-            keys, values = ck[in_cache, :, : g.keys], cv[in_cache, :, : g.keys]  # views: every row
-            out = self.self_attn.attend(h[rows], keys, values, g.mask[:, :, queries])
+            if g.runs is None:
+                keys, values = ck[g.cache_select, :, : g.keys], cv[g.cache_select, :, : g.keys]  # views
+                out = self.self_attn.attend(h[rows], keys, values, mask)
+            else:
+                out = self.self_attn.attend_runs(h[rows], ck, cv, g.keys, mask, g.runs)
             if whole:
                 attended = out
             else:
                 attended[rows] = out
-        return self._cross_and_ff(x + attended, cross_k, cross_v, memory_mask)
+        return self._cross_and_ff(x + attended, cross_k, cross_v, memory_mask, cross_runs)
 
     def store_keys(self, x: torch.Tensor, cache: LayerCache) -> None:
         """Only the storing part of :meth:`decode`: the keys/values of ``x [B,n,C]`` into the cache."""
@@ -299,7 +343,18 @@ class DecoderBlock(nn.Module):
             g.store(cv, v)
 
     def _cross_and_ff(
-        self, x: torch.Tensor, cross_k: torch.Tensor, cross_v: torch.Tensor, memory_mask: torch.Tensor | None
+        self,
+        x: torch.Tensor,
+        cross_k: torch.Tensor,
+        cross_v: torch.Tensor,
+        memory_mask: torch.Tensor | None,
+        runs: tuple[tuple[int, int, int], ...] | None = None,
     ) -> torch.Tensor:
-        x = x + self.cross_attn.attend(self.norm_cross(x), cross_k, cross_v, memory_mask)
+        """Cross-attention (``runs``: rows of ``x`` read runs of the cross caches' rows, see
+        :meth:`Attention.attend_runs`), then feed-forward."""
+        h = self.norm_cross(x)
+        if runs is None:
+            x = x + self.cross_attn.attend(h, cross_k, cross_v, memory_mask)
+        else:
+            x = x + self.cross_attn.attend_runs(h, cross_k, cross_v, cross_k.shape[2], memory_mask, runs)
         return x + self.ff(self.norm_ff(x))

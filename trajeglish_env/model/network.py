@@ -18,7 +18,14 @@ from torch import nn
 
 from trajeglish_env.model.config import ModelConfig, Variant
 from trajeglish_env.model.encoder import SceneEncoder, SceneInputs
-from trajeglish_env.model.layers import DecoderBlock, DecoderCache, Linear, RowGroup, invariant_linear
+from trajeglish_env.model.layers import (
+    DecoderBlock,
+    DecoderCache,
+    Linear,
+    RowGroup,
+    invariant_linear,
+    row_runs,
+)
 from trajeglish_env.model.masks import START, decoder_mask, teacher_inputs
 from trajeglish_env.model.neighbours import NeighbourEncoder, NeighbourView
 
@@ -285,17 +292,16 @@ class TrajeglishModel(nn.Module):
                 f"({n}) >= count and must fit the cache ({cache.capacity})"
             )
         dev = carried_ids.device
-        batch, cache_of = len(count), None
-        cross_k, cross_v, memory_mask = cache.cross_k, cache.cross_v, cache.memory_mask
+        batch, cache_of, rows_np, cross_runs = len(count), None, np.arange(len(count)), None
+        memory_mask = cache.memory_mask
         if busy.any() and not busy.all():  # compute the busy rows only (a row's numbers are the same)
             rows_np = np.flatnonzero(busy)
             cache_of = torch.from_numpy(rows_np).to(dev)
             carried_ids, own_ids, agents = carried_ids[cache_of], own_ids[cache_of], agents[cache_of]
             view = None if view is None else view.index(cache_of)
             start, count, busy = start[rows_np], count[rows_np], busy[rows_np]
-            cross_k = [k[cache_of] for k in cross_k]
-            cross_v = [v[cache_of] for v in cross_v]
             memory_mask = memory_mask[cache_of]
+            cross_runs = row_runs(rows_np)  # attention reads the caches' rows as views, run by run
         step = (start + count - 1) // a  # the model step of each row's last position
         if busy.any():  # idle rows ride along with the largest group (nothing written), so it needs no copy
             values, counts = np.unique(step[busy], return_counts=True)
@@ -317,24 +323,26 @@ class TrajeglishModel(nn.Module):
             local, slot = np.nonzero(count[rows][:, None] > np.arange(n))  # host side: no device sync
             writes = (torch.from_numpy(rows[local]).to(dev), torch.from_numpy(slot).to(dev))
             positions = queries[torch.from_numpy(local).to(dev), writes[1]]
-            groups.append(RowGroup(index, keys, mask, positions, writes, span, cache_of))
+            runs = None if index is None and cache_of is None else row_runs(rows_np[rows])
+            groups.append(RowGroup(index, keys, mask, positions, writes, span, cache_of, runs))
         index = torch.from_numpy(start).to(dev)[:, None] + torch.arange(n, device=dev)  # [B,n]
         index = index.clamp(max=cache.capacity - 1)
         x = self._decoder_inputs(carried_ids, own_ids, view) + self._positions(agents, index)
         # a memory with nothing masked needs no mask (the same numbers: SDPA adds zeros otherwise)
-        cross_mask = None if cache.memory_full else additive_mask(memory_mask, cross_k[0].dtype)
+        cross_mask = None if cache.memory_full else additive_mask(memory_mask, cache.cross_k[0].dtype)
         last = len(self.blocks) - 1
         for i, block in enumerate(self.blocks):
             kv = (cache.self_k[i], cache.self_v[i], groups)
+            cross = (cache.cross_k[i], cache.cross_v[i], cross_mask)
             if i == last and not outputs:
                 block.store_keys(x, kv)
                 return None
             if i == last and read is not None and read != (0, n):
-                part = block.decode(x, kv, cross_k[i], cross_v[i], cross_mask, slice(*read))
+                part = block.decode(x, kv, *cross, slice(*read), cross_runs)
                 x = part.new_zeros(part.shape[0], n, part.shape[-1])
                 x[:, read[0] : read[1]] = part
                 break
-            x = block.decode(x, kv, cross_k[i], cross_v[i], cross_mask)
+            x = block.decode(x, kv, *cross, cross_runs=cross_runs)
         if cache_of is None:
             return x
         out = x.new_zeros(batch, n, x.shape[-1])  # idle rows: zeros (never read)
