@@ -52,8 +52,34 @@ def test_tiny_model_overfits_a_tiny_dataset(scenes_dir, tmp_path) -> None:
     first, last = history[0]["loss"], result["train_loss"]
     assert first > 4.0  # ~log(144) at the start
     assert last < 0.5 * first, (first, last)
-    assert (tmp_path / "metrics.csv").read_text().startswith("step,loss,val_nll")
+    assert (
+        (tmp_path / "metrics.csv")
+        .read_text()
+        .startswith("step,loss,val_nll,lr,grad_norm,tokens_per_s,data_wait")
+    )
     assert (tmp_path / "training_curve.png").stat().st_size > 1000
+    assert 0 < result["data_wait_share"] < 1
+
+
+def test_the_share_of_time_spent_waiting_for_batches_is_measured(scenes_dir, tmp_path, monkeypatch) -> None:
+    """A loader slower than the model shows as ``data_wait`` near 1 (per logged row and for the run)."""
+    import time
+
+    from trajeglish_env.training.training_data import TokenizedWindows
+
+    fetch = TokenizedWindows.__getitems__
+
+    def slow(self, gs):  # type: ignore[no-untyped-def]
+        time.sleep(0.15)
+        return fetch(self, gs)
+
+    monkeypatch.setattr(TokenizedWindows, "__getitems__", slow)
+    result = train(
+        scenes_dir, tmp_path, tiny_config(), _quick(), vocabulary=grid_vocabulary(), progress=False
+    )
+    assert result["data_wait_share"] > 0.6, result
+    rows = load_checkpoint(tmp_path / "last.pt").trainer["history"]
+    assert len(rows) == 6 and min(r["data_wait"] for r in rows) > 0.6
 
 
 def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
@@ -64,20 +90,20 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
 
     import trajeglish_env.training.train as train_module
 
-    real_write = train_module._write_metrics
+    real_write = train_module.write_metrics
 
     def crash_at_step_4(path, history):
         if history[-1]["step"] == 4:
             raise KeyboardInterrupt  # the job is killed after the step-3 checkpoint
         real_write(path, history)
 
-    monkeypatch.setattr(train_module, "_write_metrics", crash_at_step_4)
+    monkeypatch.setattr(train_module, "write_metrics", crash_at_step_4)
     with pytest.raises(KeyboardInterrupt):
         train(
             scenes_dir, tmp_path / "b", tiny_config(), _quick(), vocabulary=grid_vocabulary(), progress=False
         )
     assert load_checkpoint(tmp_path / "b" / "last.pt").trainer["step"] == 3
-    monkeypatch.setattr(train_module, "_write_metrics", real_write)
+    monkeypatch.setattr(train_module, "write_metrics", real_write)
     resumed = train(
         scenes_dir,
         tmp_path / "b",

@@ -346,7 +346,8 @@ def main(argv: list[str] | None = None) -> int:
             if args.train_json and args.train_json.is_file() and args.train_json.stat().st_size:
                 train = json.loads(args.train_json.read_text())
                 keep = ("steps", "resumed_from", "train_loss", "val_nll", "tokens_per_second", "seconds")
-                facts["train"] = {k: train[k] for k in (*keep, "stopped_by_time_limit") if k in train}
+                keep = (*keep, "data_wait_share", "stopped_by_time_limit")
+                facts["train"] = {k: train[k] for k in keep if k in train}
                 took = int(train.get("steps", 0)) - int(train.get("resumed_from", 0))
                 if train.get("seconds"):
                     facts["train"]["steps_per_second"] = round(took / train["seconds"], 3)

@@ -46,6 +46,7 @@ class SearchTable:
     weight_bound: np.ndarray  # [6] float64, max_i |weights[k, i]|
     cos: np.ndarray  # [V] cos of template headings (caller's order)
     sin: np.ndarray  # [V] sin of template headings (caller's order)
+    index_weights: np.ndarray  # [6,V] float32, ``weights`` in the caller's order (see templates_within)
 
     @classmethod
     def build(cls, templates: np.ndarray) -> SearchTable:
@@ -58,6 +59,8 @@ class SearchTable:
         one_minus_cos = 1.0 - np.cos(sorted_t[:, 2])
         sin = np.sin(sorted_t[:, 2])
         w = np.stack([-2 * txy[:, 0], -2 * txy[:, 1], -one_minus_cos, -sin, one_minus_cos, (txy**2).sum(1)])
+        by_index = np.empty_like(w)
+        by_index[:, order] = w
         return cls(
             templates,
             order,
@@ -67,6 +70,7 @@ class SearchTable:
             np.abs(w).max(1),
             np.cos(templates[:, 2]),
             np.sin(templates[:, 2]),
+            np.ascontiguousarray(by_index, dtype=np.float32),
         )
 
     @property
@@ -234,6 +238,9 @@ def templates_within(
     """Every template whose exact distance is within ``margin`` metres of the row's nearest one.
 
     Returns pairs (row ``[P]``, template ``[P]``, distance ``[P]``), sorted by row then distance then index.
+    The ranking runs over the templates in index order, so its candidates come out sorted by (row, index)
+    and two stable sorts (distance, then a radix sort of the chunk's rows) order them (a lexsort of the
+    three keys took twice as long; tokenizing batches of windows makes these arrays large).
     """
     out_r, out_c, out_d = [], [], []
     buffer = np.empty(min(chunk, local.shape[0]) * table.size, dtype=np.float32)
@@ -242,25 +249,29 @@ def templates_within(
         loc, sz = local[start:stop], size[start:stop]
         r2 = sz[:, 0] ** 2 + sz[:, 1] ** 2
         query = table.query(loc, r2)
-        key = thin_matmul(query.matrix, table.weights, buffer)
-        first = table.order[key.argmin(1)]
-        best = corner_distance(table.templates[first], loc, sz)
+        key = thin_matmul(query.matrix, table.index_weights, buffer)
+        first = key.argmin(1)
+        best = corner_distance(table.templates[first], loc, sz, (table.cos[first], table.sin[first]))
         # Exact d_j <= d_first + margin implies meansq_j <= 2 (d_first + margin)^2, and max(|u|, rho) <= d_j.
         bound = best + margin
         r, c = np.nonzero(key <= (2.0 * bound**2 - query.const + query.tolerance)[:, None])
-        c = table.order[c]
         keep = _lower_bound_ok(table, loc[r], r2[r], c, bound[r])
         r, c = r[keep], c[keep]
-        d = corner_distance(table.templates[c], loc[r], sz[r])
+        d = corner_distance(
+            table.templates[c], loc[r], sz[r], (table.cos[c], table.sin[c]), (query.cos[r], query.sin[r])
+        )
         dmin = np.full(len(loc), np.inf)
         np.minimum.at(dmin, r, d)
         keep = d <= dmin[r] + margin
-        out_r.append(r[keep] + start)
-        out_c.append(c[keep])
-        out_d.append(d[keep])
-    r, c, d = (np.concatenate(x) for x in (out_r, out_c, out_d))
-    order = np.lexsort((c, d, r))
-    return r[order], c[order], d[order]
+        r, c, d = r[keep], c[keep], d[keep]
+        by_d = np.argsort(d, kind="stable")  # ties keep (row, index) order
+        order = by_d[np.argsort(r[by_d].astype(np.int16), kind="stable")]  # radix: chunk <= 32767 rows
+        out_r.append(r[order] + start)
+        out_c.append(c[order])
+        out_d.append(d[order])
+    if not out_r:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64), np.empty(0, dtype=np.float64)
+    return np.concatenate(out_r), np.concatenate(out_c), np.concatenate(out_d)
 
 
 def brute_force_nearest(

@@ -39,17 +39,18 @@ class NoiseConfig:
 
 
 def sample_nucleus(
-    rows: np.ndarray, dists: np.ndarray, num_rows: int, config: NoiseConfig, rng: np.random.Generator
+    rows: np.ndarray, dists: np.ndarray, config: NoiseConfig, uniform: np.ndarray
 ) -> np.ndarray:
     """Sample one template position per row from candidate pairs sorted by (row, distance).
 
-    ``rows [P]`` gives each candidate's row (every row ``0..num_rows-1`` must have at least one);
-    returns, per row, the position in ``rows`` of the sampled candidate.
+    ``rows [P]`` gives each candidate's row (every row ``0..len(uniform)-1`` must have at least one) and
+    ``uniform [rows]`` each row's number in [0, 1); returns, per row, the position in ``rows`` of the sampled
+    candidate.
     """
+    num_rows = len(uniform)
     starts = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
     if len(starts) != num_rows:
         raise ValueError(f"sample_nucleus: expected candidates for {num_rows} rows, got {len(starts)}")
-    uniform = rng.random(num_rows)
     if config.sigma == 0.0:
         return starts
     nearest = dists[starts][rows]

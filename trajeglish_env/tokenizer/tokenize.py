@@ -15,6 +15,7 @@ Gaps (documented contract):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -108,21 +109,22 @@ def tokenize(
     kind: np.ndarray,
     *,
     noise: NoiseConfig | None = None,
-    rng: np.random.Generator | None = None,
+    rng: np.random.Generator | Sequence[np.random.Generator] | None = None,
     threads: int = 1,
 ) -> TokenizedTrajectories:
     """Tokenize ``xyh [..., N, T, 3]`` (``valid [..., N, T]``, ``size [..., N, 2]``, ``kind [..., N]``).
 
     With ``noise`` (and a NumPy ``rng``), ``input_tokens`` are sampled as in the paper's regularization;
-    ``tokens`` (targets) and ``xyh`` (states) are always those of the argmin tokenization. ``threads``
-    splits the nearest-template search over a thread pool (the result does not depend on it).
+    ``tokens`` (targets) and ``xyh`` (states) are always those of the argmin tokenization. ``rng`` may also
+    be one Generator per scene of ``xyh [S, N, T, 3]``: each scene's noisy tokens are then those of
+    tokenizing it alone with its own Generator (training tokenizes a batch of windows in one pass).
+    ``threads`` splits the nearest-template search over a thread pool (the result does not depend on it).
     """
     xyh = np.asarray(xyh)
     kind = np.asarray(kind)
     check_inputs(xyh, valid, size, kind)
-    if noise is not None and not isinstance(rng, np.random.Generator):
-        _fail("rng: noisy tokenization needs a numpy.random.Generator (for reproducible sampling)")
     batch_shape, steps = xyh.shape[:-2], xyh.shape[-2]
+    draws = _Draws.make(rng, valid, noise is not None)
     rows = int(np.prod(batch_shape))
     # Rows sorted by class (each class one contiguous block) and stored time-major (each step contiguous).
     order = np.argsort(kind.reshape(rows), kind="stable")
@@ -134,6 +136,8 @@ def tokenize(
         (valid.reshape(rows, steps) if identity else valid.reshape(rows, steps)[order]).T
     )
     box = size.reshape(rows, 2)[order].astype(np.float64)
+    if draws is not None:
+        draws.sort_rows(order, ok)
 
     anchored = ok.copy()
     anchored[1:] &= ~ok[:-1]
@@ -165,7 +169,8 @@ def tokenize(
                 pair_row, pair_template, pair_dist = templates_within(table, local, box[active], margin)
                 heads = np.flatnonzero(np.r_[True, pair_row[1:] != pair_row[:-1]])
                 index, dist = pair_template[heads], pair_dist[heads]
-                noisy = pair_template[sample_nucleus(pair_row, pair_dist, len(local), noise, rng)]  # type: ignore[arg-type]
+                uniform = draws.take(active)  # type: ignore[union-attr]
+                noisy = pair_template[sample_nucleus(pair_row, pair_dist, noise, uniform)]
             tokens[t, active] = index
             if noise is not None:
                 input_tokens[t, active] = noisy
@@ -193,6 +198,62 @@ def tokenize(
         anchored=anchored_out,
         error=back(error),
     )
+
+
+class _Draws:
+    """The uniform numbers of noisy tokenization, in the order tokenizing each scene alone draws them: one
+    ``rng.random(n)`` per (step, class) with moving agents, agents in index order."""
+
+    def __init__(self, rng: np.random.Generator | None, scene_rngs: Sequence[np.random.Generator] | None):
+        self.rng, self.scene_rngs = rng, scene_rngs
+        self.scene = self.pool = self.first = self.used = np.zeros(0, dtype=np.int64)
+
+    @classmethod
+    def make(
+        cls, rng: np.random.Generator | Sequence[np.random.Generator] | None, valid: np.ndarray, noisy: bool
+    ) -> _Draws | None:
+        """The draws for ``rng`` (None without noise); fails naming what noisy tokenization expects."""
+        if not noisy:
+            return None
+        if isinstance(rng, np.random.Generator):
+            return cls(rng, None)
+        gens = list(rng) if isinstance(rng, Sequence) else None
+        if not gens or not all(isinstance(g, np.random.Generator) for g in gens):
+            _fail(
+                "rng: noisy tokenization needs a numpy.random.Generator, or one per scene (for reproducible "
+                f"sampling), got {type(rng).__name__}"
+            )
+        if valid.ndim != 3 or len(gens) != valid.shape[0]:  # type: ignore[arg-type]
+            _fail(
+                f"rng: one Generator per scene needs xyh [S, N, T, 3] with S = {len(gens)} scenes, got "  # type: ignore[arg-type]
+                f"valid of shape {valid.shape}"
+            )
+        return cls(None, gens)
+
+    def sort_rows(self, order: np.ndarray, ok: np.ndarray) -> None:
+        """Draw each scene's numbers up front (its moving agent-steps) for rows sorted by ``order``
+        (``ok [T, R]``: validity, time-major, rows in that order)."""
+        if self.scene_rngs is None:
+            return
+        per_scene = len(order) // len(self.scene_rngs)
+        self.scene = order // per_scene
+        moves = np.bincount(self.scene, weights=(ok[:-1] & ok[1:]).sum(0), minlength=len(self.scene_rngs))
+        counts = moves.astype(np.int64)
+        self.pool = np.concatenate([g.random(int(n)) for g, n in zip(self.scene_rngs, counts, strict=True)])
+        self.first = np.cumsum(counts) - counts
+        self.used = np.zeros(len(counts), dtype=np.int64)
+
+    def take(self, active: slice | np.ndarray) -> np.ndarray:
+        """The numbers of the sorted rows ``active`` (one class, ascending) at the current step."""
+        if self.rng is not None:
+            n = active.stop - active.start if isinstance(active, slice) else len(active)
+            return self.rng.random(n)
+        scene = self.scene[active]
+        count = np.bincount(scene, minlength=len(self.used))
+        rank = np.arange(len(scene)) - (np.cumsum(count) - count)[scene]
+        out = self.pool[self.first[scene] + self.used[scene] + rank]
+        self.used += count
+        return out
 
 
 def render(

@@ -14,7 +14,7 @@ __all__ = ["plot_curve", "plot_runs", "read_metrics", "write_metrics"]
 
 def write_metrics(path: Path, history: list[dict]) -> None:
     """Write the rows logged so far as ``metrics.csv`` (atomically: a crash keeps the previous file)."""
-    fields = ["step", "loss", "val_nll", "lr", "grad_norm", "tokens_per_s"]
+    fields = ["step", "loss", "val_nll", "lr", "grad_norm", "tokens_per_s", "data_wait"]
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields)
         writer.writeheader()

@@ -24,7 +24,7 @@ from trajeglish_env.model.neighbours import batch_view
 from trajeglish_env.model.network import SceneInputs
 from trajeglish_env.scenario import AgentKind, Scenario
 from trajeglish_env.scenario_io import atomic_path
-from trajeglish_env.training.dataset import SceneStore, collate_windows
+from trajeglish_env.training.dataset import SceneStore
 from trajeglish_env.training.train import window_config
 from trajeglish_env.training.training_data import TokenizedWindows
 
@@ -51,7 +51,7 @@ def token_nll(
     ds = TokenizedWindows(scenes, window_config(model.cfg), ckpt.vocabulary, None, seed + 1_000_003)
     out: dict[str, list[np.ndarray]] = {k: [] for k in ("nll", "kind", "slot", "step", "token", "red")}
     for first in range(0, windows, batch_size):
-        batch = collate_windows([ds[g] for g in range(first, min(windows, first + batch_size))])
+        batch = ds.collated(first, min(windows, first + batch_size))
         scene = SceneInputs.from_batch(batch)
         red = (scene.map_signal == RED_CLASS).any(-1)  # [B]
         if not signals:
@@ -107,7 +107,7 @@ def _cached_nll(
     ds = TokenizedWindows(scenes, window_config(model.cfg), ckpt.vocabulary, None, seed + 1_000_003)
     sums = {"nll": 0.0, "reference_nll": 0.0, "max_logit_diff": 0.0, "tokens": 0.0}
     for first in range(0, windows, batch_size):
-        batch = collate_windows([ds[g] for g in range(first, min(windows, first + batch_size))])
+        batch = ds.collated(first, min(windows, first + batch_size))
         scene = SceneInputs.from_batch(batch)
         inputs = batch["input_tokens"]
         b, a, t = inputs.shape

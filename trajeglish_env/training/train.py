@@ -46,8 +46,7 @@ from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
-from trajeglish_env.training.curves import plot_curve
-from trajeglish_env.training.curves import write_metrics as _write_metrics
+from trajeglish_env.training.curves import plot_curve, write_metrics
 from trajeglish_env.training.dataset import SceneStore, WindowConfig, collate_windows
 from trajeglish_env.training.interaction_weights import interaction_weights
 from trajeglish_env.training.kind_repeat import window_order
@@ -195,9 +194,7 @@ def validation_nll(
     model.eval()
     total, count = 0.0, 0
     for first in range(0, windows, batch_size):
-        batch = _batch_to(
-            collate_windows([ds[g] for g in range(first, min(windows, first + batch_size))]), device
-        )
+        batch = _batch_to(ds.collated(first, min(windows, first + batch_size)), device)
         view = batch_view(model.cfg.neighbour_input, batch)
         mean, n = model.loss(SceneInputs.from_batch(batch), batch["input_tokens"], batch["tokens"], view)
         total += float(mean) * n
@@ -329,7 +326,11 @@ def train(
     probe = (5, 15, 0.1 * (time_limit or 0.0)) if fit_steps and start_step == 0 else None
     probe_t = 0.0
     closed_loop = config.closed_loop()
+    # seconds spent waiting for the loaders' next batch (a share near 1: data, not the model, sets the pace)
+    data_wait, window_wait, asked = 0.0, 0.0, time.perf_counter()
     for batch in loader:
+        waited = time.perf_counter() - asked
+        data_wait, window_wait = data_wait + waited, window_wait + waited
         batch = _batch_to(batch, device)
         if closed_loop is not None:  # inputs: the model's own rollout; targets: the way back to the log
             batch = closed_loop_batch(model, batch, vocabulary, closed_loop)
@@ -387,8 +388,9 @@ def train(
                     "lr": config.lr_at(step - 1),
                     "grad_norm": float(grad_norm),
                     "tokens_per_s": window_tokens / max(now - last_log, 1e-9),
+                    "data_wait": window_wait / max(now - last_log, 1e-9),
                 }
-                window_loss, window_tokens, last_log = 0.0, 0.0, now
+                window_loss, window_tokens, window_wait, last_log = 0.0, 0.0, 0.0, now
             if val_scenes and (step % config.val_every == 0 or final):
                 row.setdefault("step", step)
                 row["val_nll"] = validation_nll(
@@ -396,7 +398,7 @@ def train(
                 )
             if row:
                 history.append(row)
-                _write_metrics(metrics_path, history)
+                write_metrics(metrics_path, history)
                 bar.set_postfix(
                     {k: f"{v:.3g}" for k, v in row.items() if k in ("loss", "val_nll", "tokens_per_s")}
                 )
@@ -414,6 +416,7 @@ def train(
         bar.update(1)
         if final:
             break
+        asked = time.perf_counter()
     bar.close()
     elapsed = time.perf_counter() - t0
     result: dict[str, Any] = {"out": str(out), "steps": step, "resumed_from": start_step}
@@ -433,6 +436,7 @@ def train(
             train_loss=next((h["loss"] for h in reversed(history) if "loss" in h), math.nan),
             val_nll=vals[-1] if vals else None,
             tokens_per_second=round(tokens_seen / max(elapsed, 1e-9), 1),
+            data_wait_share=round(data_wait / max(elapsed, 1e-9), 3),
             seconds=round(elapsed, 1),
             device=str(device),
             processes=dd.world,

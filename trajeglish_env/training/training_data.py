@@ -13,13 +13,14 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from torch.utils.data import Dataset, Sampler
 
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
-from trajeglish_env.training.dataset import WindowConfig, make_window
+from trajeglish_env.training.dataset import WindowConfig, collate_windows, make_window
 
 
 @dataclass(frozen=True)
@@ -67,35 +68,54 @@ class TokenizedWindows(Dataset):
         return len(self.scenes)
 
     def __getitem__(self, g: int) -> dict[str, np.ndarray]:
-        epoch, scene_index = self.order(g)
-        rng = np.random.default_rng([self.seed, epoch, scene_index])
-        w = make_window(self.scenes[scene_index], self.window, rng, scene_index=scene_index)
-        w = with_tokens(w, self.vocabulary, self.noise, rng)
+        return self.__getitems__([g])[0]
+
+    def __getitems__(self, gs: Sequence[int]) -> list[dict[str, np.ndarray]]:
+        """Samples ``gs`` (what a DataLoader's batch fetch calls): the windows are tokenized in one pass,
+        each exactly as alone (tokenizing is a loop over time steps, so one pass for a whole batch costs
+        the per-step overhead once instead of once per window)."""
+        drawn = [self.order(g) for g in gs]
+        rngs = [np.random.default_rng([self.seed, epoch, scene]) for epoch, scene in drawn]
+        windows = [
+            make_window(self.scenes[scene], self.window, rng, scene_index=scene)
+            for (_, scene), rng in zip(drawn, rngs, strict=True)
+        ]
+        with_tokens(windows, self.vocabulary, self.noise, rngs)
         if self.history_dropout:  # its own stream: the windows and noisy tokens stay those of p = 0
-            drop_histories(w, self.history_dropout, np.random.default_rng([self.seed, epoch, scene_index, 1]))
-        return w
+            for w, (epoch, scene) in zip(windows, drawn, strict=True):
+                drop_histories(w, self.history_dropout, np.random.default_rng([self.seed, epoch, scene, 1]))
+        return windows
+
+    def collated(self, start: int, stop: int) -> dict[str, torch.Tensor]:
+        """Samples ``start .. stop - 1`` as one batch of tensors (:func:`collate_windows`)."""
+        return collate_windows(self.__getitems__(range(start, stop)))
 
 
 def with_tokens(
-    window: dict[str, np.ndarray],
+    windows: Sequence[dict[str, np.ndarray]],
     vocabulary: MotionVocabulary,
     noise: NoiseConfig | None = None,
-    rng: np.random.Generator | None = None,
-) -> dict[str, np.ndarray]:
-    """``window`` with ``tokens`` (argmin targets of its real agents' valid steps) and ``input_tokens``
-    (noisy with ``noise``, drawn from ``rng``) added in place."""
+    rngs: Sequence[np.random.Generator] | None = None,
+) -> Sequence[dict[str, np.ndarray]]:
+    """``windows`` (of one shape) with ``tokens`` (argmin targets of their real agents' valid steps) and
+    ``input_tokens`` (noisy with ``noise``, each window's drawn from its own of ``rngs``) added in place;
+    one tokenizing pass for all of them."""
+    if not windows:
+        return windows
+    stacked = {k: np.stack([w[k] for w in windows]) for k in ("agent_xyh", "agent_valid", "agent_mask")}
     tok = tokenize(
         vocabulary,
-        window["agent_xyh"].astype(np.float64),
-        window["agent_valid"] & window["agent_mask"][:, None],
-        window["agent_size"].astype(np.float64),
-        window["agent_kind"],
+        stacked["agent_xyh"].astype(np.float64),
+        stacked["agent_valid"] & stacked["agent_mask"][..., None],
+        np.stack([w["agent_size"] for w in windows]).astype(np.float64),
+        np.stack([w["agent_kind"] for w in windows]),
         noise=noise,
-        rng=rng if noise is not None else None,
+        rng=rngs if noise is not None else None,
     )
-    window["tokens"] = tok.tokens
-    window["input_tokens"] = tok.input_tokens
-    return window
+    for i, w in enumerate(windows):
+        w["tokens"] = tok.tokens[i]
+        w["input_tokens"] = tok.input_tokens[i]
+    return windows
 
 
 def drop_histories(window: dict[str, np.ndarray], p: float, rng: np.random.Generator) -> np.ndarray:
