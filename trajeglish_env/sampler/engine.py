@@ -50,7 +50,13 @@ from trajeglish_env.sampler.parallel import (
     previous_tokens,
 )
 from trajeglish_env.sampler.rows import RowSpec
-from trajeglish_env.sampler.sampling import counter_uniform, sample_with_uniform, stream_seed
+from trajeglish_env.sampler.sampling import (
+    counter_uniform,
+    draw_tables,
+    sample_from_cdf,
+    sample_with_uniform,
+    stream_seed,
+)
 from trajeglish_env.sampler.windows import Window, WindowedRows
 from trajeglish_env.sampler.windows import _row_blocks as _row_blocks  # re-exported
 from trajeglish_env.scenario import Scenario
@@ -317,15 +323,21 @@ class BatchEngine(WindowedRows):
             return count
         # parallel: keep the exact pairs; the others are drafted anew from the tokens drawn for them
         drafts = self._draft[rr, who]
-        tok = sample_with_uniform(logits, temperature, top_p, u)
+        tables = None  # the guard's probabilities and CDF of every pair, made once for both draws
+        if self.guard is not None and temperature > 0 and top_p == 1.0:
+            tables = draw_tables(logits, temperature)
+            tok = sample_from_cdf(tables[1], u)
+        else:
+            tok = sample_with_uniform(logits, temperature, top_p, u)
         if self.guard is not None:
             # guarding only changes a draw now and then: guard the pairs up to each row's first unguarded
             # draw that differs from its draft (the later ones are decoded again anyway)
             check = np.flatnonzero(cc <= accepted(rr, cc, tok, drafts, self.B)[rr])
             view = guard_view(self, rr[check], who[check], drafts[check])
             sel = torch.from_numpy(check)
+            drawn = None if tables is None else (tables[0][sel], tables[1][sel])
             tok[check] = self.guard.sample(
-                self, logits[sel], rr[check], who[check], tt[check], u[check], temperature, top_p, view
+                self, logits[sel], rr[check], who[check], tt[check], u[check], temperature, top_p, view, drawn
             )
             rr_c, cc_c, tok_c, drafts_c = rr[check], cc[check], tok[check], drafts[check]
         else:

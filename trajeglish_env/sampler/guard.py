@@ -32,6 +32,7 @@ import torch
 from trajeglish_env.sampler.guard_geometry import GuardGeometry, Pairs
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.sampler.sampling import (
+    draw_tables,
     sample_from_cdf,
     sample_from_probs,
     sample_with_uniform,
@@ -84,19 +85,20 @@ class SamplingGuard:
         temperature: float,
         top_p: float,
         view: tuple[np.ndarray, np.ndarray] | None = None,
+        drawn: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> np.ndarray:
         """Tokens ``[n]`` of agents ``agents`` of rows ``rows`` at steps ``t`` from their class logits
         ``[n,V]`` and numbers ``uniform [n]``: the draw of the guarded logits. ``view``: per pair, the
         agents that moved before it ``[n,N]`` and their next states ``[n,N,3]`` (default: the rows'
         state, i.e. one pair per row, as in sequential decoding; :func:`~trajeglish_env.sampler.parallel.
-        guard_view` for a parallel call)."""
+        guard_view` for a parallel call). ``drawn``: the pairs' :func:`draw_tables` when the caller made
+        them already (a parallel call draws every position unguarded first)."""
         lazy = temperature == 0 or top_p == 1.0  # a masked nucleus depends on every candidate
         probs = cdf = None  # the draw's probabilities and CDF, shared by the lazy passes
         if temperature == 0:
             tokens = logits.argmax(-1).numpy()
         elif lazy:
-            probs = token_probs(logits, temperature)
-            cdf = probs.cumsum(-1)
+            probs, cdf = draw_tables(logits, temperature) if drawn is None else drawn
             tokens = sample_from_cdf(cdf, uniform)
         else:
             tokens = sample_from_probs(token_probs(logits, temperature), top_p, uniform)

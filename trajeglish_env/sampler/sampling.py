@@ -55,6 +55,13 @@ def token_probs(logits: torch.Tensor, temperature: float) -> torch.Tensor:
     return torch.softmax(logits.double() / temperature, dim=-1)
 
 
+def draw_tables(logits: torch.Tensor, temperature: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The probabilities ``[n,V]`` (:func:`token_probs`) and their CDF: what a draw at ``top_p = 1``
+    inverts and the guard's checks read (row by row the same numbers whichever rows share the call)."""
+    probs = token_probs(logits, temperature)
+    return probs, probs.cumsum(-1)
+
+
 def sample_from_probs(probs: torch.Tensor, top_p: float, uniform: np.ndarray) -> np.ndarray:
     """Token ids ``[n]`` drawn from :func:`token_probs` ``[n, V]`` by inverting each row's CDF at
     ``uniform [n]`` (float64), within the nucleus ``top_p``."""
