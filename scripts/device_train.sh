@@ -20,7 +20,8 @@
 #   TRAIN_MINUTES  training budget [what MINUTES leaves after generation, less MARGIN_S]
 #   MARGIN_S       seconds kept for starting train, the last validation, saving and packing
 #                  [MINUTES*15 within 15..45]
-#   PRESET         model size: tiny | small [small]; paper's checkpoint is too big to come back
+#   PRESET         model size: tiny | small [small; with INIT the checkpoint's model, a resumed run its own];
+#                  paper's checkpoint is too big to come back
 #   SCENES         highway-env training scenes to generate at most (0: none) [4000]
 #   GEN_MINUTES    generation stops after this, keeping the finished shards [1.5]
 #   SUMO_SCENES    SUMO scenes to generate: auto (SCENES/4 where SUMO is installed, else none) | N [auto]
@@ -340,8 +341,13 @@ say "training for $TRAIN_S s on $DEVICE with $TRAIN_WORKERS loader processes"
 VAL_ARGS=()
 [ -z "$VAL_DIR" ] || VAL_ARGS=(--val-data "$VAL_DIR")
 T_TRAIN=$SECONDS
+# the model: a resumed run's own (its last.pt), INIT's unless PRESET is set, else PRESET's
+PRESET_ARGS=()
+if [ -z "$RUN_IN" ] && { [ ${#INIT_ARGS[@]} = 0 ] || [ -n "${GIVEN[PRESET]:-}" ]; }; then
+    PRESET_ARGS=(--preset "$PRESET")
+fi
 rc=0
-"$PYTHON" -m trajeglish_env.cli train --json --quiet --data "${HAVE[@]}" --out "$RUN" --preset "$PRESET" \
+"$PYTHON" -m trajeglish_env.cli train --json --quiet --data "${HAVE[@]}" --out "$RUN" "${PRESET_ARGS[@]}" \
     --steps "$STEPS" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --seed "$SEED" \
     --workers "$TRAIN_WORKERS" --val-every "$VAL_EVERY" --checkpoint-every "$CKPT_EVERY" \
     --minutes "$(calc "$TRAIN_S / 60")" "${FIT_ARGS[@]}" "${REPEAT_ARGS[@]}" "${CLOSED_ARGS[@]}" "${VAL_ARGS[@]}" "${RESUME[@]}" "${INIT_ARGS[@]}" "${SIGNAL_ARGS[@]}" "${VOCAB_ARGS[@]}" "${MAP_ARGS[@]}" >"$WORK/train.json" || rc=$?

@@ -128,6 +128,35 @@ def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
 
 
 @pytest.mark.skipif(BASH is None, reason="needs bash")
+def test_a_run_from_a_checkpoint_keeps_its_model_and_vocabulary_over_calls(tmp_path: Path) -> None:
+    """INIT=a checkpoint whose model and vocabulary are not a preset's (as a GPU run's checkpoint carried
+    to the next call): the new run and its resumed calls train that model on that vocabulary."""
+    _carry_scenes(tmp_path, 4)
+    start = tiny_checkpoint(vocab_size=128)
+    init = save_checkpoint(tmp_path / "grid128.pt", start.model, start.vocabulary)
+    first = _job(tmp_path, "own1", PRESET="", INIT=str(init), FIT_STEPS="0")
+    assert first.returncode == 0, first.stdout[-3000:]
+    second = _job(tmp_path, "own2", PRESET="", RUN_IN=str(tmp_path / "out-own1" / "resume"))
+    assert second.returncode == 0, second.stdout[-3000:]
+    summary = json.loads((tmp_path / "out-own2" / "summary.json").read_text())
+    assert [c["train"]["resumed_from"] for c in summary["calls"]] == [
+        0,
+        summary["calls"][0]["train"]["steps"],
+    ]
+    assert all(0 <= c["train"]["data_wait_share"] <= 1 for c in summary["calls"])
+    tuned = load_checkpoint(tmp_path / "out-own2" / "model.pt")
+    assert tuned.config == start.config and tuned.training["step"] == summary["step"] > 0
+    assert (tuned.vocabulary.templates == start.vocabulary.templates).all()
+    # a PRESET set beside INIT is the model asked for: this one is not the checkpoint's, so train refuses,
+    # and the call still brings back its log and summary (no checkpoint)
+    clash = _job(tmp_path, "own3", PRESET="small", INIT=str(init))
+    assert clash.returncode == 2 and "the model config differs from the checkpoint's" in clash.stdout
+    assert "Traceback" not in clash.stdout
+    assert (tmp_path / "out-own3" / "log.txt").is_file() and not (tmp_path / "out-own3" / "model.pt").exists()
+    assert "step" not in json.loads((tmp_path / "out-own3" / "summary.json").read_text())
+
+
+@pytest.mark.skipif(BASH is None, reason="needs bash")
 def test_a_new_run_can_extend_its_checkpoints_vocabulary(tmp_path: Path) -> None:
     _carry_scenes(tmp_path, 4)
     start = tiny_checkpoint()

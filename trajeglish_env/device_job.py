@@ -253,6 +253,7 @@ def pack(run: Path, out: Path, facts: dict[str, Any], log: Path | None) -> dict[
             )
     record.setdefault("calls", []).append(facts)
     summary.update(params=record["params"], calls=record["calls"], curve=_curve(run))
+    run.mkdir(parents=True, exist_ok=True)  # train may have failed before making it
     (run / RUN_RECORD).write_text(json.dumps(record, indent=2))
 
     # what comes back, most needed first; last.pt (optimizer state too) travels in parts
