@@ -61,7 +61,7 @@ def _window_nll(
 ) -> np.ndarray:
     """NLL (nats) of the observed tokens of window slots ``scored`` from step SKIP on (``hide``: with
     their input tokens hidden, as ``train --history-dropout`` hides them)."""
-    batch = collate_windows([with_tokens(dict(window), ckpt.vocabulary)])
+    batch = collate_windows(with_tokens([dict(window)], ckpt.vocabulary))
     if hide:
         batch["input_tokens"][0, scored] = -1
     model = ckpt.model.eval()

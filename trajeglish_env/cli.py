@@ -96,14 +96,13 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     init = None
     if args.init:
         init = load_pretrained() if args.init == "shipped" else load_checkpoint(args.init)
-    last = Path(args.out) / "last.pt"
+    last = Path(args.out) / "last.pt"  # a resumed run goes on with its own model and vocabulary
     own = args.resume and last.is_file() and not (args.preset or args.variant or args.vocab)
-    resumed = load_checkpoint(last) if own else None  # a resumed run's model and vocabulary are its own
     overrides: dict[str, Any] = {"variant": args.variant or "trajeglish"}
     if vocabulary is not None:
         overrides["vocab_size"] = vocabulary.size
-    if resumed is not None:
-        model_config, vocabulary = resumed.config, resumed.vocabulary
+    if own:
+        model_config, vocabulary = (resumed := load_checkpoint(last)).config, resumed.vocabulary
     elif init is not None and args.preset is None and args.variant is None:
         model_config = init.config  # fine-tuning: the checkpoint's model unless asked otherwise
     else:
