@@ -242,6 +242,7 @@ def templates_within(
     and two stable sorts (distance, then a radix sort of the chunk's rows) order them (a lexsort of the
     three keys took twice as long; tokenizing batches of windows makes these arrays large).
     """
+    chunk = min(chunk, np.iinfo(np.int16).max)  # a chunk's rows are sorted as int16 (numpy's radix sort)
     out_r, out_c, out_d = [], [], []
     buffer = np.empty(min(chunk, local.shape[0]) * table.size, dtype=np.float32)
     for start in range(0, local.shape[0], chunk):
@@ -265,7 +266,7 @@ def templates_within(
         keep = d <= dmin[r] + margin
         r, c, d = r[keep], c[keep], d[keep]
         by_d = np.argsort(d, kind="stable")  # ties keep (row, index) order
-        order = by_d[np.argsort(r[by_d].astype(np.int16), kind="stable")]  # radix: chunk <= 32767 rows
+        order = by_d[np.argsort(r[by_d].astype(np.int16), kind="stable")]
         out_r.append(r[order] + start)
         out_c.append(c[order])
         out_d.append(d[order])
