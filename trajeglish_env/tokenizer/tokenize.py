@@ -235,8 +235,7 @@ class _Draws:
         (``ok [T, R]``: validity, time-major, rows in that order)."""
         if self.scene_rngs is None:
             return
-        per_scene = len(order) // len(self.scene_rngs)
-        self.scene = order // per_scene
+        self.scene = order // max(len(order) // len(self.scene_rngs), 1)  # rows are scene-major
         moves = np.bincount(self.scene, weights=(ok[:-1] & ok[1:]).sum(0), minlength=len(self.scene_rngs))
         counts = moves.astype(np.int64)
         self.pool = np.concatenate([g.random(int(n)) for g, n in zip(self.scene_rngs, counts, strict=True)])
