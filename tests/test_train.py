@@ -70,16 +70,15 @@ def test_the_share_of_time_spent_waiting_for_batches_is_measured(scenes_dir, tmp
     fetch = TokenizedWindows.__getitems__
 
     def slow(self, gs):  # type: ignore[no-untyped-def]
-        time.sleep(0.15)
+        time.sleep(0.3)
         return fetch(self, gs)
 
     monkeypatch.setattr(TokenizedWindows, "__getitems__", slow)
-    result = train(
-        scenes_dir, tmp_path, tiny_config(), _quick(), vocabulary=grid_vocabulary(), progress=False
-    )
-    assert result["data_wait_share"] > 0.6, result
+    cfg = _quick(checkpoint_every=100)  # no checkpoint inside the logged intervals but the last
+    result = train(scenes_dir, tmp_path, tiny_config(), cfg, vocabulary=grid_vocabulary(), progress=False)
+    assert result["data_wait_share"] > 0.5, result
     rows = load_checkpoint(tmp_path / "last.pt").trainer["history"]
-    assert len(rows) == 6 and min(r["data_wait"] for r in rows) > 0.6
+    assert len(rows) == 6 and min(r["data_wait"] for r in rows) > 0.5, rows
 
 
 def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:

@@ -55,6 +55,7 @@ from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
 
 MAX_UNSTABLE_STEPS = 10  # consecutive non-finite-gradient steps skipped before training stops
+SHOWN = ("loss", "val_nll", "tokens_per_s", "data_wait")  # the progress bar's figures of a logged row
 
 
 @dataclass(frozen=True)
@@ -399,9 +400,7 @@ def train(
             if row:
                 history.append(row)
                 write_metrics(metrics_path, history)
-                bar.set_postfix(
-                    {k: f"{v:.3g}" for k, v in row.items() if k in ("loss", "val_nll", "tokens_per_s")}
-                )
+                bar.set_postfix({k: f"{v:.3g}" for k, v in row.items() if k in SHOWN})
             if step % config.checkpoint_every == 0 or final:
                 save_last(
                     last,
