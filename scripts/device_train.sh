@@ -71,6 +71,10 @@
 #                  --fit-steps`; STEPS is then the most), so the learning rate reaches 0 as that call ends;
 #                  0: the schedule runs STEPS, over as many calls as it takes (RUN_IN) [1]
 #   GEN_WORKERS TRAIN_WORKERS   processes generating / loading batches [cores, cores - 1]
+#   NOISE_ON_DEVICE  1: the noisy input tokens are drawn in the training process on the GPU (`train
+#                  --noise-on-device`; the loaders then only tokenize by argmin), after a check that the draw
+#                  there agrees with the loaders' (else they keep drawing it); 0: the loaders; auto: 1 on
+#                  cuda [auto]
 #   WHEELS SITE WORK PYTHON     [.whl, /tmp/site, /tmp/trajeglish_device, python3]
 #
 # The project builds, tests and runs without this script or a GPU; see README "Training on a GPU machine".
@@ -167,6 +171,8 @@ SIGNAL_LR_SCALE=${SIGNAL_LR_SCALE:-1}
 NEIGHBOUR_INPUT=${NEIGHBOUR_INPUT:-0}
 VOCAB=${VOCAB:-0}
 EXTEND=${EXTEND:-0}
+NOISE_ON_DEVICE=${NOISE_ON_DEVICE:-auto}
+case $NOISE_ON_DEVICE in 0 | 1 | auto) ;; *) die "NOISE_ON_DEVICE=$NOISE_ON_DEVICE: expected 0, 1 or auto" ;; esac
 COVER_RADIUS=${COVER_RADIUS:-0.045}
 DATA_SHARE=${DATA_SHARE:-0.5}
 MAP_SELECT=${MAP_SELECT:-}
@@ -329,6 +335,19 @@ if [ "$EXTEND" != 0 ] && [ -z "$RUN_IN" ]; then
     say "extended $INIT's vocabulary to $EXTEND tokens"
 fi
 
+# ---- noisy input tokens drawn on the GPU (NOISE_ON_DEVICE): checked against the loaders' draw first
+NOISE_ARGS=()
+if [ "$NOISE_ON_DEVICE" = 1 ] || { [ "$NOISE_ON_DEVICE" = auto ] && [ "$DEVICE" = cuda ]; }; then
+    CHECK_CKPT=shipped
+    if [ -n "${INIT:-}" ] && [ -z "$RUN_IN" ]; then CHECK_CKPT=$INIT; fi
+    if timeout 180 "$PYTHON" -m trajeglish_env.training.device_noise "$CHECK_CKPT" "$DEVICE" "${HAVE[@]}" >"$WORK/noise_check.json"; then
+        NOISE_ARGS=(--noise-on-device)
+        say "noisy input tokens drawn on $DEVICE in training: $(cat "$WORK/noise_check.json")"
+    else
+        say "noisy input tokens stay with the loaders: the check on $DEVICE failed ($(cat "$WORK/noise_check.json" 2>/dev/null))"
+    fi
+fi
+
 # ---- 6. train until the budget is spent
 if [ -n "${TRAIN_MINUTES:-}" ]; then
     TRAIN_S=$(calc "$TRAIN_MINUTES * 60")
@@ -350,7 +369,7 @@ rc=0
 "$PYTHON" -m trajeglish_env.cli train --json --quiet --data "${HAVE[@]}" --out "$RUN" "${PRESET_ARGS[@]}" \
     --steps "$STEPS" --batch-size "$BATCH" --lr "$LR" --warmup "$WARMUP" --seed "$SEED" \
     --workers "$TRAIN_WORKERS" --val-every "$VAL_EVERY" --checkpoint-every "$CKPT_EVERY" \
-    --minutes "$(calc "$TRAIN_S / 60")" "${FIT_ARGS[@]}" "${REPEAT_ARGS[@]}" "${CLOSED_ARGS[@]}" "${VAL_ARGS[@]}" "${RESUME[@]}" "${INIT_ARGS[@]}" "${SIGNAL_ARGS[@]}" "${VOCAB_ARGS[@]}" "${MAP_ARGS[@]}" >"$WORK/train.json" || rc=$?
+    --minutes "$(calc "$TRAIN_S / 60")" "${FIT_ARGS[@]}" "${REPEAT_ARGS[@]}" "${CLOSED_ARGS[@]}" "${VAL_ARGS[@]}" "${RESUME[@]}" "${INIT_ARGS[@]}" "${SIGNAL_ARGS[@]}" "${VOCAB_ARGS[@]}" "${MAP_ARGS[@]}" "${NOISE_ARGS[@]}" >"$WORK/train.json" || rc=$?
 [ "$rc" = 0 ] || say "train failed (exit code $rc); packing what was checkpointed"
 cat "$WORK/train.json"
 
@@ -368,6 +387,7 @@ cat "$WORK/train.json"
     echo "gen_seconds=$GEN_TOOK"
     echo "train_seconds=$((SECONDS - T_TRAIN))"
     echo "train_workers=$TRAIN_WORKERS"
+    echo "noise_on_device=${#NOISE_ARGS[@]}"
     for v in $SAVED_VARS; do echo "param.$v=${!v}"; done
 } >"$WORK/call.env"
 say "packing into $OUT"

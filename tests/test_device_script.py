@@ -134,8 +134,9 @@ def test_a_run_from_a_checkpoint_keeps_its_model_and_vocabulary_over_calls(tmp_p
     _carry_scenes(tmp_path, 4)
     start = tiny_checkpoint(vocab_size=128)
     init = save_checkpoint(tmp_path / "grid128.pt", start.model, start.vocabulary)
-    first = _job(tmp_path, "own1", PRESET="", INIT=str(init), FIT_STEPS="0")
+    first = _job(tmp_path, "own1", PRESET="", INIT=str(init), FIT_STEPS="0", NOISE_ON_DEVICE="1")
     assert first.returncode == 0, first.stdout[-3000:]
+    assert "noisy input tokens drawn on cpu in training" in first.stdout  # checked first, then on
     second = _job(tmp_path, "own2", PRESET="", RUN_IN=str(tmp_path / "out-own1" / "resume"))
     assert second.returncode == 0, second.stdout[-3000:]
     summary = json.loads((tmp_path / "out-own2" / "summary.json").read_text())
@@ -144,11 +145,14 @@ def test_a_run_from_a_checkpoint_keeps_its_model_and_vocabulary_over_calls(tmp_p
         summary["calls"][0]["train"]["steps"],
     ]
     assert all(0 <= c["train"]["data_wait_share"] <= 1 for c in summary["calls"])
+    assert [c["noise_on_device"] for c in summary["calls"]] == [1, 0]  # auto: on with CUDA only
     tuned = load_checkpoint(tmp_path / "out-own2" / "model.pt")
     assert tuned.config == start.config and tuned.training["step"] == summary["step"] > 0
     assert (tuned.vocabulary.templates == start.vocabulary.templates).all()
     # a PRESET set beside INIT is the model asked for: this one is not the checkpoint's, so train refuses,
     # and the call still brings back its log and summary (no checkpoint)
+    bad = _job(tmp_path, "own4", NOISE_ON_DEVICE="yes")
+    assert bad.returncode == 2 and "NOISE_ON_DEVICE=yes: expected 0, 1 or auto" in bad.stdout
     clash = _job(tmp_path, "own3", PRESET="small", INIT=str(init))
     assert clash.returncode == 2 and "the model config differs from the checkpoint's" in clash.stdout
     assert "Traceback" not in clash.stdout

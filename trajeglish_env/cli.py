@@ -93,14 +93,12 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.training.train import TrainConfig, train
 
     vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
-    init = None
-    if args.init:
-        init = load_pretrained() if args.init == "shipped" else load_checkpoint(args.init)
+    shipped = args.init == "shipped"
+    init = (load_pretrained() if shipped else load_checkpoint(args.init)) if args.init else None
     last = Path(args.out) / "last.pt"  # a resumed run goes on with its own model and vocabulary
     own = args.resume and last.is_file() and not (args.preset or args.variant or args.vocab)
     overrides: dict[str, Any] = {"variant": args.variant or "trajeglish"}
-    if vocabulary is not None:
-        overrides["vocab_size"] = vocabulary.size
+    overrides.update({"vocab_size": vocabulary.size} if vocabulary is not None else {})
     if own:
         model_config, vocabulary = (resumed := load_checkpoint(last)).config, resumed.vocabulary
     elif init is not None and args.preset is None and args.variant is None:
@@ -134,6 +132,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         closed_loop_teacher_forced=not args.closed_loop_only,
         interaction_weight=args.interaction_weight,
         history_dropout=args.history_dropout,
+        noise_on_device=args.noise_on_device,
     )
     ranks = init_ranks(rank_device())
     result = train(

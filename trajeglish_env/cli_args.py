@@ -181,6 +181,12 @@ def add_budget_and_mix_args(p: argparse.ArgumentParser) -> None:
         metavar="KIND=N",
         help="draw the training scenes of a kind (highway/roundabout) or source (sumo) N times an epoch",
     )
+    p.add_argument(
+        "--noise-on-device",
+        action="store_true",
+        help="draw the noisy input tokens in the training process on the model's device (a GPU) instead of "
+        "in the loading processes: the same draws up to rounding, a fraction of the loaders' work",
+    )
 
 
 def add_map_args(p: argparse.ArgumentParser) -> None:

@@ -20,6 +20,7 @@ import torch
 from torch.utils.data import Dataset
 
 from trajeglish_env.geometry import to_local
+from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks, signal_classes
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import list_scenario_files, load_scenarios
@@ -188,3 +189,15 @@ def make_window(
 def collate_windows(items: Sequence[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:
     """Stack windows into a batch of tensors (the same as PyTorch's default collate, without its overhead)."""
     return {k: torch.from_numpy(np.stack([it[k] for it in items])) for k in items[0]}
+
+
+def window_config(cfg: ModelConfig) -> WindowConfig:
+    """The training window that matches a model's context."""
+    return WindowConfig(
+        steps=cfg.steps + 1,
+        max_agents=cfg.max_agents,
+        max_polylines=cfg.max_polylines,
+        points_per_polyline=cfg.points_per_polyline,
+        map_select=cfg.map_select,
+        map_stride=cfg.map_stride,
+    )

@@ -47,12 +47,14 @@ from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
 from trajeglish_env.training.curves import plot_curve, write_metrics
-from trajeglish_env.training.dataset import SceneStore, WindowConfig, collate_windows
+from trajeglish_env.training.dataset import SceneStore, collate_windows, window_config
+from trajeglish_env.training.device_noise import DeviceTemplates, device_input_tokens
 from trajeglish_env.training.interaction_weights import interaction_weights
 from trajeglish_env.training.kind_repeat import window_order
 from trajeglish_env.training.run_records import run_facts, save_last, training_info
 from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
+from trajeglish_env.training.validation import batch_to, validation_nll
 
 MAX_UNSTABLE_STEPS = 10  # consecutive non-finite-gradient steps skipped before training stops
 SHOWN = ("loss", "val_nll", "tokens_per_s", "data_wait")  # the progress bar's figures of a logged row
@@ -96,6 +98,9 @@ class TrainConfig:
     # share of each window's agents whose input tokens are all hidden (training_data.drop_histories): their
     # next tokens must be told from the current states a neighbour_input model reads, not their own trend
     history_dropout: float = 0.0
+    # the noisy input tokens drawn in this process on the model's device (training/device_noise.py) instead
+    # of by the loading processes: the same draws up to rounding, far less work for them (for a GPU)
+    noise_on_device: bool = False
 
     def __post_init__(self) -> None:
         if not self.signal_lr_scale > 0:
@@ -139,18 +144,6 @@ def _param_groups(model: TrajeglishModel, config: TrainConfig) -> list[dict[str,
     return [g for g in groups.values() if g["params"]]
 
 
-def window_config(cfg: ModelConfig) -> WindowConfig:
-    """The training window that matches a model's context."""
-    return WindowConfig(
-        steps=cfg.steps + 1,
-        max_agents=cfg.max_agents,
-        max_polylines=cfg.max_polylines,
-        points_per_polyline=cfg.points_per_polyline,
-        map_select=cfg.map_select,
-        map_stride=cfg.map_stride,
-    )
-
-
 class _LossModule(nn.Module):
     """Wraps the model so that DDP sees one forward that returns (summed loss, token count)."""
 
@@ -173,35 +166,6 @@ def split_scenes(scenes: Sequence[Scenario], fraction: float) -> tuple[list[Scen
         return list(scenes), []
     k = max(2, round(1 / fraction))
     return [s for i, s in enumerate(scenes) if i % k], [s for i, s in enumerate(scenes) if not i % k]
-
-
-def _batch_to(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
-    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
-
-
-@torch.no_grad()
-def validation_nll(
-    model: TrajeglishModel,
-    scenes: Sequence[Scenario],
-    vocabulary: MotionVocabulary,
-    windows: int,
-    seed: int,
-    device: torch.device,
-    batch_size: int = 16,
-) -> float:
-    """Mean NLL (nats/token) on fixed windows of held-out scenes, with argmin input tokens."""
-    ds = TokenizedWindows(scenes, window_config(model.cfg), vocabulary, None, seed + 1_000_003)
-    was_training = model.training
-    model.eval()
-    total, count = 0.0, 0
-    for first in range(0, windows, batch_size):
-        batch = _batch_to(ds.collated(first, min(windows, first + batch_size)), device)
-        view = batch_view(model.cfg.neighbour_input, batch)
-        mean, n = model.loss(SceneInputs.from_batch(batch), batch["input_tokens"], batch["tokens"], view)
-        total += float(mean) * n
-        count += n
-    model.train(was_training)
-    return total / max(count, 1)
 
 
 def train(
@@ -266,6 +230,7 @@ def train(
         # loader processes do not change the batches (items are pure functions of seed and index), so a run
         # may go on on a machine with another number of cores
         saved["num_workers"] = config.num_workers
+        saved["noise_on_device"] = config.noise_on_device  # the same draws either way (up to rounding)
         saved["repeat"] = tuple((str(k), int(n)) for k, n in saved["repeat"])  # lists once serialized
         if fit_steps:  # the schedule's length was fitted to the first call's budget
             config = dataclasses.replace(config, steps=int(saved["steps"]))
@@ -287,6 +252,7 @@ def train(
             loss_module, device_ids=[device.index] if device.type == "cuda" else None
         )
     noise = NoiseConfig(config.noise_sigma, config.noise_top_p) if config.noisy_inputs else None
+    templates = DeviceTemplates.of(vocabulary, device)
     order = window_order(train_scenes, config.repeat, config.shard_cache, config.seed)
     dataset = TokenizedWindows(
         train_scenes,
@@ -296,6 +262,7 @@ def train(
         config.seed,
         order,
         config.history_dropout,
+        config.noise_on_device,
     )
     sampler = StepBatchSampler(config.batch_size, start_step, config.steps, dd.rank, dd.world)
     loader = DataLoader(
@@ -332,7 +299,9 @@ def train(
     for batch in loader:
         waited = time.perf_counter() - asked
         data_wait, window_wait = data_wait + waited, window_wait + waited
-        batch = _batch_to(batch, device)
+        batch = batch_to(batch, device)
+        if config.noise_on_device and noise is not None:
+            batch["input_tokens"] = device_input_tokens(batch, templates, noise)
         if closed_loop is not None:  # inputs: the model's own rollout; targets: the way back to the log
             batch = closed_loop_batch(model, batch, vocabulary, closed_loop)
         for group in optimizer.param_groups:

@@ -21,6 +21,7 @@ from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 from trajeglish_env.training.dataset import WindowConfig, collate_windows, make_window
+from trajeglish_env.training.device_noise import add_noise_fields
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,7 @@ class TokenizedWindows(Dataset):
         seed: int,
         order: Callable[[int], tuple[int, int]] | None = None,
         history_dropout: float = 0.0,
+        noise_on_device: bool = False,
     ):
         if not 0 <= history_dropout < 1:
             raise ValueError(f"TokenizedWindows: history_dropout must be in [0, 1), got {history_dropout}")
@@ -63,6 +65,7 @@ class TokenizedWindows(Dataset):
         self.seed = seed
         self.order = order or SampleOrder(len(scenes), seed)  # (epoch, scene) of each sample counter
         self.history_dropout = history_dropout
+        self.noise_on_device = noise_on_device  # noisy inputs drawn in training (training/device_noise.py)
 
     def __len__(self) -> int:  # a sampler provides the indices; any g >= 0 is valid
         return len(self.scenes)
@@ -80,7 +83,7 @@ class TokenizedWindows(Dataset):
             make_window(self.scenes[scene], self.window, rng, scene_index=scene)
             for (_, scene), rng in zip(drawn, rngs, strict=True)
         ]
-        with_tokens(windows, self.vocabulary, self.noise, rngs)
+        with_tokens(windows, self.vocabulary, self.noise, rngs, self.noise_on_device)
         if self.history_dropout:  # its own stream: the windows and noisy tokens stay those of p = 0
             for w, (epoch, scene) in zip(windows, drawn, strict=True):
                 drop_histories(w, self.history_dropout, np.random.default_rng([self.seed, epoch, scene, 1]))
@@ -96,12 +99,17 @@ def with_tokens(
     vocabulary: MotionVocabulary,
     noise: NoiseConfig | None = None,
     rngs: Sequence[np.random.Generator] | None = None,
+    noise_on_device: bool = False,
 ) -> Sequence[dict[str, np.ndarray]]:
     """``windows`` (of one shape) with ``tokens`` (argmin targets of their real agents' valid steps) and
     ``input_tokens`` (noisy with ``noise``, each window's drawn from its own of ``rngs``) added in place;
-    one tokenizing pass for all of them."""
+    one tokenizing pass for all of them. ``noise_on_device``: ``input_tokens`` are the argmin ones and the
+    windows carry what the training device draws the noisy ones from (:mod:`.device_noise`)."""
     if not windows:
         return windows
+    later = noise is not None and noise_on_device
+    if later:
+        noise = None
     stacked = {k: np.stack([w[k] for w in windows]) for k in ("agent_xyh", "agent_valid", "agent_mask")}
     tok = tokenize(
         vocabulary,
@@ -115,6 +123,8 @@ def with_tokens(
     for i, w in enumerate(windows):
         w["tokens"] = tok.tokens[i]
         w["input_tokens"] = tok.input_tokens[i]
+    if later:
+        add_noise_fields(windows, tok.xyh, rngs or ())
     return windows
 
 
