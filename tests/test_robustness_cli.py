@@ -103,6 +103,18 @@ CASES = [
         "{missing}: no such WOMD TFRecord file",
     ),
     ("bench-batches-0", ["bench", "--batches", "0"], "argument --batches"),
+    ("scorecard-ckpt-without-name", ["scorecard", "--ckpt", "{not_ckpt}"], "expected NAME=PATH"),
+    (
+        "scorecard-ckpt-name-taken",
+        ["scorecard", "--ckpt", "shipped={not_ckpt}"],
+        "the name 'shipped' is taken",
+    ),
+    ("scorecard-no-checkpoint", ["scorecard", "--no-shipped"], "--no-shipped leaves no checkpoint"),
+    (
+        "scorecard-not-a-checkpoint",
+        ["scorecard", "--ckpt", "c={not_ckpt}"],
+        "{not_ckpt}: not a readable checkpoint",
+    ),
 ]
 
 

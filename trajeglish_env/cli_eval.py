@@ -16,6 +16,7 @@ from trajeglish_env.cli_args import (
     probability,
     scene_at,
 )
+from trajeglish_env.cli_scorecard import add_scorecard_command
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE
 
 GUARD_CHOICES = {"off": (False,), "on": (True,), "both": (False, True)}  # --guard: guarded sampling
@@ -268,6 +269,7 @@ def add_eval_commands(add: AddCommand) -> None:
     p.add_argument("--guard", choices=("on", "off"), default="on", help="guarded sampling (default: on)")
     p.add_argument("--no-green-rule", action="store_true", help="the guard without its green-light rule")
     add_map_coverage_command(add)
+    add_scorecard_command(add)
 
 
 def cmd_map_coverage(args: argparse.Namespace) -> dict[str, Any]:

@@ -1,0 +1,172 @@
+"""`trajeglish scorecard`: every figure against its target, parts saved as they finish and reused only for
+the same checkpoint file and settings, and a real run on generated scenes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from helpers import tiny_checkpoint
+
+import trajeglish_env.scorecard as scorecard
+from trajeglish_env.checkpoint import load_checkpoint, save_checkpoint
+from trajeglish_env.scorecard import SceneSet, ScorecardConfig, run_scorecard
+from trajeglish_env.scorecard_rows import ALONE, GUARDED, markdown, target_rows
+
+
+def _scores(meta: float, collision: float, offroad: float, red: float = 0.0) -> dict[str, float]:
+    return {
+        "metametric": meta,
+        "collision_rate": collision,
+        "offroad_rate": offroad,
+        "traffic_light_violation_rate": red,
+        "min_ade": 1.0,
+    }
+
+
+def _source(scenes: int, guarded: dict, alone: dict, first: float, last: float) -> dict:
+    return {
+        "scenes": scenes,
+        "rollouts": 8,
+        "methods": {
+            "log": _scores(0.88, 0.0, 0.10, red=0.014),
+            "constant_velocity": _scores(0.57, 0.112, 0.27),
+            ALONE: alone,
+            GUARDED: guarded,
+        },
+        "partial_control": {"first": {"collision_rate": first}, "last": {"collision_rate": last}},
+    }
+
+
+def _rows_by_name(rows: list[dict]) -> dict[str, dict]:
+    return {r["row"]: r for r in rows}
+
+
+def test_every_figure_is_judged_against_its_target() -> None:
+    parts = {
+        "highway": _source(32, _scores(0.8033, 0.0, 0.11), _scores(0.6278, 0.151, 0.31), 0.141, 0.125),
+        "sumo": _source(16, _scores(0.79, 0.03, 0.125, red=0.025), _scores(0.66, 0.05, 0.3), 0.3, 0.2),
+        "sumo_partial": _source(16, _scores(0.8, 0.0, 0.1), _scores(0.6, 0.1, 0.3), 0.3, 0.2),
+        "brake": {
+            "npcs": {
+                "trajeglish+guard": {"rear_ends": 2, "episodes": 40, "rear_end_rate": 0.05},
+                "trajeglish": {"rear_ends": 37, "episodes": 40, "rear_end_rate": 0.925},
+                "idm": {"rear_ends": 0, "episodes": 40, "rear_end_rate": 0.0},
+            }
+        },
+        "long": {
+            "seconds": 30.0,
+            "split_s": 8.0,
+            "collision": {"before": 0.0, "after": 0.0, "ratio": None},
+            "offroad": {"before": 0.001, "after": 0.002, "ratio": 2.0},
+        },
+        "womd": {
+            "rollouts": 16,
+            "methods": {
+                "log": {"collision_rate": 0.5},
+                GUARDED: {"collision_rate": 0.56},
+                ALONE: {"collision_rate": 0.4},
+            },
+        },
+        "demo": {"scene": "highway-intersection-999000", "npc_collision_rate": 0.0},
+        "tokenize": {"vocab_size": 2048, "max_cm": {"vehicle": 4.72, "pedestrian": 2.09, "cyclist": 2.68}},
+    }  # fmt: skip
+    rows = _rows_by_name(target_rows(parts))
+    met = {name: r["met"] for name, r in rows.items()}
+    assert met["highway-env guarded: meta-metric"] is True
+    assert rows["highway-env guarded: off-road rate"]["target"] == "<= 0.120 (log + 0.02)"
+    assert met["highway-env guarded: off-road rate"] is True
+    # alone: constant velocity 0.57 + 0.08 = 0.65 > 0.6278; half of its 0.112 collisions = 0.056 < 0.151
+    assert met["highway-env model alone: meta-metric"] is False
+    assert rows["highway-env model alone: collision rate"]["target"].startswith("<= 0.056")
+    assert met["highway-env partial control (32 scenes): collisions acting first / last"] is True
+    assert "highway-env guarded: red-light violations" not in rows  # highway-env has no signals
+    assert met["SUMO guarded: meta-metric"] is False and met["SUMO guarded: collision rate"] is False
+    assert met["SUMO guarded: red-light violations"] is False  # 0.025 > 0.014 + 0.01
+    partial = rows["SUMO partial control (16 scenes): collisions acting first / last"]
+    assert partial["met"] is None and "needs >= 32 scenes" in partial["target"]  # too few scenes to judge
+    assert met["brake test: rear-ended, guarded NPCs"] is True  # 0.05 <= 0 + 0.05
+    assert met["brake test: rear-ended, model alone NPCs"] is None  # context only
+    assert met["30 s rollouts, guarded: collision onsets per agent-second, after / before 8 s"] is True
+    assert met["30 s rollouts, guarded: offroad onsets per agent-second, after / before 8 s"] is False
+    assert met["WOMD scene (16 rollouts), guarded: collision rate"] is False  # 0.56 > 0.5 + 0.05
+    assert met["demo episode (highway-intersection-999000): NPCs that collide"] is True
+    assert met["tokenization at the motion limits (2048 tokens): largest error, cm"] is True
+    result = {
+        "checkpoints": {"a": "a.pt"},
+        "scene_sets": {"highway": "trajeglish generate --source highway --scenes 32 --seed 2"},
+        "parts": {"a": parts},
+        "rows": {"a": list(rows.values())},
+        "met": {"a": sum(1 for r in rows.values() if r["met"])},
+        "rows_with_a_target": {"a": sum(1 for r in rows.values() if r["met"] is not None)},
+    }
+    text = markdown(result)
+    assert "| SUMO guarded: meta-metric | >= 0.80 | 0.7900 (**not met**) |" in text
+    assert "Targets met: `a` 10 of 18" in text
+
+
+def test_a_run_scores_generated_scenes_and_resumes_from_its_saved_parts(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    path = save_checkpoint(tmp_path / "tiny.pt", tiny_checkpoint().model, tiny_checkpoint().vocabulary)
+    config = ScorecardConfig(highway=SceneSet("highway", 1, 2), rollouts=1, parts=("highway", "tokenize"))
+    out, data = tmp_path / "card", tmp_path / "data"
+    result = run_scorecard({"tiny": load_checkpoint(path)}, config, out, data, progress=False)
+    figures = result["parts"]["tiny"]["highway"]["methods"]
+    assert figures["log"]["collision_rate"] == 0.0 and figures["log"]["metametric"] > 0.8
+    assert set(figures) >= {"constant_velocity", GUARDED, ALONE, "tokenized_log"}
+    assert figures[GUARDED]["collision_rate"] == 0.0  # the guard keeps even an untrained model apart
+    rows = _rows_by_name(result["rows"]["tiny"])
+    assert rows["highway-env partial control (1 scenes): collisions acting first / last"]["met"] is None
+    assert rows["tokenization at the motion limits (144 tokens): largest error, cm"]["met"] is False
+    assert json.loads((out / "scorecard.json").read_text())["rows"] == result["rows"]
+    assert (
+        "| highway-env guarded: collision rate | <= 0.02 | 0.000 (met) |"
+        in (out / "scorecard.md").read_text()
+    )
+    assert sorted(p.name for p in (data / "highway_1_seed2").iterdir()) == [
+        "highway-00000.scn.npz",
+        "manifest.json",
+    ]
+
+    calls: list[str] = []
+    real = dict(scorecard.PART_FUNCTIONS)
+
+    def counting(name: str):  # type: ignore[no-untyped-def]
+        def part(card, label, ckpt):  # type: ignore[no-untyped-def]
+            calls.append(name)
+            return real[name](card, label, ckpt)
+
+        return part
+
+    monkeypatch.setattr(scorecard, "PART_FUNCTIONS", {n: counting(n) for n in real})
+    again = run_scorecard({"tiny": load_checkpoint(path)}, config, out, data, progress=False)
+    assert calls == [] and again["rows"] == result["rows"]  # every part read back
+    saved = next((out / "parts").glob("*/highway.json"))
+    saved.write_text(saved.read_text()[:100])  # a damaged file is computed again
+    run_scorecard({"tiny": load_checkpoint(path)}, config, out, data, progress=False)
+    assert calls == ["highway"]
+    more = replace_rollouts(config, 2)  # other settings: computed again
+    run_scorecard({"tiny": load_checkpoint(path)}, more, out, data, progress=False)
+    assert calls == ["highway", "highway"]
+    ckpt = tiny_checkpoint()
+    with torch.no_grad():
+        next(ckpt.model.parameters()).add_(0.01)
+    save_checkpoint(path, ckpt.model, ckpt.vocabulary)  # another checkpoint file: every part again
+    run_scorecard({"tiny": load_checkpoint(path)}, config, out, data, progress=False)
+    assert calls == ["highway", "highway", "highway", "tokenize"]
+
+
+def replace_rollouts(config: ScorecardConfig, rollouts: int) -> ScorecardConfig:
+    from dataclasses import replace
+
+    return replace(config, rollouts=rollouts)
+
+
+def test_bad_settings_are_named() -> None:
+    with pytest.raises(ValueError, match="ScorecardConfig.parts"):
+        ScorecardConfig(parts=("highway", "nope"))
+    with pytest.raises(ValueError, match="ScorecardConfig.rollouts"):
+        ScorecardConfig(rollouts=0)
+    with pytest.raises(ValueError, match="not loaded from a file"):
+        run_scorecard({"memory": tiny_checkpoint()}, ScorecardConfig(parts=("tokenize",)))

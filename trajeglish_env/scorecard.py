@@ -1,0 +1,370 @@
+"""``trajeglish scorecard``: every target row of the NPC-quality issue for one or more checkpoints, in one
+command: guarded realism per scene source, the model alone against constant velocity, partial control, the
+brake test, 30 s rollouts, the shared WOMD scene, the demo episode and tokenization within 5 cm.
+
+The held-out scenes are generated with fixed seeds (``trajeglish generate``; resumed when present), so two
+runs on two machines score the same scenes. Each part of each checkpoint is saved as it finishes, keyed by
+the checkpoint file's sha256 and the part's settings: a run that stops resumes where it stopped, and a
+candidate is scored beside an earlier run's rows of the shipped model without recomputing them. The
+report is ``scorecard.json`` and ``scorecard.md`` (one column per checkpoint, every row against its
+target)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from trajeglish_env.scenario_io import atomic_path
+
+FORMAT = 1  # of the saved parts: a part saved by another format is computed again
+PARTS = ("highway", "sumo", "sumo_partial", "womd", "brake", "long", "demo", "tokenize")
+VEHICLE_ROWS = ("metametric", "collision_rate", "offroad_rate", "traffic_light_violation_rate", "min_ade")
+
+
+@dataclass(frozen=True)
+class SceneSet:
+    """Held-out scenes ``trajeglish generate --source SOURCE --scenes SCENES --seed SEED`` makes."""
+
+    source: str
+    scenes: int
+    seed: int
+
+    @property
+    def folder(self) -> str:
+        return f"{self.source}_{self.scenes}_seed{self.seed}"
+
+    def command(self) -> str:
+        return f"trajeglish generate --source {self.source} --scenes {self.scenes} --seed {self.seed}"
+
+
+@dataclass(frozen=True)
+class ScorecardConfig:
+    """The held-out sets and sizes of the issue's tables (defaults: its targets' settings): 8 rollouts of
+    8 s per scene at the env's default NPC settings, partial control on >= 32 scenes of each source, 16
+    rollouts of the shared WOMD scene, 40 brake-test episodes, 2 rollouts of 30 s per SUMO scene."""
+
+    highway: SceneSet = SceneSet("highway", 32, 2)
+    sumo: SceneSet = SceneSet("sumo", 16, 2)
+    sumo_partial: SceneSet = SceneSet("sumo", 32, 2)
+    rollouts: int = 8
+    womd_rollouts: int = 16
+    brake_episodes: int = 40
+    long_seconds: float = 30.0
+    long_rollouts: int = 2
+    seed: int = 0
+    processes: int = 1  # rollout processes of the evaluations (the same rollouts)
+    womd: str | None = None  # the WOMD scenario file (None: the shared one, see benchmark.womd)
+    parts: tuple[str, ...] = PARTS
+
+    def __post_init__(self) -> None:
+        unknown = [p for p in self.parts if p not in PARTS]
+        if unknown or not self.parts:
+            raise ValueError(f"ScorecardConfig.parts: expected some of {PARTS}, got {list(self.parts)}")
+        for name in ("rollouts", "womd_rollouts", "brake_episodes", "long_rollouts", "processes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"ScorecardConfig.{name} must be an int >= 1, got {value!r}")
+        if not self.long_seconds > 8.0:
+            raise ValueError(f"ScorecardConfig.long_seconds must be > 8 (the split), got {self.long_seconds}")
+
+
+QUICK = ScorecardConfig(
+    highway=SceneSet("highway", 2, 2),
+    sumo=SceneSet("sumo", 1, 2),
+    sumo_partial=SceneSet("sumo", 2, 2),
+    rollouts=2,
+    womd_rollouts=2,
+    brake_episodes=2,
+    long_seconds=9.0,
+    long_rollouts=1,
+)  # a smoke run: every part, small
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+@dataclass
+class Scorecard:
+    """One scorecard run: its ``config``, the folder of generated scenes ``data_dir`` and of results
+    ``out``; :meth:`part` computes or reads one part of one checkpoint."""
+
+    config: ScorecardConfig
+    out: Path
+    data_dir: Path
+    progress: bool = True
+    log: Callable[[str], None] = field(default=lambda text: print(text, file=sys.stderr))
+
+    def scenes_of(self, scene_set: SceneSet) -> Path:
+        """The folder of ``scene_set``'s scenes, generated (or finished) first."""
+        from trajeglish_env.sources.generation import GenerationConfig, generate
+
+        folder = self.data_dir / scene_set.folder
+        generate(
+            GenerationConfig(scene_set.source, scene_set.scenes, scene_set.seed),
+            folder,
+            workers=self.config.processes,
+            progress=self.progress,
+        )
+        return folder
+
+    def womd_scenes(self) -> Path | str:
+        """The converted shared WOMD scene's folder, or why it is skipped."""
+        from trajeglish_env.benchmark.womd import locate_womd
+        from trajeglish_env.sources.womd_convert import convert_womd
+
+        found = locate_womd(self.config.womd)
+        if isinstance(found, str):
+            return found
+        folder = self.data_dir / f"womd_{found.stem}"
+        if not (folder / "manifest.json").is_file() and not any(folder.glob("*.npz")):
+            report = convert_womd([found], folder, self.progress)
+            if report.get("failed"):
+                return f"{found}: could not be converted: {report['failed']}"
+        return folder
+
+    def part(self, name: str, label: str, ckpt: Any) -> dict[str, Any]:
+        """Part ``name`` of the checkpoint ``ckpt`` (shown as ``label``): read from its saved file when that
+        was made from the same checkpoint file and settings, else computed and saved."""
+        settings = part_settings(self.config, name)
+        sha = file_sha256(ckpt.path) if ckpt.path is not None else None
+        path = self.out / "parts" / (sha or label)[:16] / f"{name}.json"
+        if sha is not None and path.is_file():
+            try:
+                saved = json.loads(path.read_text())
+            except (OSError, ValueError):
+                saved = None  # unreadable: computed again (the atomic write never leaves half a file)
+            if saved and saved.get("format") == FORMAT and saved.get("settings") == settings:
+                self.log(f"scorecard: {label} {name}: from {path}")
+                return saved["result"]
+        self.log(f"scorecard: {label} {name} ...")
+        start = time.perf_counter()
+        result = {
+            **PART_FUNCTIONS[name](self, label, ckpt),
+            "compute_seconds": round(time.perf_counter() - start, 1),
+        }
+        document = {"format": FORMAT, "checkpoint_sha256": sha, "settings": settings, "result": result}
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(document, indent=1))
+        return result
+
+
+def part_settings(config: ScorecardConfig, name: str) -> dict[str, Any]:
+    """The settings a part's result depends on (a saved part is reused only when they are the same)."""
+    common = {"seed": config.seed}
+    by_part: dict[str, dict[str, Any]] = {
+        "highway": {"scenes": asdict(config.highway), "rollouts": config.rollouts},
+        "sumo": {"scenes": asdict(config.sumo), "rollouts": config.rollouts},
+        "sumo_partial": {"scenes": asdict(config.sumo_partial), "rollouts": config.rollouts},
+        "womd": {"file": config.womd, "rollouts": config.womd_rollouts},
+        "brake": {
+            "scenes": [asdict(config.highway), asdict(config.sumo)],
+            "episodes": config.brake_episodes,
+        },
+        "long": {
+            "scenes": asdict(config.sumo),
+            "seconds": config.long_seconds,
+            "rollouts": config.long_rollouts,
+        },
+        "demo": {},
+        "tokenize": {},
+    }
+    return {"part": name, **common, **by_part[name]}
+
+
+def _evaluate(
+    card: Scorecard,
+    label: str,
+    ckpt: Any,
+    data: Path,
+    scenes: int,
+    rollouts: int,
+    guards: tuple[bool, ...],
+    partial: bool,
+) -> dict[str, Any]:
+    """``trajeglish evaluate`` of one checkpoint (``partial``: with partial control), kept to the rows'
+    figures (every method's: the log's and constant velocity's set targets)."""
+    from trajeglish_env.evaluation import EvalConfig, evaluate, method_name
+
+    config = EvalConfig(
+        rollouts=rollouts,
+        scenes=scenes,
+        seed=card.config.seed,
+        guards=guards,
+        rollout_processes=card.config.processes,
+    )
+    out = card.out / "evaluate" / f"{data.name}_{label}"
+    result = evaluate(
+        data, {label: ckpt}, config, out, partial=label if partial else None, progress=card.progress
+    )
+    rename = {
+        method_name(label, t, g): method_name("model", t, g) for t in config.temperatures for g in guards
+    }
+    methods = {
+        rename.get(method, method): {k: r["scores"][k] for k in VEHICLE_ROWS}
+        for method, r in result["methods"].items()
+    }
+    figures = {
+        "scenes": result["scenes"],
+        "rollouts": rollouts,
+        "methods": methods,
+        "report": result["markdown"],
+    }
+    if partial:
+        figures["partial_control"] = {p: result["partial_control"][p] for p in ("first", "last")}
+    return figures
+
+
+def _source_part(
+    scene_set: Callable[[ScorecardConfig], SceneSet], guards: tuple[bool, ...], partial: bool
+) -> Callable[[Scorecard, str, Any], dict[str, Any]]:
+    """The part that evaluates a checkpoint on one held-out scene set."""
+
+    def part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+        chosen = scene_set(card.config)
+        data = card.scenes_of(chosen)
+        return _evaluate(card, label, ckpt, data, chosen.scenes, card.config.rollouts, guards, partial)
+
+    return part
+
+
+def _womd_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+    data = card.womd_scenes()
+    if isinstance(data, str):
+        return {"skipped": data}
+    return _evaluate(card, label, ckpt, data, 1, card.config.womd_rollouts, (False, True), partial=False)
+
+
+def _brake_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+    from trajeglish_env.brake_test import BrakeTestConfig, brake_test
+    from trajeglish_env.training.dataset import SceneStore
+
+    folders = [card.scenes_of(card.config.highway), card.scenes_of(card.config.sumo)]
+    scenes = list(SceneStore(folders).scenes)
+    config = BrakeTestConfig(
+        npcs=("trajeglish+guard", "trajeglish", "idm"),
+        episodes=card.config.brake_episodes,
+        seed=card.config.seed,
+    )
+    result = brake_test(scenes, config, ckpt, card.out / "brake" / label, progress=card.progress)
+    return {"candidates": result["candidates"], "npcs": result["npcs"]}
+
+
+def _long_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+    from trajeglish_env.long_rollouts import LongRolloutConfig, long_rollout_rates
+    from trajeglish_env.training.dataset import SceneStore
+
+    scenes = list(SceneStore(card.scenes_of(card.config.sumo)).scenes)
+    config = LongRolloutConfig(
+        seconds=card.config.long_seconds,
+        rollouts=card.config.long_rollouts,
+        guards=(True,),
+        seed=card.config.seed,
+    )
+    result = long_rollout_rates(ckpt, scenes, config, progress=card.progress)
+    method = result["methods"]["trajeglish+guard"]
+    return {
+        "scenes": result["scenes"],
+        "seconds": result["seconds"],
+        "split_s": result["split_s"],
+        **{
+            event: {k: method[event][k] for k in ("before", "after", "ratio")}
+            for event in ("collision", "offroad")
+        },
+    }
+
+
+def _demo_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+    from trajeglish_env.env.demo import run_demo
+
+    result = run_demo(card.out / "demo" / label, checkpoint=str(ckpt.path), progress=False)
+    keys = (
+        "scene",
+        "npcs",
+        "steps",
+        "npc_collision_rate",
+        "npc_offroad_rate",
+        "ego_collision_steps",
+        "video",
+    )
+    return {k: result[k] for k in keys}
+
+
+def _tokenize_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+    """The largest error of the checkpoint's vocabulary tokenizing each class's tracks at the edges of its
+    motion limits (the env's vehicle limits, reversing included)."""
+    from trajeglish_env.scenario import AgentKind
+    from trajeglish_env.tokenizer.coverage import stress_error
+
+    return {
+        "vocab_size": ckpt.vocabulary.size,
+        "max_cm": {k.name.lower(): round(100 * stress_error(ckpt.vocabulary, k, 0.1), 2) for k in AgentKind},
+    }
+
+
+PART_FUNCTIONS: dict[str, Callable[[Scorecard, str, Any], dict[str, Any]]] = {
+    "highway": _source_part(lambda c: c.highway, (False, True), partial=True),
+    "sumo": _source_part(lambda c: c.sumo, (False, True), partial=False),
+    "sumo_partial": _source_part(lambda c: c.sumo_partial, (True,), partial=True),
+    "womd": _womd_part,
+    "brake": _brake_part,
+    "long": _long_part,
+    "demo": _demo_part,
+    "tokenize": _tokenize_part,
+}
+
+
+def run_scorecard(
+    checkpoints: dict[str, Any],
+    config: ScorecardConfig = ScorecardConfig(),
+    out: str | os.PathLike[str] = "out/scorecard",
+    data_dir: str | os.PathLike[str] | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Every configured part of every checkpoint (``{label: Checkpoint}``, each loaded from a file), then
+    the rows against their targets; writes ``scorecard.json`` and ``scorecard.md`` into ``out``."""
+    from trajeglish_env.scorecard_rows import markdown, target_rows
+
+    if not checkpoints:
+        raise ValueError("scorecard: no checkpoint to score")
+    missing = [label for label, ckpt in checkpoints.items() if ckpt.path is None]
+    if missing:
+        raise ValueError(
+            f"scorecard: checkpoints {missing} were not loaded from a file (their rows are keyed by it)"
+        )
+    out = Path(out)
+    card = Scorecard(config, out, Path(data_dir) if data_dir else out / "data", progress)
+    parts = {
+        label: {name: card.part(name, label, ckpt) for name in config.parts}
+        for label, ckpt in checkpoints.items()
+    }
+    rows = {label: target_rows(p) for label, p in parts.items()}
+    result = {
+        "checkpoints": {label: str(ckpt.path) for label, ckpt in checkpoints.items()},
+        "config": asdict(replace(config, parts=tuple(config.parts))),
+        "scene_sets": {name: getattr(config, name).command() for name in ("highway", "sumo", "sumo_partial")},
+        "parts": parts,
+        "rows": rows,
+        "met": {label: sum(1 for r in rs if r["met"]) for label, rs in rows.items()},
+        "rows_with_a_target": {
+            label: sum(1 for r in rs if r["met"] is not None) for label, rs in rows.items()
+        },
+    }
+    text = markdown(result)
+    with atomic_path(out / "scorecard.json") as tmp:
+        tmp.write_text(json.dumps(result, indent=2))
+    with atomic_path(out / "scorecard.md") as tmp:
+        tmp.write_text(text)
+    result["markdown"] = str(out / "scorecard.md")
+    return result

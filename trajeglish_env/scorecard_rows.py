@@ -1,0 +1,210 @@
+"""The scorecard's rows: each figure of :mod:`trajeglish_env.scorecard`'s parts against the NPC-quality
+issue's target (the env's default NPC settings: temperature 0.75, guarded sampling), and the Markdown
+report."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from trajeglish_env.evaluation import method_name
+from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE
+
+PARTIAL_MIN_SCENES = 32  # the partial-control row asks for at least this many scenes
+GUARDED = method_name("model", DEFAULT_TEMPERATURE, True)
+ALONE = method_name("model", DEFAULT_TEMPERATURE, False)
+CONTEXT = "(context: the env's NPCs are guarded)"
+
+
+def _row(row: str, value: str, target: str, met: bool | None) -> dict[str, Any]:
+    return {"row": row, "value": value, "target": target, "met": met}
+
+
+def _source_rows(title: str, part: dict[str, Any], red_light: bool) -> list[dict[str, Any]]:
+    """Guarded realism, collisions, off-road (and red lights) against the log; the model alone against
+    constant velocity."""
+    m = part["methods"]
+    g, log = m[GUARDED], m["log"]
+    rows = [
+        _row(f"{title} guarded: meta-metric", f"{g['metametric']:.4f}", ">= 0.80", g["metametric"] >= 0.80),
+        _row(
+            f"{title} guarded: collision rate",
+            f"{g['collision_rate']:.3f}",
+            "<= 0.02",
+            g["collision_rate"] <= 0.02,
+        ),
+        _row(
+            f"{title} guarded: off-road rate",
+            f"{g['offroad_rate']:.3f}",
+            f"<= {log['offroad_rate'] + 0.02:.3f} (log + 0.02)",
+            g["offroad_rate"] <= log["offroad_rate"] + 0.02,
+        ),
+    ]
+    if red_light:
+        rate, limit = g["traffic_light_violation_rate"], log["traffic_light_violation_rate"] + 0.01
+        rows.append(
+            _row(
+                f"{title} guarded: red-light violations",
+                f"{rate:.4f}",
+                f"<= {limit:.4f} (log + 0.01)",
+                rate <= limit,
+            )
+        )
+    if ALONE in m:
+        a, cv = m[ALONE], m["constant_velocity"]
+        rows += [
+            _row(
+                f"{title} model alone: meta-metric",
+                f"{a['metametric']:.4f}",
+                f">= {cv['metametric'] + 0.08:.4f} (constant velocity + 0.08)",
+                a["metametric"] >= cv["metametric"] + 0.08,
+            ),
+            _row(
+                f"{title} model alone: collision rate",
+                f"{a['collision_rate']:.3f}",
+                f"<= {cv['collision_rate'] / 2:.3f} (half of constant velocity's)",
+                a["collision_rate"] <= cv["collision_rate"] / 2,
+            ),
+        ]
+    return rows
+
+
+def _partial_row(title: str, part: dict[str, Any]) -> dict[str, Any]:
+    pc, scenes = part["partial_control"], part["scenes"]
+    first, last = pc["first"]["collision_rate"], pc["last"]["collision_rate"]
+    enough = scenes >= PARTIAL_MIN_SCENES
+    target = "last < first" + ("" if enough else f" (needs >= {PARTIAL_MIN_SCENES} scenes)")
+    return _row(
+        f"{title} partial control ({scenes} scenes): collisions acting first / last",
+        f"{first:.3f} / {last:.3f}",
+        target,
+        last < first if enough else None,
+    )
+
+
+def _skipped(name: str, part: dict[str, Any]) -> dict[str, Any]:
+    return _row(f"{name}: skipped", part["skipped"], "", None)
+
+
+def target_rows(parts: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """Every row the computed ``parts`` of one checkpoint give, in the issue's order; ``met`` is None for
+    rows without a target (shown for context) or whose part is too small to judge."""
+    rows: list[dict[str, Any]] = []
+    if "highway" in parts:
+        rows += _source_rows("highway-env", parts["highway"], red_light=False)
+        rows.append(_partial_row("highway-env", parts["highway"]))
+    if "sumo" in parts:
+        rows += _source_rows("SUMO", parts["sumo"], red_light=True)
+    if "sumo_partial" in parts:
+        rows.append(_partial_row("SUMO", parts["sumo_partial"]))
+    if "brake" in parts:
+        npcs = parts["brake"]["npcs"]
+        idm = npcs["idm"]["rear_end_rate"]
+        for name, title in (("trajeglish+guard", "guarded"), ("trajeglish", "model alone")):
+            r = npcs[name]
+            rows.append(
+                _row(
+                    f"brake test: rear-ended, {title} NPCs",
+                    f"{r['rear_ends']}/{r['episodes']}",
+                    f"<= {idm + 0.05:.3f} (IDM {npcs['idm']['rear_ends']}/{npcs['idm']['episodes']} + 0.05)"
+                    if name == "trajeglish+guard"
+                    else CONTEXT,
+                    r["rear_end_rate"] <= idm + 0.05 if name == "trajeglish+guard" else None,
+                )
+            )
+    if "long" in parts:
+        long = parts["long"]
+        for event in ("collision", "offroad"):
+            e = long[event]
+            rows.append(
+                _row(
+                    f"{long['seconds']:g} s rollouts, guarded: {event} onsets per agent-second, after / "
+                    f"before {long['split_s']:g} s",
+                    f"{e['after']:.4f} / {e['before']:.4f}",
+                    "after <= 1.5x before",
+                    e["after"] <= 1.5 * e["before"],
+                )
+            )
+    if "womd" in parts:
+        w = parts["womd"]
+        if "skipped" in w:
+            rows.append(_skipped("WOMD scene", w))
+        else:
+            m, log = w["methods"], w["methods"]["log"]["collision_rate"]
+            for name, title in ((GUARDED, "guarded"), (ALONE, "model alone")):
+                rate = m[name]["collision_rate"]
+                rows.append(
+                    _row(
+                        f"WOMD scene ({w['rollouts']} rollouts), {title}: collision rate",
+                        f"{rate:.3f}",
+                        f"<= {log + 0.05:.3f} (log + 0.05)" if name == GUARDED else CONTEXT,
+                        rate <= log + 0.05 if name == GUARDED else None,
+                    )
+                )
+    if "demo" in parts:
+        d = parts["demo"]
+        rows.append(
+            _row(
+                f"demo episode ({d['scene']}): NPCs that collide",
+                f"{d['npc_collision_rate']:.3f}",
+                "0",
+                d["npc_collision_rate"] == 0.0,
+            )
+        )
+    if "tokenize" in parts:
+        t = parts["tokenize"]
+        worst = max(t["max_cm"].values())
+        cells = ", ".join(f"{k} {v:.2f}" for k, v in t["max_cm"].items())
+        rows.append(
+            _row(
+                f"tokenization at the motion limits ({t['vocab_size']} tokens): largest error, cm",
+                cells,
+                "<= 5 cm",
+                worst <= 5.0,
+            )
+        )
+    return rows
+
+
+def _cell(row: dict[str, Any]) -> str:
+    mark = {True: " (met)", False: " (**not met**)", None: ""}[row["met"]]
+    return f"{row['value']}{mark}"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The scorecard as Markdown: one column per checkpoint, each row against its target."""
+    labels = list(result["rows"])
+    seconds = {
+        label: sum(p.get("compute_seconds", 0.0) for p in result["parts"][label].values()) for label in labels
+    }
+    lines = [
+        "# Scorecard: the NPC-quality targets",
+        "",
+        "Checkpoints: " + ", ".join(f"`{label}` ({result['checkpoints'][label]})" for label in labels),
+        "",
+        "Held-out scenes: " + "; ".join(f"`{cmd}`" for cmd in result["scene_sets"].values()),
+        "",
+        "Targets met: "
+        + ", ".join(
+            f"`{label}` {result['met'][label]} of {result['rows_with_a_target'][label]}" for label in labels
+        ),
+        "",
+        "Seconds computing the parts (saved ones not counted again): "
+        + ", ".join(f"`{label}` {seconds[label]:.0f}" for label in labels),
+        "",
+        "| row | target | " + " | ".join(f"`{label}`" for label in labels) + " |",
+        "|---|---|" + "---|" * len(labels),
+    ]
+    order: list[str] = []
+    cells: dict[str, dict[str, dict[str, Any]]] = {}
+    for label in labels:
+        for row in result["rows"][label]:
+            if row["row"] not in cells:
+                order.append(row["row"])
+                cells[row["row"]] = {}
+            cells[row["row"]][label] = row
+    for name in order:
+        by_label = cells[name]
+        target = next(iter(by_label.values()))["target"]
+        values = " | ".join(_cell(by_label[label]) if label in by_label else "" for label in labels)
+        lines.append(f"| {name} | {target} | {values} |")
+    return "\n".join(lines) + "\n"
