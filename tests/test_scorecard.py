@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from helpers import tiny_checkpoint
+from helpers import tiny, tiny_checkpoint
 
 import trajeglish_env.scorecard as scorecard
 from trajeglish_env.checkpoint import load_checkpoint, save_checkpoint
@@ -72,6 +72,11 @@ def test_every_figure_is_judged_against_its_target() -> None:
         },
         "demo": {"scene": "highway-intersection-999000", "npc_collision_rate": 0.0},
         "tokenize": {"vocab_size": 2048, "max_cm": {"vehicle": 4.72, "pedestrian": 2.09, "cyclist": 2.68}},
+        "speed": {
+            "1": {"model": 1100.0, "shipped": 1130.0, "ratio": 0.973},
+            "8": {"model": 2500.0, "shipped": 3000.0, "ratio": 0.833},
+            "compute_seconds": 100.0,
+        },
     }  # fmt: skip
     rows = _rows_by_name(target_rows(parts))
     met = {name: r["met"] for name, r in rows.items()}
@@ -94,6 +99,8 @@ def test_every_figure_is_judged_against_its_target() -> None:
     assert met["WOMD scene (16 rollouts), guarded: collision rate"] is False  # 0.56 > 0.5 + 0.05
     assert met["demo episode (highway-intersection-999000): NPCs that collide"] is True
     assert met["tokenization at the motion limits (2048 tokens): largest error, cm"] is True
+    speed = rows["env speed against the shipped model, guarded, one thread, B = 1 / B = 8"]
+    assert speed["value"] == "0.97x / 0.83x (1,100 / 2,500 agent-steps/s)" and speed["met"] is False
     result = {
         "checkpoints": {"a": "a.pt"},
         "scene_sets": {"highway": "trajeglish generate --source highway --scenes 32 --seed 2"},
@@ -104,7 +111,7 @@ def test_every_figure_is_judged_against_its_target() -> None:
     }
     text = markdown(result)
     assert "| SUMO guarded: meta-metric | >= 0.80 | 0.7900 (**not met**) |" in text
-    assert "Targets met: `a` 10 of 18" in text
+    assert "Targets met: `a` 10 of 19" in text
 
 
 def test_a_run_scores_generated_scenes_and_resumes_from_its_saved_parts(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
@@ -163,10 +170,42 @@ def replace_rollouts(config: ScorecardConfig, rollouts: int) -> ScorecardConfig:
     return replace(config, rollouts=rollouts)
 
 
+def test_speed_is_timed_in_interleaved_pairs_against_the_shipped_model(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import trajeglish_env.benchmark.measure as measure
+    from trajeglish_env.checkpoint import pretrained_path
+
+    candidate = load_checkpoint(save_checkpoint(tmp_path / "c.pt", tiny().model, tiny().vocabulary))
+    order: list[tuple[str, int]] = []
+
+    def fake_env_speed(batch, npc, torch_threads, checkpoint):  # type: ignore[no-untyped-def]
+        who = "shipped" if checkpoint.path == pretrained_path() else "model"
+        order.append((who, batch))
+        return {"agent_steps_per_s": (1000.0 if who == "shipped" else 900.0) * batch + len(order)}
+
+    monkeypatch.setattr(measure, "env_speed", fake_env_speed)
+    card = scorecard.Scorecard(
+        ScorecardConfig(speed_batches=(1, 8), speed_repeats=2), tmp_path, tmp_path, False
+    )
+    result = scorecard._speed_part(card, "c", candidate)
+    assert order == [("shipped", 1), ("model", 1), ("shipped", 8), ("model", 8)] + [
+        ("model", 1),
+        ("shipped", 1),
+        ("model", 8),
+        ("shipped", 8),
+    ]  # the order alternates between the pairs
+    assert result["1"]["runs"] == {"model": [902.0, 905.0], "shipped": [1001.0, 1006.0]}
+    assert result["1"]["ratio"] == round(903.5 / 1003.5, 3) and result["8"]["ratio"] < 0.91
+    shipped = load_checkpoint(pretrained_path())
+    assert scorecard._speed_part(card, "shipped", shipped) == {"reference": True}  # nothing timed
+    assert len(order) == 8
+
+
 def test_bad_settings_are_named() -> None:
     with pytest.raises(ValueError, match="ScorecardConfig.parts"):
         ScorecardConfig(parts=("highway", "nope"))
     with pytest.raises(ValueError, match="ScorecardConfig.rollouts"):
         ScorecardConfig(rollouts=0)
+    with pytest.raises(ValueError, match="ScorecardConfig.speed_batches"):
+        ScorecardConfig(speed_batches=(1, 0))
     with pytest.raises(ValueError, match="not loaded from a file"):
         run_scorecard({"memory": tiny_checkpoint()}, ScorecardConfig(parts=("tokenize",)))

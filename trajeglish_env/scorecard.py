@@ -24,7 +24,7 @@ from typing import Any
 from trajeglish_env.scenario_io import atomic_path
 
 FORMAT = 1  # of the saved parts: a part saved by another format is computed again
-PARTS = ("highway", "sumo", "sumo_partial", "womd", "brake", "long", "demo", "tokenize")
+PARTS = ("highway", "sumo", "sumo_partial", "womd", "brake", "long", "demo", "tokenize", "speed")
 VEHICLE_ROWS = ("metametric", "collision_rate", "offroad_rate", "traffic_light_violation_rate", "min_ade")
 
 
@@ -61,13 +61,26 @@ class ScorecardConfig:
     seed: int = 0
     processes: int = 1  # rollout processes of the evaluations (the same rollouts)
     womd: str | None = None  # the WOMD scenario file (None: the shared one, see benchmark.womd)
+    speed_batches: tuple[int, ...] = (1, 8)  # env batch sizes timed against the shipped model
+    speed_repeats: int = 2  # interleaved pairs per batch size (the machine's speed drifts)
     parts: tuple[str, ...] = PARTS
 
     def __post_init__(self) -> None:
         unknown = [p for p in self.parts if p not in PARTS]
         if unknown or not self.parts:
             raise ValueError(f"ScorecardConfig.parts: expected some of {PARTS}, got {list(self.parts)}")
-        for name in ("rollouts", "womd_rollouts", "brake_episodes", "long_rollouts", "processes"):
+        if not self.speed_batches or any(b < 1 for b in self.speed_batches):
+            raise ValueError(
+                f"ScorecardConfig.speed_batches must be batch sizes >= 1, got {self.speed_batches}"
+            )
+        for name in (
+            "rollouts",
+            "womd_rollouts",
+            "brake_episodes",
+            "long_rollouts",
+            "processes",
+            "speed_repeats",
+        ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ScorecardConfig.{name} must be an int >= 1, got {value!r}")
@@ -84,6 +97,8 @@ QUICK = ScorecardConfig(
     brake_episodes=2,
     long_seconds=9.0,
     long_rollouts=1,
+    speed_batches=(1,),
+    speed_repeats=1,
 )  # a smoke run: every part, small
 
 
@@ -179,6 +194,7 @@ def part_settings(config: ScorecardConfig, name: str) -> dict[str, Any]:
         },
         "demo": {},
         "tokenize": {},
+        "speed": {"batches": list(config.speed_batches), "repeats": config.speed_repeats},
     }
     return {"part": name, **common, **by_part[name]}
 
@@ -313,6 +329,38 @@ def _tokenize_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
     }
 
 
+def _speed_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+    """Agent-steps/s of the batched env (24 agents a scene, guarded NPCs of this checkpoint, one torch
+    thread) against the shipped model's, in interleaved pairs (the order alternates), per batch size; the
+    ratio of the medians. The shipped model itself is the reference."""
+    import statistics
+
+    from trajeglish_env.benchmark.measure import env_speed
+    from trajeglish_env.checkpoint import load_pretrained, pretrained_path
+
+    if file_sha256(ckpt.path) == file_sha256(pretrained_path()):
+        return {"reference": True}
+    shipped = load_pretrained()
+    rates: dict[str, dict[int, list[float]]] = {"model": {}, "shipped": {}}
+    for rep in range(card.config.speed_repeats):
+        for batch in card.config.speed_batches:
+            pair = (("shipped", shipped), ("model", ckpt))
+            for who, model in pair if rep % 2 == 0 else pair[::-1]:
+                run = env_speed(batch, "trajeglish_guard", torch_threads=1, checkpoint=model)
+                rates[who].setdefault(batch, []).append(run["agent_steps_per_s"])
+    return {
+        str(batch): {
+            "model": statistics.median(rates["model"][batch]),
+            "shipped": statistics.median(rates["shipped"][batch]),
+            "ratio": round(
+                statistics.median(rates["model"][batch]) / statistics.median(rates["shipped"][batch]), 3
+            ),
+            "runs": {who: rates[who][batch] for who in rates},
+        }
+        for batch in card.config.speed_batches
+    }
+
+
 PART_FUNCTIONS: dict[str, Callable[[Scorecard, str, Any], dict[str, Any]]] = {
     "highway": _source_part(lambda c: c.highway, (False, True), partial=True),
     "sumo": _source_part(lambda c: c.sumo, (False, True), partial=False),
@@ -322,6 +370,7 @@ PART_FUNCTIONS: dict[str, Callable[[Scorecard, str, Any], dict[str, Any]]] = {
     "long": _long_part,
     "demo": _demo_part,
     "tokenize": _tokenize_part,
+    "speed": _speed_part,
 }
 
 

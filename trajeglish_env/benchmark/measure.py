@@ -254,6 +254,7 @@ def env_speed(
     compute_dtype: str = "auto",
     processes: int | str = 1,
     device: str = "cpu",
+    checkpoint: Any = None,
 ) -> dict[str, Any]:
     """Stepping speed of the batched ego env: ``num_envs`` scenes of ``agents`` agents (the bundled
     SUMO scenes cut to the sdc and its nearest neighbours), one ego each replaying its log through
@@ -262,7 +263,8 @@ def env_speed(
     ``npc``: ``"replay"``, ``"trajeglish"`` (unguarded sampling) or ``"trajeglish_guard"`` (guarded
     sampling); ``processes``: the env's worker processes (1: one :class:`BatchedEgoEnv`, else a
     :class:`~trajeglish_env.env.split.SplitEgoEnv`; ``"auto"``: its automatic count); ``device``: where
-    the NPC model decodes (``"cuda"``: also the peak GPU memory).
+    the NPC model decodes (``"cuda"``: also the peak GPU memory); ``checkpoint``: the NPCs' model (default:
+    the shipped one).
 
     ``steps`` None: Trajeglish NPCs are timed over one whole window cycle of the model (its
     ``recompute_every`` steps, one of which re-encodes and re-primes every scene's windows), so the
@@ -280,7 +282,7 @@ def env_speed(
     npc_spec: Any = npc
     model = npc in GUARDED
     if model:
-        ckpt = model_checkpoint()[0]
+        ckpt = model_checkpoint()[0] if checkpoint is None else checkpoint
         sampling = SamplingConfig(
             cache_dtype=cache_dtype, subsets=subsets, guard=GUARDED[npc], compute_dtype=compute_dtype
         )
