@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 PIP_FLAGS ?= -q --disable-pip-version-check
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test lint format bench clean device-wheels device-sumo-scenes device-keep
+.PHONY: venv demo test lint format bench clean device-wheels device-sumo-scenes device-vocab device-keep
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -57,6 +57,15 @@ device-sumo-scenes: $(STAMP)
 	$(VENV)/bin/trajeglish generate --quiet --source sumo --scenes 8 --seed 90002 --workers $$(nproc) \
 		--out .devdata/val/sumo
 	@du -sh .devdata
+
+# The extended vocabulary the job would make (EXTEND=2048 with INIT=shipped), made here and carried in
+# .devdata (93 KB): the call trains on it at once.
+DEVICE_EXTEND ?= 2048
+device-vocab: $(STAMP)
+	mkdir -p .devdata
+	$(VENV)/bin/trajeglish tokenizer extend --json --base shipped --size $(DEVICE_EXTEND) \
+		--out .devdata/vocab_extended_$(DEVICE_EXTEND).npz > /dev/null
+	@ls -l .devdata/vocab_extended_$(DEVICE_EXTEND).npz
 
 # After a call: `make device-keep FROM=<the call's files_at>` keeps the results in runs/device/ and the
 # folder the next call resumes from in .devrun/ (carry: [".whl", ".devrun"], RUN_IN=.devrun).

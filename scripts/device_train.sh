@@ -47,7 +47,10 @@
 #   COVER_RADIUS DATA_SHARE   that fit's `--cover-radius` and `--data-share` [0.045, 0.5]
 #   EXTEND         a new run with INIT: extend the checkpoint's vocabulary to this many tokens per class
 #                  (`tokenizer extend`: old tokens kept, the added ones cover every motion of the env's
-#                  limits; EXTEND=2048 keeps them within 5 cm) and fine-tune on it; 0: keep it [0]
+#                  limits; EXTEND=2048 keeps them within 5 cm) and fine-tune on it; 0: keep it [0]. A
+#                  carried DATA_IN/vocab_extended_EXTEND.npz (`make device-vocab`) that extends INIT's
+#                  vocabulary to EXTEND tokens is used as it is (the extension is deterministic: half a
+#                  minute of the call saved)
 #   MAP_SELECT     frame | agents: a window's map chunks nearest its frame agent or any of its agents
 #                  (`train --map-select`; with INIT it may differ from the checkpoint's) [the checkpoint's,
 #                  or frame]
@@ -329,10 +332,17 @@ if [ "$VOCAB" != 0 ] && [ -z "$RUN_IN" ]; then
     say "fitted a $VOCAB-token vocabulary on the training scenes in $((SECONDS - T_VOCAB)) s"
 fi
 if [ "$EXTEND" != 0 ] && [ -z "$RUN_IN" ]; then
-    "$PYTHON" -m trajeglish_env.cli tokenizer extend --json --base "$INIT" --size "$EXTEND" \
-        --out "$WORK/vocab.npz" >"$WORK/vocab.json" || die "tokenizer extend --size $EXTEND failed (see $LOG)"
+    CARRIED_VOCAB=${DATA_IN:+$DATA_IN/vocab_extended_$EXTEND.npz}
+    if [ -n "$CARRIED_VOCAB" ] && [ -f "$CARRIED_VOCAB" ] &&
+        "$PYTHON" trajeglish_env/device_job.py extension "$CARRIED_VOCAB" "$INIT" "$EXTEND"; then
+        cp "$CARRIED_VOCAB" "$WORK/vocab.npz"
+        say "training on the carried $CARRIED_VOCAB (made by make device-vocab): no extending here"
+    else
+        "$PYTHON" -m trajeglish_env.cli tokenizer extend --json --base "$INIT" --size "$EXTEND" \
+            --out "$WORK/vocab.npz" >"$WORK/vocab.json" || die "tokenizer extend --size $EXTEND failed (see $LOG)"
+        say "extended $INIT's vocabulary to $EXTEND tokens"
+    fi
     VOCAB_ARGS=(--vocab "$WORK/vocab.npz")
-    say "extended $INIT's vocabulary to $EXTEND tokens"
 fi
 
 # ---- noisy input tokens drawn on the GPU (NOISE_ON_DEVICE): checked against the loaders' draw first

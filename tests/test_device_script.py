@@ -173,6 +173,21 @@ def test_a_new_run_can_extend_its_checkpoints_vocabulary(tmp_path: Path) -> None
     assert (tuned.vocabulary.templates[:, :n] == start.vocabulary.templates).all()
     summary = json.loads((tmp_path / "out-ext" / "summary.json").read_text())
     assert summary["params"]["EXTEND"] == "2048"
+    # the same extension carried (make device-vocab) is trained on as it is; one that is not is made again
+    tuned.vocabulary.save(tmp_path / "carried" / "vocab_extended_2048.npz")
+    carried = _job(tmp_path, "extc", INIT=str(init), EXTEND="2048", STEPS="3")
+    assert carried.returncode == 0, carried.stdout[-3000:]
+    assert "no extending here" in carried.stdout and "extended " not in carried.stdout
+    again = load_checkpoint(tmp_path / "out-extc" / "model.pt").vocabulary
+    assert (again.templates == tuned.vocabulary.templates).all()
+    from trajeglish_env.device_job import extension
+
+    path = tmp_path / "carried" / "vocab_extended_2048.npz"
+    assert extension(path, str(init), 2048) == ""
+    assert extension(path, str(init), 1024) == f"{path} holds 2048 tokens per class, not 1024"
+    assert extension(path, "shipped", 2048) == f"{path} does not begin with shipped's 384 templates"
+    path.write_bytes(b"not a vocabulary")
+    assert extension(path, str(init), 2048).startswith(f"{path}: not a readable vocabulary")
     alone = _job(tmp_path, "ext0", EXTEND="2048")
     assert alone.returncode == 2 and "EXTEND=2048 needs INIT" in alone.stdout
     bad = _job(tmp_path, "extb", EXTEND="many", INIT=str(init))

@@ -9,6 +9,9 @@ packages that ``import trajeglish_env`` needs are known to be there):
 - ``saved RUN_IN``: a carried run's settings as ``SAVED_NAME=VALUE`` lines (plain JSON, read at once).
 - ``check ... --resume RUN_IN RUN`` also rebuilds ``RUN/last.pt`` from the carried folder (``last.pt`` or
   its parts ``last.pt.000``, ``last.pt.001``, ... as ``pack`` wrote them) and checks that it loads.
+- ``extension FILE INIT SIZE``: whether a carried vocabulary ``FILE`` (``make device-vocab``) extends the
+  vocabulary of ``INIT`` (``shipped`` or a checkpoint) to ``SIZE`` tokens per class, so the job trains on
+  it instead of extending there (about half a minute of the call); exit 1 with the reason when it does not.
 - ``pack RUN OUT``: write the checkpoint, a small ``summary.json`` (held-out NLL, training curve, one
   record per call) and the log into ``OUT`` within the device tool's limits on what comes back (at most 8
   files of at most 16 MiB, 64 MiB together); ``OUT/resume/`` is what the next call carries as ``RUN_IN``.
@@ -306,6 +309,25 @@ def _parts(path: Path, folder: Path) -> list[Path]:
     return parts
 
 
+def extension(path: Path, init: str, size: int) -> str:
+    """Why the vocabulary at ``path`` cannot stand for ``init``'s extended to ``size`` tokens ("" when it
+    can: the base's templates, unchanged, as its first ids)."""
+    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+    from trajeglish_env.tokenizer.extend import is_extension
+    from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+
+    try:
+        vocab = MotionVocabulary.load(path)
+    except (OSError, ValueError) as error:
+        return f"{path}: not a readable vocabulary ({error})"
+    base = (load_pretrained() if init == "shipped" else load_checkpoint(init)).vocabulary
+    if vocab.size != size:
+        return f"{path} holds {vocab.size} tokens per class, not {size}"
+    if not is_extension(base, vocab):
+        return f"{path} does not begin with {init}'s {base.size} templates"
+    return ""
+
+
 def _shell(values: dict[str, str]) -> None:
     for key, value in values.items():
         print(f"{key}={shlex.quote(value)}")
@@ -324,6 +346,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--resume", nargs=2, type=Path, metavar=("RUN_IN", "RUN"), help="also rebuild RUN/last.pt")
     p = sub.add_parser("saved", help="a carried run's settings (no torch)")
     p.add_argument("run_in", type=Path)
+    p = sub.add_parser("extension", help="does a carried vocabulary extend INIT's to SIZE tokens?")
+    p.add_argument("vocab", type=Path)
+    p.add_argument("init")
+    p.add_argument("size", type=int)
     p = sub.add_parser("pack", help="write what comes back into OUT")
     p.add_argument("run", type=Path)
     p.add_argument("out", type=Path)
@@ -336,6 +362,10 @@ def main(argv: list[str] | None = None) -> int:
             _shell({**check(args.device, args.sumo), **(resume(*args.resume) if args.resume else {})})
         elif args.command == "saved":
             _shell(saved(args.run_in))
+        elif args.command == "extension":
+            why = extension(args.vocab, args.init, args.size)
+            _say(why or f"{args.vocab} extends {args.init}'s vocabulary to {args.size} tokens")
+            return 1 if why else 0
         else:
             facts: dict[str, Any] = {"params": {}}
             lines = args.facts.read_text().splitlines() if args.facts and args.facts.is_file() else []
