@@ -209,3 +209,26 @@ def test_bad_settings_are_named() -> None:
         ScorecardConfig(speed_batches=(1, 0))
     with pytest.raises(ValueError, match="not loaded from a file"):
         run_scorecard({"memory": tiny_checkpoint()}, ScorecardConfig(parts=("tokenize",)))
+
+
+def test_the_command_prints_the_table_and_writes_the_json(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from trajeglish_env.cli import main
+
+    path = save_checkpoint(tmp_path / "tiny.pt", tiny().model, tiny().vocabulary)
+    argv = [
+        "scorecard",
+        "--no-shipped",
+        "--ckpt",
+        f"t={path}",
+        "--parts",
+        "tokenize",
+        "--out",
+        str(tmp_path / "c"),
+    ]
+    assert main([*argv, "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "| tokenization at the motion limits (144 tokens): largest error, cm | <= 5 cm | vehicle " in out
+    assert "Targets met: `t` 0 of 1" in out
+    document = json.loads((tmp_path / "c" / "scorecard.json").read_text())
+    assert document["checkpoints"] == {"t": str(path)} and document["config"]["parts"] == ["tokenize"]
+    assert document["parts"]["t"]["tokenize"]["max_cm"]["vehicle"] > 5.0

@@ -31,13 +31,15 @@ def scorecard_checkpoints(items: list[str] | None, shipped: bool) -> dict[str, A
 
 
 def cmd_scorecard(args: argparse.Namespace) -> dict[str, Any]:
+    from trajeglish_env.sampler.rollouts import auto_processes
     from trajeglish_env.scorecard import PARTS, QUICK, ScorecardConfig, run_scorecard
 
     base = QUICK if args.quick else ScorecardConfig()
     changes: dict[str, Any] = {"parts": tuple(args.parts or PARTS), "seed": args.seed, "womd": args.womd}
-    for name in ("rollouts", "processes"):
-        if getattr(args, name) is not None:
-            changes[name] = getattr(args, name)
+    if args.rollouts is not None:
+        changes["rollouts"] = args.rollouts
+    # one process per free core (looked at once), as `evaluate` does
+    changes["processes"] = args.processes or auto_processes(changes.get("rollouts", base.rollouts))
     config = replace(base, **changes)
     ckpts = scorecard_checkpoints(args.ckpt, not args.no_shipped)
     result = run_scorecard(ckpts, config, output_dir(args.out), args.data_dir, progress=not args.quiet)
@@ -64,7 +66,10 @@ def add_scorecard_command(add: AddCommand) -> None:
     p.add_argument("--quick", action="store_true", help="tiny scene sets and rollouts: a smoke run")
     p.add_argument("--rollouts", type=POSITIVE, help="rollouts per held-out scene (default 8)")
     p.add_argument(
-        "--processes", type=POSITIVE, help="processes the rollouts and generation are split over (default 1)"
+        "--processes",
+        type=POSITIVE,
+        help="processes the rollouts and generation are split over (default: one per core other processes "
+        "leave free)",
     )
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
     p.add_argument("--womd", help="WOMD scenario file (default: the shared one)")
