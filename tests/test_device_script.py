@@ -173,7 +173,8 @@ def test_a_new_run_can_extend_its_checkpoints_vocabulary(tmp_path: Path) -> None
     assert (tuned.vocabulary.templates[:, :n] == start.vocabulary.templates).all()
     summary = json.loads((tmp_path / "out-ext" / "summary.json").read_text())
     assert summary["params"]["EXTEND"] == "2048"
-    # the same extension carried (make device-vocab) is trained on as it is; one that is not is made again
+    # the same extension carried (make device-vocab) is trained on as it is; extension() says why another
+    # is not (the job then extends the vocabulary itself)
     tuned.vocabulary.save(tmp_path / "carried" / "vocab_extended_2048.npz")
     carried = _job(tmp_path, "extc", INIT=str(init), EXTEND="2048", STEPS="3")
     assert carried.returncode == 0, carried.stdout[-3000:]

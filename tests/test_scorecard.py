@@ -15,6 +15,8 @@ from trajeglish_env.checkpoint import load_checkpoint, save_checkpoint
 from trajeglish_env.scorecard import SceneSet, ScorecardConfig, run_scorecard
 from trajeglish_env.scorecard_rows import ALONE, GUARDED, markdown, target_rows
 
+TOKENS = "tokenization at the motion limits: largest error, cm (vehicles judged)"
+
 
 def _scores(meta: float, collision: float, offroad: float, red: float = 0.0) -> dict[str, float]:
     return {
@@ -71,7 +73,7 @@ def test_every_figure_is_judged_against_its_target() -> None:
             },
         },
         "demo": {"scene": "highway-intersection-999000", "npc_collision_rate": 0.0},
-        "tokenize": {"vocab_size": 2048, "max_cm": {"vehicle": 4.72, "pedestrian": 2.09, "cyclist": 2.68}},
+        "tokenize": {"vocab_size": 2048, "max_cm": {"vehicle": 4.72, "pedestrian": 5.09, "cyclist": 2.68}},
         "speed": {
             "1": {"model": 1100.0, "shipped": 1130.0, "ratio": 0.973},
             "8": {"model": 2500.0, "shipped": 3000.0, "ratio": 0.833},
@@ -85,10 +87,15 @@ def test_every_figure_is_judged_against_its_target() -> None:
     assert met["highway-env guarded: off-road rate"] is True
     # alone: constant velocity 0.57 + 0.08 = 0.65 > 0.6278; half of its 0.112 collisions = 0.056 < 0.151
     assert met["highway-env model alone: meta-metric"] is False
-    assert rows["highway-env model alone: collision rate"]["target"].startswith("<= 0.056")
+    assert rows["highway-env model alone: collision rate (every evaluated agent)"]["target"].startswith(
+        "<= 0.056"
+    )
     assert met["highway-env partial control (32 scenes): collisions acting first / last"] is True
     assert "highway-env guarded: red-light violations" not in rows  # highway-env has no signals
-    assert met["SUMO guarded: meta-metric"] is False and met["SUMO guarded: collision rate"] is False
+    assert (
+        met["SUMO guarded: meta-metric"] is False
+        and met["SUMO guarded: collision rate (every evaluated agent)"] is False
+    )
     assert met["SUMO guarded: red-light violations"] is False  # 0.025 > 0.014 + 0.01
     partial = rows["SUMO partial control (16 scenes): collisions acting first / last"]
     assert partial["met"] is None and "needs >= 32 scenes" in partial["target"]  # too few scenes to judge
@@ -96,10 +103,12 @@ def test_every_figure_is_judged_against_its_target() -> None:
     assert met["brake test: rear-ended, model alone NPCs"] is None  # context only
     assert met["30 s rollouts, guarded: collision onsets per agent-second, after / before 8 s"] is True
     assert met["30 s rollouts, guarded: offroad onsets per agent-second, after / before 8 s"] is False
-    assert met["WOMD scene (16 rollouts), guarded: collision rate"] is False  # 0.56 > 0.5 + 0.05
+    assert (
+        met["WOMD scene (16 rollouts), guarded: collision rate (every evaluated agent)"] is False
+    )  # 0.56 > 0.5 + 0.05
     assert met["demo episode (highway-intersection-999000): NPCs that collide"] is True
-    assert met["tokenization at the motion limits (2048 tokens): largest error, cm"] is True
-    speed = rows["env speed against the shipped model, guarded, one thread, B = 1 / B = 8"]
+    assert met[TOKENS] is True
+    speed = rows["env speed against the shipped model (issue 16), guarded, one thread, B = 1 / B = 8"]
     assert speed["value"] == "0.97x / 0.83x (1,100 / 2,500 agent-steps/s)" and speed["met"] is False
     result = {
         "checkpoints": {"a": "a.pt"},
@@ -125,10 +134,10 @@ def test_a_run_scores_generated_scenes_and_resumes_from_its_saved_parts(tmp_path
     assert figures[GUARDED]["collision_rate"] == 0.0  # the guard keeps even an untrained model apart
     rows = _rows_by_name(result["rows"]["tiny"])
     assert rows["highway-env partial control (1 scenes): collisions acting first / last"]["met"] is None
-    assert rows["tokenization at the motion limits (144 tokens): largest error, cm"]["met"] is False
+    assert rows[TOKENS]["met"] is False
     assert json.loads((out / "scorecard.json").read_text())["rows"] == result["rows"]
     assert (
-        "| highway-env guarded: collision rate | <= 0.02 | 0.000 (met) |"
+        "| highway-env guarded: collision rate (every evaluated agent) | <= 0.02 | 0.000 (met) |"
         in (out / "scorecard.md").read_text()
     )
     assert sorted(p.name for p in (data / "highway_1_seed2").iterdir()) == [
@@ -227,8 +236,65 @@ def test_the_command_prints_the_table_and_writes_the_json(tmp_path: Path, capsys
     ]
     assert main([*argv, "--quiet"]) == 0
     out = capsys.readouterr().out
-    assert "| tokenization at the motion limits (144 tokens): largest error, cm | <= 5 cm | vehicle " in out
+    assert f"| {TOKENS} | vehicles <= 5 cm | 144 tokens: vehicle " in out
     assert "Targets met: `t` 0 of 1" in out
     document = json.loads((tmp_path / "c" / "scorecard.json").read_text())
     assert document["checkpoints"] == {"t": str(path)} and document["config"]["parts"] == ["tokenize"]
     assert document["parts"]["t"]["tokenize"]["max_cm"]["vehicle"] > 5.0
+
+
+def test_two_checkpoints_share_each_row_and_a_skipped_part_is_not_saved(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    small = {"vocab_size": 384, "max_cm": {"vehicle": 7136.05, "pedestrian": 596.6, "cyclist": 475.06}}
+    big = {"vocab_size": 2048, "max_cm": {"vehicle": 4.72, "pedestrian": 2.09, "cyclist": 2.68}}
+    rows = {"shipped": target_rows({"tokenize": small}), "wide": target_rows({"tokenize": big})}
+    result = {
+        "checkpoints": {"shipped": "a.pt", "wide": "b.pt"},
+        "scene_sets": {},
+        "parts": {"shipped": {"tokenize": small}, "wide": {"tokenize": big}},
+        "rows": rows,
+        "met": {"shipped": 0, "wide": 1},
+        "rows_with_a_target": {"shipped": 1, "wide": 1},
+    }
+    table = [line for line in markdown(result).splitlines() if line.startswith(f"| {TOKENS}")]
+    assert table == [
+        f"| {TOKENS} | vehicles <= 5 cm | 384 tokens: vehicle 7136.05, pedestrian 596.60, cyclist 475.06 "
+        "(**not met**) | 2048 tokens: vehicle 4.72, pedestrian 2.09, cyclist 2.68 (met) |"
+    ]  # one row, a column per checkpoint
+
+    path = save_checkpoint(tmp_path / "tiny.pt", tiny().model, tiny().vocabulary)
+    with pytest.raises(ValueError, match="--womd .*nope.tfrecord: no such WOMD scenario file"):
+        run_scorecard({"t": load_checkpoint(path)}, ScorecardConfig(womd=str(tmp_path / "nope.tfrecord")))
+    with pytest.raises(ValueError, match="may not be empty or hold"):
+        run_scorecard({"a/b": load_checkpoint(path)}, ScorecardConfig(parts=("tokenize",)), tmp_path / "c")
+    import trajeglish_env.benchmark.womd as womd
+
+    monkeypatch.setattr(womd, "locate_womd", lambda explicit=None: "no WOMD scenario here")
+    card = run_scorecard(
+        {"t": load_checkpoint(path)}, ScorecardConfig(parts=("womd",)), tmp_path / "c", progress=False
+    )
+    assert card["rows"]["t"] == [
+        {"row": "WOMD scene: skipped", "value": "no WOMD scenario here", "target": "", "met": None}
+    ]
+    assert not list((tmp_path / "c" / "parts").glob("*/womd.json"))  # the next run tries again
+
+
+def test_the_brake_long_and_demo_parts_run_a_model(tmp_path: Path) -> None:
+    path = save_checkpoint(tmp_path / "tiny.pt", tiny().model, tiny().vocabulary)
+    config = ScorecardConfig(
+        highway=SceneSet("highway", 2, 2),
+        sumo=SceneSet("sumo", 1, 2),
+        brake_episodes=1,
+        long_seconds=8.5,
+        long_rollouts=1,
+        parts=("brake", "long", "demo"),
+    )
+    result = run_scorecard({"t": load_checkpoint(path)}, config, tmp_path / "c", progress=False)
+    parts = result["parts"]["t"]
+    npcs = parts["brake"]["npcs"]
+    assert set(npcs) == {"trajeglish+guard", "trajeglish", "idm"} and npcs["idm"]["episodes"] == 1
+    assert parts["brake"]["candidates"] >= 1
+    assert parts["long"]["seconds"] == 8.5 and parts["long"]["collision"]["after"] == 0.0  # guarded
+    assert parts["demo"]["scene"] == "highway-intersection-999000" and parts["demo"]["steps"] > 0
+    assert Path(parts["demo"]["video"]).is_file()
+    names = [r["row"] for r in result["rows"]["t"]]
+    assert names[0] == "brake test: rear-ended, guarded NPCs" and names[-1].startswith("demo episode")

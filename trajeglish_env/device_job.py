@@ -318,9 +318,12 @@ def extension(path: Path, init: str, size: int) -> str:
 
     try:
         vocab = MotionVocabulary.load(path)
-    except (OSError, ValueError) as error:
-        return f"{path}: not a readable vocabulary ({error})"
-    base = (load_pretrained() if init == "shipped" else load_checkpoint(init)).vocabulary
+    except Exception as error:  # noqa: BLE001 - any unreadable file: the job extends the vocabulary itself
+        return f"{path}: not a readable vocabulary ({type(error).__name__}: {error})"
+    try:
+        base = (load_pretrained() if init == "shipped" else load_checkpoint(init)).vocabulary
+    except Exception as error:  # noqa: BLE001 - the job's own extend then names the problem
+        return f"INIT={init}: {error}"
     if vocab.size != size:
         return f"{path} holds {vocab.size} tokens per class, not {size}"
     if not is_extension(base, vocab):

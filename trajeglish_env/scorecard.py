@@ -25,7 +25,7 @@ from trajeglish_env.scenario_io import atomic_path
 
 FORMAT = 1  # of the saved parts: a part saved by another format is computed again
 PARTS = ("highway", "sumo", "sumo_partial", "womd", "brake", "long", "demo", "tokenize", "speed")
-VEHICLE_ROWS = ("metametric", "collision_rate", "offroad_rate", "traffic_light_violation_rate", "min_ade")
+SCORES = ("metametric", "collision_rate", "offroad_rate", "traffic_light_violation_rate", "min_ade")
 
 
 @dataclass(frozen=True)
@@ -151,11 +151,13 @@ class Scorecard:
 
     def part(self, name: str, label: str, ckpt: Any) -> dict[str, Any]:
         """Part ``name`` of the checkpoint ``ckpt`` (shown as ``label``): read from its saved file when that
-        was made from the same checkpoint file and settings, else computed and saved."""
+        was made from the same checkpoint file and settings, else computed and saved (a part skipped for
+        want of an input is not saved: the next run tries again)."""
         settings = part_settings(self.config, name)
-        sha = file_sha256(ckpt.path) if ckpt.path is not None else None
-        path = self.out / "parts" / (sha or label)[:16] / f"{name}.json"
-        if sha is not None and path.is_file():
+        sha = file_sha256(ckpt.path)
+        key = sha[:16]  # the folder of this checkpoint file's parts and outputs
+        path = self.out / "parts" / key / f"{name}.json"
+        if path.is_file():
             try:
                 saved = json.loads(path.read_text())
             except (OSError, ValueError):
@@ -165,10 +167,11 @@ class Scorecard:
                 return saved["result"]
         self.log(f"scorecard: {label} {name} ...")
         start = time.perf_counter()
-        result = {
-            **PART_FUNCTIONS[name](self, label, ckpt),
-            "compute_seconds": round(time.perf_counter() - start, 1),
-        }
+        result = PART_FUNCTIONS[name](self, key, ckpt)
+        if "skipped" in result:
+            self.log(f"scorecard: {label} {name} skipped: {result['skipped']}")
+            return result
+        result["compute_seconds"] = round(time.perf_counter() - start, 1)
         document = {"format": FORMAT, "checkpoint_sha256": sha, "settings": settings, "result": result}
         with atomic_path(path) as tmp:
             tmp.write_text(json.dumps(document, indent=1))
@@ -176,32 +179,63 @@ class Scorecard:
 
 
 def part_settings(config: ScorecardConfig, name: str) -> dict[str, Any]:
-    """The settings a part's result depends on (a saved part is reused only when they are the same)."""
-    common = {"seed": config.seed}
+    """The settings a part's result depends on, as plain JSON values (a saved part is reused only when they
+    are the same): the scorecard's own, the env's default NPC sampling and the metrics' version (so a
+    change of those defaults computes the parts again), and the WOMD file's sha256."""
+    from trajeglish_env.evaluation import EvalConfig
+    from trajeglish_env.sampler.config import SamplingConfig
+
+    common = {
+        "seed": config.seed,
+        "sampling": asdict(SamplingConfig()),
+        "metrics": EvalConfig().metrics,
+    }
     by_part: dict[str, dict[str, Any]] = {
         "highway": {"scenes": asdict(config.highway), "rollouts": config.rollouts},
         "sumo": {"scenes": asdict(config.sumo), "rollouts": config.rollouts},
         "sumo_partial": {"scenes": asdict(config.sumo_partial), "rollouts": config.rollouts},
-        "womd": {"file": config.womd, "rollouts": config.womd_rollouts},
+        "womd": {"file": _womd_identity(config), "rollouts": config.womd_rollouts},
         "brake": {
             "scenes": [asdict(config.highway), asdict(config.sumo)],
-            "episodes": config.brake_episodes,
+            "test": asdict(brake_config(config)),
         },
-        "long": {
-            "scenes": asdict(config.sumo),
-            "seconds": config.long_seconds,
-            "rollouts": config.long_rollouts,
-        },
+        "long": {"scenes": asdict(config.sumo), "config": asdict(long_config(config))},
         "demo": {},
         "tokenize": {},
         "speed": {"batches": list(config.speed_batches), "repeats": config.speed_repeats},
     }
-    return {"part": name, **common, **by_part[name]}
+    return json.loads(json.dumps({"part": name, **common, **by_part[name]}, default=str))
+
+
+def _womd_identity(config: ScorecardConfig) -> str | None:
+    """The WOMD file the ``womd`` part reads, by its sha256 (None: none found, the part is skipped)."""
+    from trajeglish_env.benchmark.womd import locate_womd
+
+    found = locate_womd(config.womd)
+    return None if isinstance(found, str) else file_sha256(found)
+
+
+def brake_config(config: ScorecardConfig) -> Any:
+    """The brake test the ``brake`` part plays: guarded and unguarded model NPCs against IDM."""
+    from trajeglish_env.brake_test import BrakeTestConfig
+
+    return BrakeTestConfig(
+        npcs=("trajeglish+guard", "trajeglish", "idm"), episodes=config.brake_episodes, seed=config.seed
+    )
+
+
+def long_config(config: ScorecardConfig) -> Any:
+    """The ``long`` part's rollouts: guarded (the env's NPCs), ``long_seconds`` past the current step."""
+    from trajeglish_env.long_rollouts import LongRolloutConfig
+
+    return LongRolloutConfig(
+        seconds=config.long_seconds, rollouts=config.long_rollouts, guards=(True,), seed=config.seed
+    )
 
 
 def _evaluate(
     card: Scorecard,
-    label: str,
+    key: str,
     ckpt: Any,
     data: Path,
     scenes: int,
@@ -209,9 +243,9 @@ def _evaluate(
     guards: tuple[bool, ...],
     partial: bool,
 ) -> dict[str, Any]:
-    """``trajeglish evaluate`` of one checkpoint (``partial``: with partial control), kept to the rows'
-    figures (every method's: the log's and constant velocity's set targets)."""
-    from trajeglish_env.evaluation import EvalConfig, evaluate, method_name
+    """``trajeglish evaluate`` of one checkpoint, named ``model`` in the methods (``partial``: with partial
+    control), kept to the rows' figures (every method's: the log's and constant velocity's set targets)."""
+    from trajeglish_env.evaluation import EvalConfig, evaluate
 
     config = EvalConfig(
         rollouts=rollouts,
@@ -220,21 +254,14 @@ def _evaluate(
         guards=guards,
         rollout_processes=card.config.processes,
     )
-    out = card.out / "evaluate" / f"{data.name}_{label}"
+    out = card.out / "evaluate" / f"{data.name}_{key}"
     result = evaluate(
-        data, {label: ckpt}, config, out, partial=label if partial else None, progress=card.progress
+        data, {"model": ckpt}, config, out, partial="model" if partial else None, progress=card.progress
     )
-    rename = {
-        method_name(label, t, g): method_name("model", t, g) for t in config.temperatures for g in guards
-    }
-    methods = {
-        rename.get(method, method): {k: r["scores"][k] for k in VEHICLE_ROWS}
-        for method, r in result["methods"].items()
-    }
     figures = {
         "scenes": result["scenes"],
         "rollouts": rollouts,
-        "methods": methods,
+        "methods": {method: {k: r["scores"][k] for k in SCORES} for method, r in result["methods"].items()},
         "report": result["markdown"],
     }
     if partial:
@@ -247,48 +274,38 @@ def _source_part(
 ) -> Callable[[Scorecard, str, Any], dict[str, Any]]:
     """The part that evaluates a checkpoint on one held-out scene set."""
 
-    def part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+    def part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
         chosen = scene_set(card.config)
         data = card.scenes_of(chosen)
-        return _evaluate(card, label, ckpt, data, chosen.scenes, card.config.rollouts, guards, partial)
+        return _evaluate(card, key, ckpt, data, chosen.scenes, card.config.rollouts, guards, partial)
 
     return part
 
 
-def _womd_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+def _womd_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
     data = card.womd_scenes()
     if isinstance(data, str):
         return {"skipped": data}
-    return _evaluate(card, label, ckpt, data, 1, card.config.womd_rollouts, (False, True), partial=False)
+    return _evaluate(card, key, ckpt, data, 1, card.config.womd_rollouts, (False, True), partial=False)
 
 
-def _brake_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
-    from trajeglish_env.brake_test import BrakeTestConfig, brake_test
+def _brake_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
+    from trajeglish_env.brake_test import brake_test
     from trajeglish_env.training.dataset import SceneStore
 
     folders = [card.scenes_of(card.config.highway), card.scenes_of(card.config.sumo)]
     scenes = list(SceneStore(folders).scenes)
-    config = BrakeTestConfig(
-        npcs=("trajeglish+guard", "trajeglish", "idm"),
-        episodes=card.config.brake_episodes,
-        seed=card.config.seed,
-    )
-    result = brake_test(scenes, config, ckpt, card.out / "brake" / label, progress=card.progress)
+    config = brake_config(card.config)
+    result = brake_test(scenes, config, ckpt, card.out / "brake" / key, progress=card.progress)
     return {"candidates": result["candidates"], "npcs": result["npcs"]}
 
 
-def _long_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
-    from trajeglish_env.long_rollouts import LongRolloutConfig, long_rollout_rates
+def _long_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
+    from trajeglish_env.long_rollouts import long_rollout_rates
     from trajeglish_env.training.dataset import SceneStore
 
     scenes = list(SceneStore(card.scenes_of(card.config.sumo)).scenes)
-    config = LongRolloutConfig(
-        seconds=card.config.long_seconds,
-        rollouts=card.config.long_rollouts,
-        guards=(True,),
-        seed=card.config.seed,
-    )
-    result = long_rollout_rates(ckpt, scenes, config, progress=card.progress)
+    result = long_rollout_rates(ckpt, scenes, long_config(card.config), progress=card.progress)
     method = result["methods"]["trajeglish+guard"]
     return {
         "scenes": result["scenes"],
@@ -301,10 +318,10 @@ def _long_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
     }
 
 
-def _demo_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+def _demo_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
     from trajeglish_env.env.demo import run_demo
 
-    result = run_demo(card.out / "demo" / label, checkpoint=str(ckpt.path), progress=False)
+    result = run_demo(card.out / "demo" / key, checkpoint=str(ckpt.path), progress=False)
     keys = (
         "scene",
         "npcs",
@@ -317,7 +334,7 @@ def _demo_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
     return {k: result[k] for k in keys}
 
 
-def _tokenize_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+def _tokenize_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
     """The largest error of the checkpoint's vocabulary tokenizing each class's tracks at the edges of its
     motion limits (the env's vehicle limits, reversing included)."""
     from trajeglish_env.scenario import AgentKind
@@ -329,7 +346,7 @@ def _tokenize_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
     }
 
 
-def _speed_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+def _speed_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
     """Agent-steps/s of the batched env (24 agents a scene, guarded NPCs of this checkpoint, one torch
     thread) against the shipped model's, in interleaved pairs (the order alternates), per batch size; the
     ratio of the medians. The shipped model itself is the reference."""
@@ -338,6 +355,8 @@ def _speed_part(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
     from trajeglish_env.benchmark.measure import env_speed
     from trajeglish_env.checkpoint import load_pretrained, pretrained_path
 
+    if not pretrained_path().is_file():
+        return {"skipped": f"no shipped model to time against ({pretrained_path()} is missing)"}
     if file_sha256(ckpt.path) == file_sha256(pretrained_path()):
         return {"reference": True}
     shipped = load_pretrained()
@@ -387,6 +406,11 @@ def run_scorecard(
 
     if not checkpoints:
         raise ValueError("scorecard: no checkpoint to score")
+    if config.womd is not None and "womd" in config.parts and not Path(config.womd).is_file():
+        raise ValueError(f"scorecard --womd {config.womd}: no such WOMD scenario file")
+    bad = [label for label in checkpoints if not label or any(c in label for c in "/\\|`\n")]
+    if bad:
+        raise ValueError(f"scorecard: checkpoint names {bad} may not be empty or hold / \\ | ` or newlines")
     missing = [label for label, ckpt in checkpoints.items() if ckpt.path is None]
     if missing:
         raise ValueError(
