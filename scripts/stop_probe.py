@@ -68,7 +68,9 @@ def _window_nll(
     logits = model(
         SceneInputs.from_batch(batch), batch["input_tokens"], batch_view(model.cfg.neighbour_input, batch)
     )
-    target = batch["tokens"].transpose(1, 2)[0, SKIP:, scored]  # [T', K]
+    scene = SceneInputs.from_batch(batch)
+    drawn = model.drawn_targets(batch["tokens"], scene.agent_kind[:, :, None])  # a reading model's copies
+    target = drawn.transpose(1, 2)[0, SKIP:, scored]  # [T', K]
     seen = target >= 0
     return F.cross_entropy(logits[0, SKIP:, scored][seen], target[seen], reduction="none").numpy()
 

@@ -11,6 +11,7 @@ import torch
 from helpers import grid_vocabulary, small_scenes, tiny_config
 
 from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+from trajeglish_env.checkpoint_reading import drawn_base
 from trajeglish_env.geometry import to_global
 from trajeglish_env.model.network import SceneInputs
 from trajeglish_env.scenario_io import save_scenarios
@@ -30,7 +31,7 @@ from trajeglish_env.training.training_data import TokenizedWindows
 
 @pytest.fixture(scope="module")
 def shipped_batch():
-    ckpt = load_pretrained()
+    ckpt = drawn_base(load_pretrained())  # the model a run from the shipped one trains: it draws all it reads
     ds = TokenizedWindows(small_scenes(), window_config(ckpt.config), ckpt.vocabulary, None, seed=3)
     return ckpt, collate_windows([ds[g] for g in range(3)])
 

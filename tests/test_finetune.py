@@ -11,6 +11,7 @@ import torch
 from helpers import grid_vocabulary, straight_road_scene, tiny_config, womd_tfrecord
 
 from trajeglish_env.checkpoint import CheckpointError, load_checkpoint, pretrained_path, save_checkpoint
+from trajeglish_env.checkpoint_reading import drawn_base
 from trajeglish_env.cli import main
 from trajeglish_env.model import TrajeglishModel
 from trajeglish_env.scenario_io import load_scenarios, save_scenarios
@@ -41,7 +42,7 @@ def scenes_dir(tmp_path_factory) -> Path:
 def test_finetuning_the_shipped_model_lowers_the_womd_scene_nll(tmp_path: Path) -> None:
     convert_womd([womd_tfrecord()], tmp_path / "womd", progress=False)
     scenes = load_scenarios(tmp_path / "womd" / "motion_data_one_scenario.scn.npz")
-    shipped = load_checkpoint(pretrained_path())
+    shipped = drawn_base(load_checkpoint(pretrained_path()))  # the trained model the shipped file reads with
     cpu = torch.device("cpu")
     before = validation_nll(shipped.model, scenes, shipped.vocabulary, 4, 0, cpu, batch_size=4)
     config = TrainConfig(**{**QUICK.__dict__, "steps": 2, "batch_size": 4, "lr": 1e-4, "noisy_inputs": False})

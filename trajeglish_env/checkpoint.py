@@ -240,6 +240,8 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
         model.load_state_dict(payload["state_dict"])
     except (RuntimeError, KeyError) as exc:
         raise CheckpointError(f"{path}: weights do not match the stored config: {exc}") from exc
+    if cfg.drawn < cfg.vocab_size:
+        _check_sources(model.token_source, cfg.drawn, str(path))
     model.eval()
     return Checkpoint(
         model=model,
@@ -249,6 +251,16 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
         optimizer=payload.get("optimizer"),
         trainer=payload.get("trainer"),
     )
+
+
+def _check_sources(sources: torch.Tensor, drawn: int, where: str) -> None:
+    """A reading extension's ``token_source [K, V]`` must name drawn tokens, each drawn one itself."""
+    identity = torch.arange(drawn)
+    if (sources < 0).any() or (sources >= drawn).any() or not bool((sources[:, :drawn] == identity).all()):
+        raise CheckpointError(
+            f"{where}: token_source must map every token to one of the {drawn} drawn ones and each of those "
+            "to itself (a corrupt reading extension?)"
+        )
 
 
 def _load_failure(exc: Exception) -> str:
@@ -274,3 +286,8 @@ def load_pretrained(map_location: str | torch.device = "cpu") -> Checkpoint:
     if not path.is_file():
         raise CheckpointError(f"{path}: the shipped pretrained checkpoint is missing from this installation")
     return load_checkpoint(path, map_location)
+
+
+def load_named(name: str, map_location: str | torch.device = "cpu") -> Checkpoint:
+    """The checkpoint a command's argument names: ``"shipped"`` (the pretrained model) or a file."""
+    return load_pretrained(map_location) if name == "shipped" else load_checkpoint(name, map_location)

@@ -85,7 +85,8 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+    from trajeglish_env.checkpoint import load_checkpoint, load_named
+    from trajeglish_env.checkpoint_reading import training_start
     from trajeglish_env.distributed import init_ranks, rank_device
     from trajeglish_env.model.config import preset
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
@@ -93,8 +94,8 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.training.train import TrainConfig, train
 
     vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
-    shipped = args.init == "shipped"
-    init = (load_pretrained() if shipped else load_checkpoint(args.init)) if args.init else None
+    init = load_named(args.init) if args.init else None
+    init, vocabulary = training_start(init, vocabulary)  # a reading extension: its base, on all it reads
     last = Path(args.out) / "last.pt"  # a resumed run goes on with its own model and vocabulary
     own = args.resume and last.is_file() and not (args.preset or args.variant or args.vocab)
     overrides: dict[str, Any] = {"variant": args.variant or "trajeglish"}
@@ -289,7 +290,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--init",
         help="start from this trained checkpoint, or 'shipped' for the shipped model (fine-tuning; same "
-        "config and vocabulary)",
+        "config and vocabulary; a model that reads more tokens than it draws learns to draw them all)",
     )
     add_map_args(p)
     p.add_argument(

@@ -47,22 +47,32 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
 def cmd_tokenizer_extend(args: argparse.Namespace) -> dict[str, Any]:
     from pathlib import Path
 
-    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained, save_checkpoint
+    from trajeglish_env.checkpoint_reading import drawn_base, reading_extension
     from trajeglish_env.tokenizer.extend import extend_vocabulary, extension_report
     from trajeglish_env.tokenizer.fit import evaluate_vocabulary_file
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
+    model = None  # the checkpoint to extend, drawn tokens only (a reading extension's base)
     if args.base == "shipped":
-        base = load_pretrained().vocabulary
+        model = drawn_base(load_pretrained())
     elif Path(args.base).suffix == ".npz":
+        if args.reading_out:
+            raise ValueError(f"--reading-out needs --base to be a checkpoint, not the vocabulary {args.base}")
         base = MotionVocabulary.load(args.base)
     else:
-        base = load_checkpoint(args.base).vocabulary
+        model = drawn_base(load_checkpoint(args.base))
+    base = model.vocabulary if model is not None else base
     if args.size <= base.size:
         raise ValueError(f"--size {args.size}: an extension needs more than the base's {base.size} templates")
     vocab = extend_vocabulary(base, args.size, args.cover_radius)
     out = vocab.save(args.out)
     result: dict[str, Any] = {"out": str(out), "extension": extension_report(vocab)}
+    if args.reading_out and model is not None:
+        reading = reading_extension(model, vocab)
+        result["reading_out"] = str(
+            save_checkpoint(args.reading_out, reading.model, reading.vocabulary, reading.training)
+        )
     if args.data:
         result["heldout"] = {
             name: evaluate_vocabulary_file(v, args.data, collisions=False)
@@ -127,6 +137,11 @@ def add_tokenizer_commands(add: AddCommand, sub: Any) -> None:
         f"(default {VEHICLE_COVER_RADIUS}: every envelope track within 5 cm)",
     )
     p.add_argument("--out", required=True, help="output vocabulary file (.npz)")
+    p.add_argument(
+        "--reading-out",
+        help="also write the base checkpoint reading the extension (ego, logged and external agents tracked "
+        "within 5 cm) while it draws its own tokens with the same logits (checkpoint_reading)",
+    )
     p.add_argument(
         "--data", nargs="+", help="held-out scenes: the base's and the extension's errors on their tracks"
     )

@@ -312,7 +312,8 @@ def _parts(path: Path, folder: Path) -> list[Path]:
 def extension(path: Path, init: str, size: int) -> str:
     """Why the vocabulary at ``path`` cannot stand for ``init``'s extended to ``size`` tokens ("" when it
     can: the base's templates, unchanged, as its first ids)."""
-    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+    from trajeglish_env.checkpoint import load_named
+    from trajeglish_env.checkpoint_reading import drawn_base
     from trajeglish_env.tokenizer.extend import is_extension
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
@@ -321,7 +322,7 @@ def extension(path: Path, init: str, size: int) -> str:
     except Exception as error:  # noqa: BLE001 - any unreadable file: the job extends the vocabulary itself
         return f"{path}: not a readable vocabulary ({type(error).__name__}: {error})"
     try:
-        base = (load_pretrained() if init == "shipped" else load_checkpoint(init)).vocabulary
+        base = drawn_base(load_named(init)).vocabulary
     except Exception as error:  # noqa: BLE001 - the job's own extend then names the problem
         return f"INIT={init}: {error}"
     if vocab.size != size:

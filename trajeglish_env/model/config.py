@@ -47,7 +47,13 @@ class ModelConfig:
     ``neighbour_input``: every decoder position also reads its agent's velocity and its nearest neighbours'
     states relative to it at the step it moves from (:mod:`~trajeglish_env.model.neighbours`); the added
     weights' output starts at zero, so a model extended with it (``train --init CKPT --neighbour-input``)
-    starts as ``CKPT`` did."""
+    starts as ``CKPT`` did.
+
+    ``drawn_size``: how many of each class's tokens the model draws (0: all ``vocab_size``). A model whose
+    vocabulary was extended for reading only (:func:`~trajeglish_env.checkpoint.reading_extension`) reads
+    every token of the finer vocabulary (the ego, logged and external agents are tracked within 5 cm) but
+    draws only its first ``drawn_size``, the ones it was trained on: each token it cannot draw counts as
+    the drawn one it was copied from (``token_source``)."""
 
     d_model: int = 512
     num_heads: int = 8
@@ -70,6 +76,7 @@ class ModelConfig:
     map_stride: int = 1
     token_bias: bool = False
     neighbour_input: bool = False
+    drawn_size: int = 0
 
     def __post_init__(self) -> None:
         if self.d_model % self.num_heads:
@@ -94,10 +101,21 @@ class ModelConfig:
         for name in ("signal_input", "neighbour_input"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"ModelConfig.{name} must be a bool, got {getattr(self, name)!r}")
+        if isinstance(self.drawn_size, bool) or not isinstance(self.drawn_size, int):
+            raise TypeError(f"ModelConfig.drawn_size must be an int, got {self.drawn_size!r}")
+        if not 0 <= self.drawn_size <= self.vocab_size:
+            raise ValueError(
+                f"ModelConfig.drawn_size must be in [0, vocab_size {self.vocab_size}], got {self.drawn_size}"
+            )
         if isinstance(self.map_stride, bool) or not isinstance(self.map_stride, int) or self.map_stride < 1:
             raise ValueError(f"ModelConfig.map_stride must be an int >= 1, got {self.map_stride!r}")
         if self.map_select not in MAP_SELECT:
             raise ValueError(f"ModelConfig.map_select must be one of {MAP_SELECT}, got {self.map_select!r}")
+
+    @property
+    def drawn(self) -> int:
+        """Tokens per class the model draws (its logits' width): ``drawn_size``, or the whole vocabulary."""
+        return self.drawn_size or self.vocab_size
 
     @property
     def seq_len(self) -> int:

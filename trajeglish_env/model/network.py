@@ -50,6 +50,10 @@ class TrajeglishModel(nn.Module):
         self.token_bias = (
             nn.Parameter(torch.zeros(cfg.num_kinds * cfg.vocab_size)) if cfg.token_bias else None
         )
+        if cfg.drawn < cfg.vocab_size:  # per class, the drawn token each token counts as (see ModelConfig)
+            self.register_buffer(
+                "token_source", torch.arange(cfg.vocab_size).repeat(cfg.num_kinds, 1), persistent=True
+            )
         self.start = nn.Parameter(torch.randn(c) * 0.02)
         self.time = nn.Embedding(cfg.steps, c)
         self.target_agent = Linear(c, c)
@@ -74,35 +78,54 @@ class TrajeglishModel(nn.Module):
         """Embeddings of joint ids, zeros where ``ids < 0`` (unobserved agent or padding)."""
         return self.token(ids.clamp(min=0)) * (ids >= 0)[..., None]
 
+    def _head(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The tied head's weights ``[K*D, C]`` and bias ``[K*D]`` of the ``D`` drawn tokens of each class."""
+        k, v, d = self.cfg.num_kinds, self.cfg.vocab_size, self.cfg.drawn
+        weight, bias = self.token.weight, self.token_bias
+        if d < v:
+            weight = weight.view(k, v, -1)[:, :d].reshape(k * d, -1)
+            bias = None if bias is None else bias.view(k, v)[:, :d].reshape(-1)
+        return weight, bias
+
+    def drawn_targets(self, tokens: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
+        """Targets (class-local ids, ``-1`` kept; ``kind`` broadcasts to ``tokens``) as the drawn tokens
+        they count as: themselves, unless the model reads more tokens than it draws (``drawn_size``)."""
+        if self.cfg.drawn == self.cfg.vocab_size:
+            return tokens
+        kind = kind.clamp(0, self.cfg.num_kinds - 1).expand_as(tokens)
+        mapped = self.token_source[kind, tokens.clamp(min=0)]
+        return torch.where(tokens >= 0, mapped, tokens)
+
     def class_logits(self, hidden: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
-        """Tied head restricted to the class: ``hidden [...,C]``, ``kind [...]`` -> ``[...,V]``."""
-        logits = invariant_linear(self.norm(hidden), self.token.weight)  # [..., K*V]
-        if self.token_bias is not None:
-            logits = logits + self.token_bias
-        logits = logits.view(*logits.shape[:-1], self.cfg.num_kinds, self.cfg.vocab_size)
-        index = kind.clamp(0, self.cfg.num_kinds - 1)[..., None, None].expand(
-            *kind.shape, 1, self.cfg.vocab_size
-        )
+        """Tied head restricted to the class: ``hidden [...,C]``, ``kind [...]`` -> ``[...,D]`` (the drawn
+        tokens, ``ModelConfig.drawn``)."""
+        weight, bias = self._head()
+        d = self.cfg.drawn
+        logits = invariant_linear(self.norm(hidden), weight)  # [..., K*D]
+        if bias is not None:
+            logits = logits + bias
+        logits = logits.view(*logits.shape[:-1], self.cfg.num_kinds, d)
+        index = kind.clamp(0, self.cfg.num_kinds - 1)[..., None, None].expand(*kind.shape, 1, d)
         return logits.gather(-2, index).squeeze(-2)
 
     def class_logits_by_kind(self, hidden: torch.Tensor, kind: np.ndarray) -> torch.Tensor:
         """:meth:`class_logits` of ``hidden [n,C]`` with the classes ``kind [n]`` known on the host: only
         each class's slice of the head is multiplied (the same numbers, a third of the work)."""
         x = self.norm(hidden)
-        v = self.cfg.vocab_size
+        v, d = self.cfg.vocab_size, self.cfg.drawn
         kind = np.clip(kind, 0, self.cfg.num_kinds - 1)
         present = np.unique(kind)
         bias = self.token_bias
         if len(present) == 1:
             k = int(present[0])
-            out = invariant_linear(x, self.token.weight[k * v : (k + 1) * v])
-            return out if bias is None else out + bias[k * v : (k + 1) * v]
-        out = x.new_empty(len(kind), v)
+            out = invariant_linear(x, self.token.weight[k * v : k * v + d])
+            return out if bias is None else out + bias[k * v : k * v + d]
+        out = x.new_empty(len(kind), d)
         for k in present.tolist():
             rows = torch.from_numpy(np.flatnonzero(kind == k)).to(x.device)
-            out[rows] = invariant_linear(x[rows], self.token.weight[k * v : (k + 1) * v])
+            out[rows] = invariant_linear(x[rows], self.token.weight[k * v : k * v + d])
             if bias is not None:
-                out[rows] += bias[k * v : (k + 1) * v]
+                out[rows] += bias[k * v : k * v + d]
         return out
 
     def _positions(self, agents: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -177,7 +200,7 @@ class TrajeglishModel(nn.Module):
         ``weights [B,A,T]`` (training's :mod:`~trajeglish_env.training.interaction_weights`) the weighted mean
         and the observed targets' weight sum."""
         logits = self.forward(scene, input_tokens, view)
-        tgt = targets.transpose(1, 2)  # [B,T,A]
+        tgt = self.drawn_targets(targets, scene.agent_kind[:, :, None]).transpose(1, 2)  # [B,T,A]
         tgt = torch.where(scene.agent_mask[:, None, :], tgt, torch.full_like(tgt, -1))
         if weights is None:
             n = int((tgt >= 0).sum())

@@ -81,7 +81,7 @@ def closed_loop_rollout(
     anchored = _anchors(valid)
     states = np.where(anchored[..., None], logged, np.nan)
     tokens = np.full((b, a, s - 1), -1, dtype=np.int64)
-    k = min(top_k, vocabulary.size)
+    k = min(top_k, model.cfg.drawn)
     was_training = model.training
     model.eval()
     try:

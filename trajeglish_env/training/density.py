@@ -57,7 +57,7 @@ def token_nll(
         if not signals:
             scene = dataclasses.replace(scene, map_signal=torch.zeros_like(scene.map_signal))
         logits = model(scene, batch["input_tokens"], batch_view(model.cfg.neighbour_input, batch))
-        tgt = batch["tokens"].transpose(1, 2)  # [B,T,A]
+        tgt = model.drawn_targets(batch["tokens"], scene.agent_kind[:, :, None]).transpose(1, 2)  # [B,T,A]
         ok = (tgt >= 0) & scene.agent_mask[:, None, :]
         nll = F.cross_entropy(logits[ok], tgt[ok], reduction="none")
         b, t, a = tgt.shape
@@ -127,7 +127,7 @@ def _cached_nll(
             hidden = model.decode_at(cache, agents, carried[:, chunk], own[:, chunk], start, count, part)
             steps.append(model.class_logits(hidden, scene.agent_kind))
         cached = torch.stack(steps, dim=1)  # [B,T,A,V]
-        tgt = batch["tokens"].transpose(1, 2)
+        tgt = model.drawn_targets(batch["tokens"], scene.agent_kind[:, :, None]).transpose(1, 2)
         ok = (tgt >= 0) & scene.agent_mask[:, None, :]
         sums["nll"] += F.cross_entropy(cached[ok].float(), tgt[ok], reduction="sum").item()
         sums["reference_nll"] += F.cross_entropy(full[ok], tgt[ok], reduction="sum").item()

@@ -141,12 +141,12 @@ def check(data: Sequence[str], ckpt: str, device: str, windows: int = 64) -> dic
     runs it before it trains with the noise on the device, and falls back to the loaders when it fails)."""
     import time
 
-    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+    from trajeglish_env.checkpoint import load_named
     from trajeglish_env.scenario_io import list_scenario_files, load_scenarios
     from trajeglish_env.training.dataset import collate_windows, window_config
     from trajeglish_env.training.training_data import TokenizedWindows
 
-    start = load_pretrained() if ckpt == "shipped" else load_checkpoint(ckpt)
+    start = load_named(ckpt)
     scenes = [s for d in data for f in list_scenario_files(d)[:4] for s in load_scenarios(f)]
     args = (scenes, window_config(start.config), start.vocabulary, NoiseConfig(), 0)
     t0 = time.perf_counter()

@@ -36,6 +36,7 @@ from trajeglish_env.checkpoint import (
     load_into,
     save_checkpoint,
 )
+from trajeglish_env.checkpoint_reading import training_start
 from trajeglish_env.distributed import init_ranks, rank_device
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.encoder import SIGNAL_PARAMS
@@ -205,6 +206,9 @@ def train(
     device = rank_device()
     dd = init_ranks(device)
     start_ckpt = load_checkpoint(init) if isinstance(init, (str, os.PathLike)) else init
+    start_ckpt, vocabulary = training_start(start_ckpt, vocabulary)
+    if model_config.drawn < model_config.vocab_size:  # a reading extension's own config: draw all it reads
+        model_config = dataclasses.replace(model_config, drawn_size=0, token_bias=True)
     vocabulary = vocabulary or (
         start_ckpt.vocabulary if start_ckpt else load_default_tokenizer(model_config.vocab_size)
     )
