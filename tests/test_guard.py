@@ -4,6 +4,8 @@ lazy checks draw what the full mask draws, and a row's guarded rollout does not 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -13,6 +15,7 @@ from trajeglish_env.batch_geometry import collision_flags
 from trajeglish_env.env.rewards import road_edges
 from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
+from trajeglish_env.metrics.collision_fault import collisions_by_fault
 from trajeglish_env.metrics.road_edges import signed_distance_to_road_edges
 from trajeglish_env.sampler import guard as guard_module
 from trajeglish_env.sampler import sampling
@@ -206,11 +209,17 @@ class FixedMasks:
     """A stand-in geometry: pair i's candidates collide where ``collide[i]`` and leave the road where
     ``off[i]`` (whatever the tokens asked about, which are all V here)."""
 
-    def __init__(self, collide: np.ndarray, off: np.ndarray):
+    def __init__(self, collide: np.ndarray, off: np.ndarray, escape: np.ndarray | None = None):
         self.collide, self.off = collide, off
+        self.escape = np.zeros_like(collide) if escape is None else escape
 
     def blocked(self, pairs: object, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return self.collide[sel], self.off[sel]
+        return self.collide[sel] | self.escape[sel], self.off[sel]
+
+    def blocked_parts(
+        self, pairs: object, sel: np.ndarray, tokens: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.collide[sel], self.escape[sel], self.off[sel]
 
 
 def test_fallbacks_drop_the_road_rule_then_the_guard() -> None:
@@ -232,3 +241,46 @@ def test_fallbacks_drop_the_road_rule_then_the_guard() -> None:
     allowed = (plain[2::3] >= v // 2) & (plain[2::3] < v - 1)
     same = (tokens[2::3] == plain[2::3])[allowed].mean()  # 0.72: one number per draw keeps most tokens
     assert 0.5 < same < 1.0 and 0.3 < allowed.mean() < 0.7
+
+
+def test_with_nothing_to_escape_to_the_agents_to_escape_are_dropped_first() -> None:
+    v, n = 12, 300
+    logits = torch.randn(n, v, generator=torch.Generator().manual_seed(1)) * 2
+    uniform = np.random.default_rng(1).random(n)
+    first_half = np.arange(v) < v // 2
+    collide, off, escape = np.zeros((n, v), bool), np.zeros((n, v), bool), np.zeros((n, v), bool)
+    escape[0::2] = True  # no candidate escapes: those agents are left out, the rest of the guard stays
+    collide[0::2] = first_half
+    escape[1::2] = first_half  # the second half escapes: drawn from it
+    guard = guard_module.SamplingGuard(FixedMasks(collide, off, escape))  # type: ignore[arg-type]
+    tokens = guard._full_draw(None, np.arange(n), logits, 1.0, 1.0, uniform)  # type: ignore[arg-type]
+    assert (tokens >= v // 2).all()
+    assert guard.stats.escape_fallback == n // 2 and guard.stats.plain_fallback == 0
+
+
+def closing_in_scene() -> object:
+    """A car (the sdc) logged at 5 m/s with a logged car 0.1 m behind it at the current step doing 10 m/s:
+    its next box overlaps the sdc's current one by 0.9 m, the guard's "no move undoes it" case."""
+    sc = straight_road_scene(2, 40)
+    t = np.arange(sc.num_steps) * 0.1
+    xyh = np.zeros_like(sc.xyh)
+    xyh[0, :, 0] = 9.6 + 5.0 * t
+    xyh[1, :, 0] = 10.0 * t
+    kind = np.full(2, AgentKind.VEHICLE)
+    return dataclasses.replace(sc, xyh=xyh, valid=np.ones_like(sc.valid), kind=kind)
+
+
+def test_an_agent_driven_into_moves_out_of_the_way_with_guard_escape() -> None:
+    sc = closing_in_scene()
+    controlled = np.array([True, False])  # the other replays its log: it does not react
+    struck = {}
+    for escape in (False, True):
+        config = SamplingConfig(temperature=1.0, guard=True, guard_escape=escape, seed=2)
+        engine = RolloutEngine(tiny(), sc, 16, 15, controlled, config=config)
+        engine.run()
+        hit, at_fault = collisions_by_fault(engine.xyh, engine.valid, sc.size, 0, sc.current_index)
+        struck[escape] = int(hit.sum())
+        assert not at_fault.any()
+    assert struck[False] >= 10 and struck[True] <= 2  # 12 and 0 of 16 rollouts
+    with pytest.raises(TypeError, match="SamplingConfig.guard_escape must be a bool"):
+        SamplingConfig(guard_escape=1)  # type: ignore[arg-type]

@@ -61,8 +61,11 @@ class SamplingConfig:
     the token is drawn, and so are those that would take a vehicle or cyclist across the stop line of a
     red light on its lane; with ``guard_green`` (default on) a vehicle or cyclist behind the stop line of a
     green light on its lane, the way ahead clear, may not stand still (the model reads no signals, so
-    without it a queue stopped at red stays stopped at green). When that leaves nothing, these map rules
-    are dropped, then the guard altogether.
+    without it a queue stopped at red stays stopped at green). An agent whose box overlaps the current box
+    already is left out (no move undoes that overlap); with ``guard_escape`` one that *moved* into it (a
+    logged or external agent driving into the box, the guard's remaining collisions in partial control)
+    stays an obstacle, so a candidate that moves out of its way is drawn where one exists. When that leaves
+    nothing, those agents are left out, then the map rules are dropped, then the guard altogether.
 
     ``intra_step``: how the agents of a timestep are decoded (:data:`INTRA_STEP_MODES`). Both draw each
     agent's token from the model's conditional given the tokens of the agents before it, with the agent's
@@ -88,14 +91,16 @@ class SamplingConfig:
     guard: bool = DEFAULT_GUARD
     guard_road_margin: float = GUARD_ROAD_MARGIN
     guard_green: bool = True
+    guard_escape: bool = False
     intra_step: str = "parallel"
     compute_dtype: str = "auto"
 
     def __post_init__(self) -> None:
         if not isinstance(self.guard, bool):
             raise TypeError(f"SamplingConfig.guard must be a bool, got {self.guard!r}")
-        if not isinstance(self.guard_green, bool):
-            raise TypeError(f"SamplingConfig.guard_green must be a bool, got {self.guard_green!r}")
+        for name in ("guard_green", "guard_escape"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"SamplingConfig.{name} must be a bool, got {getattr(self, name)!r}")
         if not (self.guard_road_margin >= 0):
             raise ValueError(
                 f"SamplingConfig.guard_road_margin must be >= 0 (m), got {self.guard_road_margin}"

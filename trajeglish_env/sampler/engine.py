@@ -102,7 +102,9 @@ class BatchEngine(WindowedRows):
             from trajeglish_env.sampler.guard_geometry import GuardGeometry
 
             self.guard = SamplingGuard(
-                GuardGeometry(self.vocab.templates, config.guard_road_margin, config.guard_green)
+                GuardGeometry(
+                    self.vocab.templates, config.guard_road_margin, config.guard_green, config.guard_escape
+                )
             )
             self.with_edges = True
         self._slot = np.zeros(self.B, dtype=np.int64)  # per row: next slot of that rank to decode

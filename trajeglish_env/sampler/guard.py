@@ -52,13 +52,14 @@ _SLACK = 1e-12  # probability mass of slack in the bounds, covering the rounding
 class GuardStats:
     """Counters of a guard: ``sampled`` agents, ``guarded`` ones (an obstacle or a road edge within reach
     of a candidate), ``full`` ones whose V candidates were all checked, ``masked`` draws that differ from
-    the unguarded one, and fallbacks that dropped the road-edge rule (``edge_fallback``) or the whole
-    guard (``plain_fallback``)."""
+    the unguarded one, and fallbacks that dropped the agents to escape (``escape_fallback``), the
+    road-edge rule (``edge_fallback``) or the whole guard (``plain_fallback``)."""
 
     sampled: int = 0
     guarded: int = 0
     full: int = 0
     masked: int = 0
+    escape_fallback: int = 0
     edge_fallback: int = 0
     plain_fallback: int = 0
 
@@ -203,8 +204,13 @@ class SamplingGuard:
     ) -> np.ndarray:
         """Check every candidate of pairs ``sel`` and draw from the masked logits, with the fallbacks."""
         v = logits.shape[1]
-        collide, off = self.geometry.blocked(pairs, sel, np.broadcast_to(np.arange(v), (len(sel), v)))
-        ok = ~(collide | off)
+        collide, escape, off = self.geometry.blocked_parts(
+            pairs, sel, np.broadcast_to(np.arange(v), (len(sel), v))
+        )
+        ok = ~(collide | escape | off)
+        trapped = ~ok.any(axis=1)  # no candidate escapes what moved into it: those agents are left out
+        ok[trapped] = ~(collide | off)[trapped]
+        self.stats.escape_fallback += int((trapped & ok.any(axis=1)).sum())
         no_edge = ~ok.any(axis=1)
         ok[no_edge] = ~collide[no_edge]
         nothing = ~ok.any(axis=1)

@@ -31,9 +31,10 @@ class Pairs:
     """The ``n`` pairs of a model call as the guard sees them: ``rows``/``agents [n]``; ``origin [n,3]``
     the model's state the candidates start from at steps ``t [n]``, ``size [n,2]``, ``kind [n]``,
     ``extent [n]`` the reach of its candidates' corners; the obstacles near each agent ``near_xyh [n,K,3]``,
-    ``near_size [n,K,2]``, ``near_real [n,K]``; its road ``edges``; ``red [n]`` vehicles and cyclists with a
-    red light within reach, ``depart [n]`` those the green rule applies to (a green light ahead, the way
-    clear), and the ``signals`` of their rows."""
+    ``near_size [n,K,2]``, ``near_real [n,K]`` and ``near_escape [n,K]`` (those that moved into its
+    current box, kept only to be escaped: ``SamplingConfig.guard_escape``); its road ``edges``; ``red [n]``
+    vehicles and cyclists with a red light within reach, ``depart [n]`` those the green rule applies to (a
+    green light ahead, the way clear), and the ``signals`` of their rows."""
 
     rows: np.ndarray
     agents: np.ndarray
@@ -45,6 +46,7 @@ class Pairs:
     near_xyh: np.ndarray
     near_size: np.ndarray
     near_real: np.ndarray
+    near_escape: np.ndarray
     edges: RoadView
     red: np.ndarray
     depart: np.ndarray
@@ -87,10 +89,13 @@ class GuardGeometry:
     ``green_rule``: whether riders at a green light with the way clear must move), with each row-agent's
     road-edge list kept between steps."""
 
-    def __init__(self, templates: np.ndarray, road_margin: float = 0.0, green_rule: bool = True):
+    def __init__(
+        self, templates: np.ndarray, road_margin: float = 0.0, green_rule: bool = True, escape: bool = False
+    ):
         self.templates = np.asarray(templates, dtype=np.float64)
         self.road_margin = float(road_margin)
         self.green_rule = bool(green_rule)
+        self.escape = bool(escape)
         self.move = np.hypot(self.templates[..., 0], self.templates[..., 1]).max(axis=1)  # per class
         self._columns = PaddedRows(0.0, last=True)
         self._links = PaddedRows(-1, last=True)
@@ -109,7 +114,7 @@ class GuardGeometry:
         which agents moved before each pair and their next states (default: as the rows say)."""
         origin, size, kind = rs.mxyh[rr, who, tt], rs.size[rr, who], rs.kind[rr, who]
         extent = self.move[kind] + half_diagonal(size)  # candidate corners lie within this of the origin
-        *near, tangled = self._neighbours(rs, rr, who, tt, origin, size, extent, view)
+        *near, escape, tangled = self._neighbours(rs, rr, who, tt, origin, size, extent, view)
         padded = (
             self._columns.sync(rs.edges, lambda e: e[0]),  # type: ignore[index]
             self._links.sync(rs.edges, lambda e: e[1]),  # type: ignore[index]
@@ -123,7 +128,7 @@ class GuardGeometry:
             depart &= way_clear(origin, size, *near) & ~tangled
         else:
             depart[:] = False
-        return Pairs(rr, who, tt, origin, size, kind, extent, *near, edges, red, depart, signals)
+        return Pairs(rr, who, tt, origin, size, kind, extent, *near, escape, edges, red, depart, signals)
 
     def _lights(
         self,
@@ -159,11 +164,12 @@ class GuardGeometry:
         size: np.ndarray,
         extent: np.ndarray,
         view: tuple[np.ndarray, np.ndarray] | None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The boxes a candidate could overlap: the next state of each agent of the row that has moved in
         this step, the current one of each that has not, within reach of some candidate; agents the
-        agent's box overlaps already are left out (no move can undo that overlap), and ``[n]`` says which
-        agents overlap one."""
+        agent's box overlaps already are left out (no move can undo that overlap), but with ``escape`` one
+        that *moved* into it stays, flagged ``[n,K]`` (moving on may escape it); ``[n]`` says which agents
+        overlap one."""
         n = len(rr)
         t1 = tt + 1
         now, valid_now, valid_after = rs.xyh[rr, :, tt], rs.valid[rr, :, tt], rs.valid[rr, :, t1]
@@ -177,24 +183,35 @@ class GuardGeometry:
         near[np.arange(n), who] = False
         tangled = np.zeros(n, bool)
         i, j = np.nonzero(near)
+        escape = np.zeros_like(near)
         if len(i):
             overlap = box_collisions(origin[i], size[i], state[i, j], sizes[i, j])
-            near[i, j] = ~overlap
+            escape[i, j] = overlap & moved[i, j] & valid_after[i, j] & self.escape
+            near[i, j] = ~overlap | escape[i, j]
             tangled[i[overlap]] = True
         k = int(near.sum(axis=1).max(initial=0))
         if k == 0:
-            return np.zeros((n, 0, 3)), np.ones((n, 0, 2)), np.zeros((n, 0), bool), tangled
+            empty = np.zeros((n, 0), bool)
+            return np.zeros((n, 0, 3)), np.ones((n, 0, 2)), empty, empty, tangled
         idx, real = nearest_first(np.where(near, d, np.inf), k)
         rows = np.arange(n)[:, None]
-        return state[rows, idx], sizes[rows, idx], real, tangled
+        return state[rows, idx], sizes[rows, idx], real, escape[rows, idx] & real, tangled
 
     def blocked(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For pairs ``sel [m]`` and their candidate ``tokens [m,c]``: which would overlap an obstacle, and
         which would break a map rule ``[m,c]`` (take the vehicle off the road where the road-edge rule
         applies, across the stop line of a red light on its lane, or leave it standing at a green one)."""
+        collide, escape, off = self.blocked_parts(p, sel, tokens)
+        return collide | escape, off
+
+    def blocked_parts(
+        self, p: Pairs, sel: np.ndarray, tokens: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`blocked` with the overlaps split ``[m,c]``: with an obstacle to avoid, with one only to
+        escape (``Pairs.near_escape``); and the map rules."""
         kind, size = p.kind[sel], p.size[sel]
         cand = to_global(p.origin[sel][:, None], self.templates[kind[:, None], tokens])  # [m,c,3]
-        collide = np.zeros(tokens.shape, bool)
+        collide, escape = np.zeros(tokens.shape, bool), np.zeros(tokens.shape, bool)
         if p.near_xyh.shape[1]:
             nx, ns, real = p.near_xyh[sel], p.near_size[sel], p.near_real[sel]
             dx = cand[:, :, None, 0] - nx[:, None, :, 0]
@@ -203,7 +220,9 @@ class GuardGeometry:
             i, v, k = np.nonzero(real[:, None] & (dx * dx + dy * dy < (limit * limit)[:, None]))
             if len(i):
                 hit = box_collisions(cand[i, v], size[i], nx[i, k], ns[i, k])
-                collide[i[hit], v[hit]] = True
+                soft = p.near_escape[sel][i, k]
+                collide[i[hit & ~soft], v[hit & ~soft]] = True
+                escape[i[hit & soft], v[hit & soft]] = True
         off = np.zeros(tokens.shape, bool)
         q = np.flatnonzero(p.edges.road[sel])
         if len(q):
@@ -219,7 +238,7 @@ class GuardGeometry:
         go = p.depart[sel]
         if go.any():
             off[go] |= self.templates[kind[go, None], tokens[go], 0] < DEPART_STEP
-        return collide, off
+        return collide, escape, off
 
 
 def _by_scene(signals: dict[int, SceneSignals], rows: list[int]) -> list[tuple[SceneSignals, list[int]]]:
