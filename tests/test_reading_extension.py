@@ -16,9 +16,16 @@ import torch
 from helpers import straight_road_scene, tiny_checkpoint
 from test_model import random_scene
 
-from trajeglish_env.checkpoint import CheckpointError, load_checkpoint, load_pretrained, save_checkpoint
+from trajeglish_env.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    load_into,
+    load_pretrained,
+    save_checkpoint,
+)
 from trajeglish_env.checkpoint_reading import drawn_base, is_reading, reading_extension, training_start
 from trajeglish_env.cli import main
+from trajeglish_env.model import TrajeglishModel
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import RolloutEngine
@@ -168,3 +175,27 @@ def test_extend_command_writes_the_reading_checkpoint(
     assert loaded.config.drawn == 144 and loaded.config.vocab_size == 384
     assert main([*args, "--base", str(out), "--out", str(tmp_path / "x.npz")]) == 2
     assert "--reading-out needs --base to be a checkpoint" in capsys.readouterr().err
+
+
+def test_nll_scores_a_reading_model_beside_a_model_drawing_all_it_reads(
+    tiny_pair,  # noqa: ANN001
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Targets beyond the drawn tokens count as their source; each model's unigram is fitted on its own
+    tokens (the first model's name tokens the reading one cannot draw), so its figures are the ones it
+    gets alone."""
+    base, ext, reading = tiny_pair
+    full = TrajeglishModel(dataclasses.replace(base.config, vocab_size=ext.size, token_bias=True)).eval()
+    load_into(full, base, ext)  # the extension a training run starts from: draws all 384
+    scenes = tmp_path / "scenes"
+    save_scenarios(scenes / "a.scn.npz", [straight_road_scene(5, 40, seed=s) for s in range(2)])
+    first = save_checkpoint(tmp_path / "full.pt", full, ext)
+    second = save_checkpoint(tmp_path / "reading.pt", reading.model, reading.vocabulary)
+    args = ["nll", "--data", str(scenes), "--unigram-data", str(scenes), "--windows", "4", "--json"]
+    assert main([*args, "--quiet", "--ckpt", f"full={first}", "--ckpt", f"reading={second}"]) == 0
+    models = json.loads(capsys.readouterr().out)["models"]
+    for name in ("full", "reading"):
+        assert models[name]["tokens"] > 0 and 0 < models[name]["nll"] < models[name]["unigram_nll"] + 5
+    assert main([*args, "--quiet", "--ckpt", f"reading={second}"]) == 0  # alone: the same figures
+    assert json.loads(capsys.readouterr().out)["models"]["reading"] == models["reading"]

@@ -230,16 +230,15 @@ def evaluate_nll(
         cache_dtypes = ("float32",)
     scenes = SceneStore(data).scenes
     result: dict[str, Any] = {"data": str(data), "windows": windows, "models": {}}
-    first = next(iter(checkpoints.values()))
     for name, ckpt in checkpoints.items():
         tok = token_nll(ckpt, scenes, windows, seed)
-        if unigram_data is not None:
-            fit = token_nll(first, SceneStore(unigram_data).scenes, windows, seed + 1)
+        if unigram_data is not None:  # fitted on the checkpoint's own tokens (vocabularies may differ)
+            fit = token_nll(ckpt, SceneStore(unigram_data).scenes, windows, seed + 1)
             result["unigram_fit"] = str(unigram_data)
         else:
             fit = tok
             result["unigram_fit"] = "held-out tokens (optimistic)"
-        uni = unigram_nll(fit["token"], fit["kind"], tok["token"], tok["kind"], ckpt.config.vocab_size)
+        uni = unigram_nll(fit["token"], fit["kind"], tok["token"], tok["kind"], ckpt.config.drawn)
         summary = summarize(tok, uni)
         summary["variant"] = ckpt.config.variant.value
         if cache_dtypes:
