@@ -270,17 +270,35 @@ def closing_in_scene() -> object:
     return dataclasses.replace(sc, xyh=xyh, valid=np.ones_like(sc.valid), kind=kind)
 
 
-def test_an_agent_driven_into_moves_out_of_the_way_with_guard_escape() -> None:
+def test_an_agent_driven_into_moves_out_of_the_way_with_guard_escape_when_it_acts_after_it() -> None:
     sc = closing_in_scene()
     controlled = np.array([True, False])  # the other replays its log: it does not react
     struck = {}
-    for escape in (False, True):
-        config = SamplingConfig(temperature=1.0, guard=True, guard_escape=escape, seed=2)
-        engine = RolloutEngine(tiny(), sc, 16, 15, controlled, config=config)
-        engine.run()
-        hit, at_fault = collisions_by_fault(engine.xyh, engine.valid, sc.size, 0, sc.current_index)
-        struck[escape] = int(hit.sum())
-        assert not at_fault.any()
-    assert struck[False] >= 10 and struck[True] <= 2  # 12 and 0 of 16 rollouts
+    for place, priority in (("first", [-1.0, 0.0]), ("last", [1.0, 0.0])):
+        for escape in (False, True):
+            config = SamplingConfig(temperature=1.0, guard=True, guard_escape=escape, seed=2)
+            engine = RolloutEngine(tiny(), sc, 16, 15, controlled, config=config, priority=np.array(priority))
+            engine.run()
+            hit, at_fault = collisions_by_fault(engine.xyh, engine.valid, sc.size, 0, sc.current_index)
+            struck[place, escape] = int(hit.sum())
+            assert not at_fault.any()
+    # acting last, the guard sees the logged car's move and escapes it; acting first, the order hides it
+    assert struck["last", False] >= 10 and struck["last", True] <= 2, struck
+    assert struck["first", False] >= 10 and struck["first", True] >= 10, struck
+
+
+def test_the_guard_sees_a_logged_agents_move_only_when_it_acted_before() -> None:
+    sc = closing_in_scene()
+    controlled = np.array([True, False])
+    for priority, seen in (([-1.0, 0.0], False), ([1.0, 0.0], True)):
+        config = SamplingConfig(temperature=1.0, guard=True, seed=2)
+        engine = RolloutEngine(tiny(), sc, 1, 15, controlled, config=config, priority=np.array(priority))
+        engine.step()  # plans the model context: the acting order
+        t = engine.now[:1]
+        assert engine.acting_rank[0].tolist() == ([0, 1] if not seen else [1, 0])
+        moved = engine.guard_moved(np.array([0]), np.array([0]), t)
+        assert moved[0].tolist() == [False, seen]  # the sdc's own token of the step is not decided yet
+        assert engine.guard_moved(np.array([0]), np.array([1]), t)[0, 1]  # a logged agent sees its own
+
     with pytest.raises(TypeError, match="SamplingConfig.guard_escape must be a bool"):
         SamplingConfig(guard_escape=1)  # type: ignore[arg-type]

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from helpers import straight_road_scene, tiny_checkpoint, womd_tfrecord
 
+from trajeglish_env.metrics.collision_fault import collisions_by_fault
 from trajeglish_env.sampler import RolloutEngine, SamplingConfig
 from trajeglish_env.sampler.engine import BatchEngine
 from trajeglish_env.sampler.parallel import accepted, guard_view
@@ -50,6 +51,33 @@ def test_parallel_decoding_waits_for_an_external_agent_in_the_middle() -> None:
     np.testing.assert_array_equal(par[0], seq[0])
     end = sc.current_index + 9
     np.testing.assert_array_equal(par[1][:, 2, :end], np.broadcast_to(sc.xyh[2, :end], (2, end, 3)))
+
+
+def test_parallel_decoding_equals_sequential_with_a_logged_agent_closing_in() -> None:
+    """Two sampled cars and a logged one closing in on the first from behind: the guard of the first sees
+    the logged move only when it acts after it (RowStates.guard_moved), the same in both modes."""
+    import dataclasses
+
+    sc = straight_road_scene(num_agents=3, steps=40)
+    t = np.arange(sc.num_steps) * 0.1
+    xyh = np.zeros_like(sc.xyh)
+    xyh[0, :, 0], xyh[1, :, 0], xyh[2, :, 0] = 9.6 + 5.0 * t, 10.0 * t, 30.0 + 5.0 * t
+    xyh[2, :, 1] = 3.5
+    sc = dataclasses.replace(sc, xyh=xyh, valid=np.ones_like(sc.valid), kind=np.zeros(3, np.int64))
+    controlled = np.array([True, False, True])
+    struck = {}
+    for place, first in (("first", -1.0), ("last", 1.0)):
+        tokens = {}
+        for mode in ("sequential", "parallel"):
+            cfg = SamplingConfig(temperature=1.0, seed=2, guard=True, intra_step=mode)
+            priority = np.array([first, 0.0, -2.0])  # agent 2 acts first: the parallel call drafts it
+            eng = RolloutEngine(tiny_checkpoint(), sc, 16, 15, controlled, config=cfg, priority=priority)
+            eng.run()
+            tokens[mode] = eng.tokens.copy()
+            hit, _ = collisions_by_fault(eng.xyh, eng.valid, sc.size, 0, sc.current_index)
+            struck[place, mode] = int(hit.sum())
+        np.testing.assert_array_equal(tokens["parallel"], tokens["sequential"])
+    assert struck["first", "parallel"] >= 10 and struck["last", "parallel"] <= 2, struck
 
 
 def test_parallel_decoding_of_a_real_womd_scene_in_a_batch() -> None:

@@ -55,17 +55,18 @@ class SamplingConfig:
 
     ``guard``: guarded sampling (:mod:`~trajeglish_env.sampler.guard`). When an agent is sampled, the
     next states of the agents that moved before it in the step are known, so the candidate tokens whose
-    box would overlap one of them (or the current box of an agent that has not moved yet), or that would
+    box would overlap one of them (or the current box of an agent that has not moved yet: a logged agent
+    acting after it too, whose log is known ahead but whose move the step's order hides), or that would
     put a corner of a vehicle's box more than ``guard_road_margin`` m beyond a road edge (default
     :data:`GUARD_ROAD_MARGIN`; a vehicle off the road already may not go farther off), are masked before
     the token is drawn, and so are those that would take a vehicle or cyclist across the stop line of a
     red light on its lane; with ``guard_green`` (default on) a vehicle or cyclist behind the stop line of a
     green light on its lane, the way ahead clear, may not stand still (the model reads no signals, so
     without it a queue stopped at red stays stopped at green). An agent whose box overlaps the current box
-    already is left out (no move undoes that overlap); with ``guard_escape`` one that *moved* into it (a
-    logged or external agent driving into the box, the guard's remaining collisions in partial control)
-    stays an obstacle, so a candidate that moves out of its way is drawn where one exists. When that leaves
-    nothing, those agents are left out, then the map rules are dropped, then the guard altogether.
+    already is left out (no move undoes that overlap); with ``guard_escape`` (default on) one that *moved*
+    into it (a logged or external agent driving into the box, the guard's remaining collisions in partial
+    control) stays an obstacle, so a candidate that moves out of its way is drawn where one exists. When
+    that leaves nothing, those agents are left out, then the map rules are dropped, then the guard.
 
     ``intra_step``: how the agents of a timestep are decoded (:data:`INTRA_STEP_MODES`). Both draw each
     agent's token from the model's conditional given the tokens of the agents before it, with the agent's
@@ -91,7 +92,7 @@ class SamplingConfig:
     guard: bool = DEFAULT_GUARD
     guard_road_margin: float = GUARD_ROAD_MARGIN
     guard_green: bool = True
-    guard_escape: bool = False
+    guard_escape: bool = True
     intra_step: str = "parallel"
     compute_dtype: str = "auto"
 

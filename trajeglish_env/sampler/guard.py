@@ -3,7 +3,8 @@ vehicle or cyclist off the road or across a red stop line, or leave it standing 
 before a token is drawn.
 
 The intra-timestep factorization makes this exact: when an agent is sampled, the next states of the agents
-that moved before it in the step are known (and the current boxes of those that have not moved yet), so
+that moved before it in the step are known (and the current boxes of those that have not moved yet,
+logged agents acting after it among them: the guard sees no more of the log than the order shows), so
 each of its candidate tokens -- every template of its class, applied to its current model state -- can be
 checked against them (:mod:`~trajeglish_env.sampler.guard_geometry`). A candidate is masked when its box
 overlaps one of those boxes, or, for a vehicle or cyclist, when a corner of its box lies more than the

@@ -173,7 +173,7 @@ class GuardGeometry:
         n = len(rr)
         t1 = tt + 1
         now, valid_now, valid_after = rs.xyh[rr, :, tt], rs.valid[rr, :, tt], rs.valid[rr, :, t1]
-        moved, after = (rs.known[rr, :, tt], rs.xyh[rr, :, t1]) if view is None else view
+        moved, after = (rs.guard_moved(rr, who, tt), rs.xyh[rr, :, t1]) if view is None else view
         state, present, _ = latest_states(
             now, after, now, valid_now, valid_after, np.zeros_like(valid_now), moved, np.ones((n, 1))
         )

@@ -89,12 +89,13 @@ def guard_view(
     rs: RowStates, rr: np.ndarray, who: np.ndarray, draft: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """What the guard sees of each pair ``(rr, who)`` of a parallel call (pairs sorted by row, then acting
-    order): ``moved [n,N]``, the agents that moved before it (those that had moved when the call began,
-    and its drafted predecessors in the call), and ``after [n,N,3]``, their next states (drafted ones for
-    the predecessors). ``draft [n]``: the drafts the call's inputs carried (-1: none, i.e. not moved)."""
+    order): ``moved [n,N]``, the agents that moved before it (those its guard saw moved when the call
+    began, :meth:`~trajeglish_env.sampler.rows.RowStates.guard_moved`, and its drafted predecessors in the
+    call), and ``after [n,N,3]``, their next states (drafted ones for the predecessors). ``draft [n]``: the
+    drafts the call's inputs carried (-1: none, i.e. not moved)."""
     n, N = len(rr), rs.N
     t = rs.now[rr]
-    moved = rs.known[rr, :, t].copy()
+    moved = rs.guard_moved(rr, who, t)
     after = rs.xyh[rr, :, t + 1].copy()
     drafted = np.flatnonzero(draft >= 0)
     if not len(drafted):

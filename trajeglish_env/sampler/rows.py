@@ -98,6 +98,7 @@ class RowStates:
         self.row_controlled = grow(get("row_controlled"), (B, n), False, bool)
         self.row_external = grow(get("row_external"), (B, n), False, bool)
         self.row_priority = grow(get("row_priority"), (B, n), 0.0, np.float64)
+        self.acting_rank = grow(get("acting_rank"), (B, n), -1, np.int64)  # place in the step (-1: none)
         self.handover = grow(get("handover"), (B, n), False, bool)
         self.entering = grow(get("entering"), (B, n), False, bool)
         self.size = grow(get("size"), (B, n, 2), 1.0, np.float64)
@@ -172,6 +173,7 @@ class RowStates:
         self.row_external[rows, :n] = external
         self.row_priority[rows] = 0.0
         self.row_priority[rows, :n] = priority
+        self.acting_rank[rows] = -1  # set when the rows' model contexts are planned
         # a rollout past the log: the log's agents present at its last step go on as controlled agents
         self.handover[rows] = False
         if T > sc.num_steps:
@@ -194,6 +196,18 @@ class RowStates:
         self.seed[rows] = seeds
         self.first[rows] = sc.sdc if spec.first is None else int(spec.first)
         self.live[rows] = True
+
+    def guard_moved(self, rows: np.ndarray, agents: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``[n,N]``: the agents whose next state the guard of agent ``agents[i]`` of row ``rows[i]`` at step
+        ``t[i]`` sees: those whose token of the step is decided, but not the logged (replay) agents acting
+        after it -- their log is known ahead, yet the step's order hides their move (the model does not see
+        it either), so the guard sees their current boxes, as it does for an agent that has not moved."""
+        moved = self.known[rows, :, t].copy()
+        rank = self.acting_rank[rows]
+        own = rank[np.arange(len(rows)), agents][:, None]
+        replay = ~(self.row_controlled[rows] | self.row_external[rows])
+        moved &= ~(replay & (rank > own) & (own >= 0))
+        return moved
 
     def _road_edges(self, sc: Scenario) -> RowEdges:
         """The scene's road-edge segments (computed once per scene object, like the map chunks)."""

@@ -127,6 +127,7 @@ class WindowedRows(RowStates):
         src, dst = torch.from_numpy(source).to(self.device), torch.from_numpy(target).to(self.device)
         for b, a in zip(target.tolist(), source.tolist(), strict=True):
             self.plan[b] = self.plan[a]
+        self.acting_rank[target] = self.acting_rank[source]
         self.num_subsets[target] = self.num_subsets[source]
         self.window_step[target] = self.window_step[source]
         for w in self.windows:
@@ -168,7 +169,7 @@ class WindowedRows(RowStates):
                 )
             )
         for i, b in enumerate(rows):
-            self.plan[b] = plans[i]
+            self._set_plan(b, plans[i])
         self.num_subsets[rows] = counts
         self.window_step[rows] = t
         for k, w in enumerate(self.windows):
@@ -178,6 +179,12 @@ class WindowedRows(RowStates):
             if has.any():
                 self._encode_rank(k, rows[has], [plans[i] for i in np.flatnonzero(has)])
         self._note_full()
+
+    def _set_plan(self, row: int, plan: SubsetPlan) -> None:
+        """Row ``row``'s subset plan and each agent's place in its acting order (``acting_rank``)."""
+        self.plan[row] = plan
+        self.acting_rank[row] = -1
+        self.acting_rank[row, plan.acting_order] = np.arange(len(plan.acting_order))
 
     def _admit(self, rows: np.ndarray, agents: np.ndarray) -> np.ndarray:
         """Give each of ``agents`` (of ``rows``), just become active (the log brings them in), a slot in an
@@ -193,7 +200,8 @@ class WindowedRows(RowStates):
             if got is None:
                 failed.append(b)
                 continue
-            self.plan[b], k = got
+            self._set_plan(b, got[0])
+            k = got[1]
             changed.setdefault(k, []).append(b)
         for k, members in sorted(changed.items()):
             ranked = np.setdiff1d(members, failed)  # sorted, unique
