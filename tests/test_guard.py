@@ -287,6 +287,24 @@ def test_an_agent_driven_into_moves_out_of_the_way_with_guard_escape_when_it_act
     assert struck["first", False] >= 10 and struck["first", True] >= 10, struck
 
 
+def test_an_external_agent_driving_into_an_npc_keeps_its_collision() -> None:
+    """An ego (external) that drives into the NPC ahead is not escaped: the NPC does not jump away from a
+    collision the env must report to the ego's policy."""
+    sc = closing_in_scene()
+    controlled, external = np.array([True, False]), np.array([False, True])
+    config = SamplingConfig(temperature=1.0, guard=True, seed=2)
+    priority = np.array([1.0, 0.0])  # the ego moves first: the NPC's guard sees it drive into its box
+    engine = RolloutEngine(
+        tiny(), sc, 16, 15, controlled, external=external, config=config, priority=priority
+    )
+    while engine.stepping.any():
+        agent = engine.advance()
+        if agent is not None:
+            engine.supply(agent, np.broadcast_to(sc.xyh[agent, engine.t + 1], (16, 3)))
+    hit, at_fault = collisions_by_fault(engine.xyh, engine.valid, sc.size, 0, sc.current_index)
+    assert hit.sum() >= 10 and not at_fault.any(), hit.sum()  # the ego's collision stands
+
+
 def test_the_guard_sees_a_logged_agents_move_only_when_it_acted_before() -> None:
     sc = closing_in_scene()
     controlled = np.array([True, False])

@@ -64,9 +64,10 @@ class SamplingConfig:
     green light on its lane, the way ahead clear, may not stand still (the model reads no signals, so
     without it a queue stopped at red stays stopped at green). An agent whose box overlaps the current box
     already is left out (no move undoes that overlap); with ``guard_escape`` (default on) one that *moved*
-    into it (a logged or external agent driving into the box, the guard's remaining collisions in partial
-    control) stays an obstacle, so a candidate that moves out of its way is drawn where one exists. When
-    that leaves nothing, those agents are left out, then the map rules are dropped, then the guard.
+    into it (a logged agent driving into the box, the guard's remaining collisions in partial control)
+    stays an obstacle, so a candidate that moves out of its way is drawn where one exists; not an external
+    agent (an env's ego): the collision it drives into is its own, and the env reports it. When that leaves
+    nothing, those agents are left out, then the map rules are dropped, then the guard.
 
     ``intra_step``: how the agents of a timestep are decoded (:data:`INTRA_STEP_MODES`). Both draw each
     agent's token from the model's conditional given the tokens of the agents before it, with the agent's
