@@ -168,8 +168,8 @@ class GuardGeometry:
         """The boxes a candidate could overlap: the next state of each agent of the row that has moved in
         this step, the current one of each that has not, within reach of some candidate; agents the
         agent's box overlaps already are left out (no move can undo that overlap), but with ``escape`` one
-        that *moved* into it, not an external one, stays, flagged ``[n,K]`` (moving on may escape it);
-        ``[n]`` says which agents overlap one."""
+        that *moved* into it in this step, not an external one, stays, flagged ``[n,K]`` (moving on may
+        escape it); ``[n]`` says which agents overlap one."""
         n = len(rr)
         t1 = tt + 1
         now, valid_now, valid_after = rs.xyh[rr, :, tt], rs.valid[rr, :, tt], rs.valid[rr, :, t1]
@@ -186,8 +186,17 @@ class GuardGeometry:
         escape = np.zeros_like(near)
         if len(i):
             overlap = box_collisions(origin[i], size[i], state[i, j], sizes[i, j])
-            user = rs.row_external[rr[i], j]  # an external agent's collision is its own: not escaped
-            escape[i, j] = overlap & moved[i, j] & valid_after[i, j] & ~user & self.escape
+            if self.escape:
+                # moved into it this step: there before and overlapping now, not then (a pair overlapping
+                # from the start, parked boxes of a log, stays tangled; so does one appearing on it); an
+                # external agent's collision is its own
+                into = (
+                    overlap & moved[i, j] & valid_now[i, j] & valid_after[i, j] & ~rs.row_external[rr[i], j]
+                )
+                q = np.flatnonzero(into)
+                before = box_collisions(origin[i[q]], size[i[q]], now[i[q], j[q]], sizes[i[q], j[q]])
+                into[q[before]] = False
+                escape[i, j] = into
             near[i, j] = ~overlap | escape[i, j]
             tangled[i[overlap]] = True
         k = int(near.sum(axis=1).max(initial=0))
