@@ -64,8 +64,9 @@ class SamplingConfig:
     green light on its lane, the way ahead clear, may not stand still (the model reads no signals, so
     without it a queue stopped at red stays stopped at green). An agent whose box overlaps the current box
     already is left out (no move undoes that overlap); with ``guard_escape`` (default on) one that *moved*
-    into it (a logged agent driving into the box, the guard's remaining collisions in partial control)
-    stays an obstacle, so a candidate that moves out of its way is drawn where one exists; not an external
+    into it in this step (a logged agent driving into the box, the guard's remaining collisions in partial
+    control; not boxes overlapping the step before, as a log's parked cars can) stays an obstacle, so a
+    candidate that moves out of its way is drawn where one exists; not an external
     agent (an env's ego): the collision it drives into is its own, and the env reports it. When that leaves
     nothing, those agents are left out, then the map rules are dropped, then the guard.
 
