@@ -49,6 +49,23 @@ def test_env_speed_reports_rates_and_memory() -> None:
     assert split["peak_rss_mb"] > run["peak_rss_mb"] + 200 and split["agent_steps_per_s"] > 0
 
 
+def test_env_speed_repeats_rounds_until_the_timed_steps_last_min_seconds() -> None:
+    one = env_speed(1, npc="replay", steps=2, warmup=1)
+    assert one["rounds"] == 1 and one["timed_steps"] == 2
+    # a round of 2 replay steps lasts milliseconds: 0.05 s takes several rounds, each from a reset
+    more = env_speed(1, npc="replay", steps=2, warmup=1, min_seconds=0.05)
+    assert 2 <= more["rounds"] <= measure.MAX_ROUNDS and more["timed_steps"] == 2
+    assert more["rounds"] == measure.MAX_ROUNDS or more["timed_seconds"] >= 0.05
+    # the rate is of every timed step of every round
+    rate = more["rounds"] * more["timed_steps"] / more["timed_seconds"]
+    assert more["env_steps_per_s"] == pytest.approx(rate, rel=0.01)
+    # an impossible wish stops at MAX_ROUNDS
+    capped = env_speed(1, npc="replay", steps=1, warmup=0, min_seconds=1e9)
+    assert capped["rounds"] == measure.MAX_ROUNDS
+    with pytest.raises(ValueError, match="env min seconds must be >= 0"):
+        BenchConfig(env_min_seconds=-1.0)
+
+
 def test_ratios_and_summary_of_a_result() -> None:
     result = {
         "machine": {"cpu_count": 2},
@@ -95,7 +112,7 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 6
+    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 7
     assert printed["complete"] is True and written == printed
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
 

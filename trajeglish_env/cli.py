@@ -13,7 +13,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from trajeglish_env.benchmark.suite import SECTIONS
 from trajeglish_env.cli_args import (
     EXIT_BAD_INPUT,
     NON_NEGATIVE,
@@ -23,7 +22,6 @@ from trajeglish_env.cli_args import (
     add_budget_and_mix_args,
     add_map_args,
     at_least_one,
-    auto_or_at_least,
     below_one,
     one_line,
     output_dir,
@@ -33,10 +31,10 @@ from trajeglish_env.cli_args import (
     unit_float,
     with_map_args,
 )
-from trajeglish_env.cli_eval import GUARD_CHOICES, add_eval_commands, checkpoints
+from trajeglish_env.cli_bench import add_bench_command
+from trajeglish_env.cli_eval import add_eval_commands, checkpoints
 from trajeglish_env.cli_tokenizer import add_tokenizer_commands
 from trajeglish_env.cli_womd import add_womd_commands
-from trajeglish_env.sampler.config import COMPUTE_DTYPES
 
 Handler = Callable[[argparse.Namespace], dict[str, Any]]
 
@@ -192,42 +190,6 @@ def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
         video_format=args.format,
         progress=not args.quiet,
     )
-
-
-def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.benchmark.suite import BenchConfig, run_suite, summary_lines
-    from trajeglish_env.scenario_io import atomic_path
-
-    if args.threads != "auto" and not (args.threads.isdigit() and int(args.threads) >= 1):
-        raise ValueError(f"--threads must be 'auto' or a positive integer, got {args.threads!r}")
-    threads = args.threads if args.threads == "auto" else int(args.threads)
-    config = BenchConfig(
-        batches=tuple(args.batches),
-        agents=args.agents,
-        env_steps=args.env_steps,
-        torch_threads=threads,
-        cache_dtype=args.cache_dtype,
-        compute_dtype=args.compute_dtype,
-        sections=tuple(args.sections),
-        quick=args.quick,
-        guards=GUARD_CHOICES[args.guard],
-        womd=args.womd,
-        split=not args.no_split,
-        device=args.device,
-        split_processes=args.split_processes,
-    )
-
-    def write(doc: dict[str, Any]) -> None:  # after every run: a suite stopped early keeps its figures
-        if args.out:
-            with atomic_path(args.out) as tmp:
-                tmp.write_text(json.dumps(doc, indent=2))
-
-    result = run_suite(config, progress=not args.quiet, on_update=write)
-    write(result)
-    if args.json:
-        return result
-    print("\n".join(summary_lines(result)))
-    return {"written": args.out} if args.out else {}
 
 
 # ---------------------------------------------------------------------------------------- parser
@@ -420,58 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--order", choices=("first", "last", "random"), default="first")
     p.add_argument("--format", choices=("gif", "mp4"), default="gif")
 
-    p = add("bench", cmd_bench, "the benchmark suite: speed of every stage, batched env vs highway-env")
-    p.add_argument(
-        "--batches", type=POSITIVE, nargs="+", default=[1, 8, 32, 128, 256], help="scenes per batched env"
-    )
-    p.add_argument("--agents", type=POSITIVE, default=24, help="agents per scene")
-    p.add_argument(
-        "--env-steps",
-        type=POSITIVE,
-        default=None,
-        help="timed steps per batched-env run with Trajeglish NPCs (default: one window cycle of the model, "
-        "re-priming included)",
-    )
-    p.add_argument("--threads", default="auto", help="torch threads of the batched env (or 'auto')")
-    p.add_argument("--cache-dtype", choices=("bfloat16", "float32"), default="bfloat16")
-    p.add_argument(
-        "--compute-dtype",
-        choices=COMPUTE_DTYPES,
-        default="auto",
-        help="dtype the NPC model's linear layers multiply in (auto: bfloat16 for batches of 16 rows or more "
-        "where the CPU has it natively)",
-    )
-    p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure")
-    p.add_argument("--quick", action="store_true", help="tiny workloads (a smoke run)")
-    p.add_argument(
-        "--guard",
-        choices=GUARD_CHOICES,
-        default="both",
-        help="Trajeglish NPCs of the env runs without (off) and/or with (on) guarded sampling",
-    )
-    p.add_argument(
-        "--womd",
-        help="the womd section's WOMD scenario file (default: data/womd/motion_data_one_scenario.tfrecord "
-        "of the shared folder: $TRAJEGLISH_SHARED, else shared/ beside the checkout; none: skipped)",
-    )
-    p.add_argument(
-        "--device",
-        default="cpu",
-        help="torch device of the env runs' NPC model (cpu, cuda, cuda:1): the GPU figures of issue 16",
-    )
-    p.add_argument(
-        "--no-split",
-        action="store_true",
-        help="skip the env and busy runs whose scenes are split over worker processes (processes='auto')",
-    )
-    p.add_argument(
-        "--split-processes",
-        default="auto",
-        type=auto_or_at_least(2),
-        help="worker processes of the env section's split runs (default auto; a count with --device cuda "
-        "spawns that many GPU workers)",
-    )
-    p.add_argument("--out", help="also write the JSON document here (atomically)")
+    add_bench_command(add)
     return parser
 
 

@@ -25,6 +25,7 @@ from trajeglish_env.model import TrajeglishModel, preset
 from trajeglish_env.model.masks import teacher_inputs
 
 GUARDED = {"trajeglish": False, "trajeglish_guard": True}  # model NPCs of the env runs: guarded sampling?
+MAX_ROUNDS = 32  # timed rounds of one env measurement at most (see env_speed's min_seconds)
 
 
 def peak_rss_mb() -> float:
@@ -255,6 +256,7 @@ def env_speed(
     processes: int | str = 1,
     device: str = "cpu",
     checkpoint: Any = None,
+    min_seconds: float = 0.0,
 ) -> dict[str, Any]:
     """Stepping speed of the batched ego env: ``num_envs`` scenes of ``agents`` agents (the bundled
     SUMO scenes cut to the sdc and its nearest neighbours), one ego each replaying its log through
@@ -268,7 +270,10 @@ def env_speed(
 
     ``steps`` None: Trajeglish NPCs are timed over one whole window cycle of the model (its
     ``recompute_every`` steps, one of which re-encodes and re-primes every scene's windows), so the
-    figure is the long-run rate; replay NPCs over 40 steps."""
+    figure is the long-run rate; replay NPCs over 40 steps. ``min_seconds``: the timed run is repeated in
+    rounds (each from a reset with the next seed, its warm-up untimed) until the timed steps add up to at
+    least that long (at most :data:`MAX_ROUNDS` rounds): one window cycle of a single scene lasts about
+    0.3 s, too short a window for a rate that holds from run to run."""
     from trajeglish_env.env import RewardConfig, TrajeglishNPC
     from trajeglish_env.env.split import SplitEgoEnv, batched_ego_env
     from trajeglish_env.sampler.config import SamplingConfig
@@ -302,22 +307,26 @@ def env_speed(
     try:
         venv.reset(seed=0)
         build = time.perf_counter() - build0
-        elapsed, rebuilds = 0.0, 0
-        for k in range(steps + warmup):
-            actions = np.concatenate(venv.apply(_log_actions))
-            before = venv.apply(_window_steps)
-            start = time.perf_counter()
-            venv.step(actions)
-            if k >= warmup:
-                elapsed += time.perf_counter() - start
-                after = venv.apply(_window_steps)
-                rebuilds += int(any((a != b).any() for a, b in zip(after, before, strict=True)))
+        elapsed, rebuilds, rounds = 0.0, 0, 0
+        while rounds == 0 or (elapsed < min_seconds and rounds < MAX_ROUNDS):
+            if rounds:
+                venv.reset(seed=rounds)
+            rounds += 1
+            for k in range(steps + warmup):
+                actions = np.concatenate(venv.apply(_log_actions))
+                before = venv.apply(_window_steps)
+                start = time.perf_counter()
+                venv.step(actions)
+                if k >= warmup:
+                    elapsed += time.perf_counter() - start
+                    after = venv.apply(_window_steps)
+                    rebuilds += int(any((a != b).any() for a, b in zip(after, before, strict=True)))
         threads = venv.apply(_torch_threads)
         split = isinstance(venv, SplitEgoEnv)  # peaks of the caller and its workers (shared pages in each)
         peak = peak_rss_mb() + (sum(venv.apply(_peak_rss)) if split else 0.0)
     finally:
         venv.close()
-    rate = steps / elapsed
+    rate = steps * rounds / elapsed
     return {
         "num_envs": num_envs,
         "npc": npc,
@@ -331,6 +340,8 @@ def env_speed(
         "subsets": subsets if model else None,
         "guard": GUARDED[npc] if model else None,
         "timed_steps": steps,
+        "rounds": rounds,
+        "timed_seconds": round(elapsed, 3),
         "window_rebuild_steps": rebuilds if model else None,
         "env_steps_per_s": round(rate, 3),
         "scene_steps_per_s": round(rate * num_envs, 2),

@@ -26,14 +26,15 @@ from typing import Any
 # env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section; 4: the womd and busy
 # sections and their ratios; 5: split env runs (env.<npc>_split, busy "<B>_split") and env runs' processes;
 # 6: ``complete`` (False in the documents written after each run while the suite goes on)
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "womd", "env", "busy")
 
 
 @dataclass(frozen=True)
 class BenchConfig:
     """What the suite measures and how long: ``batches`` scene counts of the batched env, ``agents`` per
-    scene, timed env steps per run (after ``warmup``), highway-env steps, torch threads for the batched
+    scene, timed env steps per run (after ``warmup``; repeated in rounds from resets until they last
+    ``env_min_seconds``), highway-env steps, torch threads for the batched
     env (``"auto"``: see :class:`trajeglish_env.env.threads.AdaptiveThreads`), the NPC cache dtype, the
     Trajeglish NPCs' ``guards`` (guarded sampling off and/or on: env runs ``trajeglish`` and
     ``trajeglish_guard``), the sections to run (``quick`` shrinks every workload for a smoke run), the
@@ -47,6 +48,8 @@ class BenchConfig:
     batches: tuple[int, ...] = (1, 8, 32, 128, 256)
     agents: int = 24
     env_steps: int | None = None  # None: one window cycle of the model (see measure.env_speed)
+    # each env run is timed in rounds until its timed steps last this long (quick: one round)
+    env_min_seconds: float = 2.0
     replay_steps: int = 40
     highway_steps: int = 300
     torch_threads: str | int = "auto"
@@ -78,6 +81,8 @@ class BenchConfig:
             self.replay_steps, self.highway_steps
         ) < 1:
             raise ValueError("bench: step counts must be >= 1")
+        if not (self.env_min_seconds >= 0):
+            raise ValueError(f"bench: env min seconds must be >= 0, got {self.env_min_seconds}")
 
 
 def _check_device(device: str) -> None:
@@ -304,6 +309,7 @@ def _env_job(
             "compute_dtype": config.compute_dtype,
             "processes": processes,
             "device": config.device,
+            "min_seconds": 0.0 if config.quick else config.env_min_seconds,
         }
         cmd = [sys.executable, "-m", "trajeglish_env.benchmark.worker", json.dumps(spec)]
         done = subprocess.run(cmd, capture_output=True, text=True, check=False)
