@@ -23,6 +23,7 @@ from trajeglish_env.cli_args import (
     add_map_args,
     at_least_one,
     below_one,
+    non_negative_float,
     one_line,
     output_dir,
     positive_float,
@@ -130,6 +131,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         closed_loop_along_recovery=args.closed_loop_along_recovery,
         closed_loop_teacher_forced=not args.closed_loop_only,
         interaction_weight=args.interaction_weight,
+        collision_weight=args.collision_weight,
         history_dropout=args.history_dropout,
         noise_on_device=args.noise_on_device,
     )
@@ -307,6 +309,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--closed-loop-only",
         action="store_true",
         help="train on the closed-loop windows alone (default: beside the batch's teacher-forced ones)",
+    )
+    p.add_argument(
+        "--collision-weight",
+        type=non_negative_float,
+        default=0.0,
+        help="weight of a loss term against the probability on candidate tokens that would collide (0: off; "
+        "scenes of a model's own rollouts, scripts/guarded_rollout_scenes.py --guard off, train by it alone "
+        "after their current step)",
     )
     p.add_argument(
         "--interaction-weight",

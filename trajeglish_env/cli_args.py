@@ -86,6 +86,11 @@ def positive_float(text: str) -> float:
     return _float_where(text, lambda v: math.isfinite(v) and v > 0, "a finite number > 0")
 
 
+def non_negative_float(text: str) -> float:
+    """Argument type: a finite number >= 0 (a weight that may be off)."""
+    return _float_where(text, lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0")
+
+
 def at_least_one(text: str) -> float:
     """Argument type: a finite number >= 1 (a loss weight)."""
     return _float_where(text, lambda v: math.isfinite(v) and v >= 1, "a finite number >= 1")

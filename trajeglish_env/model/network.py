@@ -199,7 +199,16 @@ class TrajeglishModel(nn.Module):
         """Mean cross-entropy (nats) over observed targets ``[B,A,T]`` (``-1`` ignored) and their count; with
         ``weights [B,A,T]`` (training's :mod:`~trajeglish_env.training.interaction_weights`) the weighted mean
         and the observed targets' weight sum."""
-        logits = self.forward(scene, input_tokens, view)
+        return self.loss_of_logits(self.forward(scene, input_tokens, view), scene, targets, weights)
+
+    def loss_of_logits(
+        self,
+        logits: torch.Tensor,
+        scene: SceneInputs,
+        targets: torch.Tensor,
+        weights: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, float]:
+        """:meth:`loss` of teacher-forced ``logits [B,T,A,D]`` already computed (:meth:`forward`)."""
         tgt = self.drawn_targets(targets, scene.agent_kind[:, :, None]).transpose(1, 2)  # [B,T,A]
         tgt = torch.where(scene.agent_mask[:, None, :], tgt, torch.full_like(tgt, -1))
         if weights is None:

@@ -79,6 +79,12 @@ def _chunks_for(scene: Scenario, points_per_chunk: int, stride: int) -> MapChunk
     return per_scene[points_per_chunk, stride]
 
 
+# the end of the ``source`` of a scene whose agents present at its current step follow a model's own rollout
+# after it (``scripts/guarded_rollout_scenes.py``): trained on by the colliding-mass term, its rolled-out
+# tokens are not likelihood targets (training/blocked_mass.py)
+ROLLOUT_SOURCE = "+rollout"
+
+
 class WindowDataset(Dataset):
     """PyTorch dataset yielding one training window (a dict of fixed-shape arrays) per scene index.
 
@@ -86,7 +92,8 @@ class WindowDataset(Dataset):
     ``agent_kind [A]`` int64, ``agent_mask [A]`` (real vs padding), ``map_points [M,P,2]`` float32,
     ``map_point_mask [M,P]``, ``map_kind [M]`` int64, ``map_mask [M]``, ``map_signal [M]`` int64 (signal
     classes at the window's first step), ``frame [3]`` float64 (the
-    global state defining the frame), ``scene [ ]`` and ``start [ ]`` int64. Padding agents come first
+    global state defining the frame), ``scene [ ]``, ``start [ ]`` and ``logged_targets [ ]`` int64 (the
+    leading targets that move between logged states, :func:`logged_targets`). Padding agents come first
     (the order the sampler uses: padding, then agents in acting order).
     """
 
@@ -183,7 +190,17 @@ def make_window(
         "frame": frame.astype(np.float64),
         "scene": np.int64(scene_index),
         "start": np.int64(start),
+        "logged_targets": np.int64(logged_targets(scene, start, c.steps - 1)),
     }
+
+
+def logged_targets(scene: Scenario, start: int, targets: int) -> int:
+    """How many leading targets of a window from step ``start`` (``targets`` of them) move between logged
+    states: all of them, but in a scene of a model's own rollout (:data:`ROLLOUT_SOURCE` ending its
+    source), whose states after its current step are the model's, those up to that step."""
+    if not scene.source.endswith(ROLLOUT_SOURCE):
+        return targets
+    return int(np.clip(scene.current_index - start, 0, targets))
 
 
 def collate_windows(items: Sequence[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:

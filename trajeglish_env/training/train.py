@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
@@ -46,6 +47,7 @@ from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
+from trajeglish_env.training.blocked_mass import batch_blocked, blocked_loss, logged_weights
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
 from trajeglish_env.training.curves import plot_curve, write_metrics
 from trajeglish_env.training.dataset import SceneStore, collate_windows, window_config
@@ -96,6 +98,10 @@ class TrainConfig:
     # loss weight of the tokens of agents closing in on the agent ahead (training/interaction_weights.py):
     # 1 = plain likelihood; the logged training loss is then the weighted mean, validation NLL stays plain
     interaction_weight: float = 1.0
+    # weight of the colliding-mass term (training/blocked_mass.py): 0 = off; W adds W * -log(1 - m) per
+    # target with colliding candidates, m the probability on them; windows of a model's own rollouts
+    # (scenes whose source ends "+rollout") then train by it alone after their current step
+    collision_weight: float = 0.0
     # share of each window's agents whose input tokens are all hidden (training_data.drop_histories): their
     # next tokens must be told from the current states a neighbour_input model reads, not their own trend
     history_dropout: float = 0.0
@@ -108,6 +114,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.signal_lr_scale must be > 0, got {self.signal_lr_scale}")
         if not self.interaction_weight >= 1:
             raise ValueError(f"TrainConfig.interaction_weight must be >= 1, got {self.interaction_weight}")
+        if not self.collision_weight >= 0:
+            raise ValueError(f"TrainConfig.collision_weight must be >= 0, got {self.collision_weight}")
         if not 0 <= self.history_dropout < 1:
             raise ValueError(f"TrainConfig.history_dropout must be in [0, 1), got {self.history_dropout}")
         self.closed_loop()  # ClosedLoopConfig checks its settings
@@ -148,17 +156,32 @@ def _param_groups(model: TrajeglishModel, config: TrainConfig) -> list[dict[str,
 class _LossModule(nn.Module):
     """Wraps the model so that DDP sees one forward that returns (summed loss, token count)."""
 
-    def __init__(self, model: TrajeglishModel, interaction_weight: float = 1.0):
+    def __init__(
+        self,
+        model: TrajeglishModel,
+        interaction_weight: float = 1.0,
+        collision_weight: float = 0.0,
+        templates: np.ndarray | None = None,
+    ):
         super().__init__()
         self.model = model
         self.interaction_weight = interaction_weight
+        self.collision_weight = collision_weight
+        self.templates = templates  # the drawn tokens' motion templates [classes,D,3] (collision_weight)
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         scene = SceneInputs.from_batch(batch)
         view = batch_view(self.model.cfg.neighbour_input, batch)
-        weights = interaction_weights(batch, self.interaction_weight)
-        mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"], view, weights)
-        return mean * n, torch.tensor(float(n), device=mean.device)
+        weights = logged_weights(batch, interaction_weights(batch, self.interaction_weight))
+        if not self.collision_weight:
+            mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"], view, weights)
+            return mean * n, torch.tensor(float(n), device=mean.device)
+        assert self.templates is not None
+        logits = self.model.forward(scene, batch["input_tokens"], view)
+        mean, n = self.model.loss_of_logits(logits, scene, batch["tokens"], weights)
+        blocked = batch_blocked(self.model, batch, self.templates)
+        total = mean * n + self.collision_weight * blocked_loss(logits, blocked)
+        return total, torch.tensor(float(n), device=mean.device)
 
 
 def split_scenes(scenes: Sequence[Scenario], fraction: float) -> tuple[list[Scenario], list[Scenario]]:
@@ -250,7 +273,8 @@ def train(
         if start_ckpt is not None:
             load_into(model, start_ckpt, vocabulary)
 
-    loss_module: nn.Module = _LossModule(model, config.interaction_weight)
+    drawn = vocabulary.templates[:, : model.cfg.drawn]
+    loss_module: nn.Module = _LossModule(model, config.interaction_weight, config.collision_weight, drawn)
     if dd.world > 1:
         loss_module = nn.parallel.DistributedDataParallel(
             loss_module, device_ids=[device.index] if device.type == "cuda" else None

@@ -1,0 +1,145 @@
+"""The colliding-mass training term (training/blocked_mass.py): which candidates collide, the loss, the
+rolled-out targets kept out of the likelihood, and a training run with it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from helpers import bundle_scene, grid_vocabulary, straight_road_scene, tiny_config
+
+from trajeglish_env.checkpoint import load_checkpoint
+from trajeglish_env.geometry import to_global
+from trajeglish_env.metrics.boxes import box_collisions
+from trajeglish_env.scenario_io import save_scenarios
+from trajeglish_env.training.blocked_mass import blocked_candidates, blocked_loss, logged_weights
+from trajeglish_env.training.dataset import ROLLOUT_SOURCE, WindowConfig, make_window
+from trajeglish_env.training.train import TrainConfig, train
+
+CAR = (4.5, 2.0)
+
+
+def forward_templates(count: int = 16) -> np.ndarray:
+    """One class of ``count`` straight moves 0 .. 3 m (and a second class, a copy, unused)."""
+    step = np.zeros((count, 3))
+    step[:, 0] = np.linspace(0.0, 3.0, count)
+    return np.stack([step, step])
+
+
+def two_cars(gap: float, ahead_moves: float) -> tuple[np.ndarray, ...]:
+    """One window: slot 0 padding, slot 1 a car ``gap`` m ahead (front to centre spacing) that moves
+    ``ahead_moves`` m in step 0, slot 2 a car at the origin; 2 states, 1 target step."""
+    xyh = np.zeros((1, 3, 2, 3))
+    xyh[0, 1, 0] = (gap, 0.0, 0.0)
+    xyh[0, 1, 1] = (gap + ahead_moves, 0.0, 0.0)
+    xyh[0, 2, 1] = (1.0, 0.0, 0.0)
+    valid = np.zeros((1, 3, 2), bool)
+    valid[0, 1:] = True
+    size = np.ones((1, 3, 2))
+    size[0, 1:] = CAR
+    kind = np.zeros((1, 3), np.int64)
+    return xyh, valid, size, kind
+
+
+def expected_mask(obstacle: np.ndarray, templates: np.ndarray) -> np.ndarray:
+    """The candidates of the car at the origin whose box overlaps a car at ``obstacle [3]`` (brute force)."""
+    cand = to_global(np.zeros(3), templates[0])
+    return box_collisions(cand, np.array(CAR), np.broadcast_to(obstacle, cand.shape), np.array(CAR))
+
+
+def test_colliding_candidates_against_the_obstacle_as_the_order_shows_it() -> None:
+    templates = forward_templates()
+    xyh, valid, size, kind = two_cars(gap=5.0, ahead_moves=1.0)
+    tokens = np.full((1, 3, 1), -1)
+    tokens[0, 1:, 0] = (0, 5)  # slot 2's logged token: 1 m forward, clear of the car ahead's next box
+    got = blocked_candidates(xyh, valid, size, kind, tokens, templates)
+    # slot 1 acts before slot 2: slot 2 sees it at its next state, 6 m ahead (moves over 1.5 m collide)
+    assert got.count == 1 and (got.batch[0], got.agent[0], got.step[0]) == (0, 2, 0)
+    want = expected_mask(xyh[0, 1, 1], templates)
+    np.testing.assert_array_equal(got.mask[0], want)
+    assert 0 < want.sum() < len(want)  # some moves reach it, some do not
+    # the car ahead (slot 1) sees slot 2 at its current state (it acts later): nothing it can reach
+    assert 1 not in got.agent.tolist()
+    # the car ahead standing still is hit by more candidates
+    still = two_cars(gap=5.0, ahead_moves=0.0)
+    tokens[0, 2, 0] = 2  # 0.4 m: clear of it at 5 m
+    tighter = blocked_candidates(*still, tokens, templates)
+    assert tighter.mask[0].sum() > got.mask[0].sum()
+    np.testing.assert_array_equal(tighter.mask[0], expected_mask(still[0][0, 1, 1], templates))
+
+
+def test_overlapping_boxes_and_colliding_logs_are_left_out() -> None:
+    templates = forward_templates()
+    tokens = np.full((1, 3, 1), -1)
+    tokens[0, 1:, 0] = (0, 5)
+    # boxes overlapping already at the step: no move undoes that, so nothing is trained there
+    xyh, valid, size, kind = two_cars(gap=3.0, ahead_moves=0.0)
+    assert blocked_candidates(xyh, valid, size, kind, tokens, templates).count == 0
+    # the logged token itself collides (2.4 m forward into a car 6 m ahead): the position is not trained
+    xyh, valid, size, kind = two_cars(gap=6.0, ahead_moves=0.0)
+    tokens[0, 2, 0] = 12
+    assert expected_mask(xyh[0, 1, 1], templates)[12]
+    assert blocked_candidates(xyh, valid, size, kind, tokens, templates).count == 0
+    with pytest.raises(ValueError, match="states of 2 steps need 1 target steps, got 2"):
+        blocked_candidates(xyh, valid, size, kind, np.zeros((1, 3, 2), np.int64), templates)
+
+
+def test_blocked_loss_is_minus_log_of_the_free_mass_and_its_gradient_frees_it() -> None:
+    templates = forward_templates()
+    xyh, valid, size, kind = two_cars(gap=6.0, ahead_moves=0.0)
+    tokens = np.full((1, 3, 1), -1)
+    tokens[0, 1:, 0] = (0, 3)
+    got = blocked_candidates(xyh, valid, size, kind, tokens, templates)
+    logits = torch.randn(1, 1, 3, 16, dtype=torch.float64, requires_grad=True)  # [B,T,A,D]
+    p = torch.softmax(logits[0, 0, 2], -1).detach().numpy()
+    m = p[got.mask[0]].sum()
+    loss = blocked_loss(logits, got)
+    assert float(loss.detach()) == pytest.approx(-np.log(1 - m), rel=1e-6)  # computed in float32
+    loss.backward()
+    with torch.no_grad():
+        after = torch.softmax((logits - 0.5 * logits.grad)[0, 0, 2], -1).numpy()
+    assert after[got.mask[0]].sum() < m
+    # no position: a zero that still backpropagates
+    none = blocked_candidates(*two_cars(gap=30.0, ahead_moves=0.0), tokens, templates)
+    assert none.count == 0 and float(blocked_loss(logits, none).detach()) == 0.0
+
+
+def test_rolled_out_targets_are_kept_out_of_the_likelihood() -> None:
+    scene = bundle_scene("highway-merge-999000")
+    config = WindowConfig(steps=25, max_agents=8)
+    logged = make_window(scene, config, np.random.default_rng(0))
+    assert logged["logged_targets"] == 24
+    rolled = replace(scene, source=scene.source + ROLLOUT_SOURCE)
+    window = make_window(rolled, config, np.random.default_rng(0))
+    start = int(window["start"])
+    assert window["logged_targets"] == min(max(scene.current_index - start, 0), 24)
+    batch = {
+        "tokens": torch.zeros(2, 3, 24, dtype=torch.long),
+        "logged_targets": torch.tensor([24, 5]),
+    }
+    w = logged_weights(batch, None)
+    assert w is not None and w.shape == (2, 3, 24)
+    assert w[0].sum() == 72 and w[1, 0, :5].tolist() == [1.0] * 5 and w[1, 0, 5:].sum() == 0
+    assert logged_weights({**batch, "logged_targets": torch.tensor([24, 24])}, None) is None
+    doubled = logged_weights(batch, torch.full((2, 3, 24), 2.0))
+    assert doubled is not None and doubled[1, 2, 4] == 2.0 and doubled[1, 2, 5] == 0.0
+
+
+def test_training_with_the_colliding_mass_term(tmp_path) -> None:
+    scenes = [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)]
+    # half of them a model's rollouts: their windows train past the current step by the term alone
+    scenes[2:] = [replace(s, source=s.source + ROLLOUT_SOURCE) for s in scenes[2:]]
+    save_scenarios(tmp_path / "data" / "a.scn.npz", scenes)
+    cfg = TrainConfig(
+        steps=4, batch_size=4, warmup_steps=1, val_every=100, log_every=1, checkpoint_every=4,
+        num_workers=0, val_fraction=0.0, collision_weight=2.0,
+    )  # fmt: skip
+    vocab = grid_vocabulary()
+    result = train(tmp_path / "data", tmp_path / "run", tiny_config(), cfg, vocabulary=vocab, progress=False)
+    assert np.isfinite(result["train_loss"])
+    saved = load_checkpoint(tmp_path / "run" / "last.pt").trainer["train_config"]
+    assert saved["collision_weight"] == 2.0
+    with pytest.raises(ValueError, match="collision_weight must be >= 0, got -1"):
+        TrainConfig(collision_weight=-1.0)
