@@ -82,6 +82,10 @@ def test_overlapping_boxes_and_colliding_logs_are_left_out() -> None:
     tokens[0, 2, 0] = 12
     assert expected_mask(xyh[0, 1, 1], templates)[12]
     assert blocked_candidates(xyh, valid, size, kind, tokens, templates).count == 0
+    assert blocked_candidates(xyh, valid, size, kind, tokens, templates, logged=np.array([1])).count == 0
+    # ... but a model's own rolled-out token that collides is no data: there the term matters most
+    rolled = blocked_candidates(xyh, valid, size, kind, tokens, templates, logged=np.array([0]))
+    assert rolled.count == 1 and rolled.mask[0, 12]
     with pytest.raises(ValueError, match="states of 2 steps need 1 target steps, got 2"):
         blocked_candidates(xyh, valid, size, kind, np.zeros((1, 3, 2), np.int64), templates)
 
@@ -101,6 +105,14 @@ def test_blocked_loss_is_minus_log_of_the_free_mass_and_its_gradient_frees_it() 
     with torch.no_grad():
         after = torch.softmax((logits - 0.5 * logits.grad)[0, 0, 2], -1).numpy()
     assert after[got.mask[0]].sum() < m
+    # nearly every candidate colliding: a constant, no gradient
+    trapped = torch.zeros(1, 1, 3, 16, dtype=torch.float64, requires_grad=True)
+    with torch.no_grad():
+        trapped[0, 0, 2, got.mask[0]] = 20.0
+    capped = blocked_loss(trapped, got)
+    assert float(capped.detach()) == pytest.approx(-np.log(1 - 0.99), rel=1e-5)
+    capped.backward()
+    assert trapped.grad is not None and float(trapped.grad.abs().max()) == 0.0
     # no position: a zero that still backpropagates
     none = blocked_candidates(*two_cars(gap=30.0, ahead_moves=0.0), tokens, templates)
     assert none.count == 0 and float(blocked_loss(logits, none).detach()) == 0.0

@@ -14,6 +14,7 @@ the windows' (agent, obstacle, step) triples and the candidates near each obstac
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,8 @@ import torch
 
 from trajeglish_env.geometry import to_global
 from trajeglish_env.metrics.boxes import box_collisions
+
+MAX_MASS = 0.99  # colliding mass above which a position adds a constant (a situation no token escapes)
 
 
 @dataclass(frozen=True)
@@ -50,13 +53,16 @@ def blocked_candidates(
     kind: np.ndarray,
     tokens: np.ndarray,
     templates: np.ndarray,
+    logged: np.ndarray | None = None,
 ) -> BlockedCandidates:
     """The colliding candidates of windows ``xyh [B,A,S,3]`` (``valid [B,A,S]``, ``size [B,A,2]``, ``kind
     [B,A]``; slots in acting order) with targets ``tokens [B,A,T]`` (``T = S - 1``; -1: none) over the
     motion templates ``templates [classes,D,3]``. Agent ``a``'s candidates at step ``t`` start from its
     logged state there; an obstacle is any other agent present, at its state of ``t + 1`` when its slot acts
     before ``a``'s, else at ``t``, unless ``a``'s box overlaps it already (no move undoes that). Only
-    positions with some colliding candidate and a logged token that does not collide are returned."""
+    positions with some colliding candidate are returned, and of the logged targets (the first ``logged
+    [B]`` of each window; None: all) those whose own token does not collide: a model's rolled-out token
+    that collides is not data, and its position is where the term matters most."""
     b_, a_, s_ = valid.shape
     t_ = tokens.shape[-1]
     if s_ != t_ + 1:
@@ -98,10 +104,10 @@ def blocked_candidates(
     mask[inverse, v] = True
     pb, rest = np.divmod(positions, a_ * t_)
     pa, pt = np.divmod(rest, t_)
-    logged = tokens[pb, pa, pt]
-    keep = (logged < templates.shape[1]) & ~mask[
-        np.arange(len(positions)), np.minimum(logged, mask.shape[1] - 1)
-    ]
+    token = tokens[pb, pa, pt]
+    own = mask[np.arange(len(positions)), np.clip(token, 0, mask.shape[1] - 1)] & (token < mask.shape[1])
+    data = np.ones(len(positions), bool) if logged is None else pt < np.asarray(logged)[pb]
+    keep = ~(own & data)
     return BlockedCandidates(pb[keep], pa[keep], pt[keep], mask[keep])
 
 
@@ -116,8 +122,9 @@ def blocked_loss(logits: torch.Tensor, blocked: BlockedCandidates) -> torch.Tens
     logp = torch.log_softmax(lg, dim=-1)
     mask = torch.from_numpy(blocked.mask).to(dev)
     log_m = torch.logsumexp(logp.masked_fill(~mask, float("-inf")), dim=-1)
-    # -log(1 - m) from log m, stable near m = 1
-    return -torch.log(-torch.expm1(log_m.clamp(max=-1e-6))).sum()
+    # -log(1 - m) from log m; where nearly every candidate collides (m > MAX_MASS) there is nothing to learn
+    # and the term is a constant (no gradient), so such positions cannot swamp the batch
+    return -torch.log(-torch.expm1(log_m.clamp(max=math.log(MAX_MASS)))).sum()
 
 
 def logged_weights(batch: dict[str, torch.Tensor], weights: torch.Tensor | None) -> torch.Tensor | None:
@@ -146,4 +153,5 @@ def batch_blocked(
         kind.cpu().numpy(),
         targets.cpu().numpy(),
         templates,
+        None if "logged_targets" not in batch else batch["logged_targets"].cpu().numpy(),
     )
