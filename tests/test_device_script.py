@@ -210,6 +210,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         CLOSED_LOOP="3",
         NEIGHBOUR_INPUT="1",
         INTERACTION_WEIGHT="2.5",
+        COLLISION_WEIGHT="1.5",
         HISTORY_DROPOUT="0.3",
     )
     assert job.returncode == 0, job.stdout[-3000:]
@@ -228,6 +229,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert ckpt.config.neighbour_input  # CAT-K windows of a model that reads its neighbours
     assert summary["params"]["INTERACTION_WEIGHT"] == "2.5"  # kept for a resumed call
     assert ckpt.training["train_config"]["interaction_weight"] == 2.5
+    assert summary["params"]["COLLISION_WEIGHT"] == "1.5"  # kept for a resumed call
+    assert ckpt.training["train_config"]["collision_weight"] == 1.5
     assert summary["params"]["HISTORY_DROPOUT"] == "0.3"  # kept for a resumed call
     assert ckpt.training["train_config"]["history_dropout"] == 0.3
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
@@ -244,6 +247,10 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert (
         bad_weight.returncode == 2
         and "INTERACTION_WEIGHT=0.5: expected a loss weight >= 1" in bad_weight.stdout
+    )
+    bad_collision = _job(tmp_path, "vx", COLLISION_WEIGHT="-1")
+    assert bad_collision.returncode == 2 and "COLLISION_WEIGHT=-1: expected a loss weight >= 0" in (
+        bad_collision.stdout
     )
     bad_dropout = _job(tmp_path, "vd", HISTORY_DROPOUT="1")
     assert (
