@@ -72,6 +72,8 @@
 #                  scenes of a model's own rollouts carried in DATA_IN/train (`scripts/guarded_rollout_scenes.py
 #                  --guard off --as-rollout`) train by it alone past their current step; 0: off [0]; kept
 #                  when resuming
+#   COLLISION_HORIZON  steps each candidate is kept up for COLLISION_WEIGHT (`train --collision-horizon`):
+#                  1: the guard's one-step rule [1]; kept when resuming
 #   HISTORY_DROPOUT  share of each window's agents whose input tokens are all hidden (`train
 #                  --history-dropout`; needs NEIGHBOUR_INPUT=1; docs/evaluation.md "Hiding an agent's own
 #                  motion"); 0: none [0]; kept when resuming
@@ -102,7 +104,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest); a resumed run
 # keeps these (trajeglish_env/device_job.py SAVED)
-SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT COLLISION_WEIGHT HISTORY_DROPOUT"
+SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT COLLISION_WEIGHT COLLISION_HORIZON HISTORY_DROPOUT"
 declare -A GIVEN=()
 for v in $SAVED_VARS; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
@@ -201,6 +203,10 @@ COLLISION_WEIGHT=${COLLISION_WEIGHT:-0}
 [[ "$COLLISION_WEIGHT" =~ ^[0-9]+([.][0-9]+)?$ ]] ||
     die "COLLISION_WEIGHT=$COLLISION_WEIGHT: expected a loss weight >= 0 (0: off)"
 [ "$(calc "($COLLISION_WEIGHT > 0)")" = 0 ] || CLOSED_ARGS+=(--collision-weight "$COLLISION_WEIGHT")
+COLLISION_HORIZON=${COLLISION_HORIZON:-1}
+[[ "$COLLISION_HORIZON" =~ ^[1-9][0-9]*$ ]] ||
+    die "COLLISION_HORIZON=$COLLISION_HORIZON: expected a whole number of steps >= 1"
+[ "$COLLISION_HORIZON" = 1 ] || CLOSED_ARGS+=(--collision-horizon "$COLLISION_HORIZON")
 HISTORY_DROPOUT=${HISTORY_DROPOUT:-0}
 [[ "$HISTORY_DROPOUT" =~ ^0*([.][0-9]+)?$ ]] && [ "$(calc "($HISTORY_DROPOUT < 1)")" = 1 ] ||
     die "HISTORY_DROPOUT=$HISTORY_DROPOUT: expected a share in [0, 1) (0: none)"
@@ -246,7 +252,7 @@ esac
     die "HISTORY_DROPOUT=$HISTORY_DROPOUT needs NEIGHBOUR_INPUT=1 (a dropped agent's next tokens are told from its neighbours)"
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT COLLISION_HORIZON=$COLLISION_HORIZON HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh

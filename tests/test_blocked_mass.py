@@ -146,12 +146,71 @@ def test_training_with_the_colliding_mass_term(tmp_path) -> None:
     save_scenarios(tmp_path / "data" / "a.scn.npz", scenes)
     cfg = TrainConfig(
         steps=4, batch_size=4, warmup_steps=1, val_every=100, log_every=1, checkpoint_every=4,
-        num_workers=0, val_fraction=0.0, collision_weight=2.0,
+        num_workers=0, val_fraction=0.0, collision_weight=2.0, collision_horizon=5,
     )  # fmt: skip
     vocab = grid_vocabulary()
     result = train(tmp_path / "data", tmp_path / "run", tiny_config(), cfg, vocabulary=vocab, progress=False)
     assert np.isfinite(result["train_loss"])
     saved = load_checkpoint(tmp_path / "run" / "last.pt").trainer["train_config"]
-    assert saved["collision_weight"] == 2.0
+    assert saved["collision_weight"] == 2.0 and saved["collision_horizon"] == 5
     with pytest.raises(ValueError, match="collision_weight must be >= 0, got -1"):
         TrainConfig(collision_weight=-1.0)
+    with pytest.raises(ValueError, match="collision_horizon must be >= 1 step, got 0"):
+        TrainConfig(collision_horizon=0)
+
+
+def follow_window(gap: float, ahead_speed: float, steps: int) -> tuple[np.ndarray, ...]:
+    """One window of ``steps + 1`` states: slot 1 a car ``gap`` m ahead moving ``ahead_speed`` m a step,
+    slot 2 a car at the origin (its later states far aside: only its step-0 target is set)."""
+    xyh = np.zeros((1, 3, steps + 1, 3))
+    xyh[0, 1, :, 0] = gap + ahead_speed * np.arange(steps + 1)
+    xyh[0, 2, 1:, 1] = 50.0
+    valid = np.zeros((1, 3, steps + 1), bool)
+    valid[0, 1:] = True
+    size = np.ones((1, 3, 2))
+    size[0, 1:] = CAR
+    return xyh, valid, size, np.zeros((1, 3), np.int64)
+
+
+def kept_up_mask(xyh: np.ndarray, horizon: int, templates: np.ndarray) -> np.ndarray:
+    """Brute force: slot 2's candidates whose move, repeated h = 1 .. horizon times, overlaps slot 1 at its
+    window state of step h (slot 1 acts first, so at h = 1 the guard's rule is the same state)."""
+    hit = np.zeros(templates.shape[1], bool)
+    for v in range(templates.shape[1]):
+        state = np.zeros(3)
+        for h in range(1, horizon + 1):
+            state = to_global(state, templates[0, v])
+            hit[v] |= bool(box_collisions(state, np.array(CAR), xyh[0, 1, h], np.array(CAR)))
+    return hit
+
+
+def test_a_horizon_counts_the_moves_that_stay_on_a_collision_course() -> None:
+    templates = forward_templates()
+    steps = 6
+    tokens = np.full((1, 3, steps), -1)
+    tokens[0, 2, 0] = 1  # 0.2 m a step: clear of the car ahead for the whole horizon
+    xyh, valid, size, kind = follow_window(gap=12.0, ahead_speed=0.0, steps=steps)
+    # one step: no move of at most 3 m reaches a car 12 m ahead
+    assert blocked_candidates(xyh, valid, size, kind, tokens, templates).count == 0
+    for horizon in (3, 5):
+        got = blocked_candidates(xyh, valid, size, kind, tokens, templates, horizon=horizon)
+        want = kept_up_mask(xyh, horizon, templates)
+        assert got.count == 1 and (got.agent[0], got.step[0]) == (2, 0)
+        np.testing.assert_array_equal(got.mask[0], want)
+    # kept up 5 steps, moves over 1.5 m a step reach the standing car's tail (7.5 m away)
+    assert kept_up_mask(xyh, 5, templates).sum() > kept_up_mask(xyh, 3, templates).sum() > 0
+    assert not kept_up_mask(xyh, 5, templates)[:8].any() and kept_up_mask(xyh, 5, templates)[8:].all()
+    # the car ahead driving off at 1 m a step: only faster moves close in; the window's states are used
+    away = follow_window(gap=12.0, ahead_speed=1.0, steps=steps)
+    moving = blocked_candidates(*away, tokens, templates, horizon=5)
+    np.testing.assert_array_equal(moving.mask[0], kept_up_mask(away[0], 5, templates))
+    assert 0 < moving.mask[0].sum() < kept_up_mask(xyh, 5, templates).sum()
+    # the horizon ends with the window: from its last target step only one step is looked at
+    last = np.full((1, 3, steps), -1)
+    last[0, 2, steps - 1] = 1
+    assert blocked_candidates(xyh, valid, size, kind, last, templates, horizon=5).count == 0
+    # a logged token on a collision course is data: its position is left out
+    tokens[0, 2, 0] = 15
+    assert blocked_candidates(xyh, valid, size, kind, tokens, templates, horizon=5).count == 0
+    with pytest.raises(ValueError, match="horizon must be >= 1 step, got 0"):
+        blocked_candidates(xyh, valid, size, kind, tokens, templates, horizon=0)

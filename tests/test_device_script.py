@@ -211,6 +211,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         NEIGHBOUR_INPUT="1",
         INTERACTION_WEIGHT="2.5",
         COLLISION_WEIGHT="1.5",
+        COLLISION_HORIZON="4",
         HISTORY_DROPOUT="0.3",
     )
     assert job.returncode == 0, job.stdout[-3000:]
@@ -231,6 +232,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert ckpt.training["train_config"]["interaction_weight"] == 2.5
     assert summary["params"]["COLLISION_WEIGHT"] == "1.5"  # kept for a resumed call
     assert ckpt.training["train_config"]["collision_weight"] == 1.5
+    assert summary["params"]["COLLISION_HORIZON"] == "4"  # kept for a resumed call
+    assert ckpt.training["train_config"]["collision_horizon"] == 4
     assert summary["params"]["HISTORY_DROPOUT"] == "0.3"  # kept for a resumed call
     assert ckpt.training["train_config"]["history_dropout"] == 0.3
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
@@ -251,6 +254,10 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     bad_collision = _job(tmp_path, "vx", COLLISION_WEIGHT="-1")
     assert bad_collision.returncode == 2 and "COLLISION_WEIGHT=-1: expected a loss weight >= 0" in (
         bad_collision.stdout
+    )
+    bad_horizon = _job(tmp_path, "vh", COLLISION_HORIZON="0")
+    assert bad_horizon.returncode == 2 and "COLLISION_HORIZON=0: expected a whole number of steps" in (
+        bad_horizon.stdout
     )
     bad_dropout = _job(tmp_path, "vd", HISTORY_DROPOUT="1")
     assert (

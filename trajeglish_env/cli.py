@@ -132,6 +132,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         closed_loop_teacher_forced=not args.closed_loop_only,
         interaction_weight=args.interaction_weight,
         collision_weight=args.collision_weight,
+        collision_horizon=args.collision_horizon,
         history_dropout=args.history_dropout,
         noise_on_device=args.noise_on_device,
     )
@@ -317,6 +318,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="weight of a loss term against the probability on candidate tokens that would collide (0: off; "
         "scenes of a model's own rollouts, scripts/guarded_rollout_scenes.py --guard off, train by it alone "
         "after their current step)",
+    )
+    p.add_argument(
+        "--collision-horizon",
+        type=POSITIVE,
+        default=1,
+        help="steps each candidate is kept up for --collision-weight (1: the guard's one-step rule; H: also "
+        "moves that stay on a collision course with an agent's states of the next H steps)",
     )
     p.add_argument(
         "--interaction-weight",

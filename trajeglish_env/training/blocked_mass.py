@@ -54,6 +54,7 @@ def blocked_candidates(
     tokens: np.ndarray,
     templates: np.ndarray,
     logged: np.ndarray | None = None,
+    horizon: int = 1,
 ) -> BlockedCandidates:
     """The colliding candidates of windows ``xyh [B,A,S,3]`` (``valid [B,A,S]``, ``size [B,A,2]``, ``kind
     [B,A]``; slots in acting order) with targets ``tokens [B,A,T]`` (``T = S - 1``; -1: none) over the
@@ -62,48 +63,82 @@ def blocked_candidates(
     before ``a``'s, else at ``t``, unless ``a``'s box overlaps it already (no move undoes that). Only
     positions with some colliding candidate are returned, and of the logged targets (the first ``logged
     [B]`` of each window; None: all) those whose own token does not collide: a model's rolled-out token
-    that collides is not data, and its position is where the term matters most."""
+    that collides is not data, and its position is where the term matters most.
+
+    ``horizon`` H > 1 also counts a candidate as colliding when, kept up (the same move repeated: constant
+    speed and turn rate), it overlaps an obstacle at the obstacle's window state of ``t + h``, h = 2 .. H
+    (within the window): a collision course one token ahead of which no single move escapes."""
     b_, a_, s_ = valid.shape
     t_ = tokens.shape[-1]
     if s_ != t_ + 1:
         raise ValueError(f"blocked_candidates: states of {s_} steps need {s_ - 1} target steps, got {t_}")
+    if horizon < 1:
+        raise ValueError(f"blocked_candidates: horizon must be >= 1 step, got {horizon}")
     xyh = np.asarray(xyh, np.float64)
     size = np.asarray(size, np.float64)
     cur, nxt = xyh[:, :, :t_], xyh[:, :, 1:]
     before = np.arange(a_)[None, :] < np.arange(a_)[:, None]  # [a, o]: slot o acts before slot a
-    # every (b, a, o, t) with a target for a, o present where a sees it, near enough for some candidate
     move = np.hypot(templates[..., 0], templates[..., 1]).max(axis=1)  # per class
-    reach = move[np.clip(kind, 0, len(move) - 1)] + half_diagonal(size)  # [B,A]
-    seen_valid = np.where(before[None, :, :, None], valid[:, None, :, 1:], valid[:, None, :, :t_])
-    target = tokens >= 0
     hd = half_diagonal(size)
+    reach1 = move[np.clip(kind, 0, len(move) - 1)]  # [B,A]: farthest one-step move
+    target = tokens >= 0
+    # every (b, a, o, t) with a target for a and o present where a sees it after some h <= H steps
+    seen_valid = np.where(before[None, :, :, None], valid[:, None, :, 1:], valid[:, None, :, :t_])
+    later = np.zeros_like(seen_valid)
+    for h in range(2, horizon + 1):
+        later[..., : t_ - h + 1] |= valid[:, None, :, h:]
     b, a, o, t = np.nonzero(
-        target[:, :, None, :] & seen_valid & ~np.eye(a_, dtype=bool)[None, :, :, None]
-    )  # candidates pairs, filtered by distance below
-    obs = np.where(before[a, o][:, None], nxt[b, o, t], cur[b, o, t])
+        target[:, :, None, :] & (seen_valid | later) & ~np.eye(a_, dtype=bool)[None, :, :, None]
+    )
     origin = cur[b, a, t]
-    near = np.hypot(*(obs[:, :2] - origin[:, :2]).T) < reach[b, a] + hd[b, o]
-    b, a, o, t, obs, origin = b[near], a[near], o[near], t[near], obs[near], origin[near]
+    # the obstacle as the candidates meet it after h steps (h = 1: the guard's rule), and whether it is there
+    obstacles, present = [], []
+    for h in range(1, horizon + 1):
+        th = np.minimum(t + h, s_ - 1)
+        obs = np.where(before[a, o][:, None], nxt[b, o, t], cur[b, o, t]) if h == 1 else xyh[b, o, th]
+        ok = (
+            np.where(before[a, o], valid[b, o, t + 1], valid[b, o, t])
+            if h == 1
+            else (t + h < s_) & valid[b, o, th]
+        )
+        obstacles.append(obs)
+        present.append(ok)
+    # near enough for some kept-up candidate at some h
+    lim = hd[b, a] + hd[b, o]
+    # at step h, a pair is active when the obstacle is there and near enough for a kept-up candidate
+    active = [
+        present[h] & (np.hypot(*(obstacles[h][:, :2] - origin[:, :2]).T) < (h + 1) * reach1[b, a] + lim)
+        for h in range(horizon)
+    ]
     # a box overlapping the obstacle already is left out, as by the guard
-    free = ~box_collisions(origin, size[b, a], obs, size[b, o])
-    b, a, o, t, obs, origin = b[free], a[free], o[free], t[free], obs[free], origin[free]
-    empty = BlockedCandidates(*(np.zeros(0, np.int64),) * 3, np.zeros((0, templates.shape[1]), bool))
-    if not len(b):
-        return empty
-    cls = np.clip(kind[b, a], 0, len(move) - 1)
-    cand = to_global(origin[:, None], templates[cls])  # [P,D,3]
-    limit = hd[b, a] + hd[b, o]
-    dx, dy = cand[..., 0] - obs[:, None, 0], cand[..., 1] - obs[:, None, 1]
-    p, v = np.nonzero(dx * dx + dy * dy < (limit * limit)[:, None])
-    hit = box_collisions(cand[p, v], size[b[p], a[p]], obs[p], size[b[p], o[p]])
-    p, v = p[hit], v[hit]
-    # pairs -> positions (b, a, t)
+    free = ~(present[0] & box_collisions(origin, size[b, a], obstacles[0], size[b, o]))
+    active = [x & free for x in active]
+    used = np.logical_or.reduce(active)
+    if not used.any():
+        return BlockedCandidates(*(np.zeros(0, np.int64),) * 3, np.zeros((0, templates.shape[1]), bool))
+    # candidates per position (b, a, t), shared by its pairs: the move kept up for h + 1 steps
     key = (b * a_ + a) * t_ + t
-    positions, inverse = np.unique(key[p], return_inverse=True)
-    mask = np.zeros((len(positions), templates.shape[1]), bool)
-    mask[inverse, v] = True
+    positions, pos_of = np.unique(key[used], return_inverse=True)
+    pair_pos = np.full(len(b), -1)
+    pair_pos[used] = pos_of
     pb, rest = np.divmod(positions, a_ * t_)
     pa, pt = np.divmod(rest, t_)
+    cls = np.clip(kind[pb, pa], 0, len(move) - 1)
+    mask = np.zeros((len(positions), templates.shape[1]), bool)
+    cand = cur[pb, pa, pt][:, None].repeat(templates.shape[1], 1)
+    for h in range(horizon):
+        cand = to_global(cand, templates[cls])  # [Q,D,3]
+        pairs = np.flatnonzero(active[h])
+        if not len(pairs):
+            continue
+        q, obs = pair_pos[pairs], obstacles[h][pairs]
+        dx, dy = cand[q, :, 0] - obs[:, None, 0], cand[q, :, 1] - obs[:, None, 1]
+        r, v = np.nonzero(~mask[q] & (dx * dx + dy * dy < (lim[pairs] * lim[pairs])[:, None]))
+        pr = pairs[r]
+        over = box_collisions(cand[q[r], v], size[b[pr], a[pr]], obs[r], size[b[pr], o[pr]])
+        mask[q[r][over], v[over]] = True
+    some = mask.any(1)
+    positions, mask, pb, pa, pt = positions[some], mask[some], pb[some], pa[some], pt[some]
     token = tokens[pb, pa, pt]
     own = mask[np.arange(len(positions)), np.clip(token, 0, mask.shape[1] - 1)] & (token < mask.shape[1])
     data = np.ones(len(positions), bool) if logged is None else pt < np.asarray(logged)[pb]
@@ -140,7 +175,7 @@ def logged_weights(batch: dict[str, torch.Tensor], weights: torch.Tensor | None)
 
 
 def batch_blocked(
-    model: torch.nn.Module, batch: dict[str, torch.Tensor], templates: np.ndarray
+    model: torch.nn.Module, batch: dict[str, torch.Tensor], templates: np.ndarray, horizon: int = 1
 ) -> BlockedCandidates:
     """:func:`blocked_candidates` of a collated training batch, targets as the model draws them."""
     kind = batch["agent_kind"]
@@ -154,4 +189,5 @@ def batch_blocked(
         targets.cpu().numpy(),
         templates,
         None if "logged_targets" not in batch else batch["logged_targets"].cpu().numpy(),
+        horizon,
     )

@@ -98,16 +98,14 @@ class TrainConfig:
     # loss weight of the tokens of agents closing in on the agent ahead (training/interaction_weights.py):
     # 1 = plain likelihood; the logged training loss is then the weighted mean, validation NLL stays plain
     interaction_weight: float = 1.0
-    # weight of the colliding-mass term (training/blocked_mass.py): 0 = off; W adds W * -log(1 - m) per
-    # target with colliding candidates, m the probability on them; windows of a model's own rollouts
-    # (scenes whose source ends "+rollout") then train by it alone after their current step
+    # colliding-mass term (training/blocked_mass.py): W * -log(1 - m) per target with colliding candidates (0:
+    # off; "+rollout" scenes train by it alone after their current step); candidates kept up H steps
     collision_weight: float = 0.0
+    collision_horizon: int = 1
     # share of each window's agents whose input tokens are all hidden (training_data.drop_histories): their
     # next tokens must be told from the current states a neighbour_input model reads, not their own trend
     history_dropout: float = 0.0
-    # the noisy input tokens drawn in this process on the model's device (training/device_noise.py) instead
-    # of by the loading processes: the same draws up to rounding, far less work for them (for a GPU)
-    noise_on_device: bool = False
+    noise_on_device: bool = False  # noisy inputs drawn on the model's device (training/device_noise.py; GPU)
 
     def __post_init__(self) -> None:
         if not self.signal_lr_scale > 0:
@@ -116,6 +114,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.interaction_weight must be >= 1, got {self.interaction_weight}")
         if not self.collision_weight >= 0:
             raise ValueError(f"TrainConfig.collision_weight must be >= 0, got {self.collision_weight}")
+        if not self.collision_horizon >= 1:
+            raise ValueError(f"TrainConfig.collision_horizon must be >= 1 step, got {self.collision_horizon}")
         if not 0 <= self.history_dropout < 1:
             raise ValueError(f"TrainConfig.history_dropout must be in [0, 1), got {self.history_dropout}")
         self.closed_loop()  # ClosedLoopConfig checks its settings
@@ -162,12 +162,14 @@ class _LossModule(nn.Module):
         interaction_weight: float = 1.0,
         collision_weight: float = 0.0,
         templates: np.ndarray | None = None,
+        collision_horizon: int = 1,
     ):
         super().__init__()
         self.model = model
         self.interaction_weight = interaction_weight
         self.collision_weight = collision_weight
         self.templates = templates  # the drawn tokens' motion templates [classes,D,3] (collision_weight)
+        self.collision_horizon = collision_horizon
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         scene = SceneInputs.from_batch(batch)
@@ -179,7 +181,7 @@ class _LossModule(nn.Module):
         assert self.templates is not None
         logits = self.model.forward(scene, batch["input_tokens"], view)
         mean, n = self.model.loss_of_logits(logits, scene, batch["tokens"], weights)
-        blocked = batch_blocked(self.model, batch, self.templates)
+        blocked = batch_blocked(self.model, batch, self.templates, self.collision_horizon)
         total = mean * n + self.collision_weight * blocked_loss(logits, blocked)
         return total, torch.tensor(float(n), device=mean.device)
 
@@ -274,7 +276,9 @@ def train(
             load_into(model, start_ckpt, vocabulary)
 
     drawn = vocabulary.templates[:, : model.cfg.drawn]
-    loss_module: nn.Module = _LossModule(model, config.interaction_weight, config.collision_weight, drawn)
+    loss_module: nn.Module = _LossModule(
+        model, config.interaction_weight, config.collision_weight, drawn, config.collision_horizon
+    )
     if dd.world > 1:
         loss_module = nn.parallel.DistributedDataParallel(
             loss_module, device_ids=[device.index] if device.type == "cuda" else None
