@@ -9,7 +9,10 @@ loss, ``m`` being the model's probability of its candidates that would collide i
 (unlikelihood training). Positions whose logged token collides itself (a log's overlap, or one the
 tokenization makes) are left out, so the term never pushes against the data. The candidates, the
 obstacles and the overlap rule are the guard's: :func:`blocked_candidates` finds them, vectorized over
-the windows' (agent, obstacle, step) triples and the candidates near each obstacle.
+the windows' (agent, obstacle, step) triples and the candidates near each obstacle. ``horizon`` H (``train
+--collision-horizon``) widens the rule from one step to H: a move kept up that runs into an agent's
+window states of the next H steps counts too, since most collisions of the model alone are set up steps
+before the last move that makes them.
 """
 
 from __future__ import annotations
