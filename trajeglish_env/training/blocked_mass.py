@@ -106,8 +106,7 @@ def blocked_candidates(
         )
         obstacles.append(obs)
         present.append(ok)
-    # near enough for some kept-up candidate at some h
-    lim = hd[b, a] + hd[b, o]
+    lim = hd[b, a] + hd[b, o]  # centre distance below which two boxes may overlap
     # at step h, a pair is active when the obstacle is there and near enough for a kept-up candidate
     active = [
         present[h] & (np.hypot(*(obstacles[h][:, :2] - origin[:, :2]).T) < (h + 1) * reach1[b, a] + lim)
