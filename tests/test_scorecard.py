@@ -171,12 +171,35 @@ def test_a_run_scores_generated_scenes_and_resumes_from_its_saved_parts(tmp_path
     save_checkpoint(path, ckpt.model, ckpt.vocabulary)  # another checkpoint file: every part again
     run_scorecard({"tiny": load_checkpoint(path)}, config, out, data, progress=False)
     assert calls == ["highway", "highway", "highway", "tokenize"]
+    saved = out / "parts" / scorecard.file_sha256(path)[:16] / "highway.json"
+    stale = json.loads(saved.read_text())  # the same part, as other code computed it: computed again
+    stale["settings"]["code"] = "0" * 16
+    stale["result"]["methods"]["log"]["metametric"] = 0.5
+    saved.write_text(json.dumps(stale))
+    again = run_scorecard({"tiny": load_checkpoint(path)}, config, out, data, progress=False)
+    assert calls[-1] == "highway" and len(calls) == 5
+    assert again["parts"]["tiny"]["highway"]["methods"]["log"]["metametric"] > 0.8
 
 
 def replace_rollouts(config: ScorecardConfig, rollouts: int) -> ScorecardConfig:
     from dataclasses import replace
 
     return replace(config, rollouts=rollouts)
+
+
+def test_the_code_digest_follows_the_package_sources(tmp_path: Path) -> None:
+    (tmp_path / "sampler").mkdir()
+    (tmp_path / "sampler" / "guard.py").write_text("RULE = 1\n")
+    (tmp_path / "notes.md").write_text("not code")
+    before = scorecard.source_digest(tmp_path)
+    (tmp_path / "notes.md").write_text("other text")
+    assert scorecard.source_digest(tmp_path) == before  # only Python sources count
+    (tmp_path / "sampler" / "guard.py").write_text("RULE = 2\n")
+    changed = scorecard.source_digest(tmp_path)
+    (tmp_path / "sampler" / "guard.py").rename(tmp_path / "guard.py")
+    assert len({before, changed, scorecard.source_digest(tmp_path)}) == 3
+    digest = scorecard.code_digest()
+    assert scorecard.part_settings(ScorecardConfig(), "highway")["code"] == digest and len(digest) == 16
 
 
 def test_speed_is_timed_in_interleaved_pairs_against_the_shipped_model(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]

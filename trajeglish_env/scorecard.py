@@ -4,13 +4,15 @@ brake test, 30 s rollouts, the shared WOMD scene, the demo episode and tokenizat
 
 The held-out scenes are generated with fixed seeds (``trajeglish generate``; resumed when present), so two
 runs on two machines score the same scenes. Each part of each checkpoint is saved as it finishes, keyed by
-the checkpoint file's sha256 and the part's settings: a run that stops resumes where it stopped, and a
-candidate is scored beside an earlier run's rows of the shipped model without recomputing them. The
+the checkpoint file's sha256, the part's settings and a digest of the package's code: a run that stops
+resumes where it stopped, a candidate is scored beside an earlier run's rows of the shipped model without
+recomputing them, and a part computed by other code (a changed guard, say) is computed again. The
 report is ``scorecard.json`` and ``scorecard.md`` (one column per checkpoint, every row against its
 target)."""
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -102,6 +104,22 @@ QUICK = ScorecardConfig(
 )  # a smoke run: every part, small
 
 
+def source_digest(root: Path) -> str:
+    """The sha256 (16 hex digits) of the Python sources under ``root``, their paths and contents."""
+    digest = hashlib.sha256()
+    for source in sorted(root.rglob("*.py")):
+        digest.update(source.relative_to(root).as_posix().encode() + b"\0")
+        digest.update(source.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+@functools.cache
+def code_digest() -> str:
+    """This package's :func:`source_digest`: a saved part whose digest differs was computed by other code,
+    so its figures may not be today's."""
+    return source_digest(Path(__file__).resolve().parent)
+
+
 def file_sha256(path: str | os.PathLike[str]) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as f:
@@ -165,6 +183,8 @@ class Scorecard:
             if saved and saved.get("format") == FORMAT and saved.get("settings") == settings:
                 self.log(f"scorecard: {label} {name}: from {path}")
                 return saved["result"]
+            if saved and saved.get("settings", {}).get("code") != settings["code"]:
+                self.log(f"scorecard: {label} {name}: {path} was computed by other code, computed again")
         self.log(f"scorecard: {label} {name} ...")
         start = time.perf_counter()
         result = PART_FUNCTIONS[name](self, key, ckpt)
@@ -181,7 +201,8 @@ class Scorecard:
 def part_settings(config: ScorecardConfig, name: str) -> dict[str, Any]:
     """The settings a part's result depends on, as plain JSON values (a saved part is reused only when they
     are the same): the scorecard's own, the env's default NPC sampling and the metrics' version (so a
-    change of those defaults computes the parts again), and the WOMD file's sha256."""
+    change of those defaults computes the parts again), the package's code digest and the WOMD file's
+    sha256."""
     from trajeglish_env.evaluation import EvalConfig
     from trajeglish_env.sampler.config import SamplingConfig
 
@@ -189,6 +210,7 @@ def part_settings(config: ScorecardConfig, name: str) -> dict[str, Any]:
         "seed": config.seed,
         "sampling": asdict(SamplingConfig()),
         "metrics": EvalConfig().metrics,
+        "code": code_digest(),
     }
     by_part: dict[str, dict[str, Any]] = {
         "highway": {"scenes": asdict(config.highway), "rollouts": config.rollouts},
