@@ -90,6 +90,22 @@ def test_overlapping_boxes_and_colliding_logs_are_left_out() -> None:
         blocked_candidates(xyh, valid, size, kind, np.zeros((1, 3, 2), np.int64), templates)
 
 
+def test_the_term_on_rolled_out_targets_alone_leaves_the_logged_ones_out() -> None:
+    templates = forward_templates()
+    xyh, valid, size, kind = two_cars(gap=5.0, ahead_moves=1.0)
+    tokens = np.full((1, 3, 1), -1)
+    tokens[0, 1:, 0] = (0, 5)  # a clear logged token beside colliding candidates: trained by default
+    window = (xyh, valid, size, kind, tokens, templates)
+    for logged, want in ((np.array([1]), 0), (np.array([0]), 1)):
+        assert blocked_candidates(*window, logged=logged).count == 1
+        only = blocked_candidates(*window, logged=logged, rolled_out_only=True)
+        assert only.count == want  # the one target is logged (1) or the model's own (0)
+    # the same candidates where the position counts
+    np.testing.assert_array_equal(only.mask[0], expected_mask(xyh[0, 1, 1], templates))
+    with pytest.raises(ValueError, match="rolled_out_only needs the windows' logged target counts"):
+        blocked_candidates(*window, rolled_out_only=True)
+
+
 def test_blocked_loss_is_minus_log_of_the_free_mass_and_its_gradient_frees_it() -> None:
     templates = forward_templates()
     xyh, valid, size, kind = two_cars(gap=6.0, ahead_moves=0.0)
@@ -139,7 +155,8 @@ def test_rolled_out_targets_are_kept_out_of_the_likelihood() -> None:
     assert doubled is not None and doubled[1, 2, 4] == 2.0 and doubled[1, 2, 5] == 0.0
 
 
-def test_training_with_the_colliding_mass_term(tmp_path) -> None:
+@pytest.mark.parametrize("rolled_out_only", [False, True], ids=["all-targets", "rolled-out-only"])
+def test_training_with_the_colliding_mass_term(tmp_path, rolled_out_only: bool) -> None:
     scenes = [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)]
     # half of them a model's rollouts: their windows train past the current step by the term alone
     scenes[2:] = [replace(s, source=s.source + ROLLOUT_SOURCE) for s in scenes[2:]]
@@ -147,12 +164,14 @@ def test_training_with_the_colliding_mass_term(tmp_path) -> None:
     cfg = TrainConfig(
         steps=4, batch_size=4, warmup_steps=1, val_every=100, log_every=1, checkpoint_every=4,
         num_workers=0, val_fraction=0.0, collision_weight=2.0, collision_horizon=5,
+        collision_rolled_out_only=rolled_out_only,
     )  # fmt: skip
     vocab = grid_vocabulary()
     result = train(tmp_path / "data", tmp_path / "run", tiny_config(), cfg, vocabulary=vocab, progress=False)
     assert np.isfinite(result["train_loss"])
     saved = load_checkpoint(tmp_path / "run" / "last.pt").trainer["train_config"]
     assert saved["collision_weight"] == 2.0 and saved["collision_horizon"] == 5
+    assert saved["collision_rolled_out_only"] is rolled_out_only
     with pytest.raises(ValueError, match="collision_weight must be >= 0, got -1"):
         TrainConfig(collision_weight=-1.0)
     with pytest.raises(ValueError, match="collision_horizon must be >= 1 step, got 0"):

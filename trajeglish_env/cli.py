@@ -133,6 +133,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         interaction_weight=args.interaction_weight,
         collision_weight=args.collision_weight,
         collision_horizon=args.collision_horizon,
+        collision_rolled_out_only=args.collision_rolled_out_only,
         history_dropout=args.history_dropout,
         noise_on_device=args.noise_on_device,
     )
@@ -325,6 +326,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=1,
         help="steps each candidate is kept up for --collision-weight (1: the guard's one-step rule; H: also "
         "moves that stay on a collision course with an agent's states of the next H steps)",
+    )
+    p.add_argument(
+        "--collision-rolled-out-only",
+        action="store_true",
+        help="apply --collision-weight to the rolled-out targets of own-rollout scenes alone (the logged "
+        "targets keep plain likelihood)",
     )
     p.add_argument(
         "--interaction-weight",

@@ -58,6 +58,7 @@ def blocked_candidates(
     templates: np.ndarray,
     logged: np.ndarray | None = None,
     horizon: int = 1,
+    rolled_out_only: bool = False,
 ) -> BlockedCandidates:
     """The colliding candidates of windows ``xyh [B,A,S,3]`` (``valid [B,A,S]``, ``size [B,A,2]``, ``kind
     [B,A]``; slots in acting order) with targets ``tokens [B,A,T]`` (``T = S - 1``; -1: none) over the
@@ -70,7 +71,10 @@ def blocked_candidates(
 
     ``horizon`` H > 1 also counts a candidate as colliding when, kept up (the same move repeated: constant
     speed and turn rate), it overlaps an obstacle at the obstacle's window state of ``t + h``, h = 2 .. H
-    (within the window): a collision course one token ahead of which no single move escapes."""
+    (within the window): a collision course one token ahead of which no single move escapes.
+
+    ``rolled_out_only``: only the targets past ``logged`` (a model's own rolled-out states) count, so the
+    logged targets are left to the likelihood alone and keep the log's kinematics."""
     b_, a_, s_ = valid.shape
     t_ = tokens.shape[-1]
     if s_ != t_ + 1:
@@ -85,6 +89,10 @@ def blocked_candidates(
     hd = half_diagonal(size)
     reach1 = move[np.clip(kind, 0, len(move) - 1)]  # [B,A]: farthest one-step move
     target = tokens >= 0
+    if rolled_out_only:
+        if logged is None:
+            raise ValueError("blocked_candidates: rolled_out_only needs the windows' logged target counts")
+        target &= np.arange(t_)[None, None, :] >= np.asarray(logged)[:, None, None]
     # every (b, a, o, t) with a target for a and o present where a sees it after some h <= H steps
     seen_valid = np.where(before[None, :, :, None], valid[:, None, :, 1:], valid[:, None, :, :t_])
     later = np.zeros_like(seen_valid)
@@ -177,9 +185,15 @@ def logged_weights(batch: dict[str, torch.Tensor], weights: torch.Tensor | None)
 
 
 def batch_blocked(
-    model: torch.nn.Module, batch: dict[str, torch.Tensor], templates: np.ndarray, horizon: int = 1
+    model: torch.nn.Module,
+    batch: dict[str, torch.Tensor],
+    templates: np.ndarray,
+    horizon: int = 1,
+    rolled_out_only: bool = False,
 ) -> BlockedCandidates:
     """:func:`blocked_candidates` of a collated training batch, targets as the model draws them."""
+    if rolled_out_only and "logged_targets" not in batch:
+        raise ValueError("collision_rolled_out_only: the batch has no logged_targets (an older dataset's)")
     kind = batch["agent_kind"]
     targets = model.drawn_targets(batch["tokens"], kind[:, :, None])
     valid = batch["agent_valid"] & batch["agent_mask"][..., None]
@@ -192,4 +206,5 @@ def batch_blocked(
         templates,
         None if "logged_targets" not in batch else batch["logged_targets"].cpu().numpy(),
         horizon,
+        rolled_out_only,
     )

@@ -99,9 +99,11 @@ class TrainConfig:
     # 1 = plain likelihood; the logged training loss is then the weighted mean, validation NLL stays plain
     interaction_weight: float = 1.0
     # colliding-mass term (training/blocked_mass.py): W * -log(1 - m) per target with colliding candidates (0:
-    # off; "+rollout" scenes train by it alone after their current step); candidates kept up H steps
+    # off; "+rollout" scenes train by it alone after their current step); candidates kept up H steps;
+    # rolled_out_only: the term on those rolled-out targets alone (the logged ones keep plain likelihood)
     collision_weight: float = 0.0
     collision_horizon: int = 1
+    collision_rolled_out_only: bool = False
     # share of each window's agents whose input tokens are all hidden (training_data.drop_histories): their
     # next tokens must be told from the current states a neighbour_input model reads, not their own trend
     history_dropout: float = 0.0
@@ -156,20 +158,14 @@ def _param_groups(model: TrajeglishModel, config: TrainConfig) -> list[dict[str,
 class _LossModule(nn.Module):
     """Wraps the model so that DDP sees one forward that returns (summed loss, token count)."""
 
-    def __init__(
-        self,
-        model: TrajeglishModel,
-        interaction_weight: float = 1.0,
-        collision_weight: float = 0.0,
-        templates: np.ndarray | None = None,
-        collision_horizon: int = 1,
-    ):
+    def __init__(self, model: TrajeglishModel, config: TrainConfig, templates: np.ndarray | None = None):
         super().__init__()
         self.model = model
-        self.interaction_weight = interaction_weight
-        self.collision_weight = collision_weight
+        self.interaction_weight = config.interaction_weight
+        self.collision_weight = config.collision_weight
         self.templates = templates  # the drawn tokens' motion templates [classes,D,3] (collision_weight)
-        self.collision_horizon = collision_horizon
+        self.collision_horizon = config.collision_horizon
+        self.only_rolled = config.collision_rolled_out_only
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         scene = SceneInputs.from_batch(batch)
@@ -181,7 +177,7 @@ class _LossModule(nn.Module):
         assert self.templates is not None
         logits = self.model.forward(scene, batch["input_tokens"], view)
         mean, n = self.model.loss_of_logits(logits, scene, batch["tokens"], weights)
-        blocked = batch_blocked(self.model, batch, self.templates, self.collision_horizon)
+        blocked = batch_blocked(self.model, batch, self.templates, self.collision_horizon, self.only_rolled)
         total = mean * n + self.collision_weight * blocked_loss(logits, blocked)
         return total, torch.tensor(float(n), device=mean.device)
 
@@ -276,9 +272,7 @@ def train(
             load_into(model, start_ckpt, vocabulary)
 
     drawn = vocabulary.templates[:, : model.cfg.drawn]
-    loss_module: nn.Module = _LossModule(
-        model, config.interaction_weight, config.collision_weight, drawn, config.collision_horizon
-    )
+    loss_module: nn.Module = _LossModule(model, config, drawn)
     if dd.world > 1:
         loss_module = nn.parallel.DistributedDataParallel(
             loss_module, device_ids=[device.index] if device.type == "cuda" else None
