@@ -213,6 +213,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         COLLISION_WEIGHT="1.5",
         COLLISION_HORIZON="4",
         COLLISION_ROLLED_OUT_ONLY="1",
+        OFFROAD_WEIGHT="0.5",
         HISTORY_DROPOUT="0.3",
     )
     assert job.returncode == 0, job.stdout[-3000:]
@@ -237,6 +238,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert ckpt.training["train_config"]["collision_horizon"] == 4
     assert summary["params"]["COLLISION_ROLLED_OUT_ONLY"] == "1"  # kept for a resumed call
     assert ckpt.training["train_config"]["collision_rolled_out_only"] is True
+    assert summary["params"]["OFFROAD_WEIGHT"] == "0.5"  # kept for a resumed call
+    assert ckpt.training["train_config"]["offroad_weight"] == 0.5
     assert summary["params"]["HISTORY_DROPOUT"] == "0.3"  # kept for a resumed call
     assert ckpt.training["train_config"]["history_dropout"] == 0.3
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
@@ -264,6 +267,10 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     )
     bad_scope = _job(tmp_path, "vo", COLLISION_ROLLED_OUT_ONLY="yes")
     assert bad_scope.returncode == 2 and "COLLISION_ROLLED_OUT_ONLY=yes: expected 0 or 1" in bad_scope.stdout
+    bad_offroad = _job(tmp_path, "vr", OFFROAD_WEIGHT="lots")
+    assert bad_offroad.returncode == 2 and "OFFROAD_WEIGHT=lots: expected a loss weight >= 0" in (
+        bad_offroad.stdout
+    )
     bad_dropout = _job(tmp_path, "vd", HISTORY_DROPOUT="1")
     assert (
         bad_dropout.returncode == 2 and "HISTORY_DROPOUT=1: expected a share in [0, 1)" in bad_dropout.stdout

@@ -134,6 +134,8 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         collision_weight=args.collision_weight,
         collision_horizon=args.collision_horizon,
         collision_rolled_out_only=args.collision_rolled_out_only,
+        offroad_weight=args.offroad_weight,
+        offroad_positions=args.offroad_positions,
         history_dropout=args.history_dropout,
         noise_on_device=args.noise_on_device,
     )
@@ -332,6 +334,19 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="apply --collision-weight to the rolled-out targets of own-rollout scenes alone (the logged "
         "targets keep plain likelihood)",
+    )
+    p.add_argument(
+        "--offroad-weight",
+        type=non_negative_float,
+        default=0.0,
+        help="weight of a loss term against the probability on candidate tokens that would take a vehicle "
+        "off the road (the guard's road-edge rule, on the scene's road edges; 0: off)",
+    )
+    p.add_argument(
+        "--offroad-positions",
+        type=POSITIVE,
+        default=32,
+        help="vehicle target positions per window, drawn at random, that --offroad-weight checks",
     )
     p.add_argument(
         "--interaction-weight",

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
@@ -41,19 +40,18 @@ from trajeglish_env.checkpoint_reading import training_start
 from trajeglish_env.distributed import init_ranks, rank_device
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.encoder import SIGNAL_PARAMS
-from trajeglish_env.model.neighbours import batch_view
-from trajeglish_env.model.network import SceneInputs, TrajeglishModel
+from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
-from trajeglish_env.training.blocked_mass import batch_blocked, blocked_loss, logged_weights
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
 from trajeglish_env.training.curves import plot_curve, write_metrics
 from trajeglish_env.training.dataset import SceneStore, collate_windows, window_config
 from trajeglish_env.training.device_noise import DeviceTemplates, device_input_tokens
-from trajeglish_env.training.interaction_weights import interaction_weights
 from trajeglish_env.training.kind_repeat import window_order
+from trajeglish_env.training.loss import TrainingLoss
+from trajeglish_env.training.offroad_mass import OffroadTerm
 from trajeglish_env.training.run_records import run_facts, save_last, training_info
 from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
@@ -104,6 +102,10 @@ class TrainConfig:
     collision_weight: float = 0.0
     collision_horizon: int = 1
     collision_rolled_out_only: bool = False
+    # off-road-mass term (training/offroad_mass.py): W * -log(1 - m) at `offroad_positions` vehicle targets
+    # per window, m the probability on candidates the guard's road-edge rule masks (0: off)
+    offroad_weight: float = 0.0
+    offroad_positions: int = 32
     # share of each window's agents whose input tokens are all hidden (training_data.drop_histories): their
     # next tokens must be told from the current states a neighbour_input model reads, not their own trend
     history_dropout: float = 0.0
@@ -116,6 +118,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.interaction_weight must be >= 1, got {self.interaction_weight}")
         if not self.collision_weight >= 0:
             raise ValueError(f"TrainConfig.collision_weight must be >= 0, got {self.collision_weight}")
+        if not (self.offroad_weight >= 0 and self.offroad_positions >= 1):
+            raise ValueError(f"TrainConfig: offroad_weight >= 0 and offroad_positions >= 1, got {self}")
         if not self.collision_horizon >= 1:
             raise ValueError(f"TrainConfig.collision_horizon must be >= 1 step, got {self.collision_horizon}")
         if not 0 <= self.history_dropout < 1:
@@ -153,33 +157,6 @@ def _param_groups(model: TrajeglishModel, config: TrainConfig) -> list[dict[str,
         key = "signal" if name.startswith(SIGNAL_PARAMS) else "decay" if p.ndim >= 2 else "no_decay"
         groups[key]["params"].append(p)
     return [g for g in groups.values() if g["params"]]
-
-
-class _LossModule(nn.Module):
-    """Wraps the model so that DDP sees one forward that returns (summed loss, token count)."""
-
-    def __init__(self, model: TrajeglishModel, config: TrainConfig, templates: np.ndarray | None = None):
-        super().__init__()
-        self.model = model
-        self.interaction_weight = config.interaction_weight
-        self.collision_weight = config.collision_weight
-        self.templates = templates  # the drawn tokens' motion templates [classes,D,3] (collision_weight)
-        self.collision_horizon = config.collision_horizon
-        self.only_rolled = config.collision_rolled_out_only
-
-    def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        scene = SceneInputs.from_batch(batch)
-        view = batch_view(self.model.cfg.neighbour_input, batch)
-        weights = logged_weights(batch, interaction_weights(batch, self.interaction_weight))
-        if not self.collision_weight:
-            mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"], view, weights)
-            return mean * n, torch.tensor(float(n), device=mean.device)
-        assert self.templates is not None
-        logits = self.model.forward(scene, batch["input_tokens"], view)
-        mean, n = self.model.loss_of_logits(logits, scene, batch["tokens"], weights)
-        blocked = batch_blocked(self.model, batch, self.templates, self.collision_horizon, self.only_rolled)
-        total = mean * n + self.collision_weight * blocked_loss(logits, blocked)
-        return total, torch.tensor(float(n), device=mean.device)
 
 
 def split_scenes(scenes: Sequence[Scenario], fraction: float) -> tuple[list[Scenario], list[Scenario]]:
@@ -272,7 +249,7 @@ def train(
             load_into(model, start_ckpt, vocabulary)
 
     drawn = vocabulary.templates[:, : model.cfg.drawn]
-    loss_module: nn.Module = _LossModule(model, config, drawn)
+    loss_module: nn.Module = TrainingLoss(model, config, drawn)
     if dd.world > 1:
         loss_module = nn.parallel.DistributedDataParallel(
             loss_module, device_ids=[device.index] if device.type == "cuda" else None
@@ -289,6 +266,7 @@ def train(
         order,
         config.history_dropout,
         config.noise_on_device,
+        OffroadTerm(config.offroad_positions, model.cfg.drawn) if config.offroad_weight else None,
     )
     sampler = StepBatchSampler(config.batch_size, start_step, config.steps, dd.rank, dd.world)
     loader = DataLoader(

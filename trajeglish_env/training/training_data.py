@@ -22,6 +22,7 @@ from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 from trajeglish_env.training.dataset import WindowConfig, collate_windows, make_window
 from trajeglish_env.training.device_noise import add_noise_fields
+from trajeglish_env.training.offroad_mass import OffroadTerm, add_offroad_masks
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,7 @@ class TokenizedWindows(Dataset):
         order: Callable[[int], tuple[int, int]] | None = None,
         history_dropout: float = 0.0,
         noise_on_device: bool = False,
+        offroad: OffroadTerm | None = None,
     ):
         if not 0 <= history_dropout < 1:
             raise ValueError(f"TokenizedWindows: history_dropout must be in [0, 1), got {history_dropout}")
@@ -66,6 +68,7 @@ class TokenizedWindows(Dataset):
         self.order = order or SampleOrder(len(scenes), seed)  # (epoch, scene) of each sample counter
         self.history_dropout = history_dropout
         self.noise_on_device = noise_on_device  # noisy inputs drawn in training (training/device_noise.py)
+        self.offroad = offroad  # the off-road term's candidate masks (training/offroad_mass.py)
 
     def __len__(self) -> int:  # a sampler provides the indices; any g >= 0 is valid
         return len(self.scenes)
@@ -87,6 +90,10 @@ class TokenizedWindows(Dataset):
         if self.history_dropout:  # its own stream: the windows and noisy tokens stay those of p = 0
             for w, (epoch, scene) in zip(windows, drawn, strict=True):
                 drop_histories(w, self.history_dropout, np.random.default_rng([self.seed, epoch, scene, 1]))
+        if self.offroad is not None:  # its own stream too
+            scenes = [self.scenes[scene] for _, scene in drawn]
+            streams = [np.random.default_rng([self.seed, epoch, scene, 2]) for epoch, scene in drawn]
+            add_offroad_masks(windows, scenes, self.vocabulary.templates, self.offroad, streams)
         return windows
 
     def collated(self, start: int, stop: int) -> dict[str, torch.Tensor]:

@@ -1,0 +1,120 @@
+"""The off-road-mass training term (training/offroad_mass.py): the candidates it masks follow the reference
+road-edge rule, logged positions whose own token leaves the road are left out, and a run trains with it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from helpers import grid_vocabulary, tiny_config
+
+from trajeglish_env.checkpoint import load_checkpoint
+from trajeglish_env.geometry import box_corners, to_global
+from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road_edges
+from trajeglish_env.sampler.config import OFFROAD_MARGIN
+from trajeglish_env.scenario import AgentKind, MapKind, Scenario
+from trajeglish_env.scenario_io import save_scenarios
+from trajeglish_env.training.dataset import ROLLOUT_SOURCE, WindowConfig, collate_windows, make_window
+from trajeglish_env.training.offroad_mass import MARGIN, OffroadTerm, add_offroad_masks, offroad_candidates
+from trajeglish_env.training.train import TrainConfig, train
+from trajeglish_env.training.training_data import with_tokens
+
+EDGES = (-1.75, 5.25)  # a two-lane road along +x: right edge drawn +x, left edge -x (road on the left)
+
+
+def road_scene(steps: int = 40, seed: int = 0) -> Scenario:
+    """Four vehicles and a cyclist on a straight two-lane road; the vehicles drift sideways now and then,
+    one of them a little beyond the right edge for a while."""
+    rng = np.random.default_rng(seed)
+    n = 5
+    t = np.arange(steps) * 0.1
+    xyh = np.zeros((n, steps, 3))
+    xyh[..., 0] = np.arange(n)[:, None] * 10.0 + rng.uniform(6, 14, n)[:, None] * t
+    lane = np.array([0.0, 3.5, 0.0, 3.5, 0.0])[:, None]
+    xyh[..., 1] = lane + 0.4 * np.sin(t * rng.uniform(1, 3, n)[:, None])
+    xyh[4, 10:20, 1] = -1.3  # its right corners 0.55 m beyond the edge: off the road
+    kind = np.full(n, AgentKind.VEHICLE)
+    kind[1] = AgentKind.CYCLIST
+    xs = np.arange(-50.0, 200.0, 1.0)
+    right = np.stack([xs, np.full_like(xs, EDGES[0])], -1)
+    left = np.stack([xs[::-1], np.full_like(xs, EDGES[1])], -1)
+    return Scenario.from_arrays(
+        xyh, np.ones((n, steps), bool), np.tile([4.5, 2.0], (n, 1)), kind, track_id=np.arange(n), sdc=0,
+        polylines=[right, left], polyline_kinds=[MapKind.ROAD_EDGE_BOUNDARY] * 2,
+        scenario_id=f"road-{seed}", source="test",
+    )  # fmt: skip
+
+
+def masked_window(scene: Scenario, positions: int = 1000) -> dict[str, np.ndarray]:
+    vocab = grid_vocabulary()
+    window = make_window(scene, WindowConfig(steps=25, max_agents=8), np.random.default_rng(0))
+    with_tokens([window], vocab)
+    term = OffroadTerm(positions=positions, drawn=vocab.size)
+    add_offroad_masks([window], [scene], vocab.templates, term, [np.random.default_rng(1)])
+    return window
+
+
+def test_the_masks_follow_the_reference_road_edge_rule() -> None:
+    assert MARGIN == OFFROAD_MARGIN  # the guard's margin
+    scene = road_scene()
+    w = masked_window(scene)
+    used = w["offroad_slot"] >= 0
+    slot, step, mask = w["offroad_slot"][used], w["offroad_step"][used], w["offroad_mask"][used]
+    # every vehicle target position is drawn (1000 >= all of them), no cyclist's
+    vehicles = (w["agent_kind"] == AgentKind.VEHICLE) & w["agent_mask"]
+    assert used.sum() == ((w["tokens"] >= 0) & vehicles[:, None]).sum()
+    assert (w["agent_kind"][slot] == AgentKind.VEHICLE).all()
+    # brute force: the reference signed distance of every candidate box's corners
+    edges = RoadEdges.from_polylines([p for p in scene.polylines() if len(p) >= 2])
+    origin = to_global(w["frame"], w["agent_xyh"][slot, step].astype(np.float64))
+    size = w["agent_size"][slot].astype(np.float64)
+    cand = to_global(origin[:, None], grid_vocabulary().templates[AgentKind.VEHICLE][None])
+    excess = signed_distance_to_road_edges(box_corners(cand, size[:, None]), edges).max(-1)
+    now = signed_distance_to_road_edges(box_corners(origin, size), edges).max(-1)
+    want = excess > np.maximum(OFFROAD_MARGIN, now)[:, None]
+    np.testing.assert_array_equal(mask, want)
+    assert 0 < mask.any(1).sum() < len(mask)  # some positions have off-road candidates, some none
+    assert (now > 0).any()  # ... the vehicle off the road among them, held to going no farther off
+
+
+def test_logged_positions_whose_own_token_leaves_the_road_are_left_out() -> None:
+    scene = road_scene()
+    w = masked_window(scene)
+    batch = collate_windows([w])
+    drawn = batch["tokens"].clone()
+    got = offroad_candidates(batch, drawn)
+    used = np.flatnonzero(w["offroad_slot"] >= 0)
+    mask = w["offroad_mask"][used]
+    own = mask[np.arange(len(used)), w["tokens"][w["offroad_slot"][used], w["offroad_step"][used]]]
+    assert own.any()  # the logged drift beyond the edge: its own tokens leave the road farther
+    assert got.count == int((mask.any(1) & ~own).sum())
+    # make another position's own token one of its off-road candidates: it is no longer trained ...
+    k = used[np.flatnonzero(mask.any(1) & ~own)[0]]
+    a, t = int(w["offroad_slot"][k]), int(w["offroad_step"][k])
+    drawn[0, a, t] = int(np.flatnonzero(w["offroad_mask"][k])[0])
+    assert offroad_candidates(batch, drawn).count == got.count - 1
+    # ... unless the tokens are a model's own rolled-out ones: then every position with such candidates is
+    rolled = {**batch, "logged_targets": batch["logged_targets"] * 0}
+    assert offroad_candidates(rolled, drawn).count == int(mask.any(1).sum())
+    # a few positions per window, drawn at random
+    assert (masked_window(scene, positions=4)["offroad_slot"] >= 0).sum() == 4
+    with pytest.raises(ValueError, match="positions must be >= 1 per window, got 0"):
+        OffroadTerm(positions=0)
+
+
+def test_training_with_the_offroad_mass_term(tmp_path) -> None:
+    scenes = [road_scene(seed=s) for s in range(4)]
+    scenes[3] = replace(scenes[3], source="test" + ROLLOUT_SOURCE)
+    save_scenarios(tmp_path / "data" / "a.scn.npz", scenes)
+    cfg = TrainConfig(
+        steps=3, batch_size=4, warmup_steps=1, val_every=100, log_every=1, checkpoint_every=3,
+        num_workers=0, val_fraction=0.0, offroad_weight=2.0, offroad_positions=8,
+    )  # fmt: skip
+    vocab = grid_vocabulary()
+    result = train(tmp_path / "data", tmp_path / "run", tiny_config(), cfg, vocabulary=vocab, progress=False)
+    assert np.isfinite(result["train_loss"])
+    saved = load_checkpoint(tmp_path / "run" / "last.pt").trainer["train_config"]
+    assert saved["offroad_weight"] == 2.0 and saved["offroad_positions"] == 8
+    with pytest.raises(ValueError, match="offroad_weight >= 0 and offroad_positions >= 1"):
+        TrainConfig(offroad_weight=-1.0)

@@ -1,0 +1,54 @@
+"""The training loss of one batch (:class:`TrainingLoss`): the tokens' likelihood and the optional terms
+against colliding (:mod:`.blocked_mass`) and off-road (:mod:`.offroad_mass`) candidate tokens."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from torch import nn
+
+from trajeglish_env.model.neighbours import batch_view
+from trajeglish_env.model.network import SceneInputs, TrajeglishModel
+from trajeglish_env.training.blocked_mass import batch_blocked, blocked_loss, logged_weights
+from trajeglish_env.training.interaction_weights import interaction_weights
+from trajeglish_env.training.offroad_mass import offroad_candidates
+
+if TYPE_CHECKING:
+    from trajeglish_env.training.train import TrainConfig
+
+
+class TrainingLoss(nn.Module):
+    """Wraps the model so that DDP sees one forward that returns (summed loss, token count): the likelihood
+    (interaction weights; rolled-out targets left out) plus the colliding- and off-road-mass terms."""
+
+    def __init__(self, model: TrajeglishModel, config: TrainConfig, templates: np.ndarray | None = None):
+        super().__init__()
+        self.model = model
+        self.interaction_weight = config.interaction_weight
+        self.collision_weight = config.collision_weight
+        self.templates = templates  # the drawn tokens' motion templates [classes,D,3] (collision_weight)
+        self.collision_horizon = config.collision_horizon
+        self.only_rolled = config.collision_rolled_out_only
+        self.offroad_weight = config.offroad_weight
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        scene = SceneInputs.from_batch(batch)
+        view = batch_view(self.model.cfg.neighbour_input, batch)
+        weights = logged_weights(batch, interaction_weights(batch, self.interaction_weight))
+        if not (self.collision_weight or self.offroad_weight):
+            mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"], view, weights)
+            return mean * n, torch.tensor(float(n), device=mean.device)
+        logits = self.model.forward(scene, batch["input_tokens"], view)
+        mean, n = self.model.loss_of_logits(logits, scene, batch["tokens"], weights)
+        total = mean * n
+        if self.collision_weight:
+            assert self.templates is not None
+            horizon, only_rolled = self.collision_horizon, self.only_rolled
+            blocked = batch_blocked(self.model, batch, self.templates, horizon, only_rolled)
+            total = total + self.collision_weight * blocked_loss(logits, blocked)
+        if self.offroad_weight:
+            drawn = self.model.drawn_targets(batch["tokens"], batch["agent_kind"][:, :, None])
+            total = total + self.offroad_weight * blocked_loss(logits, offroad_candidates(batch, drawn))
+        return total, torch.tensor(float(n), device=mean.device)
