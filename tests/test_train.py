@@ -239,9 +239,9 @@ def test_curves_command_overlays_runs_and_rejects_bad_files(tmp_path, capsys) ->
 def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
     scenes_dir, tmp_path, monkeypatch, capsys
 ) -> None:
-    import trajeglish_env.training.train as train_module
+    from trajeglish_env.training.loss import TrainingLoss
 
-    original = train_module._LossModule.forward
+    original = TrainingLoss.forward
 
     def poison(steps) -> None:
         """The loss of the given 1-based steps (a predicate) becomes NaN."""
@@ -252,7 +252,7 @@ def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
             loss_sum, n = original(self, batch)
             return (loss_sum * float("nan"), n) if steps(calls["n"]) else (loss_sum, n)
 
-        monkeypatch.setattr(train_module._LossModule, "forward", forward)
+        monkeypatch.setattr(TrainingLoss, "forward", forward)
 
     poison(lambda step: step == 2)
     result = train(
