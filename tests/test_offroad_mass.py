@@ -118,3 +118,5 @@ def test_training_with_the_offroad_mass_term(tmp_path) -> None:
     assert saved["offroad_weight"] == 2.0 and saved["offroad_positions"] == 8
     with pytest.raises(ValueError, match="offroad_weight >= 0 and offroad_positions >= 1"):
         TrainConfig(offroad_weight=-1.0)
+    with pytest.raises(ValueError, match="masks are cut at logged states; closed_loop_top_k rolls"):
+        TrainConfig(offroad_weight=1.0, closed_loop_top_k=3)

@@ -120,6 +120,11 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.collision_weight must be >= 0, got {self.collision_weight}")
         if not (self.offroad_weight >= 0 and self.offroad_positions >= 1):
             raise ValueError(f"TrainConfig: offroad_weight >= 0 and offroad_positions >= 1, got {self}")
+        if self.offroad_weight and self.closed_loop_top_k:
+            raise ValueError(
+                "TrainConfig: offroad_weight masks are cut at logged states; closed_loop_top_k rolls "
+                "them out (use one or the other)"
+            )
         if not self.collision_horizon >= 1:
             raise ValueError(f"TrainConfig.collision_horizon must be >= 1 step, got {self.collision_horizon}")
         if not 0 <= self.history_dropout < 1:
