@@ -213,7 +213,6 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         COLLISION_WEIGHT="1.5",
         COLLISION_HORIZON="4",
         COLLISION_ROLLED_OUT_ONLY="1",
-        OFFROAD_WEIGHT="0.5",
         HISTORY_DROPOUT="0.3",
     )
     assert job.returncode == 0, job.stdout[-3000:]
@@ -238,8 +237,6 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert ckpt.training["train_config"]["collision_horizon"] == 4
     assert summary["params"]["COLLISION_ROLLED_OUT_ONLY"] == "1"  # kept for a resumed call
     assert ckpt.training["train_config"]["collision_rolled_out_only"] is True
-    assert summary["params"]["OFFROAD_WEIGHT"] == "0.5"  # kept for a resumed call
-    assert ckpt.training["train_config"]["offroad_weight"] == 0.5
     assert summary["params"]["HISTORY_DROPOUT"] == "0.3"  # kept for a resumed call
     assert ckpt.training["train_config"]["history_dropout"] == 0.3
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
@@ -267,6 +264,13 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     )
     bad_scope = _job(tmp_path, "vo", COLLISION_ROLLED_OUT_ONLY="yes")
     assert bad_scope.returncode == 2 and "COLLISION_ROLLED_OUT_ONLY=yes: expected 0 or 1" in bad_scope.stdout
+    # OFFROAD_WEIGHT reaches `train`, which refuses it beside CAT-K windows (masks cut at logged states)
+    clash_offroad = _job(
+        tmp_path, "vq", SCENES="10", DATA_IN="", OFFROAD_WEIGHT="0.5", CLOSED_LOOP="3", NEIGHBOUR_INPUT="1"
+    )
+    assert clash_offroad.returncode != 0 and "offroad_weight masks are cut at logged states" in (
+        clash_offroad.stdout
+    )
     bad_offroad = _job(tmp_path, "vr", OFFROAD_WEIGHT="lots")
     assert bad_offroad.returncode == 2 and "OFFROAD_WEIGHT=lots: expected a loss weight >= 0" in (
         bad_offroad.stdout
