@@ -130,6 +130,10 @@ def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
     md = (tmp_path / "eval" / "evaluation.md").read_text()
     assert "| log |" in md and "| constant_velocity |" in md and "sdc placed" in md
     assert "sdc moved into another" in md
+    crashes = methods["tiny@T=1"]["collisions_by_class"]["vehicle"]  # who hit whom, per class
+    assert crashes["collided"] > 0 and sum(crashes["geometry"].values()) == crashes["collided"]
+    assert methods["log"]["collisions_by_class"]["vehicle"]["collided"] == 0
+    assert "| tiny@T=1 | vehicle |" in md and "| log | vehicle |" not in md
     assert json.loads((tmp_path / "eval" / "evaluation.json").read_text())["scenes"] == 2
     assert all(
         (tmp_path / "eval" / n).stat().st_size > 1000

@@ -25,10 +25,11 @@ import numpy as np
 from tqdm import tqdm
 
 from trajeglish_env.checkpoint import Checkpoint
+from trajeglish_env.collision_kinds import collision_kinds, collision_table, pair_hits
 from trajeglish_env.distributed import Ranks, gather, my_share
 from trajeglish_env.evaluation_plots import plot_evaluation, plot_feature_scores
 from trajeglish_env.evaluation_tables import markdown_table
-from trajeglish_env.metrics import LogDetails, RealismScores, box_collisions, mean_scores, score_rollouts
+from trajeglish_env.metrics import LogDetails, RealismScores, mean_scores, score_rollouts
 from trajeglish_env.metrics.collision_fault import collisions_by_fault
 from trajeglish_env.metrics.log_details_io import details_for_files
 from trajeglish_env.metrics.submission import iter_submission
@@ -184,20 +185,10 @@ def collisions_over_time(scene: Scenario, fut: np.ndarray) -> np.ndarray:
     Non-simulated agents are absent; simulated agents are present at every future step.
     """
     sim = simulated(scene)
-    size = scene.size[sim]
-    n = len(sim)
-    i, j = np.triu_indices(n, k=1)
-    centre = fut[..., :2]
-    near = (
-        np.linalg.norm(centre[:, i] - centre[:, j], axis=-1)
-        < (np.linalg.norm(size[i], axis=-1) + np.linalg.norm(size[j], axis=-1))[None, :, None] / 2
-    )  # [R,P,H]: only pairs whose bounding circles touch can collide
-    hit = np.zeros(near.shape, dtype=bool)
-    r, p, h = np.nonzero(near)
-    hit[r, p, h] = box_collisions(fut[r, i[p], h], size[i[p]], fut[r, j[p], h], size[j[p]])
-    agent_hit = np.zeros((fut.shape[0], n, fut.shape[2]), dtype=bool)
-    np.logical_or.at(agent_hit, (r, i[p], h), hit[r, p, h])
-    np.logical_or.at(agent_hit, (r, j[p], h), hit[r, p, h])
+    r, i, j, h = pair_hits(scene, fut, sim)
+    agent_hit = np.zeros((fut.shape[0], len(sim), fut.shape[2]), dtype=bool)
+    agent_hit[r, i, h] = True
+    agent_hit[r, j, h] = True
     return agent_hit.mean(axis=1)
 
 
@@ -251,7 +242,7 @@ def evaluate_methods(
     results: dict[str, Any] = {}
     for name in methods:
         per_scene = sorted((row for part in merged for row in part[name]), key=lambda row: row[0])
-        index, scores, curves, speeds, accels, red = (list(x) for x in zip(*per_scene, strict=True))
+        index, scores, curves, speeds, accels, red, pairs = (list(x) for x in zip(*per_scene, strict=True))
         mean = mean_scores(scores)
         kinds = [scene_kind(scenes[k]) for k in index]
         results[name] = {
@@ -262,6 +253,7 @@ def evaluate_methods(
                 for kind in sorted(set(kinds))
             },
             "red_light_runs_by_kind": _red_light_table(np.sum(red, axis=0)),
+            "collisions_by_class": collision_table(np.sum(pairs, axis=0)),
             "scores_by_kind": {
                 kind: _kind_scores([r for r, g in zip(scores, kinds, strict=True) if g == kind])
                 for kind in sorted(set(kinds))
@@ -293,15 +285,16 @@ def _red_light_table(counts: np.ndarray) -> dict[str, dict[str, float]]:
 
 def _score_scene(
     scene: Scenario, k: int, method: Method, config: EvalConfig, details: Sequence[LogDetails | None] | None
-) -> tuple[int, RealismScores, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(index, scores, collision curve, speeds, accelerations, red-light runs) of one method on scene
-    ``k``."""
+) -> tuple[int, RealismScores, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(index, scores, collision curve, speeds, accelerations, red-light runs, collision kinds) of one
+    method on scene ``k``."""
     fut, z = _split(method(scene, config.rollouts, config.seed + k))
     ids = scene.track_id[simulated(scene)]
     detail = details[k] if details is not None else None
     scores = score_rollouts(scene, fut, ids, config.metrics, rollouts_z=z, details=detail)
     speed, accel = _kinematics(scene, fut)
-    return k, scores, collisions_over_time(scene, fut).mean(0), speed, accel, red_light_runs(scene, fut)
+    curve, red = collisions_over_time(scene, fut).mean(0), red_light_runs(scene, fut)
+    return k, scores, curve, speed, accel, red, collision_kinds(scene, fut, simulated(scene))
 
 
 def _split(out: np.ndarray | tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:

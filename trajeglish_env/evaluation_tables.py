@@ -1,5 +1,6 @@
 """The realism evaluation's Markdown report (``evaluation.md``): the table of methods, red lights run, the
-scene kinds' table and partial control, from :func:`trajeglish_env.evaluation.evaluate`'s JSON document."""
+scene kinds' table, who collides with whom and partial control, from
+:func:`trajeglish_env.evaluation.evaluate`'s JSON document."""
 
 from __future__ import annotations
 
@@ -42,6 +43,7 @@ def markdown_table(result: dict[str, Any]) -> str:
             cells = [f"{r[k]['rate']:.4f} ({r[k]['runs']}/{r[k]['agent_rollouts']})" for k in kinds]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += _kind_table(result["methods"])
+    lines += _collision_table(result["methods"])
     if "partial_control" in result:
         pc = result["partial_control"]
         lines += [
@@ -89,4 +91,35 @@ def _kind_table(methods: dict[str, Any]) -> list[str]:
             if kind in m.get("scores_by_kind", {})
         )
         lines.append(f"| {kind} ({count}) | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _collision_table(methods: dict[str, Any]) -> list[str]:
+    """Markdown lines of the first collisions by class (``collisions_by_class``): for each method and
+    class that collides, the partners' classes and the contact's geometry."""
+    rows = [
+        (name, cls, c)
+        for name, r in methods.items()
+        for cls, c in r.get("collisions_by_class", {}).items()
+        if c["collided"]
+    ]
+    if not rows:
+        return []
+    lines = [
+        "",
+        "Who collides with whom (each simulated agent-rollout's first collision, by its class; partner "
+        "classes vehicle / pedestrian / cyclist):",
+        "",
+        "| method | class | collided | partners | into the one ahead (standing) | from behind | crossing | "
+        "head-on | overlapping at the start |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, cls, c in rows:
+        g = c["geometry"]
+        partners = " / ".join(str(v) for v in c["partner"].values())
+        lines.append(
+            f"| {name} | {cls} | {c['collided']} of {c['agent_rollouts']} ({c['rate']:.3f}) | {partners} | "
+            f"{g['into_agent_ahead']} ({c['into_stopped_agent_ahead']}) | {g['from_behind']} | "
+            f"{g['crossing']} | {g['head_on']} | {c['already_overlapping']} |"
+        )
     return lines
