@@ -8,18 +8,21 @@ from typing import Any
 
 from trajeglish_env.scenario import AgentKind
 
+# the headline figures of every method (its row of the first table)
+HEADLINE = (
+    "metametric",
+    "kinematic",
+    "interactive",
+    "map_based",
+    "min_ade",
+    "collision_rate",
+    "offroad_rate",
+)
+
 
 def markdown_table(result: dict[str, Any]) -> str:
     """The evaluation as a Markdown table (one row per method)."""
-    cols = [
-        "metametric",
-        "kinematic",
-        "interactive",
-        "map_based",
-        "min_ade",
-        "collision_rate",
-        "offroad_rate",
-    ]
+    cols = HEADLINE
     lines = [
         f"Held-out scenes: {result['scenes']}, rollouts per scene: {result['rollouts']}, "
         f"metrics: WOSAC {result['metrics_config']}",
