@@ -17,7 +17,8 @@ from trajeglish_env.cli_args import (
     scene_at,
 )
 from trajeglish_env.cli_scorecard import add_scorecard_command
-from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE
+from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
+from trajeglish_env.sampler.subsets import SUBSET_RULES
 
 GUARD_CHOICES = {"off": (False,), "on": (True,), "both": (False, True)}  # --guard: guarded sampling
 BRAKE_NPCS = ("trajeglish", "trajeglish+guard", "idm", "replay", "constant_velocity")  # see brake_test.NPCS
@@ -57,6 +58,7 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
             cache_dtype=args.cache_dtype,
             compute_dtype=args.compute_dtype,
             guard_green=not args.no_green_rule,
+            subsets=args.subsets,
         ),
         metrics=args.metrics,
         seed=args.seed,
@@ -214,6 +216,13 @@ def add_eval_commands(add: AddCommand) -> None:
         "--no-green-rule",
         action="store_true",
         help="guarded methods without the green-light rule (SamplingConfig.guard_green=False)",
+    )
+    p.add_argument(
+        "--subsets",
+        choices=SUBSET_RULES,
+        default=SamplingConfig.subsets,
+        help="how scenes larger than the model's context are split into subsets of agents "
+        "(SamplingConfig.subsets; default: the env's)",
     )
     p.add_argument("--partial", help="checkpoint name for the partial-control experiment")
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
