@@ -134,3 +134,20 @@ def test_the_old_dataset_module_name_is_a_deprecated_alias() -> None:
     with pytest.warns(DeprecationWarning, match="moved to trajeglish_env.training.dataset"):
         old = importlib.import_module("trajeglish_env.dataset")
     assert old.WindowDataset is WindowDataset
+
+
+def test_evaluate_subsets_reach_the_sampling_config(monkeypatch) -> None:
+    """``evaluate --subsets cover`` samples with ``SamplingConfig(subsets="cover")``."""
+    import trajeglish_env.evaluation as evaluation
+    from trajeglish_env.cli_eval import cmd_evaluate
+
+    seen = {}
+
+    def fake_evaluate(data, ckpts, config, *args, **kwargs):
+        seen["config"] = config
+        return {"scenes": 0}
+
+    monkeypatch.setattr(evaluation, "evaluate", fake_evaluate)
+    args = build_parser().parse_args(["evaluate", "--data", "d", "--subsets", "cover", "--processes", "1"])
+    cmd_evaluate(args)
+    assert seen["config"].sampling.subsets == "cover"
