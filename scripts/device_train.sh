@@ -40,6 +40,9 @@
 #   SIGNAL_LR_SCALE  learning-rate multiplier of the signal embedding (`--signal-lr-scale`) [1]
 #   NEIGHBOUR_INPUT  1: every decoder position reads its agent's velocity and nearest neighbours' relative
 #                  states (`train --neighbour-input`; with INIT, the checkpoint's model extended with it) [0]
+#   LANE_INPUT     1: every decoder position reads the lane centres and road edges around its agent in the
+#                  agent's frame (`train --lane-input`; with INIT, the checkpoint's model extended with it;
+#                  not with CLOSED_LOOP) [0]
 #   VOCAB          a new run without INIT: fit a vocabulary of this many tokens per class on the
 #                  training scenes (`tokenizer fit`, with its motion-envelope cover) and train on it; 0:
 #                  the shipped 384 [0]. The README's choice for a model trained from scratch:
@@ -110,7 +113,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest); a resumed run
 # keeps these (trajeglish_env/device_job.py SAVED)
-SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT COLLISION_WEIGHT COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT HISTORY_DROPOUT"
+SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT LANE_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT COLLISION_WEIGHT COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT HISTORY_DROPOUT"
 declare -A GIVEN=()
 for v in $SAVED_VARS; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
@@ -185,6 +188,7 @@ CKPT_EVERY=${CKPT_EVERY:-250}
 SIGNAL_INPUT=${SIGNAL_INPUT:-0}
 SIGNAL_LR_SCALE=${SIGNAL_LR_SCALE:-1}
 NEIGHBOUR_INPUT=${NEIGHBOUR_INPUT:-0}
+LANE_INPUT=${LANE_INPUT:-0}
 VOCAB=${VOCAB:-0}
 EXTEND=${EXTEND:-0}
 NOISE_ON_DEVICE=${NOISE_ON_DEVICE:-auto}
@@ -264,11 +268,18 @@ case $NEIGHBOUR_INPUT in
 1) SIGNAL_ARGS+=(--neighbour-input) ;;
 *) die "NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT: expected 0 or 1" ;;
 esac
+case $LANE_INPUT in
+0) ;;
+1) SIGNAL_ARGS+=(--lane-input) ;;
+*) die "LANE_INPUT=$LANE_INPUT: expected 0 or 1" ;;
+esac
+[ "$LANE_INPUT" = 0 ] || [ "${CLOSED_LOOP:-0}" = 0 ] ||
+    die "LANE_INPUT=1 with CLOSED_LOOP=$CLOSED_LOOP: the road a lane-input model reads is cut at the logged states (unset one of them)"
 [ "$(calc "($HISTORY_DROPOUT > 0)")" = 0 ] || [ "$NEIGHBOUR_INPUT" = 1 ] ||
     die "HISTORY_DROPOUT=$HISTORY_DROPOUT needs NEIGHBOUR_INPUT=1 (a dropped agent's next tokens are told from its neighbours)"
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT COLLISION_HORIZON=$COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY=$COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT=$OFFROAD_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT LANE_INPUT=$LANE_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT COLLISION_HORIZON=$COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY=$COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT=$OFFROAD_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh

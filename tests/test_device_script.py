@@ -114,12 +114,14 @@ def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
         BATCH="2",
         SIGNAL_INPUT="1",
         NEIGHBOUR_INPUT="1",
+        LANE_INPUT="1",
     )
     assert job.returncode == 0, job.stdout[-3000:]
     tuned = load_checkpoint(tmp_path / "out-init" / "model.pt")
     assert tuned.training["init"] == str(pretrained_path()) and tuned.training["step"] >= 1
     assert tuned.config.signal_input  # the shipped model, extended with the signal input
     assert tuned.config.neighbour_input  # and with the neighbour input
+    assert tuned.config.lane_input  # and with the road input
     summary = json.loads((tmp_path / "out-init" / "summary.json").read_text())
     assert summary["params"]["SIGNAL_INPUT"] == "1"  # kept for a resumed call
     assert summary["params"]["NEIGHBOUR_INPUT"] == "1"
@@ -295,6 +297,10 @@ def test_bad_setups_fail_with_one_clear_line(tmp_path: Path) -> None:
     assert bad_stops.returncode == 2 and "STOP_SCENES=some: expected a whole number" in bad_stops.stdout
     bad_neighbours = _job(tmp_path, "n", NEIGHBOUR_INPUT="2")
     assert bad_neighbours.returncode == 2 and "NEIGHBOUR_INPUT=2: expected 0 or 1" in bad_neighbours.stdout
+    bad_lanes = _job(tmp_path, "l", LANE_INPUT="2")
+    assert bad_lanes.returncode == 2 and "LANE_INPUT=2: expected 0 or 1" in bad_lanes.stdout
+    lanes_closed = _job(tmp_path, "lc", LANE_INPUT="1", CLOSED_LOOP="3")
+    assert lanes_closed.returncode == 2 and "LANE_INPUT=1 with CLOSED_LOOP=3" in lanes_closed.stdout
     if not torch.cuda.is_available():
         no_cuda = _job(tmp_path, "y", DEVICE="cuda")
         assert no_cuda.returncode == 2 and "DEVICE=cuda but torch" in no_cuda.stdout

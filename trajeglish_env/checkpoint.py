@@ -19,6 +19,7 @@ import torch
 
 from trajeglish_env.model.config import ModelConfig, Variant
 from trajeglish_env.model.encoder import SIGNAL_PARAMS
+from trajeglish_env.model.lanes import LANE_PARAMS
 from trajeglish_env.model.neighbours import NEIGHBOUR_PARAMS
 from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.scenario_io import atomic_path
@@ -130,7 +131,11 @@ def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary)
     :class:`CheckpointError` naming what differs."""
     where = f"--init {ckpt.path or 'checkpoint'}"
     theirs_cfg, ours_cfg = _plain_config(ckpt.config), _plain_config(cfg)
-    for added in ("signal_input", "neighbour_input"):  # added inputs (their weights start at zero)
+    for added in (
+        "signal_input",
+        "neighbour_input",
+        "lane_input",
+    ):  # added inputs (their weights start at zero)
         if getattr(cfg, added) and not getattr(ckpt.config, added):
             theirs_cfg[added] = True
     theirs_cfg["map_select"] = cfg.map_select  # which chunks a window holds, and their points: inputs,
@@ -186,11 +191,13 @@ def load_into(model: TrajeglishModel, ckpt: Checkpoint, vocabulary: MotionVocabu
     missing, unexpected = model.load_state_dict(state, strict=False)
     signal = [k for k in missing if k.startswith(SIGNAL_PARAMS)]
     neighbours = [k for k in missing if k.startswith(NEIGHBOUR_PARAMS)]
+    lanes = [k for k in missing if k.startswith(LANE_PARAMS)]
     if (
         unexpected
-        or len(signal) + len(neighbours) != len(missing)
+        or len(signal) + len(neighbours) + len(lanes) != len(missing)
         or (signal and not model.cfg.signal_input)
         or (neighbours and not model.cfg.neighbour_input)
+        or (lanes and not model.cfg.lane_input)
     ):
         raise CheckpointError(
             f"--init {ckpt.path or 'checkpoint'}: weights do not fit the model (missing {missing[:3]}, "

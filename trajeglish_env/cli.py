@@ -112,6 +112,8 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         model_config = dataclasses.replace(model_config, signal_input=True)
     if args.neighbour_input:
         model_config = dataclasses.replace(model_config, neighbour_input=True)
+    if args.lane_input:
+        model_config = dataclasses.replace(model_config, lane_input=True)
     model_config = with_map_args(model_config, args)
     config = TrainConfig(
         steps=args.steps,
@@ -272,6 +274,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="every decoder position also reads its agent's velocity and nearest neighbours' relative "
         "states (ModelConfig.neighbour_input); with --init, the checkpoint's model is extended with it",
+    )
+    p.add_argument(
+        "--lane-input",
+        action="store_true",
+        help="every decoder position also reads the lane centres and road edges around its agent, in the "
+        "agent's frame (ModelConfig.lane_input); with --init, the checkpoint's model is extended with it",
     )
     p.add_argument(
         "--signal-lr-scale",

@@ -67,6 +67,7 @@ SAVED = (
     "SIGNAL_INPUT",
     "SIGNAL_LR_SCALE",
     "NEIGHBOUR_INPUT",
+    "LANE_INPUT",
     "VOCAB",
     "EXTEND",
     "COVER_RADIUS",

@@ -49,6 +49,10 @@ class ModelConfig:
     weights' output starts at zero, so a model extended with it (``train --init CKPT --neighbour-input``)
     starts as ``CKPT`` did.
 
+    ``lane_input``: every decoder position also reads the lane centres and road edges around its agent, in
+    the agent's frame at the step it moves from (:mod:`~trajeglish_env.model.lanes`); zero-initialized like
+    ``neighbour_input`` (``train --init CKPT --lane-input``).
+
     ``drawn_size``: how many of each class's tokens the model draws (0: all ``vocab_size``). A model whose
     vocabulary was extended for reading only (:func:`~trajeglish_env.checkpoint.reading_extension`) reads
     every token of the finer vocabulary (the ego, logged and external agents are tracked within 5 cm) but
@@ -77,6 +81,7 @@ class ModelConfig:
     token_bias: bool = False
     neighbour_input: bool = False
     drawn_size: int = 0
+    lane_input: bool = False
 
     def __post_init__(self) -> None:
         if self.d_model % self.num_heads:
@@ -98,7 +103,7 @@ class ModelConfig:
             object.__setattr__(self, "variant", Variant(self.variant))
         if not isinstance(self.token_bias, bool):
             raise TypeError(f"ModelConfig.token_bias must be a bool, got {self.token_bias!r}")
-        for name in ("signal_input", "neighbour_input"):
+        for name in ("signal_input", "neighbour_input", "lane_input"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"ModelConfig.{name} must be a bool, got {getattr(self, name)!r}")
         if isinstance(self.drawn_size, bool) or not isinstance(self.drawn_size, int):
@@ -111,6 +116,12 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.map_stride must be an int >= 1, got {self.map_stride!r}")
         if self.map_select not in MAP_SELECT:
             raise ValueError(f"ModelConfig.map_select must be one of {MAP_SELECT}, got {self.map_select!r}")
+
+    @property
+    def reads_states(self) -> bool:
+        """Whether decoder positions read the states of their step (neighbours or road around them): a
+        position can then be decoded only once its step's states are known."""
+        return self.neighbour_input or self.lane_input
 
     @property
     def drawn(self) -> int:

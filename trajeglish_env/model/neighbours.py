@@ -12,6 +12,7 @@ velocity relative to ``a`` in ``a``'s frame, and size. Every feature is relative
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -30,24 +31,30 @@ NEIGHBOUR_PARAMS = "neighbours."  # state-dict prefix of NeighbourEncoder inside
 @dataclass(frozen=True)
 class NeighbourView:
     """Features of positions ``[...]``: ``own [...,3]``, ``pairs [...,K,9]`` and ``mask [...,K]`` (a real
-    neighbour). Float32 on the model's device."""
+    neighbour); for models with ``lane_input`` also ``road [...,R,6]`` and ``road_mask [...,R]``
+    (:mod:`~trajeglish_env.model.lanes`). Float32 on the model's device."""
 
     own: torch.Tensor
     pairs: torch.Tensor
     mask: torch.Tensor
+    road: torch.Tensor | None = None
+    road_mask: torch.Tensor | None = None
+
+    def _map(self, f: Callable[[torch.Tensor], torch.Tensor]) -> NeighbourView:
+        road = None if self.road is None or self.road_mask is None else (f(self.road), f(self.road_mask))
+        return NeighbourView(f(self.own), f(self.pairs), f(self.mask), *(road or (None, None)))
 
     def index(self, *index: torch.Tensor | slice) -> NeighbourView:
         """The same features at ``index`` of the leading dimensions (e.g. a batch's busy rows)."""
-        return NeighbourView(self.own[index], self.pairs[index], self.mask[index])
+        return self._map(lambda x: x[index])
 
     def flat_time_major(self) -> NeighbourView:
         """``[B,T,A,...]`` -> ``[B,T*A,...]``: the decoder's flattened sequence."""
         b, t, a = self.own.shape[:3]
-        return NeighbourView(
-            self.own.reshape(b, t * a, -1),
-            self.pairs.reshape(b, t * a, *self.pairs.shape[3:]),
-            self.mask.reshape(b, t * a, -1),
-        )
+        return self._map(lambda x: x.reshape(b, t * a, *x.shape[3:]))
+
+    def to(self, device: torch.device) -> NeighbourView:
+        return self._map(lambda x: x.to(device))
 
 
 def in_frame(v: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
@@ -149,11 +156,16 @@ class NeighbourEncoder(nn.Module):
         return self.out(pooled + self.own(view.own))
 
 
-def batch_view(model_neighbours: bool, batch: dict[str, torch.Tensor]) -> NeighbourView | None:
-    """The neighbour features of a collated batch of training windows (``agent_xyh``, ``agent_valid``,
-    ``agent_mask``, ``agent_size``; the logged states), or None for a model without ``neighbour_input``."""
-    if not model_neighbours:
+def batch_view(reads_states: bool, batch: dict[str, torch.Tensor]) -> NeighbourView | None:
+    """The features of a collated batch of training windows (``agent_xyh``, ``agent_valid``,
+    ``agent_mask``, ``agent_size``; the logged states; with ``road_points`` / ``road_mask``, the windows'
+    road features), or None for a model that reads no states (``ModelConfig.reads_states``)."""
+    if not reads_states:
         return None
     valid = batch["agent_valid"] & batch["agent_mask"][..., None]
     steps = batch["input_tokens"].shape[-1]
-    return window_view(batch["agent_xyh"].float(), valid, batch["agent_size"].float(), steps)
+    view = window_view(batch["agent_xyh"].float(), valid, batch["agent_size"].float(), steps)
+    if "road_points" not in batch:
+        return view
+    road, road_mask = batch["road_points"][:, :steps], batch["road_mask"][:, :steps]
+    return NeighbourView(view.own, view.pairs, view.mask, road, road_mask)

@@ -18,6 +18,7 @@ from torch import nn
 
 from trajeglish_env.model.config import ModelConfig, Variant
 from trajeglish_env.model.encoder import SceneEncoder, SceneInputs
+from trajeglish_env.model.lanes import LaneEncoder
 from trajeglish_env.model.layers import (
     DecoderBlock,
     DecoderCache,
@@ -62,6 +63,7 @@ class TrajeglishModel(nn.Module):
         # agent's current motion directly instead of through an attention look-up that is slow to learn.
         self.own_previous = Linear(c, c) if cfg.variant is Variant.TRAJEGLISH else None
         self.neighbours = NeighbourEncoder(c) if cfg.neighbour_input else None
+        self.lanes = LaneEncoder(c) if cfg.lane_input else None
         self.blocks = nn.ModuleList(
             DecoderBlock(c, cfg.num_heads, cfg.ff_mult, cfg.dropout) for _ in range(cfg.decoder_layers)
         )
@@ -141,18 +143,26 @@ class TrajeglishModel(nn.Module):
     ) -> torch.Tensor:
         """Embeddings of the tokens positions carry (the start token where :data:`START`), plus, for the
         trajeglish variant, the projected previous token of each position's own agent, plus (with
-        ``neighbour_input``) what each position's agent sees of its neighbours (``view [B,n]``)."""
+        ``neighbour_input``) what each position's agent sees of its neighbours (``view [B,n]``), plus (with
+        ``lane_input``) what it sees of the road around it (the view's ``road``)."""
         is_start = (carried_ids == START)[..., None]
         x = torch.where(is_start, self.start, self.embed_tokens(carried_ids))
         if self.own_previous is not None:
             x = x + self.own_previous(self.embed_tokens(own_ids))
-        if self.neighbours is not None:
-            if view is None:
-                raise ValueError(
-                    "this model reads its agents' neighbours (ModelConfig.neighbour_input): pass their view "
-                    "(trajeglish_env.model.neighbours)"
-                )
+        if self.cfg.reads_states and view is None:
+            raise ValueError(
+                "this model reads the states of its agents' step (ModelConfig.neighbour_input / lane_input): "
+                "pass their view (trajeglish_env.model.neighbours)"
+            )
+        if self.neighbours is not None and view is not None:
             x = x + self.neighbours(view).to(x.dtype)
+        if self.lanes is not None and view is not None:
+            if view.road is None or view.road_mask is None:
+                raise ValueError(
+                    "this model reads the road around its agents (ModelConfig.lane_input): the view has no "
+                    "road features (trajeglish_env.model.lanes)"
+                )
+            x = x + self.lanes(view.road, view.road_mask).to(x.dtype)
         return x
 
     # ---------------------------------------------------------------------------------- training

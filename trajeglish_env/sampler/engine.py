@@ -276,7 +276,7 @@ class BatchEngine(WindowedRows):
         ahead = np.zeros(self.B, bool)
         if (
             self._draft is not None
-            and not self.cfg.neighbour_input  # the next step's states are not known yet
+            and not self.cfg.reads_states  # the next step's states are not known yet
             and int((count > 0).sum()) * A <= LOOK_AHEAD_MAX_POSITIONS
         ):
             # chunks that end the step look one step ahead (parallel.look_ahead_rows)
@@ -298,7 +298,7 @@ class BatchEngine(WindowedRows):
                 np.arange(self.B), w.slots, w.start, np.where(guess, positions - A, 0)
             )
             carried = torch.where(torch.from_numpy(guess).to(self.device), carried_now, carried)
-        view = self._view(np.arange(self.B), w.slots, w.start, positions)
+        view = self._view(np.arange(self.B), w.slots, w.start, positions, decoded)
         slots = positions % A
         todo = inside & np.take_along_axis(sample, slots, 1)
         read = self._read_span(todo | (decoded & ~inside & ahead[:, None]), n)

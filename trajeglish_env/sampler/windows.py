@@ -17,6 +17,7 @@ from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks
 from trajeglish_env.model.masks import START, input_shift
 from trajeglish_env.model.neighbours import NeighbourView, neighbour_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
+from trajeglish_env.sampler.row_roads import RowRoads
 from trajeglish_env.sampler.rows import RowSpec, RowStates
 from trajeglish_env.sampler.subsets import SubsetPlan, admit, plan_subsets
 from trajeglish_env.scenario import Scenario
@@ -65,6 +66,7 @@ class WindowedRows(RowStates):
         self.window_step = np.full(self.B, -1, dtype=np.int64)
         self.windows: list[Window] = []
         self._chunk_cache: dict[int, tuple[Scenario, MapChunks]] = {}
+        self.roads = RowRoads(self.B)  # the road around each agent (models with lane_input)
 
     def start_rows(self, rows: np.ndarray | list[int], spec: RowSpec, seeds: np.ndarray | list[int]) -> None:
         """See :meth:`RowStates.start_rows`; the rows' windows are built at their next step."""
@@ -75,6 +77,7 @@ class WindowedRows(RowStates):
             self.chunks[r], self.plan[r] = chunks, None
         self.window_step[rows] = -1
         self.num_subsets[rows] = 0
+        self.roads.reset(rows)
 
     def _map_chunks(self, sc: Scenario) -> MapChunks:
         hit = self._chunk_cache.get(id(sc))
@@ -130,6 +133,7 @@ class WindowedRows(RowStates):
         self.acting_rank[target] = self.acting_rank[source]
         self.num_subsets[target] = self.num_subsets[source]
         self.window_step[target] = self.window_step[source]
+        self.roads.reset(target)
         for w in self.windows:
             w.slots[target], w.start[target] = w.slots[source], w.start[source]
             w.agents[dst], w.kind[dst] = w.agents[src], w.kind[src]
@@ -317,11 +321,18 @@ class WindowedRows(RowStates):
         return torch.from_numpy(carried).to(self.device), torch.from_numpy(own).to(self.device)
 
     def _view(
-        self, rows: np.ndarray, slots: np.ndarray, s0: np.ndarray, positions: np.ndarray
+        self,
+        rows: np.ndarray,
+        slots: np.ndarray,
+        s0: np.ndarray,
+        positions: np.ndarray,
+        needed: np.ndarray | None = None,
     ) -> NeighbourView | None:
-        """Neighbour features ``[r,n]`` of window ``positions [r,n]`` (models with ``neighbour_input``;
-        else None): each position's agent reads the model's states of its window's agents at its step."""
-        if not self.cfg.neighbour_input:
+        """Features ``[r,n]`` of window ``positions [r,n]`` (models that read states; else None): each
+        position's agent reads the model's states of its window's agents at its step, and (``lane_input``)
+        the road around it there (only at the positions ``needed [r,n]`` when given: the others' outputs are
+        not used)."""
+        if not self.cfg.reads_states:
             return None
         A = self.cfg.max_agents
         tau = positions // A
@@ -338,7 +349,14 @@ class WindowedRows(RowStates):
         size = torch.from_numpy(self.size[r_ix, a_ix]).expand(-1, positions.shape[1], -1, -1)
         focal = torch.from_numpy(positions % A)[..., None]  # [r,n,1]
         view = neighbour_view(cur, ok, prev, prev_ok, size, focal)
-        return NeighbourView(*(x[:, :, 0].to(self.device) for x in (view.own, view.pairs, view.mask)))
+        view = NeighbourView(view.own[:, :, 0], view.pairs[:, :, 0], view.mask[:, :, 0])
+        if self.cfg.lane_input:
+            agents = np.where(real, slots, -1)[np.arange(len(rows))[:, None], positions % A]  # [r,n]
+            if needed is not None:
+                agents = np.where(needed, agents, -1)
+            road, road_mask = self.roads.features(self, rows, agents, steps[:, :, 0])
+            view = NeighbourView(view.own, view.pairs, view.mask, road, road_mask)
+        return view.to(self.device)
 
     def _prime(
         self,

@@ -21,6 +21,7 @@ from torch.utils.data import Dataset
 
 from trajeglish_env.geometry import to_local
 from trajeglish_env.model.config import ModelConfig
+from trajeglish_env.model.lanes import road_points_of, window_road_view
 from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks, signal_classes
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import list_scenario_files, load_scenarios
@@ -38,6 +39,7 @@ class WindowConfig:
     points_per_polyline: int = 20  # points per map chunk (about 10-20 m at 0.5-1 m spacing)
     map_select: str = "frame"  # ModelConfig.map_select: chunks nearest the frame agent, or any agent
     map_stride: int = 1  # ModelConfig.map_stride: every map_stride-th point of a polyline in a chunk
+    lane_input: bool = False  # ModelConfig.lane_input: windows carry the road around each agent and step
 
     def __post_init__(self) -> None:
         for name in ("steps", "max_agents", "max_polylines", "points_per_polyline"):
@@ -175,7 +177,7 @@ def make_window(
     pts, pmask, mkind, mmask, msignal = nearest_chunks(
         chunks, frame, c.max_polylines, c.map_radius, signal, anchors
     )
-    return {
+    window_items = {
         "agent_xyh": xyh,
         "agent_valid": valid,
         "agent_size": size,
@@ -192,6 +194,14 @@ def make_window(
         "start": np.int64(start),
         "logged_targets": np.int64(logged_targets(scene, start, c.steps - 1)),
     }
+    if c.lane_input:  # the road around each agent at each input step, in the window's frame (model.lanes)
+        points = road_points_of(scene)
+        points = np.concatenate([to_local(frame, points[:, :3]), points[:, 3:]], axis=-1)
+        states = np.zeros((c.max_agents, c.steps, 3))  # float64: the same numbers as the sampler's
+        states[real] = np.where(valid[real, :, None], local, 0.0)
+        road, road_mask = window_road_view(points, states, valid, c.steps - 1)
+        window_items["road_points"], window_items["road_mask"] = road, road_mask
+    return window_items
 
 
 def logged_targets(scene: Scenario, start: int, targets: int) -> int:
@@ -217,4 +227,5 @@ def window_config(cfg: ModelConfig) -> WindowConfig:
         points_per_polyline=cfg.points_per_polyline,
         map_select=cfg.map_select,
         map_stride=cfg.map_stride,
+        lane_input=cfg.lane_input,
     )

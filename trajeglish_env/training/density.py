@@ -56,7 +56,7 @@ def token_nll(
         red = (scene.map_signal == RED_CLASS).any(-1)  # [B]
         if not signals:
             scene = dataclasses.replace(scene, map_signal=torch.zeros_like(scene.map_signal))
-        logits = model(scene, batch["input_tokens"], batch_view(model.cfg.neighbour_input, batch))
+        logits = model(scene, batch["input_tokens"], batch_view(model.cfg.reads_states, batch))
         tgt = model.drawn_targets(batch["tokens"], scene.agent_kind[:, :, None]).transpose(1, 2)  # [B,T,A]
         ok = (tgt >= 0) & scene.agent_mask[:, None, :]
         nll = F.cross_entropy(logits[ok], tgt[ok], reduction="none")
@@ -111,7 +111,7 @@ def _cached_nll(
         scene = SceneInputs.from_batch(batch)
         inputs = batch["input_tokens"]
         b, a, t = inputs.shape
-        view = batch_view(model.cfg.neighbour_input, batch)
+        view = batch_view(model.cfg.reads_states, batch)
         full = model(scene, inputs, view)  # [B,T,A,V]
         flat = None if view is None else view.flat_time_major()
         ids = model.global_ids(inputs, scene.agent_kind[:, :, None]).transpose(1, 2).reshape(b, t * a)

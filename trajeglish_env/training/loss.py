@@ -35,7 +35,7 @@ class TrainingLoss(nn.Module):
 
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         scene = SceneInputs.from_batch(batch)
-        view = batch_view(self.model.cfg.neighbour_input, batch)
+        view = batch_view(self.model.cfg.reads_states, batch)
         weights = logged_weights(batch, interaction_weights(batch, self.interaction_weight))
         if not (self.collision_weight or self.offroad_weight):
             mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"], view, weights)

@@ -36,7 +36,7 @@ def validation_nll(
     total, count = 0.0, 0
     for first in range(0, windows, batch_size):
         batch = batch_to(ds.collated(first, min(windows, first + batch_size)), device)
-        view = batch_view(model.cfg.neighbour_input, batch)
+        view = batch_view(model.cfg.reads_states, batch)
         mean, n = model.loss(SceneInputs.from_batch(batch), batch["input_tokens"], batch["tokens"], view)
         total += float(mean) * n
         count += n

@@ -1,0 +1,273 @@
+"""The road input (ModelConfig.lane_input): road points and features in closed form, frame invariance, a
+model extended with it starts as it was, the sampler reads exactly what training reads, and training on
+its windows reaches its weights."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+from helpers import record_encoded, small_scenes, straight_road_scene, tiny_checkpoint
+
+from trajeglish_env.checkpoint import Checkpoint, check_init, load_into
+from trajeglish_env.env import EgoEnv, TrajeglishNPC
+from trajeglish_env.env.vector import BatchedEgoEnv
+from trajeglish_env.geometry import to_local
+from trajeglish_env.model import SceneInputs
+from trajeglish_env.model.lanes import (
+    EDGE_POINTS,
+    LANE_POINTS,
+    POSITION_SCALE,
+    REACH,
+    ROAD_POINTS,
+    SPACING,
+    road_view,
+    scene_road_points,
+    window_road_view,
+)
+from trajeglish_env.model.neighbours import NeighbourView, batch_view, window_view
+from trajeglish_env.model.network import TrajeglishModel
+from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.engine import RolloutEngine
+from trajeglish_env.scenario import MapKind, Scenario
+from trajeglish_env.training.dataset import collate_windows
+from trajeglish_env.training.train import TrainConfig, train, window_config
+from trajeglish_env.training.training_data import TokenizedWindows
+
+
+def _lane_checkpoint() -> Checkpoint:
+    """The tiny model extended with the road input, its output layer random (so that it matters)."""
+    base = tiny_checkpoint()
+    cfg = dataclasses.replace(base.model.cfg, lane_input=True)
+    check_init(base, cfg, base.vocabulary)
+    model = TrajeglishModel(cfg)
+    load_into(model, base, base.vocabulary)
+    torch.manual_seed(1)
+    torch.nn.init.normal_(model.lanes.out[1].weight, std=0.5)
+    return Checkpoint(model=model.eval(), vocabulary=base.vocabulary, training={})
+
+
+def _ring_scene() -> Scenario:
+    """One vehicle on a counter-clockwise ring lane of radius 20 m, with the ring's two edges."""
+    angle = np.linspace(0.0, 2 * math.pi, 253)
+    ring = lambda r: np.stack([r * np.cos(angle), r * np.sin(angle)], -1)  # noqa: E731
+    t = np.arange(20) * 0.1
+    xyh = np.stack([20 * np.cos(t * 0.5), 20 * np.sin(t * 0.5), t * 0.5 + math.pi / 2], -1)[None]
+    return Scenario.from_arrays(
+        xyh,
+        np.ones((1, 20), dtype=bool),
+        np.array([[4.5, 2.0]]),
+        np.array([0]),
+        polylines=[ring(20.0), ring(18.0), ring(22.0)],
+        polyline_kinds=[MapKind.LANE_SURFACE_STREET, MapKind.ROAD_EDGE_BOUNDARY, MapKind.ROAD_EDGE_BOUNDARY],
+        scenario_id="ring",
+        source="test",
+    )
+
+
+def test_road_points_follow_the_polylines_every_two_metres() -> None:
+    sc = straight_road_scene(num_agents=2, steps=30)
+    points = scene_road_points(sc)
+    lanes, edges = points[points[:, 3] == 0], points[points[:, 3] == 1]
+    assert len(lanes) == len(edges) == 2 * 226  # 449 m each: 0, 2, .., 448 m and the end; lines not read
+    assert np.allclose(np.diff(lanes[:226, 0]), np.r_[np.full(224, SPACING), 1.0])
+    assert np.allclose(points[:, 2], 0.0)  # every polyline runs along +x
+    ring = scene_road_points(_ring_scene())
+    lane = ring[ring[:, 3] == 0]
+    tangent = np.arctan2(lane[:, 1], lane[:, 0]) + math.pi / 2  # counter-clockwise travel
+    assert np.allclose(np.angle(np.exp(1j * (lane[:, 2] - tangent))), 0.0, atol=0.05)
+
+
+def test_features_in_closed_form() -> None:
+    """An agent on the lower lane of a straight two-lane road, facing +x: the lane points read are the
+    nearest ones running its way (the ahead ones counted at half their distance), the edges the nearest edge
+    points; points behind it by more than 5 m or farther than REACH are not read; a lane running the other
+    way is not read."""
+    sc = straight_road_scene(num_agents=2, steps=30)
+    points = torch.from_numpy(scene_road_points(sc))
+    xyh = torch.tensor([[100.0, 0.0, 0.0], [100.0, 0.0, math.pi]], dtype=torch.float64)
+    feats, mask = road_view(
+        points, torch.ones(len(points), dtype=torch.bool), xyh, torch.tensor([True, False])
+    )
+    assert feats.shape == (2, ROAD_POINTS, 6) and mask.shape == (2, ROAD_POINTS)
+    assert not mask[1].any() and not feats[1].any()  # an agent not present reads nothing
+    assert mask[0].all()
+    lane, edge = feats[0, :LANE_POINTS] * POSITION_SCALE, feats[0, LANE_POINTS:] * POSITION_SCALE
+    assert torch.equal(feats[0, :LANE_POINTS, 4], torch.ones(LANE_POINTS))
+    assert torch.equal(feats[0, LANE_POINTS:, 5], torch.ones(EDGE_POINTS))
+    # the lane points read: key = hypot(x / 2 if x > 0 else x, y); lane y = 0 (key |x| or x/2) and 3.5
+    xs = np.arange(-50.0, 400.0, SPACING)
+    lx = np.concatenate([xs - 100, xs - 100])
+    ly = np.concatenate([np.zeros_like(xs), np.full_like(xs, 3.5)])
+    keep = lx > -5
+    key = np.hypot(np.where(lx > 0, lx / 2, lx), ly)[keep]
+    want = np.sort(key)[:LANE_POINTS]
+    lx_got, ly_got = lane[:, 0].numpy(), lane[:, 1].numpy()
+    got = np.sort(np.hypot(np.where(lx_got > 0, lx_got / 2, lx_got), ly_got))
+    assert np.allclose(got, want)
+    assert float(lane[:, 0].max()) > 2 * float(-lane[:, 0].min())  # it reaches further ahead than back
+    assert torch.allclose(feats[0, :, 2], torch.ones(ROAD_POINTS)) and not feats[0, :, 3].any()
+    assert set(np.round(edge[:, 1].numpy(), 6)) <= {-1.75, 5.25}
+    # facing the other way, the lanes run against it: only edges are read
+    back = torch.tensor([[100.0, 0.0, math.pi]], dtype=torch.float64)
+    feats, mask = road_view(points, torch.ones(len(points), dtype=torch.bool), back, torch.tensor([True]))
+    assert not mask[0, :LANE_POINTS].any() and mask[0, LANE_POINTS:].all()
+    # far from the road: nothing within REACH
+    far = torch.tensor([[100.0, REACH + 6.0, 0.0]], dtype=torch.float64)
+    _, mask = road_view(points, torch.ones(len(points), dtype=torch.bool), far, torch.tensor([True]))
+    assert not mask.any()
+
+
+def test_a_ring_reads_as_a_left_bend_ahead() -> None:
+    sc = _ring_scene()
+    points = torch.from_numpy(scene_road_points(sc))
+    feats, mask = road_view(
+        points,
+        torch.ones(len(points), dtype=torch.bool),
+        torch.from_numpy(sc.xyh[:, 0]),
+        torch.tensor([True]),
+    )
+    lane = feats[0, :LANE_POINTS][mask[0, :LANE_POINTS]] * POSITION_SCALE
+    ahead = lane[lane[:, 0] > 5]
+    assert len(ahead) > 5 and (ahead[:, 1] > 0).all()  # the lane ahead lies to the left
+    assert (feats[0, :LANE_POINTS][mask[0, :LANE_POINTS]][lane[:, 0] > 5, 3] > 0).all()  # and turns left
+
+
+def test_features_do_not_depend_on_the_frame() -> None:
+    sc = small_scenes()[0]
+    points = scene_road_points(sc)
+    frame = np.array([37.0, -12.0, 0.7])
+    local = np.concatenate([to_local(frame, points[:, :3]), points[:, 3:]], -1)
+    states, valid = sc.xyh[:, :12], sc.valid[:, :12]
+    a = window_road_view(points, states, valid, 11)
+    b = window_road_view(local, to_local(frame, states), valid, 11)
+    assert a[1].any() and np.array_equal(a[1].sum(-1), b[1].sum(-1))
+    # the same points (in either order: points that tie in distance may swap)
+    np.testing.assert_allclose(np.sort(a[0], axis=-2), np.sort(b[0], axis=-2), atol=1e-5)
+
+
+def test_an_extended_model_starts_as_the_checkpoint_did() -> None:
+    base = tiny_checkpoint()
+    cfg = dataclasses.replace(base.model.cfg, lane_input=True)
+    model = TrajeglishModel(cfg)
+    load_into(model, base, base.vocabulary)
+    model.eval()
+    a, t = cfg.max_agents, cfg.steps
+    g = torch.Generator().manual_seed(0)
+    scene = SceneInputs(
+        agent_xyh=torch.randn(1, a, 3, generator=g),
+        agent_size=torch.ones(1, a, 2) * 4,
+        agent_kind=torch.zeros(1, a, dtype=torch.long),
+        agent_mask=torch.ones(1, a, dtype=torch.bool),
+        map_points=torch.randn(1, cfg.max_polylines, cfg.points_per_polyline, 2, generator=g),
+        map_point_mask=torch.ones(1, cfg.max_polylines, cfg.points_per_polyline, dtype=torch.bool),
+        map_kind=torch.zeros(1, cfg.max_polylines, dtype=torch.long),
+        map_mask=torch.ones(1, cfg.max_polylines, dtype=torch.bool),
+        map_signal=torch.zeros(1, cfg.max_polylines, dtype=torch.long),
+    )
+    tokens = torch.randint(0, cfg.vocab_size, (1, a, t), generator=g)
+    states = torch.randn(1, a, t + 1, 3, generator=g) * 5
+    view = window_view(states, torch.ones(1, a, t + 1, dtype=torch.bool), torch.ones(1, a, 2) * 4, t)
+    road = torch.rand(1, t, a, ROAD_POINTS, 6, generator=g)
+    view = NeighbourView(
+        view.own, view.pairs, view.mask, road, torch.ones(1, t, a, ROAD_POINTS, dtype=torch.bool)
+    )
+    with torch.no_grad():
+        torch.testing.assert_close(model(scene, tokens, view), base.model(scene, tokens), rtol=0, atol=0)
+        with pytest.raises(ValueError, match="lane_input"):
+            model(scene, tokens)
+        with pytest.raises(ValueError, match="road features"):
+            model(scene, tokens, dataclasses.replace(view, road=None, road_mask=None))
+
+
+def test_sampling_reads_what_training_reads(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Greedy decoding through prime + decode_at (the sampler's road features from its own states and the
+    scene's road points, world frame) picks the argmax of the teacher-forced forward pass whose features
+    come from the same states through the training windows' function (:func:`window_road_view`)."""
+    ckpt = _lane_checkpoint()
+    model = ckpt.model
+    sc = straight_road_scene(num_agents=5, steps=30)
+    controlled = np.array([True, False, True, True, False])
+    scenes = record_encoded(monkeypatch, model)
+    config = SamplingConfig(temperature=0.0, prime_steps=3, guard=False)
+    horizon = config.every(model.cfg.steps)
+    engine = RolloutEngine(ckpt, sc, 1, horizon, controlled, config=config)
+    engine.run()
+    w, a = engine.windows[0], model.cfg.max_agents
+    s0, t0 = int(w.start[0]), sc.current_index
+    slots = w.slots[0]
+    real = slots >= 0
+    idx = np.where(real, slots, 0)
+    steps = np.arange(s0, s0 + model.cfg.steps)
+    inside = steps < engine.T - 1
+    inputs = np.full((a, len(steps)), -1)
+    inputs[:, inside] = np.where(real[:, None], engine.tokens[0][idx][:, steps[inside]], -1)
+    states = np.arange(s0, s0 + model.cfg.steps + 1).clip(max=engine.T - 1)
+    xyh = engine.mxyh[0][idx][:, states]
+    valid = engine.valid[0][idx][:, states] & real[:, None]
+    view = window_view(
+        torch.from_numpy(xyh)[None],
+        torch.from_numpy(valid)[None],
+        torch.from_numpy(engine.size[0][idx])[None],
+        model.cfg.steps,
+    )
+    road, road_mask = window_road_view(scene_road_points(sc), xyh, valid, model.cfg.steps)
+    view = NeighbourView(
+        view.own, view.pairs, view.mask, torch.from_numpy(road)[None], torch.from_numpy(road_mask)[None]
+    )
+    blind = dataclasses.replace(view, road_mask=torch.zeros_like(view.road_mask))
+    with torch.no_grad():
+        logits = model(scenes[0].rows(slice(0, 1)), torch.from_numpy(inputs)[None], view)[0]
+        plain = model(scenes[0].rows(slice(0, 1)), torch.from_numpy(inputs)[None], blind)[0]
+    greedy = logits.argmax(-1).numpy()
+    checked = 0
+    for j, agent in enumerate(slots):
+        if agent >= 0 and controlled[agent]:
+            decided = engine.tokens[0, agent, t0 : t0 + horizon]
+            assert np.array_equal(decided, greedy[t0 - s0 : t0 - s0 + horizon, j])
+            checked += len(decided)
+    assert checked >= 3 * horizon
+    assert not torch.equal(logits, plain)  # the road changes the model's output
+
+
+def test_training_windows_carry_the_road_and_train_its_weights(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    ckpt = _lane_checkpoint()
+    model = ckpt.model.train()
+    cfg = model.cfg
+    ds = TokenizedWindows(small_scenes(), window_config(cfg), ckpt.vocabulary, None, seed=3)
+    batch = collate_windows([ds[g] for g in range(2)])
+    assert batch["road_points"].shape == (2, cfg.steps, cfg.max_agents, ROAD_POINTS, 6)
+    real = batch["agent_mask"][:, None, :] & batch["agent_valid"][:, :, : cfg.steps].transpose(1, 2)
+    assert batch["road_mask"].any(-1)[real].float().mean() > 0.9  # agents on the road read road points
+    assert not batch["road_mask"][~real].any()
+    view = batch_view(cfg.reads_states, batch)
+    logits = model(SceneInputs.from_batch(batch), batch["input_tokens"], view)
+    logits.logsumexp(-1).mean().backward()
+    assert model.lanes.point[0].weight.grad is not None and model.lanes.point[0].weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="closed_loop_top_k"):
+        train(small_scenes(), tmp_path / "run", cfg, TrainConfig(steps=1, closed_loop_top_k=3), init=ckpt)
+
+
+def test_batched_envs_with_road_reading_npcs_equal_separate_envs() -> None:
+    """Each row keeps its own agents' road features (computed once per step and row): a batch of two scenes
+    that end and restart plays as two separate envs do."""
+    kw = {"npc": TrajeglishNPC(_lane_checkpoint()), "order": "last", "max_cycles": 5}
+    venv = BatchedEgoEnv(2, **kw)
+    obs, _ = venv.reset(seed=11)
+    rng = np.random.default_rng(3)
+    actions = [rng.uniform(-1, 1, (2, 2)).astype(np.float32) for _ in range(8)]
+    batched = [venv.step(a) for a in actions]
+    assert sum(int((r[2] | r[3]).sum()) for r in batched) >= 2  # scenes ended and restarted
+    for i in range(2):
+        env = EgoEnv(**kw)
+        o, _ = env.reset(seed=11 + i)
+        assert np.array_equal(o, obs[i])
+        for a, (b_obs, b_rew, b_term, b_trunc, _) in zip(actions, batched, strict=True):
+            o, r, term, trunc, _ = env.step(a[i])
+            assert (r, term, trunc) == (b_rew[i], b_term[i], b_trunc[i])
+            if term or trunc:
+                o, _ = env.reset()
+            assert np.array_equal(o, b_obs[i])
