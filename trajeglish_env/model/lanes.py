@@ -23,7 +23,6 @@ import torch
 from torch import nn
 
 from trajeglish_env.model.layers import Linear
-from trajeglish_env.model.neighbours import in_frame
 from trajeglish_env.scenario import LANE_KINDS, ROAD_EDGE_KINDS, Scenario
 
 SPACING = 2.0  # metres between the road points read (polylines resampled)
