@@ -41,8 +41,7 @@
 #   NEIGHBOUR_INPUT  1: every decoder position reads its agent's velocity and nearest neighbours' relative
 #                  states (`train --neighbour-input`; with INIT, the checkpoint's model extended with it) [0]
 #   LANE_INPUT     1: every decoder position reads the lane centres and road edges around its agent in the
-#                  agent's frame (`train --lane-input`; with INIT, the checkpoint's model extended with it;
-#                  not with CLOSED_LOOP) [0]
+#                  agent's frame (`train --lane-input`; with INIT, the checkpoint's model extended with it) [0]
 #   VOCAB          a new run without INIT: fit a vocabulary of this many tokens per class on the
 #                  training scenes (`tokenizer fit`, with its motion-envelope cover) and train on it; 0:
 #                  the shipped 384 [0]. The README's choice for a model trained from scratch:
@@ -273,8 +272,6 @@ case $LANE_INPUT in
 1) SIGNAL_ARGS+=(--lane-input) ;;
 *) die "LANE_INPUT=$LANE_INPUT: expected 0 or 1" ;;
 esac
-[ "$LANE_INPUT" = 0 ] || [ "${CLOSED_LOOP:-0}" = 0 ] ||
-    die "LANE_INPUT=1 with CLOSED_LOOP=$CLOSED_LOOP: the road a lane-input model reads is cut at the logged states (unset one of them)"
 [ "$(calc "($HISTORY_DROPOUT > 0)")" = 0 ] || [ "$NEIGHBOUR_INPUT" = 1 ] ||
     die "HISTORY_DROPOUT=$HISTORY_DROPOUT needs NEIGHBOUR_INPUT=1 (a dropped agent's next tokens are told from its neighbours)"
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}

@@ -299,8 +299,6 @@ def test_bad_setups_fail_with_one_clear_line(tmp_path: Path) -> None:
     assert bad_neighbours.returncode == 2 and "NEIGHBOUR_INPUT=2: expected 0 or 1" in bad_neighbours.stdout
     bad_lanes = _job(tmp_path, "l", LANE_INPUT="2")
     assert bad_lanes.returncode == 2 and "LANE_INPUT=2: expected 0 or 1" in bad_lanes.stdout
-    lanes_closed = _job(tmp_path, "lc", LANE_INPUT="1", CLOSED_LOOP="3")
-    assert lanes_closed.returncode == 2 and "LANE_INPUT=1 with CLOSED_LOOP=3" in lanes_closed.stdout
     if not torch.cuda.is_available():
         no_cuda = _job(tmp_path, "y", DEVICE="cuda")
         assert no_cuda.returncode == 2 and "DEVICE=cuda but torch" in no_cuda.stdout

@@ -23,6 +23,7 @@ from trajeglish_env.model.lanes import (
     POSITION_SCALE,
     REACH,
     ROAD_POINTS,
+    SOURCE_POINTS,
     SPACING,
     road_view,
     scene_road_points,
@@ -33,8 +34,9 @@ from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import RolloutEngine
 from trajeglish_env.scenario import MapKind, Scenario
+from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch, rolled_out_road
 from trajeglish_env.training.dataset import collate_windows
-from trajeglish_env.training.train import TrainConfig, train, window_config
+from trajeglish_env.training.train import window_config
 from trajeglish_env.training.training_data import TokenizedWindows
 
 
@@ -233,7 +235,7 @@ def test_sampling_reads_what_training_reads(monkeypatch: pytest.MonkeyPatch) -> 
     assert not torch.equal(logits, plain)  # the road changes the model's output
 
 
-def test_training_windows_carry_the_road_and_train_its_weights(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_training_windows_carry_the_road_and_train_its_weights() -> None:
     ckpt = _lane_checkpoint()
     model = ckpt.model.train()
     cfg = model.cfg
@@ -247,8 +249,36 @@ def test_training_windows_carry_the_road_and_train_its_weights(tmp_path) -> None
     logits = model(SceneInputs.from_batch(batch), batch["input_tokens"], view)
     logits.logsumexp(-1).mean().backward()
     assert model.lanes.point[0].weight.grad is not None and model.lanes.point[0].weight.grad.abs().sum() > 0
-    with pytest.raises(ValueError, match="closed_loop_top_k"):
-        train(small_scenes(), tmp_path / "run", cfg, TrainConfig(steps=1, closed_loop_top_k=3), init=ckpt)
+    assert batch["road_source"].shape == (2, SOURCE_POINTS, 4) and batch["road_source_mask"].any(-1).all()
+
+
+def test_closed_loop_windows_read_the_road_where_their_rollout_put_the_agents() -> None:
+    """CAT-K with a road-reading model: the rollout reads the road around its own states (from the windows'
+    ``road_source``), and the closed-loop windows carry those features, so teacher forcing them gives the
+    logits the rollout chose from; the features of the logged states differ."""
+    ckpt = _lane_checkpoint()
+    model, cfg = ckpt.model, ckpt.model.cfg
+    ds = TokenizedWindows(small_scenes(), window_config(cfg), ckpt.vocabulary, None, seed=3)
+    batch = collate_windows([ds[g] for g in range(2)])
+    k = 3
+    closed = closed_loop_batch(model, batch, ckpt.vocabulary, ClosedLoopConfig(top_k=k, teacher_forced=False))
+    assert not torch.equal(closed["road_points"], batch["road_points"])
+    # the logged states read from the road source give the windows' own features (the same points)
+    logged = batch["agent_xyh"].double().numpy()
+    logged = np.where(
+        (batch["agent_valid"] & batch["agent_mask"][..., None]).numpy()[..., None], logged, np.nan
+    )
+    again, again_mask = rolled_out_road(batch, logged)
+    assert torch.equal(again_mask, batch["road_mask"])
+    torch.testing.assert_close(
+        torch.sort(again, dim=-2).values, torch.sort(batch["road_points"], dim=-2).values, atol=1e-5, rtol=0
+    )
+    tokens = closed["input_tokens"]
+    with torch.no_grad():
+        logits = model(SceneInputs.from_batch(closed), tokens, batch_view(True, closed))
+    chosen = tokens.transpose(1, 2)
+    picked = logits.gather(-1, chosen.clamp(min=0)[..., None])
+    assert int((logits > picked).sum(-1)[chosen >= 0].max()) < k
 
 
 def test_batched_envs_with_road_reading_npcs_equal_separate_envs() -> None:

@@ -35,6 +35,8 @@ POINT_FEATURES = 6  # position / 20 m, cos and sin of relative direction, is lan
 POSITION_SCALE = 20.0
 ROAD_POINTS = LANE_POINTS + EDGE_POINTS
 LANE_PARAMS = "lanes."  # state-dict prefix of LaneEncoder inside the model
+SOURCE_POINTS = 4096  # road points a training window keeps for closed-loop rollouts (window_road_source)
+SOURCE_MARGIN = 10.0  # metres beyond the logged states' box a closed-loop agent may drift and still read
 
 
 def _resample(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -161,6 +163,26 @@ def window_road_view(
     every = torch.ones(len(near), dtype=torch.bool)
     feats, mask = road_view(p, every, torch.from_numpy(cur), torch.from_numpy(ok))
     return feats.numpy(), mask.numpy()
+
+
+def window_road_source(
+    points: np.ndarray, xyh: np.ndarray, valid: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The road points ``[SOURCE_POINTS,4]`` (float32) and mask a training window keeps for reading the road
+    where a closed-loop rollout (CAT-K) moves its agents: the scene's points (window frame) within
+    :data:`REACH` + :data:`SOURCE_MARGIN` of the box of its agents' logged states ``xyh [A,S,3]`` (``valid``),
+    the nearest the window's frame first when more are there than the fixed size holds."""
+    xy = xyh[valid][:, :2]
+    out = np.zeros((SOURCE_POINTS, 4), dtype=np.float32)
+    mask = np.zeros(SOURCE_POINTS, dtype=bool)
+    if len(xy) == 0:
+        return out, mask
+    low, high = xy.min(0) - REACH - SOURCE_MARGIN, xy.max(0) + REACH + SOURCE_MARGIN
+    near = points[((points[:, :2] >= low) & (points[:, :2] <= high)).all(-1)]
+    if len(near) > SOURCE_POINTS:
+        near = near[np.argsort(np.linalg.norm(near[:, :2], axis=-1), kind="stable")[:SOURCE_POINTS]]
+    out[: len(near)], mask[: len(near)] = near, True
+    return out, mask
 
 
 class LaneEncoder(nn.Module):

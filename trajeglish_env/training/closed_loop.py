@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from trajeglish_env.geometry import to_global, to_local
+from trajeglish_env.model.lanes import road_view
 from trajeglish_env.model.masks import START, input_shift
 from trajeglish_env.model.neighbours import NeighbourView, neighbour_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
@@ -95,7 +96,7 @@ def closed_loop_rollout(
         start, count = np.zeros(b, dtype=np.int64), np.ones(b, dtype=np.int64)
         rows_all = np.arange(b)
         for t in range(s - 1):
-            view = _step_view(model, states, size, t)
+            view = _step_view(model, states, size, t, batch)
             for slot in range(a):
                 p = t * a + slot
                 q = p - shift
@@ -131,10 +132,32 @@ def closed_loop_rollout(
     return tokens, states
 
 
-def _step_view(model: TrajeglishModel, states: np.ndarray, size: np.ndarray, t: int) -> NeighbourView | None:
-    """Neighbour features ``[B,A]`` at step ``t`` of the rollout's states (NaN: absent), as the sampler
-    computes them; None for a model without ``neighbour_input``."""
-    if not model.cfg.neighbour_input:
+def _step_road(
+    batch: dict[str, torch.Tensor], states: np.ndarray, t: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Road features ``[B,A,R,6]`` and mask of the agents at step ``t`` of the rollout's states (NaN:
+    absent), from the windows' road points (``road_source``, :func:`~trajeglish_env.model.lanes.
+    window_road_source`)."""
+    cur = torch.from_numpy(np.nan_to_num(states[:, :, t]))
+    ok = torch.from_numpy(~np.isnan(states[:, :, t, 0]))
+    points = batch["road_source"].detach().cpu().double()
+    return road_view(points, batch["road_source_mask"].cpu(), cur, ok)
+
+
+def rolled_out_road(batch: dict[str, torch.Tensor], states: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """Road features ``[B,T,A,R,6]`` and mask of a closed-loop rollout's states ``[B,A,S,3]`` at its input
+    steps (the windows' ``road_points`` / ``road_mask`` where the rollout put the agents)."""
+    steps = batch["input_tokens"].shape[-1]
+    feats, mask = zip(*(_step_road(batch, states, t) for t in range(steps)), strict=True)
+    return torch.stack(feats, dim=1), torch.stack(mask, dim=1)
+
+
+def _step_view(
+    model: TrajeglishModel, states: np.ndarray, size: np.ndarray, t: int, batch: dict[str, torch.Tensor]
+) -> NeighbourView | None:
+    """Features ``[B,A]`` at step ``t`` of the rollout's states (NaN: absent), as the sampler computes them;
+    None for a model that reads no states."""
+    if not model.cfg.reads_states:
         return None
     cur = torch.from_numpy(np.nan_to_num(states[:, :, t]))
     ok = torch.from_numpy(~np.isnan(states[:, :, t, 0]))
@@ -142,8 +165,9 @@ def _step_view(model: TrajeglishModel, states: np.ndarray, size: np.ndarray, t: 
     prev = torch.from_numpy(np.nan_to_num(states[:, :, before]))
     prev_ok = torch.from_numpy(~np.isnan(states[:, :, before, 0])) & (t > 0)
     view = neighbour_view(cur, ok, prev, prev_ok, torch.from_numpy(size))
-    dev = model.start.device
-    return NeighbourView(view.own.to(dev), view.pairs.to(dev), view.mask.to(dev))
+    if model.cfg.lane_input:
+        view = NeighbourView(view.own, view.pairs, view.mask, *_step_road(batch, states, t))
+    return view.to(model.start.device)
 
 
 def recovery_aims(states: np.ndarray, logged: np.ndarray, config: ClosedLoopConfig) -> np.ndarray:
@@ -207,6 +231,9 @@ def closed_loop_batch(
         logged = batch["agent_xyh"]
         rolled = torch.from_numpy(states).to(device=dev, dtype=logged.dtype)
         closed["agent_xyh"] = torch.where(torch.isnan(rolled), logged, rolled)
+    if model.cfg.lane_input:  # and the road around them there
+        road, road_mask = rolled_out_road(batch, states)
+        closed["road_points"], closed["road_mask"] = road.to(dev), road_mask.to(dev)
     if not config.teacher_forced:
         return closed
     return {k: torch.cat([v, closed[k]]) for k, v in batch.items()}

@@ -21,7 +21,7 @@ from torch.utils.data import Dataset
 
 from trajeglish_env.geometry import to_local
 from trajeglish_env.model.config import ModelConfig
-from trajeglish_env.model.lanes import road_points_of, window_road_view
+from trajeglish_env.model.lanes import road_points_of, window_road_source, window_road_view
 from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks, signal_classes
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import list_scenario_files, load_scenarios
@@ -201,6 +201,8 @@ def make_window(
         states[real] = np.where(valid[real, :, None], local, 0.0)
         road, road_mask = window_road_view(points, states, valid, c.steps - 1)
         window_items["road_points"], window_items["road_mask"] = road, road_mask
+        source, source_mask = window_road_source(points, states, valid)  # closed-loop windows read it
+        window_items["road_source"], window_items["road_source_mask"] = source, source_mask
     return window_items
 
 

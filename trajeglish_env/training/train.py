@@ -199,12 +199,6 @@ def train(
     """
     if fit_steps and time_limit is None:
         raise ValueError("train: fit_steps needs a time_limit (train --fit-steps needs --minutes)")
-    if config.closed_loop_top_k and model_config.lane_input:
-        raise ValueError(
-            "train: closed-loop windows (closed_loop_top_k) move agents off their logged states, and the "
-            "road a lane_input model reads is cut where the window is made (at the logged states): train "
-            "it without --closed-loop-top-k"
-        )
     if config.history_dropout and not model_config.neighbour_input:
         raise ValueError(
             "train: history_dropout needs a model that reads its agents' neighbours (--neighbour-input): "
