@@ -3,6 +3,7 @@ the shared WOMD files. Nothing heavy runs at import: models and scenes are built
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from pathlib import Path
@@ -14,7 +15,7 @@ import torch
 from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.env import TrajeglishNPC
 from trajeglish_env.env.scenes import load_bundle
-from trajeglish_env.model import ModelConfig, TrajeglishModel, preset
+from trajeglish_env.model import ModelConfig, SceneInputs, TrajeglishModel, preset
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario
 from trajeglish_env.tokenizer.baselines import xyh_grid_templates
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
@@ -200,3 +201,131 @@ def small_womd_records(keep: int = 8) -> list[bytes]:
     first = proto.SerializeToString()
     proto.scenario_id = proto.scenario_id + "-b"
     return [first, proto.SerializeToString()]
+
+
+def random_scene_inputs(cfg: ModelConfig, g: torch.Generator) -> SceneInputs:
+    """Encoder inputs of one window of random agents and map points filling a model's whole context."""
+    a, m, p = cfg.max_agents, cfg.max_polylines, cfg.points_per_polyline
+    return SceneInputs(
+        agent_xyh=torch.randn(1, a, 3, generator=g),
+        agent_size=torch.ones(1, a, 2) * 4,
+        agent_kind=torch.zeros(1, a, dtype=torch.long),
+        agent_mask=torch.ones(1, a, dtype=torch.bool),
+        map_points=torch.randn(1, m, p, 2, generator=g),
+        map_point_mask=torch.ones(1, m, p, dtype=torch.bool),
+        map_kind=torch.zeros(1, m, dtype=torch.long),
+        map_mask=torch.ones(1, m, dtype=torch.bool),
+        map_signal=torch.zeros(1, m, dtype=torch.long),
+    )
+
+
+def assert_batched_ego_env_equals_separate_envs(kw: dict, steps: int = 9, seed: int = 11) -> None:
+    """A BatchedEgoEnv of two scenes, stepped with random actions through ends and auto-resets, gives each
+    scene what a separate EgoEnv gives (observations, rewards, flags and the final step's info)."""
+    from trajeglish_env.env import EgoEnv
+    from trajeglish_env.env.vector import BatchedEgoEnv
+
+    venv = BatchedEgoEnv(2, **kw)
+    obs, _ = venv.reset(seed=seed)
+    rng = np.random.default_rng(3)
+    actions = [rng.uniform(-1, 1, (2, 2)).astype(np.float32) for _ in range(steps)]
+    batched = [venv.step(a) for a in actions]
+    assert sum(int((r[2] | r[3]).sum()) for r in batched) >= 2  # scenes ended and restarted
+    for i in range(2):
+        env = EgoEnv(**kw)
+        o, _ = env.reset(seed=seed + i)
+        assert np.array_equal(o, obs[i])
+        for a, (b_obs, b_rew, b_term, b_trunc, b_info) in zip(actions, batched, strict=True):
+            o, r, term, trunc, info = env.step(a[i])
+            assert (r, term, trunc) == (b_rew[i], b_term[i], b_trunc[i])
+            if term or trunc:
+                final = b_info["final_info"]
+                assert np.array_equal(o, b_info["final_obs"][i])
+                assert all(final[k][i] == info[k] for k in ("collision", "offroad", "progress_m"))
+                o, _ = env.reset()
+            assert np.array_equal(o, b_obs[i])
+
+
+@dataclasses.dataclass
+class GreedyWindow:
+    """A greedy rollout's first window, as training would see it: the recorded encoder inputs, the input
+    tokens ``[1,A,T]`` and the model's states ``xyh [A,S,3]`` / ``valid [A,S]`` / ``size [A,2]`` of its
+    slots; ``checked(logits)`` compares the rollout's decided tokens with the argmax of teacher forcing."""
+
+    engine: object
+    scene: SceneInputs
+    inputs: torch.Tensor
+    xyh: np.ndarray
+    valid: np.ndarray
+    size: np.ndarray
+    slots: np.ndarray
+    controlled: np.ndarray
+    s0: int
+    t0: int
+    horizon: int
+
+    def checked(self, logits: torch.Tensor) -> int:
+        """Asserts each controlled slot's decided tokens are the greedy ones of ``logits [T,A,V]``; returns
+        how many tokens were compared."""
+        greedy, checked = logits.argmax(-1).numpy(), 0
+        for j, agent in enumerate(self.slots):
+            if agent >= 0 and self.controlled[agent]:
+                decided = self.engine.tokens[0, agent, self.t0 : self.t0 + self.horizon]
+                assert np.array_equal(
+                    decided, greedy[self.t0 - self.s0 : self.t0 - self.s0 + self.horizon, j]
+                )
+                checked += len(decided)
+        return checked
+
+
+def greedy_window(ckpt: Checkpoint, monkeypatch: pytest.MonkeyPatch, sc: Scenario) -> GreedyWindow:
+    """Roll ``sc`` out greedily (5 agents, two replayed) for one window's horizon and collect that window."""
+    from trajeglish_env.sampler.config import SamplingConfig
+    from trajeglish_env.sampler.engine import RolloutEngine
+
+    model = ckpt.model
+    controlled = np.array([True, False, True, True, False])
+    scenes = record_encoded(monkeypatch, model)
+    config = SamplingConfig(temperature=0.0, prime_steps=3, guard=False)
+    horizon = config.every(model.cfg.steps)
+    engine = RolloutEngine(ckpt, sc, 1, horizon, controlled, config=config)
+    engine.run()
+    w, a = engine.windows[0], model.cfg.max_agents
+    s0 = int(w.start[0])
+    slots = w.slots[0]
+    real = slots >= 0
+    idx = np.where(real, slots, 0)
+    steps = np.arange(s0, s0 + model.cfg.steps)
+    inside = steps < engine.T - 1
+    inputs = np.full((a, len(steps)), -1)
+    inputs[:, inside] = np.where(real[:, None], engine.tokens[0][idx][:, steps[inside]], -1)
+    states = np.arange(s0, s0 + model.cfg.steps + 1).clip(max=engine.T - 1)
+    return GreedyWindow(
+        engine,
+        scenes[0].rows(slice(0, 1)),
+        torch.from_numpy(inputs)[None],
+        engine.mxyh[0][idx][:, states],
+        engine.valid[0][idx][:, states] & real[:, None],
+        engine.size[0][idx],
+        slots,
+        controlled,
+        s0,
+        sc.current_index,
+        horizon,
+    )
+
+
+def extended_tiny_checkpoint(added: str) -> Checkpoint:
+    """The tiny model extended with the input ``added`` (a ModelConfig flag: ``neighbour_input``,
+    ``lane_input``), the added encoder's output layer random so that it matters."""
+    from trajeglish_env.checkpoint import check_init, load_into
+
+    base = tiny_checkpoint()
+    cfg = dataclasses.replace(base.model.cfg, **{added: True})
+    check_init(base, cfg, base.vocabulary)
+    model = TrajeglishModel(cfg)
+    load_into(model, base, base.vocabulary)
+    torch.manual_seed(1)
+    encoder = {"neighbour_input": model.neighbours, "lane_input": model.lanes}[added]
+    torch.nn.init.normal_(encoder.out[1].weight, std=0.5)
+    return Checkpoint(model=model.eval(), vocabulary=base.vocabulary, training={})

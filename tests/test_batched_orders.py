@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import MERGE, tiny
+from helpers import MERGE, assert_batched_ego_env_equals_separate_envs, tiny
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
 from trajeglish_env.env.sb3 import SB3VecEnv
-from trajeglish_env.env.vector import BatchedEgoEnv, BatchedParallelEnv
+from trajeglish_env.env.vector import BatchedParallelEnv
 
 KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
 RING = "highway-roundabout-999001"
@@ -45,26 +45,9 @@ def test_batched_parallel_env_equals_separate_envs_for_every_order(order: str) -
 
 
 def test_batched_ego_env_acting_last_equals_separate_envs_with_autoreset() -> None:
-    kw = {"npc": TrajeglishNPC(tiny()), "order": "last", "max_cycles": 5}
-    venv = BatchedEgoEnv(2, **kw)
-    obs, _ = venv.reset(seed=11)
-    rng = np.random.default_rng(3)
-    actions = [rng.uniform(-1, 1, (2, 2)).astype(np.float32) for _ in range(9)]
-    batched = [venv.step(a) for a in actions]
-    assert sum(int((r[2] | r[3]).sum()) for r in batched) >= 2  # scenes ended and restarted
-    for i in range(2):
-        env = EgoEnv(**kw)
-        o, _ = env.reset(seed=11 + i)
-        assert np.array_equal(o, obs[i])
-        for a, (b_obs, b_rew, b_term, b_trunc, b_info) in zip(actions, batched, strict=True):
-            o, r, term, trunc, info = env.step(a[i])
-            assert (r, term, trunc) == (b_rew[i], b_term[i], b_trunc[i])
-            if term or trunc:
-                final = b_info["final_info"]
-                assert np.array_equal(o, b_info["final_obs"][i])
-                assert all(final[k][i] == info[k] for k in ("collision", "offroad", "progress_m"))
-                o, _ = env.reset()
-            assert np.array_equal(o, b_obs[i])
+    assert_batched_ego_env_equals_separate_envs(
+        {"npc": TrajeglishNPC(tiny()), "order": "last", "max_cycles": 5}
+    )
 
 
 def test_a_bad_action_in_one_scene_changes_nothing_and_a_retry_plays_on() -> None:

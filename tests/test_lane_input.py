@@ -10,11 +10,18 @@ import math
 import numpy as np
 import pytest
 import torch
-from helpers import record_encoded, small_scenes, straight_road_scene, tiny_checkpoint
+from helpers import (
+    assert_batched_ego_env_equals_separate_envs,
+    extended_tiny_checkpoint,
+    greedy_window,
+    random_scene_inputs,
+    small_scenes,
+    straight_road_scene,
+    tiny_checkpoint,
+)
 
-from trajeglish_env.checkpoint import Checkpoint, check_init, load_into
-from trajeglish_env.env import EgoEnv, TrajeglishNPC
-from trajeglish_env.env.vector import BatchedEgoEnv
+from trajeglish_env.checkpoint import Checkpoint, load_into
+from trajeglish_env.env import TrajeglishNPC
 from trajeglish_env.geometry import to_local
 from trajeglish_env.model import SceneInputs
 from trajeglish_env.model.lanes import (
@@ -31,8 +38,6 @@ from trajeglish_env.model.lanes import (
 )
 from trajeglish_env.model.neighbours import NeighbourView, batch_view, window_view
 from trajeglish_env.model.network import TrajeglishModel
-from trajeglish_env.sampler.config import SamplingConfig
-from trajeglish_env.sampler.engine import RolloutEngine
 from trajeglish_env.scenario import MapKind, Scenario
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch, rolled_out_road
 from trajeglish_env.training.dataset import collate_windows
@@ -41,15 +46,7 @@ from trajeglish_env.training.training_data import TokenizedWindows
 
 
 def _lane_checkpoint() -> Checkpoint:
-    """The tiny model extended with the road input, its output layer random (so that it matters)."""
-    base = tiny_checkpoint()
-    cfg = dataclasses.replace(base.model.cfg, lane_input=True)
-    check_init(base, cfg, base.vocabulary)
-    model = TrajeglishModel(cfg)
-    load_into(model, base, base.vocabulary)
-    torch.manual_seed(1)
-    torch.nn.init.normal_(model.lanes.out[1].weight, std=0.5)
-    return Checkpoint(model=model.eval(), vocabulary=base.vocabulary, training={})
+    return extended_tiny_checkpoint("lane_input")
 
 
 def _ring_scene() -> Scenario:
@@ -159,17 +156,7 @@ def test_an_extended_model_starts_as_the_checkpoint_did() -> None:
     model.eval()
     a, t = cfg.max_agents, cfg.steps
     g = torch.Generator().manual_seed(0)
-    scene = SceneInputs(
-        agent_xyh=torch.randn(1, a, 3, generator=g),
-        agent_size=torch.ones(1, a, 2) * 4,
-        agent_kind=torch.zeros(1, a, dtype=torch.long),
-        agent_mask=torch.ones(1, a, dtype=torch.bool),
-        map_points=torch.randn(1, cfg.max_polylines, cfg.points_per_polyline, 2, generator=g),
-        map_point_mask=torch.ones(1, cfg.max_polylines, cfg.points_per_polyline, dtype=torch.bool),
-        map_kind=torch.zeros(1, cfg.max_polylines, dtype=torch.long),
-        map_mask=torch.ones(1, cfg.max_polylines, dtype=torch.bool),
-        map_signal=torch.zeros(1, cfg.max_polylines, dtype=torch.long),
-    )
+    scene = random_scene_inputs(cfg, g)
     tokens = torch.randint(0, cfg.vocab_size, (1, a, t), generator=g)
     states = torch.randn(1, a, t + 1, 3, generator=g) * 5
     view = window_view(states, torch.ones(1, a, t + 1, dtype=torch.bool), torch.ones(1, a, 2) * 4, t)
@@ -192,46 +179,18 @@ def test_sampling_reads_what_training_reads(monkeypatch: pytest.MonkeyPatch) -> 
     ckpt = _lane_checkpoint()
     model = ckpt.model
     sc = straight_road_scene(num_agents=5, steps=30)
-    controlled = np.array([True, False, True, True, False])
-    scenes = record_encoded(monkeypatch, model)
-    config = SamplingConfig(temperature=0.0, prime_steps=3, guard=False)
-    horizon = config.every(model.cfg.steps)
-    engine = RolloutEngine(ckpt, sc, 1, horizon, controlled, config=config)
-    engine.run()
-    w, a = engine.windows[0], model.cfg.max_agents
-    s0, t0 = int(w.start[0]), sc.current_index
-    slots = w.slots[0]
-    real = slots >= 0
-    idx = np.where(real, slots, 0)
-    steps = np.arange(s0, s0 + model.cfg.steps)
-    inside = steps < engine.T - 1
-    inputs = np.full((a, len(steps)), -1)
-    inputs[:, inside] = np.where(real[:, None], engine.tokens[0][idx][:, steps[inside]], -1)
-    states = np.arange(s0, s0 + model.cfg.steps + 1).clip(max=engine.T - 1)
-    xyh = engine.mxyh[0][idx][:, states]
-    valid = engine.valid[0][idx][:, states] & real[:, None]
-    view = window_view(
-        torch.from_numpy(xyh)[None],
-        torch.from_numpy(valid)[None],
-        torch.from_numpy(engine.size[0][idx])[None],
-        model.cfg.steps,
-    )
-    road, road_mask = window_road_view(scene_road_points(sc), xyh, valid, model.cfg.steps)
+    gw = greedy_window(ckpt, monkeypatch, sc)
+    t = model.cfg.steps
+    view = window_view(*(torch.from_numpy(x)[None] for x in (gw.xyh, gw.valid, gw.size)), t)
+    road, road_mask = window_road_view(scene_road_points(sc), gw.xyh, gw.valid, t)
     view = NeighbourView(
         view.own, view.pairs, view.mask, torch.from_numpy(road)[None], torch.from_numpy(road_mask)[None]
     )
     blind = dataclasses.replace(view, road_mask=torch.zeros_like(view.road_mask))
     with torch.no_grad():
-        logits = model(scenes[0].rows(slice(0, 1)), torch.from_numpy(inputs)[None], view)[0]
-        plain = model(scenes[0].rows(slice(0, 1)), torch.from_numpy(inputs)[None], blind)[0]
-    greedy = logits.argmax(-1).numpy()
-    checked = 0
-    for j, agent in enumerate(slots):
-        if agent >= 0 and controlled[agent]:
-            decided = engine.tokens[0, agent, t0 : t0 + horizon]
-            assert np.array_equal(decided, greedy[t0 - s0 : t0 - s0 + horizon, j])
-            checked += len(decided)
-    assert checked >= 3 * horizon
+        logits = model(gw.scene, gw.inputs, view)[0]
+        plain = model(gw.scene, gw.inputs, blind)[0]
+    assert gw.checked(logits) >= 3 * gw.horizon
     assert not torch.equal(logits, plain)  # the road changes the model's output
 
 
@@ -285,19 +244,4 @@ def test_batched_envs_with_road_reading_npcs_equal_separate_envs() -> None:
     """Each row keeps its own agents' road features (computed once per step and row): a batch of two scenes
     that end and restart plays as two separate envs do."""
     kw = {"npc": TrajeglishNPC(_lane_checkpoint()), "order": "last", "max_cycles": 5}
-    venv = BatchedEgoEnv(2, **kw)
-    obs, _ = venv.reset(seed=11)
-    rng = np.random.default_rng(3)
-    actions = [rng.uniform(-1, 1, (2, 2)).astype(np.float32) for _ in range(8)]
-    batched = [venv.step(a) for a in actions]
-    assert sum(int((r[2] | r[3]).sum()) for r in batched) >= 2  # scenes ended and restarted
-    for i in range(2):
-        env = EgoEnv(**kw)
-        o, _ = env.reset(seed=11 + i)
-        assert np.array_equal(o, obs[i])
-        for a, (b_obs, b_rew, b_term, b_trunc, _) in zip(actions, batched, strict=True):
-            o, r, term, trunc, _ = env.step(a[i])
-            assert (r, term, trunc) == (b_rew[i], b_term[i], b_trunc[i])
-            if term or trunc:
-                o, _ = env.reset()
-            assert np.array_equal(o, b_obs[i])
+    assert_batched_ego_env_equals_separate_envs(kw)

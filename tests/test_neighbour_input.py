@@ -6,17 +6,21 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import numpy as np
 import pytest
 import torch
-from helpers import record_encoded, small_scenes, straight_road_scene, tiny_checkpoint
+from helpers import (
+    extended_tiny_checkpoint,
+    greedy_window,
+    random_scene_inputs,
+    small_scenes,
+    straight_road_scene,
+    tiny_checkpoint,
+)
 
-from trajeglish_env.checkpoint import Checkpoint, check_init, load_into, load_pretrained
+from trajeglish_env.checkpoint import Checkpoint, load_into, load_pretrained
 from trajeglish_env.model import SceneInputs
 from trajeglish_env.model.neighbours import NEIGHBOURS, REACH, batch_view, neighbour_view, window_view
 from trajeglish_env.model.network import TrajeglishModel
-from trajeglish_env.sampler.config import SamplingConfig
-from trajeglish_env.sampler.engine import RolloutEngine
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
 from trajeglish_env.training.dataset import collate_windows
 from trajeglish_env.training.train import window_config
@@ -24,15 +28,7 @@ from trajeglish_env.training.training_data import TokenizedWindows
 
 
 def _neighbour_checkpoint() -> Checkpoint:
-    """The tiny model extended with the neighbour input, its output layer random (so that it matters)."""
-    base = tiny_checkpoint()
-    cfg = dataclasses.replace(base.model.cfg, neighbour_input=True)
-    check_init(base, cfg, base.vocabulary)
-    model = TrajeglishModel(cfg)
-    load_into(model, base, base.vocabulary)
-    torch.manual_seed(1)
-    torch.nn.init.normal_(model.neighbours.out[1].weight, std=0.5)
-    return Checkpoint(model=model.eval(), vocabulary=base.vocabulary, training={})
+    return extended_tiny_checkpoint("neighbour_input")
 
 
 def test_features_in_closed_form() -> None:
@@ -84,17 +80,7 @@ def test_an_extended_model_starts_as_the_checkpoint_did() -> None:
     model.eval()
     a, t = cfg.max_agents, cfg.steps
     g = torch.Generator().manual_seed(0)
-    scene = SceneInputs(
-        agent_xyh=torch.randn(1, a, 3, generator=g),
-        agent_size=torch.ones(1, a, 2) * 4,
-        agent_kind=torch.zeros(1, a, dtype=torch.long),
-        agent_mask=torch.ones(1, a, dtype=torch.bool),
-        map_points=torch.randn(1, cfg.max_polylines, cfg.points_per_polyline, 2, generator=g),
-        map_point_mask=torch.ones(1, cfg.max_polylines, cfg.points_per_polyline, dtype=torch.bool),
-        map_kind=torch.zeros(1, cfg.max_polylines, dtype=torch.long),
-        map_mask=torch.ones(1, cfg.max_polylines, dtype=torch.bool),
-        map_signal=torch.zeros(1, cfg.max_polylines, dtype=torch.long),
-    )
+    scene = random_scene_inputs(cfg, g)
     tokens = torch.randint(0, cfg.vocab_size, (1, a, t), generator=g)
     view = window_view(
         torch.randn(1, a, t + 1, 3, generator=g) * 5,
@@ -114,38 +100,12 @@ def test_sampling_reads_what_training_reads(monkeypatch: pytest.MonkeyPatch) -> 
     (:func:`window_view`): the two paths compute the same inputs."""
     ckpt = _neighbour_checkpoint()
     model = ckpt.model
-    sc = straight_road_scene(num_agents=5, steps=30)
-    controlled = np.array([True, False, True, True, False])
-    scenes = record_encoded(monkeypatch, model)
-    config = SamplingConfig(temperature=0.0, prime_steps=3, guard=False)
-    horizon = config.every(model.cfg.steps)
-    engine = RolloutEngine(ckpt, sc, 1, horizon, controlled, config=config)
-    engine.run()
-    w, a = engine.windows[0], model.cfg.max_agents
-    s0, t0 = int(w.start[0]), sc.current_index
-    slots = w.slots[0]
-    real = slots >= 0
-    idx = np.where(real, slots, 0)
-    steps = np.arange(s0, s0 + model.cfg.steps)
-    inside = steps < engine.T - 1
-    inputs = np.full((a, len(steps)), -1)
-    inputs[:, inside] = np.where(real[:, None], engine.tokens[0][idx][:, steps[inside]], -1)
-    states = np.arange(s0, s0 + model.cfg.steps + 1).clip(max=engine.T - 1)
-    xyh = torch.from_numpy(engine.mxyh[0][idx][:, states])[None]
-    valid = torch.from_numpy(engine.valid[0][idx][:, states] & real[:, None])[None]
-    size = torch.from_numpy(engine.size[0][idx])[None]
-    view = window_view(xyh, valid, size, model.cfg.steps)
+    gw = greedy_window(ckpt, monkeypatch, straight_road_scene(num_agents=5, steps=30))
+    view = window_view(*(torch.from_numpy(x)[None] for x in (gw.xyh, gw.valid, gw.size)), model.cfg.steps)
     with torch.no_grad():
-        logits = model(scenes[0].rows(slice(0, 1)), torch.from_numpy(inputs)[None], view)[0]
-        plain = model(scenes[0].rows(slice(0, 1)), torch.from_numpy(inputs)[None], _no_neighbours(view))[0]
-    greedy = logits.argmax(-1).numpy()
-    checked = 0
-    for j, agent in enumerate(slots):
-        if agent >= 0 and controlled[agent]:
-            decided = engine.tokens[0, agent, t0 : t0 + horizon]
-            assert np.array_equal(decided, greedy[t0 - s0 : t0 - s0 + horizon, j])
-            checked += len(decided)
-    assert checked >= 3 * horizon
+        logits = model(gw.scene, gw.inputs, view)[0]
+        plain = model(gw.scene, gw.inputs, _no_neighbours(view))[0]
+    assert gw.checked(logits) >= 3 * gw.horizon
     assert not torch.equal(logits, plain)  # the features change the model's output
 
 
