@@ -5,13 +5,18 @@ its windows reaches its weights."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 from helpers import (
+    REPO,
     assert_batched_ego_env_equals_separate_envs,
+    bundle_scene,
     extended_tiny_checkpoint,
     greedy_window,
     random_scene_inputs,
@@ -39,6 +44,7 @@ from trajeglish_env.model.lanes import (
 from trajeglish_env.model.neighbours import NeighbourView, batch_view, window_view
 from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.scenario import MapKind, Scenario
+from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch, rolled_out_road
 from trajeglish_env.training.dataset import collate_windows
 from trajeglish_env.training.train import window_config
@@ -245,3 +251,35 @@ def test_batched_envs_with_road_reading_npcs_equal_separate_envs() -> None:
     that end and restart plays as two separate envs do."""
     kw = {"npc": TrajeglishNPC(_lane_checkpoint()), "order": "last", "max_cycles": 5}
     assert_batched_ego_env_equals_separate_envs(kw)
+
+
+def test_lane_distance_in_closed_form() -> None:
+    sys.path.insert(0, str(REPO / "scripts"))
+    from lone_vehicle_probe import lane_distance
+
+    sc = straight_road_scene(num_agents=2, steps=30)  # lanes along +x at y = 0 and 3.5, x from -50 to 399
+    xy = np.array([[10.0, 6.0], [10.0, -1.0], [10.0, 1.75], [-53.0, 4.0], [399.0, 0.0]])
+    np.testing.assert_allclose(lane_distance(sc, xy), [2.5, 1.0, 1.75, math.hypot(3.0, 0.5), 0.0], atol=1e-9)
+
+
+def test_lone_vehicle_probe_script(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The shipped model's sdc alone follows a straight highway in every rollout and leaves a roundabout in
+    every one (docs/evaluation.md, "The road in the agent's own frame"; a model that reads the road changes
+    the second count)."""
+    save_scenarios(
+        tmp_path / "s.scn.npz",
+        [bundle_scene("highway-highway-999000"), bundle_scene("highway-roundabout-999000")],
+    )
+    script = [sys.executable, str(REPO / "scripts" / "lone_vehicle_probe.py"), "--rollouts", "4", "--json"]
+    done = subprocess.run([*script, "--data", str(tmp_path)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result["by_kind"] == {
+        "highway": {"off_road": 0, "rollouts": 4},
+        "roundabout": {"off_road": 4, "rollouts": 4},
+    }
+    assert (result["scenes"], result["rollouts"], result["off_road"], result["rate"]) == (2, 8, 4, 0.5)
+    bad = subprocess.run(
+        [*script, "--data", str(tmp_path), "--distance", "0"], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "--distance > 0" in bad.stderr
