@@ -69,6 +69,9 @@
 #   INTERACTION_WEIGHT  loss weight of the tokens of agents closing in on the agent ahead (`train
 #                  --interaction-weight`; docs/evaluation.md "Weighing the tokens of followers that close
 #                  in"); 1: plain likelihood [1]; kept when resuming
+#   BEND_WEIGHT    loss weight of the tokens where the lane ahead turns away from an agent's current motion
+#                  (`train --bend-weight`; docs/evaluation.md "Weighing the tokens where the road bends");
+#                  needs LANE_INPUT=1; 1: plain likelihood [1]; kept when resuming
 #   COLLISION_WEIGHT  weight of the loss term against the probability on colliding candidate tokens (`train
 #                  --collision-weight`; docs/evaluation.md "The model alone collides by its own draws");
 #                  scenes of a model's own rollouts carried in DATA_IN/train (`scripts/guarded_rollout_scenes.py
@@ -112,7 +115,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest); a resumed run
 # keeps these (trajeglish_env/device_job.py SAVED)
-SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT LANE_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT COLLISION_WEIGHT COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT HISTORY_DROPOUT"
+SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT LANE_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT BEND_WEIGHT COLLISION_WEIGHT COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT HISTORY_DROPOUT"
 declare -A GIVEN=()
 for v in $SAVED_VARS; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
@@ -208,6 +211,10 @@ INTERACTION_WEIGHT=${INTERACTION_WEIGHT:-1}
 [[ "$INTERACTION_WEIGHT" =~ ^[0-9]+([.][0-9]+)?$ ]] && [ "$(calc "($INTERACTION_WEIGHT >= 1)")" = 1 ] ||
     die "INTERACTION_WEIGHT=$INTERACTION_WEIGHT: expected a loss weight >= 1 (1: plain likelihood)"
 [ "$INTERACTION_WEIGHT" = 1 ] || CLOSED_ARGS+=(--interaction-weight "$INTERACTION_WEIGHT")
+BEND_WEIGHT=${BEND_WEIGHT:-1}
+[[ "$BEND_WEIGHT" =~ ^[0-9]+([.][0-9]+)?$ ]] && [ "$(calc "($BEND_WEIGHT >= 1)")" = 1 ] ||
+    die "BEND_WEIGHT=$BEND_WEIGHT: expected a loss weight >= 1 (1: plain likelihood)"
+[ "$BEND_WEIGHT" = 1 ] || CLOSED_ARGS+=(--bend-weight "$BEND_WEIGHT")
 COLLISION_WEIGHT=${COLLISION_WEIGHT:-0}
 [[ "$COLLISION_WEIGHT" =~ ^[0-9]+([.][0-9]+)?$ ]] ||
     die "COLLISION_WEIGHT=$COLLISION_WEIGHT: expected a loss weight >= 0 (0: off)"
@@ -274,9 +281,11 @@ case $LANE_INPUT in
 esac
 [ "$(calc "($HISTORY_DROPOUT > 0)")" = 0 ] || [ "$NEIGHBOUR_INPUT" = 1 ] ||
     die "HISTORY_DROPOUT=$HISTORY_DROPOUT needs NEIGHBOUR_INPUT=1 (a dropped agent's next tokens are told from its neighbours)"
+[ "$BEND_WEIGHT" = 1 ] || [ "$LANE_INPUT" = 1 ] ||
+    die "BEND_WEIGHT=$BEND_WEIGHT needs LANE_INPUT=1 (the bends are found in the lane points the model reads)"
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT LANE_INPUT=$LANE_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT COLLISION_HORIZON=$COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY=$COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT=$OFFROAD_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT LANE_INPUT=$LANE_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT BEND_WEIGHT=$BEND_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT COLLISION_HORIZON=$COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY=$COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT=$OFFROAD_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh

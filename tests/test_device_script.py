@@ -115,6 +115,7 @@ def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
         SIGNAL_INPUT="1",
         NEIGHBOUR_INPUT="1",
         LANE_INPUT="1",
+        BEND_WEIGHT="3",
     )
     assert job.returncode == 0, job.stdout[-3000:]
     tuned = load_checkpoint(tmp_path / "out-init" / "model.pt")
@@ -122,6 +123,7 @@ def test_a_new_run_can_start_from_the_shipped_model(tmp_path: Path) -> None:
     assert tuned.config.signal_input  # the shipped model, extended with the signal input
     assert tuned.config.neighbour_input  # and with the neighbour input
     assert tuned.config.lane_input  # and with the road input
+    assert tuned.training["train_config"]["bend_weight"] == 3.0
     summary = json.loads((tmp_path / "out-init" / "summary.json").read_text())
     assert summary["params"]["SIGNAL_INPUT"] == "1"  # kept for a resumed call
     assert summary["params"]["NEIGHBOUR_INPUT"] == "1"
@@ -299,6 +301,10 @@ def test_bad_setups_fail_with_one_clear_line(tmp_path: Path) -> None:
     assert bad_neighbours.returncode == 2 and "NEIGHBOUR_INPUT=2: expected 0 or 1" in bad_neighbours.stdout
     bad_lanes = _job(tmp_path, "l", LANE_INPUT="2")
     assert bad_lanes.returncode == 2 and "LANE_INPUT=2: expected 0 or 1" in bad_lanes.stdout
+    bad_bend = _job(tmp_path, "b", BEND_WEIGHT="0.5")
+    assert bad_bend.returncode == 2 and "BEND_WEIGHT=0.5: expected a loss weight >= 1" in bad_bend.stdout
+    blind_bend = _job(tmp_path, "bb", BEND_WEIGHT="4")
+    assert blind_bend.returncode == 2 and "BEND_WEIGHT=4 needs LANE_INPUT=1" in blind_bend.stdout
     if not torch.cuda.is_available():
         no_cuda = _job(tmp_path, "y", DEVICE="cuda")
         assert no_cuda.returncode == 2 and "DEVICE=cuda but torch" in no_cuda.stdout

@@ -133,6 +133,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         closed_loop_along_recovery=args.closed_loop_along_recovery,
         closed_loop_teacher_forced=not args.closed_loop_only,
         interaction_weight=args.interaction_weight,
+        bend_weight=args.bend_weight,
         collision_weight=args.collision_weight,
         collision_horizon=args.collision_horizon,
         collision_rolled_out_only=args.collision_rolled_out_only,
@@ -362,6 +363,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="loss weight of the tokens of agents closing in on the agent ahead (within 4 s at the closing "
         "speed, or under 0.6 s headway; 1: plain likelihood; validation NLL stays plain)",
+    )
+    p.add_argument(
+        "--bend-weight",
+        type=at_least_one,
+        default=1.0,
+        help="loss weight of the tokens where the lane ahead turns away from an agent's current motion "
+        "(needs --lane-input; 1: plain likelihood; validation NLL stays plain)",
     )
     p.add_argument(
         "--history-dropout",

@@ -11,6 +11,7 @@ from torch import nn
 
 from trajeglish_env.model.neighbours import batch_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
+from trajeglish_env.training.bend_weights import bend_weights
 from trajeglish_env.training.blocked_mass import batch_blocked, blocked_loss, logged_weights
 from trajeglish_env.training.interaction_weights import interaction_weights
 from trajeglish_env.training.offroad_mass import offroad_candidates
@@ -27,16 +28,23 @@ class TrainingLoss(nn.Module):
         super().__init__()
         self.model = model
         self.interaction_weight = config.interaction_weight
+        self.bend_weight = config.bend_weight
         self.collision_weight = config.collision_weight
         self.templates = templates  # the drawn tokens' motion templates [classes,D,3] (collision_weight)
         self.collision_horizon = config.collision_horizon
         self.only_rolled = config.collision_rolled_out_only
         self.offroad_weight = config.offroad_weight
 
+    def _weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """The product of the interaction and bend weights ``[B,A,T]`` (None: all 1)."""
+        parts = [interaction_weights(batch, self.interaction_weight), bend_weights(batch, self.bend_weight)]
+        kept = [w for w in parts if w is not None]
+        return None if not kept else kept[0] if len(kept) == 1 else kept[0] * kept[1]
+
     def forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         scene = SceneInputs.from_batch(batch)
         view = batch_view(self.model.cfg.reads_states, batch)
-        weights = logged_weights(batch, interaction_weights(batch, self.interaction_weight))
+        weights = logged_weights(batch, self._weights(batch))
         if not (self.collision_weight or self.offroad_weight):
             mean, n = self.model.loss(scene, batch["input_tokens"], batch["tokens"], view, weights)
             return mean * n, torch.tensor(float(n), device=mean.device)

@@ -96,6 +96,9 @@ class TrainConfig:
     # loss weight of the tokens of agents closing in on the agent ahead (training/interaction_weights.py):
     # 1 = plain likelihood; the logged training loss is then the weighted mean, validation NLL stays plain
     interaction_weight: float = 1.0
+    # loss weight of the tokens where the lane ahead turns away from an agent's current motion
+    # (training/bend_weights.py; needs lane_input): 1 = plain likelihood
+    bend_weight: float = 1.0
     # colliding-mass term (training/blocked_mass.py): W * -log(1 - m) per target with colliding candidates (0:
     # off; "+rollout" scenes train by it alone after their current step); candidates kept up H steps;
     # rolled_out_only: the term on those rolled-out targets alone (the logged ones keep plain likelihood)
@@ -116,6 +119,8 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.signal_lr_scale must be > 0, got {self.signal_lr_scale}")
         if not self.interaction_weight >= 1:
             raise ValueError(f"TrainConfig.interaction_weight must be >= 1, got {self.interaction_weight}")
+        if not self.bend_weight >= 1:
+            raise ValueError(f"TrainConfig.bend_weight must be >= 1, got {self.bend_weight}")
         if not self.collision_weight >= 0:
             raise ValueError(f"TrainConfig.collision_weight must be >= 0, got {self.collision_weight}")
         if not (self.offroad_weight >= 0 and self.offroad_positions >= 1):
@@ -203,6 +208,11 @@ def train(
         raise ValueError(
             "train: history_dropout needs a model that reads its agents' neighbours (--neighbour-input): "
             "without it a dropped agent's motion is known only at the window's first step"
+        )
+    if config.bend_weight != 1 and not model_config.lane_input:
+        raise ValueError(
+            "train: bend_weight finds the bends in the lane points the model reads: it needs a model "
+            "with lane_input (train --lane-input)"
         )
     deadline = None if time_limit is None else time.perf_counter() + time_limit
     out = Path(out)
