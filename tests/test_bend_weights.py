@@ -1,19 +1,24 @@
 """Bend weights (training/bend_weights.py): which tokens the lane ahead makes hard to guess from an agent's
-own trend, on a hand-made road, and how training uses them."""
+own trend, on a hand-made road, and how training uses them;
+the turn-onset probe (scripts/turn_onset_probe.py)."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
-from helpers import bundle_scene, extended_tiny_checkpoint, small_scenes
+from helpers import REPO, bundle_scene, extended_tiny_checkpoint, small_scenes
 
 from trajeglish_env.model.config import preset
 from trajeglish_env.model.lanes import scene_road_points, window_road_view
 from trajeglish_env.scenario import MapKind, Scenario
+from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.training.bend_weights import bend_flags, bend_weights
 from trajeglish_env.training.dataset import collate_windows
 from trajeglish_env.training.interaction_weights import interaction_weights
@@ -113,3 +118,47 @@ def test_settings(tmp_path) -> None:  # type: ignore[no-untyped-def]
         TrainConfig(bend_weight=0.5)
     with pytest.raises(ValueError, match="bend_weight finds the bends in the lane points"):
         train(tmp_path / "none", tmp_path / "run", preset("tiny"), TrainConfig(bend_weight=3.0))
+
+
+def test_turn_phases_in_closed_form() -> None:
+    sys.path.insert(0, str(REPO / "scripts"))
+    from turn_onset_probe import turn_phases
+
+    # states 0-9 head straight, then 0.03 rad a step to the right (the first turning token is 9: state 9 to
+    # 10); a second agent seen from state 4 on
+    heading = np.concatenate([np.zeros(10), -0.03 * np.arange(1, 16)])[None].repeat(2, 0)
+    valid = np.ones_like(heading, dtype=bool)
+    valid[1, :4] = False
+    onset, turning, sign = turn_phases(heading, valid, 24)
+    # token t: before = (h[t] - h[t-3]) / 3, after = (h[t+3] - h[t]) / 3; onset when before is 0 and after
+    # beyond 0.015: t = 8 (after 0.02) and 9 (0.03); t = 10 (before 0.01) is neither; turning from t = 11 to
+    # the last token whose after is known (t + 3 <= 24)
+    assert np.flatnonzero(onset[0]).tolist() == [8, 9]
+    assert np.flatnonzero(turning[0]).tolist() == list(range(11, 22))
+    assert (sign[0, 7:22] == -1).all() and (sign[0, :7] == 0).all()  # t = 7 sees the turn's start
+    assert np.array_equal(onset[1], onset[0]) and np.array_equal(turning[1], turning[0])
+    valid[1, :7] = False  # before token 9 is unknown now: only token 10 could be an onset, and is not
+    onset, turning, _ = turn_phases(heading, valid, 24)
+    assert np.flatnonzero(onset[1]).tolist() == [] and np.flatnonzero(turning[1]).tolist() == list(
+        range(11, 22)
+    )
+
+
+def test_turn_onset_probe_script(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The shipped model on bundled curved scenes: it expects nearly all of a turn that continues."""
+    names = ("racetrack-999000", "racetrack-999001", "roundabout-999000", "roundabout-999001")
+    save_scenarios(tmp_path / "s.scn.npz", [bundle_scene(f"highway-{n}") for n in names])
+    script = [sys.executable, str(REPO / "scripts" / "turn_onset_probe.py"), "--windows", "4", "--json"]
+    done = subprocess.run([*script, "--data", str(tmp_path)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert (result["scenes"], result["windows"]) == (4, 4)
+    assert sorted(result["by_kind"]) == ["all", "racetrack", "roundabout"]
+    every = result["by_kind"]["all"]
+    assert (every["onsets"], every["turnings"]) == (16, 899)
+    assert 0.95 < every["turning_share"] < 1.0 and 0.0 < every["onset_share"] < every["turning_share"]
+    assert every["turning_log"] == pytest.approx(every["turning_model"] / every["turning_share"])
+    bad = subprocess.run(
+        [*script, "--data", str(tmp_path), "--temperature", "0"], capture_output=True, text=True
+    )
+    assert bad.returncode == 2 and "--temperature > 0" in bad.stderr
