@@ -4,7 +4,7 @@ vehicle gets farther than ``--distance`` metres from every lane centre, by scene
 so a vehicle that leaves the road here does not read it (docs/evaluation.md, "The road in the agent's own
 frame": the shipped model leaves every development racetrack).
 
-    python scripts/lone_vehicle_probe.py --data DIR [--ckpt FILE] [--rollouts 8] [--scenes N] [--json]
+    python scripts/lone_vehicle_probe.py --data DIR [--ckpt FILE] [--rollouts 8] [--temperature T] [--json]
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
-from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.sampler.rollouts import rollout
 from trajeglish_env.scenario import LANE_KINDS, Scenario
 from trajeglish_env.training.dataset import SceneStore
@@ -39,7 +39,14 @@ def lane_distance(scene: Scenario, xy: np.ndarray) -> np.ndarray:
     return np.linalg.norm(xy[:, None] - (a[None] + t[..., None] * d[None]), axis=-1).min(-1)
 
 
-def probe(scenes: list[Scenario], ckpt: object, rollouts: int, distance: float, seed: int) -> dict:
+def probe(
+    scenes: list[Scenario],
+    ckpt: object,
+    rollouts: int,
+    distance: float,
+    seed: int,
+    temperature: float = DEFAULT_TEMPERATURE,
+) -> dict:
     """Counts per scene kind (the second part of the scene id, or the source) and overall."""
     off: collections.Counter[str] = collections.Counter()
     total: collections.Counter[str] = collections.Counter()
@@ -47,7 +54,9 @@ def probe(scenes: list[Scenario], ckpt: object, rollouts: int, distance: float, 
         parts = sc.scenario_id.split("-")  # generated ids: SOURCE-KIND-SEED ("highway-two-way-123")
         kind = "-".join(parts[1:-1]) if len(parts) > 2 and parts[-1].isdigit() else sc.source
         one = sc.with_agents(np.array([sc.sdc]))
-        r = rollout(ckpt, one, rollouts, 80, config=SamplingConfig(guard=False, seed=seed))
+        r = rollout(
+            ckpt, one, rollouts, 80, config=SamplingConfig(guard=False, seed=seed, temperature=temperature)
+        )
         future = r.xyh[:, 0, r.future, :2]  # [R,H,2]
         far = lane_distance(sc, future.reshape(-1, 2)).reshape(future.shape[:2]) > distance
         off[kind] += int(far.any(1).sum())
@@ -70,14 +79,20 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, help="the first N scenes only")
     ap.add_argument("--distance", type=float, default=2.5, help="metres from every lane centre: off the road")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--temperature", type=float, default=0.75, help="sampling temperature (the env's default)"
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
-    if args.rollouts < 1 or args.distance <= 0:
-        ap.error(f"--rollouts must be >= 1 and --distance > 0, got {args.rollouts} and {args.distance}")
+    if args.rollouts < 1 or args.distance <= 0 or args.temperature <= 0:
+        ap.error(
+            f"--rollouts must be >= 1, --distance and --temperature > 0, got {args.rollouts}, "
+            f"{args.distance} and {args.temperature}"
+        )
     torch.set_num_threads(1)
     ckpt = load_checkpoint(args.ckpt) if args.ckpt else load_pretrained()
     scenes = SceneStore(args.data).scenes[: args.scenes]
-    result = probe(scenes, ckpt, args.rollouts, args.distance, args.seed)
+    result = probe(scenes, ckpt, args.rollouts, args.distance, args.seed, args.temperature)
     if args.json:
         print(json.dumps(result))
         return

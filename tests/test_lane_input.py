@@ -282,4 +282,4 @@ def test_lone_vehicle_probe_script(tmp_path) -> None:  # type: ignore[no-untyped
     bad = subprocess.run(
         [*script, "--data", str(tmp_path), "--distance", "0"], capture_output=True, text=True
     )
-    assert bad.returncode == 2 and "--distance > 0" in bad.stderr
+    assert bad.returncode == 2 and "--distance and --temperature > 0" in bad.stderr
