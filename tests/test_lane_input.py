@@ -228,6 +228,9 @@ def test_closed_loop_windows_read_the_road_where_their_rollout_put_the_agents() 
     k = 3
     closed = closed_loop_batch(model, batch, ckpt.vocabulary, ClosedLoopConfig(top_k=k, teacher_forced=False))
     assert not torch.equal(closed["road_points"], batch["road_points"])
+    # and the states where they read it (the bend weights' flags compare the two)
+    assert torch.equal(closed["agent_xyh"][:, :, 0], batch["agent_xyh"][:, :, 0])
+    assert not torch.equal(closed["agent_xyh"], batch["agent_xyh"])
     # the logged states read from the road source give the windows' own features (the same points)
     logged = batch["agent_xyh"].double().numpy()
     logged = np.where(

@@ -1,15 +1,17 @@
 """Training-loss weights for the tokens where the road ahead turns away from an agent's current motion.
 
 Teacher forcing rewards a small model for continuing its own last tokens (the copycat problem, stops 37 and
-55): under it the shipped model predicts a vehicle's turn well once the turn has begun and hardly at all
-where it begins (docs/evaluation.md, "Weighing the tokens where the road bends"), so alone on a racetrack
-it drives straight on at the bend.``train --lane-input --bend-weight W`` weighs the loss of those tokens
-``W`` times: a token of agent ``a`` at step ``t`` is a *bend* token when the lane ahead of ``a`` (the lane
-points ``a`` reads at ``t``, :mod:`trajeglish_env.model.lanes`) runs at more than :data:`MISMATCH` radians
-from the heading ``a`` would reach by keeping its current turn rate until it gets there. The flag depends
-only on logged states up to ``t`` and the map (what the model's inputs already hold), never on the token,
-so the conditional distribution the loss is minimized by stays the same; the weight moves gradient and
-capacity to the positions where the road, not the agent's trend, says what comes next.
+55): under it the shipped model expects 0.95 of a vehicle's turn once the turn has begun and a quarter of
+it where it begins (``scripts/turn_onset_probe.py``; docs/evaluation.md, "Weighing the tokens where the
+road bends"), and alone on a racetrack it drives straight on at the bend. ``train --lane-input
+--bend-weight W`` weighs the loss of those tokens ``W`` times: a token of agent ``a`` at step ``t`` is a
+*bend* token when the lane ahead of ``a`` (the lane points ``a`` reads at ``t``,
+:mod:`trajeglish_env.model.lanes`) runs at more than :data:`MISMATCH` radians from the heading ``a`` would
+reach by keeping its current turn rate until it gets there. The flag depends only on logged states up to
+``t`` and the map (what the model's inputs already hold), never on the token, so the conditional
+distribution the loss is minimized by stays the same; the weight moves gradient and capacity to the
+positions where the road, not the agent's trend, says what comes next. CAT-K windows are flagged at their
+rolled-out states and the road read there.
 """
 
 from __future__ import annotations

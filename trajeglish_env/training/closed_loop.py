@@ -227,7 +227,7 @@ def closed_loop_batch(
     closed = dict(batch)
     closed["input_tokens"] = torch.from_numpy(tokens).to(dev)
     closed["tokens"] = torch.from_numpy(targets).to(dev)
-    if model.cfg.neighbour_input:  # the rolled-out windows read their neighbours where the rollout put them
+    if model.cfg.reads_states:  # the rolled-out windows' states (neighbours, interaction and bend weights)
         logged = batch["agent_xyh"]
         rolled = torch.from_numpy(states).to(device=dev, dtype=logged.dtype)
         closed["agent_xyh"] = torch.where(torch.isnan(rolled), logged, rolled)
