@@ -39,6 +39,17 @@ def lane_distance(scene: Scenario, xy: np.ndarray) -> np.ndarray:
     return np.linalg.norm(xy[:, None] - (a[None] + t[..., None] * d[None]), axis=-1).min(-1)
 
 
+def scene_kind(sc: Scenario) -> str:
+    """The kind of a generated scene from its id (``SOURCE-KIND-SEED[-INDEX]``: ``highway-two-way-123`` is
+    ``two-way``, ``sumo-grid-50050-1`` ``grid``), else its source."""
+    parts = sc.scenario_id.split("-")
+    kind = parts[1:]
+    while kind and kind[-1].isdigit():
+        kind.pop()
+    seeded = len(kind) < len(parts) - 1  # at least one number after the kind
+    return "-".join(kind) if kind and seeded else sc.source
+
+
 def probe(
     scenes: list[Scenario],
     ckpt: object,
@@ -51,8 +62,7 @@ def probe(
     off: collections.Counter[str] = collections.Counter()
     total: collections.Counter[str] = collections.Counter()
     for sc in tqdm(scenes, desc="lone vehicles", leave=False):
-        parts = sc.scenario_id.split("-")  # generated ids: SOURCE-KIND-SEED ("highway-two-way-123")
-        kind = "-".join(parts[1:-1]) if len(parts) > 2 and parts[-1].isdigit() else sc.source
+        kind = scene_kind(sc)
         one = sc.with_agents(np.array([sc.sdc]))
         r = rollout(
             ckpt, one, rollouts, 80, config=SamplingConfig(guard=False, seed=seed, temperature=temperature)

@@ -17,6 +17,7 @@ import json
 
 import numpy as np
 import torch
+from lone_vehicle_probe import scene_kind
 from tqdm import tqdm
 
 from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
@@ -56,11 +57,6 @@ def turn_phases(
     return onset, turning, np.sign(np.nan_to_num(future))
 
 
-def _kind(sc: Scenario) -> str:
-    parts = sc.scenario_id.split("-")  # generated ids: SOURCE-KIND-SEED ("highway-two-way-123")
-    return "-".join(parts[1:-1]) if len(parts) > 2 and parts[-1].isdigit() else sc.source
-
-
 def probe(scenes: list[Scenario], ckpt: object, windows: int, temperature: float, seed: int) -> dict:
     """Counts and mean heading changes (rad a step, signed toward the turn: logged and expected by the model)
     at onset and turning tokens, per scene kind and overall; ``share``: expected over logged."""
@@ -89,7 +85,7 @@ def probe(scenes: list[Scenario], ckpt: object, windows: int, temperature: float
                 vehicle = (batch["agent_kind"][b] == AgentKind.VEHICLE).numpy()[:, None]
                 logged = np.diff(heading, axis=1)[:, :tokens]
                 logged = (logged + np.pi) % (2 * np.pi) - np.pi
-                c = sums[_kind(scenes[g])]
+                c = sums[scene_kind(scenes[g])]
                 for name, where in (("onset", onset & vehicle), ("turning", turning & vehicle)):
                     c[name] += int(where.sum())
                     c[name + "_log"] += float((logged * sign)[where].sum())

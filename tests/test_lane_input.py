@@ -265,6 +265,16 @@ def test_lane_distance_in_closed_form() -> None:
     np.testing.assert_allclose(lane_distance(sc, xy), [2.5, 1.0, 1.75, math.hypot(3.0, 0.5), 0.0], atol=1e-9)
 
 
+def test_scene_kinds_from_generated_ids() -> None:
+    sys.path.insert(0, str(REPO / "scripts"))
+    from lone_vehicle_probe import scene_kind
+
+    sc = straight_road_scene(num_agents=2, steps=30)
+    ids = ["highway-two-way-123", "sumo-grid-50050-1", "highway-racetrack-999000", "womd-abc", "x-12", "abc"]
+    kinds = [scene_kind(dataclasses.replace(sc, scenario_id=i)) for i in ids]
+    assert kinds == ["two-way", "grid", "racetrack", sc.source, sc.source, sc.source]
+
+
 def test_lone_vehicle_probe_script(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """The shipped model's sdc alone follows a straight highway in every rollout and leaves a roundabout in
     every one (docs/evaluation.md, "The road in the agent's own frame"; a model that reads the road changes
