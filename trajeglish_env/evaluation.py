@@ -39,6 +39,7 @@ from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.sampler.guard_signals import SceneSignals
 from trajeglish_env.scenario import AgentKind, Scenario, scene_kind
 from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.standing import standing_counts, standing_table
 from trajeglish_env.tokenizer.tokenize import tokenize_scenario
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 from trajeglish_env.training.dataset import SceneStore
@@ -242,7 +243,9 @@ def evaluate_methods(
     results: dict[str, Any] = {}
     for name in methods:
         per_scene = sorted((row for part in merged for row in part[name]), key=lambda row: row[0])
-        index, scores, curves, speeds, accels, red, pairs = (list(x) for x in zip(*per_scene, strict=True))
+        index, scores, curves, speeds, accels, red, pairs, stand = (
+            list(x) for x in zip(*per_scene, strict=True)
+        )
         mean = mean_scores(scores)
         kinds = [scene_kind(scenes[k]) for k in index]
         results[name] = {
@@ -256,6 +259,12 @@ def evaluate_methods(
             "collisions_by_class": collision_table(np.sum(pairs, axis=0)),
             "scores_by_kind": {
                 kind: _kind_scores([r for r, g in zip(scores, kinds, strict=True) if g == kind])
+                for kind in sorted(set(kinds))
+            },
+            "standing_by_kind": {
+                kind: standing_table(
+                    np.sum([c for c, g in zip(stand, kinds, strict=True) if g == kind], axis=0)
+                )
                 for kind in sorted(set(kinds))
             },
             "_speed": np.concatenate(speeds),
@@ -285,16 +294,26 @@ def _red_light_table(counts: np.ndarray) -> dict[str, dict[str, float]]:
 
 def _score_scene(
     scene: Scenario, k: int, method: Method, config: EvalConfig, details: Sequence[LogDetails | None] | None
-) -> tuple[int, RealismScores, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(index, scores, collision curve, speeds, accelerations, red-light runs, collision kinds) of one
-    method on scene ``k``."""
+) -> tuple[int, RealismScores, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(index, scores, collision curve, speeds, accelerations, red-light runs, collision kinds, standing
+    counts) of one method on scene ``k``."""
     fut, z = _split(method(scene, config.rollouts, config.seed + k))
     ids = scene.track_id[simulated(scene)]
     detail = details[k] if details is not None else None
     scores = score_rollouts(scene, fut, ids, config.metrics, rollouts_z=z, details=detail)
     speed, accel = _kinematics(scene, fut)
     curve, red = collisions_over_time(scene, fut).mean(0), red_light_runs(scene, fut)
-    return k, scores, curve, speed, accel, red, collision_kinds(scene, fut, simulated(scene))
+    sim = simulated(scene)
+    return (
+        k,
+        scores,
+        curve,
+        speed,
+        accel,
+        red,
+        collision_kinds(scene, fut, sim),
+        standing_counts(scene, fut, sim),
+    )
 
 
 def _split(out: np.ndarray | tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray | None]:

@@ -1,5 +1,5 @@
 """The realism evaluation's Markdown report (``evaluation.md``): the table of methods, red lights run, the
-scene kinds' table, who collides with whom and partial control, from
+scene kinds' table, who collides with whom, vehicles standing still and partial control, from
 :func:`trajeglish_env.evaluation.evaluate`'s JSON document."""
 
 from __future__ import annotations
@@ -7,6 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 from trajeglish_env.scenario import AgentKind
+from trajeglish_env.standing import standing_lines
 
 # the headline figures of every method (its row of the first table)
 HEADLINE = (
@@ -47,6 +48,7 @@ def markdown_table(result: dict[str, Any]) -> str:
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += _kind_table(result["methods"])
     lines += _collision_table(result["methods"])
+    lines += standing_lines(result["methods"])
     if "partial_control" in result:
         pc = result["partial_control"]
         lines += [
