@@ -4,10 +4,11 @@ scene kinds' table, who collides with whom, vehicles standing still and partial 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from trajeglish_env.scenario import AgentKind
-from trajeglish_env.standing import standing_lines
+from trajeglish_env.standing import STANDING_SPEED
 
 # the headline figures of every method (its row of the first table)
 HEADLINE = (
@@ -48,7 +49,7 @@ def markdown_table(result: dict[str, Any]) -> str:
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += _kind_table(result["methods"])
     lines += _collision_table(result["methods"])
-    lines += standing_lines(result["methods"])
+    lines += _standing_table(result["methods"])
     if "partial_control" in result:
         pc = result["partial_control"]
         lines += [
@@ -73,29 +74,60 @@ def _kind_table(methods: dict[str, Any]) -> list[str]:
     kinds = sorted({k for r in methods.values() for k in r.get("scores_by_kind", {})})
     if len(kinds) < 2:
         return []
-    names = list(methods)
-    lines = [
-        "",
-        "By scene kind (meta-metric / collision rate / off-road rate; scenes of the kind in brackets):",
-        "",
-        "| kind | " + " | ".join(names) + " |",
-        "|---|" + "---|" * len(names),
-    ]
-    for kind in kinds:
-        cells = []
-        for name in names:
-            k = methods[name].get("scores_by_kind", {}).get(kind)
-            cells.append(
-                ""
-                if k is None
-                else f"{k['metametric']:.3f} / {k['collision_rate']:.3f} / {k['offroad_rate']:.3f}"
-            )
+
+    def cell(name: str, kind: str) -> str:
+        k = methods[name].get("scores_by_kind", {}).get(kind)
+        return (
+            ""
+            if k is None
+            else f"{k['metametric']:.3f} / {k['collision_rate']:.3f} / {k['offroad_rate']:.3f}"
+        )
+
+    def label(kind: str) -> str:
         count = next(
             m["scores_by_kind"][kind]["scenes"]
             for m in methods.values()
             if kind in m.get("scores_by_kind", {})
         )
-        lines.append(f"| {kind} ({count}) | " + " | ".join(cells) + " |")
+        return f"{kind} ({count})"
+
+    title = "By scene kind (meta-metric / collision rate / off-road rate; scenes of the kind in brackets):"
+    return _by_kind(title, list(methods), kinds, cell, label)
+
+
+def _standing_table(methods: dict[str, Any]) -> list[str]:
+    """Markdown lines of the share of vehicle steps standing still (``standing_by_kind``), per scene kind
+    (rows) and method (columns); none when no method drives a vehicle."""
+    names = [
+        n for n, r in methods.items() if any("vehicle" in c for c in r.get("standing_by_kind", {}).values())
+    ]
+    if not names:
+        return []
+    kinds = sorted({k for n in names for k in methods[n]["standing_by_kind"]})
+
+    def cell(name: str, kind: str) -> str:
+        c = methods[name]["standing_by_kind"].get(kind, {}).get("vehicle")
+        return "" if c is None else f"{c['share']:.3f}"
+
+    title = (
+        f"Vehicles standing still (share of simulated vehicle steps under {STANDING_SPEED:g} m/s, by scene "
+        "kind):"
+    )
+    return _by_kind(title, names, kinds, cell, str)
+
+
+def _by_kind(
+    title: str,
+    names: list[str],
+    kinds: list[str],
+    cell: Callable[[str, str], str],
+    label: Callable[[str], str],
+) -> list[str]:
+    """Markdown lines of a table with a row per scene kind (``label(kind)``) and a column per method
+    (``cell(name, kind)``) under ``title``."""
+    lines = ["", title, "", "| kind | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    for kind in kinds:
+        lines.append(f"| {label(kind)} | " + " | ".join(cell(name, kind) for name in names) + " |")
     return lines
 
 

@@ -9,8 +9,6 @@ is built from, differenced once."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from trajeglish_env.scenario import AgentKind, Scenario
@@ -41,29 +39,3 @@ def standing_table(counts: np.ndarray) -> dict[str, dict[str, float]]:
         for k, c in zip(AgentKind, counts, strict=True)
         if c[1]
     }
-
-
-def standing_lines(methods: dict[str, Any]) -> list[str]:
-    """Markdown lines of the share of vehicle steps standing still, per scene kind (rows) and method
-    (columns), from each method's ``standing_by_kind``; none when no method drives a vehicle."""
-    names = [
-        n for n, r in methods.items() if any("vehicle" in c for c in r.get("standing_by_kind", {}).values())
-    ]
-    if not names:
-        return []
-    kinds = sorted({k for n in names for k in methods[n]["standing_by_kind"]})
-    lines = [
-        "",
-        f"Vehicles standing still (share of simulated vehicle steps under {STANDING_SPEED:g} m/s, by scene "
-        "kind):",
-        "",
-        "| kind | " + " | ".join(names) + " |",
-        "|---|" + "---|" * len(names),
-    ]
-    for kind in kinds:
-        cells = []
-        for name in names:
-            c = methods[name]["standing_by_kind"].get(kind, {}).get("vehicle")
-            cells.append("" if c is None else f"{c['share']:.3f}")
-        lines.append(f"| {kind} | " + " | ".join(cells) + " |")
-    return lines
