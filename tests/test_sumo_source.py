@@ -409,3 +409,74 @@ def test_failing_tool_quotes_its_stderr(tmp_path: Path) -> None:
 def test_unknown_scene_kind_is_refused() -> None:
     with pytest.raises(ValueError, match="expected a non-empty subset of"):
         sumo.generate_shard(("highway",), SEED, SHARD, 1)
+
+
+def _lane_points_off_road(scenes: list[Scenario], reach: float = 50.0) -> tuple[int, int]:
+    """Lane-centre points within ``reach`` m of an agent at the current step that the off-road rule
+    signs beyond a road edge, and all such points, over ``scenes``."""
+    from trajeglish_env.env.rewards import road_edges
+    from trajeglish_env.metrics.road_edges import signed_distance_to_road_edges
+
+    off = total = 0
+    for scene in scenes:
+        lanes = [p[:, :2] for p in scene.polylines(frozenset({MapKind.LANE_SURFACE_STREET}))]
+        points = np.concatenate(lanes)
+        now = scene.xyh[scene.valid[:, scene.current_index], scene.current_index, :2]
+        points = points[np.linalg.norm(points[:, None] - now[None], axis=-1).min(axis=1) < reach]
+        off += int((signed_distance_to_road_edges(points, road_edges(scene)) > 0).sum())
+        total += len(points)
+    return off, total
+
+
+def test_junctions_of_random_networks_are_on_the_road() -> None:
+    """Curbs that turn a junction corner are chained into one polyline and curb stubs are left out, so no
+    wedge of a junction is signed off the road: the lane centres near the agents are on the road side
+    (before: 148 of these 19,958 points, 0.74 %, off the road, in wedges cast from the corners; now 11, at
+    the acute tips of islands)."""
+    try:
+        run = sumo.simulate_shard(("random",), 50050, 2, COUNT)  # the development scenes' networks
+    except sumo.SumoNotAvailableError as error:
+        pytest.skip(str(error))
+    scenes = sumo.cut_scenes(run, 50050, 2, COUNT)
+    off, total = _lane_points_off_road(scenes)
+    assert total > 15000
+    assert off / total < 0.002, (off, total)
+    for scene in scenes:
+        for line in scene.polylines(ROAD_EDGE_KINDS):
+            closed = len(line) > 2 and np.allclose(line[0], line[-1])
+            assert closed or np.linalg.norm(np.diff(line[:, :2], axis=0), axis=1).sum() >= 1.0
+
+
+def test_curbs_meeting_at_a_corner_are_chained_and_sign_the_junction_as_road() -> None:
+    """A block's sharp corner (135 degrees) as two curbs 3 cm apart, the road on their left: apart, the
+    first curb's end casts a wedge of "off the road" into the junction (its line, extended, signs the
+    points nearer its end than the second curb's start); chained, every road point 0.5 m or more from the
+    block is on the road side. A block whose four sides come as four curbs closes
+    into one polyline without a backward step; a curb stub is left out, a short lane is not."""
+    from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road_edges
+    from trajeglish_env.sources.sumo_map import _MapBuilder, chain_road_edges
+
+    north_west = np.stack([np.linspace(6.0, 0.0, 11), np.linspace(-6.0, 0.0, 11)], axis=1)  # to (0, 0)
+    eastward = np.stack([np.linspace(0.03, 10.0, 11), np.full(11, -0.01)], axis=1)
+    grid = np.stack(np.meshgrid(np.linspace(-8, 8, 81), np.linspace(-8, 8, 81)), -1).reshape(-1, 2)
+    road = grid[(grid[:, 1] > 0.5) | (grid.sum(axis=1) < -0.75)]  # the block: y < 0 and x + y > 0
+    kinds = [int(MapKind.ROAD_EDGE_BOUNDARY)] * 2
+    apart = signed_distance_to_road_edges(road, RoadEdges.from_polylines([north_west, eastward]))
+    lines, out_kinds, keep = chain_road_edges([north_west, eastward], kinds)
+    joined = signed_distance_to_road_edges(road, RoadEdges.from_polylines(lines))
+    assert (apart > 0).sum() > 50  # the wedge
+    assert (joined < 0).all() and len(lines) == 1 and keep.tolist() == [True, False]
+    assert out_kinds == kinds[:1] and len(lines[0]) == 21
+    up = np.stack([np.zeros(11), np.linspace(-10.0, 0.0, 11)], axis=1)  # x = 0, northward
+    east = np.stack([np.linspace(0.03, 10.0, 11), np.full(11, 0.02)], axis=1)  # y = 0, eastward
+    square = [up, east, np.stack([np.full(11, 10.0), np.linspace(0.02, -10.0, 11)], 1)]
+    square.append(np.stack([np.linspace(10.0, 0.0, 11), np.full(11, -10.03)], 1))
+    lines, _, keep = chain_road_edges(square[::-1], kinds * 2)  # any order
+    (ring,) = lines
+    assert np.allclose(ring[0], ring[-1]) and len(ring) == 41 and keep.sum() == 1
+    steps = np.diff(ring, axis=0)
+    turns = np.einsum("ij,ij->i", steps[:-1], steps[1:])
+    assert (turns >= 0).all()  # never a step back
+    builder = _MapBuilder(1.0)
+    assert builder.add(np.array([[0.0, 0.0], [0.2, 0.1]]), MapKind.ROAD_EDGE_BOUNDARY) == -1
+    assert builder.add(np.array([[0.0, 0.0], [0.2, 0.1]]), MapKind.LANE_SURFACE_STREET) == 0

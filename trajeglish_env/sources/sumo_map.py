@@ -29,11 +29,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from trajeglish_env.geometry import resample_polyline
-from trajeglish_env.scenario import MapKind, SignalState
+from trajeglish_env.scenario import ROAD_EDGE_KINDS, MapKind, SignalState
 from trajeglish_env.sources.sumo_net import Connection, Lane, SumoNet
 
 _MIN_SEGMENT = 1e-6
 _MEDIAN_WIDTH = 4.5  # opposite lanes at most this far apart (m) are separated by a median, not the roadside
+# Open road edges shorter than this (m) are left out: SUMO trims an edge between two close junctions to a
+# few centimetres, and the right curb of such an edge is a stub pointing into the junction, whose open end
+# makes a wedge of the junction "off the road" under the off-road rule (its sign beyond a segment's end
+# comes from that segment's line), where logged vehicles drive and guarded ones then may not (random
+# networks: 17 stubs a scene, 0.8 % of their lane-centre points off the road; docs/evaluation.md, stop 57).
+_MIN_CURB = 1.0
+_JOIN_GAP = 0.1  # m: road edges whose end and start lie this close are one curb (chain_road_edges)
 _MIN_MEDIAN_WIDTH = 0.5  # facing median sides closer than this (m) touch: the directions simply meet
 
 # SUMO link-state characters -> WOMD lane signal states.
@@ -97,17 +104,84 @@ class _MapBuilder:
         self.kinds: list[int] = []
 
     def add(self, points: np.ndarray, kind: MapKind, resample: bool = True) -> int:
+        """Add a polyline of ``kind``; returns its map id, or -1 for an open road edge shorter than
+        :data:`_MIN_CURB` (left out, see there)."""
         points = resample_polyline(points, self.spacing) if resample else np.asarray(points, np.float64)
+        if kind in ROAD_EDGE_KINDS and _stub(points):
+            return -1
         self.lines.append(points)
         self.kinds.append(int(kind))
         return len(self.lines) - 1
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        offsets = np.zeros(len(self.lines) + 1, dtype=np.int64)
-        offsets[1:] = np.cumsum([len(p) for p in self.lines])
-        points = np.concatenate(self.lines) if self.lines else np.zeros((0, 2))
-        ids = np.arange(len(self.lines), dtype=np.int64)
-        return points, offsets, np.asarray(self.kinds, dtype=np.int8), ids
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``points, offsets, kinds, ids`` of the polylines, road edges that meet end to start chained
+        (:func:`chain_road_edges`), and ``renumber [n]``: the id each id :meth:`add` returned now has."""
+        lines, kinds, keep = chain_road_edges(self.lines, self.kinds)
+        offsets = np.zeros(len(lines) + 1, dtype=np.int64)
+        offsets[1:] = np.cumsum([len(p) for p in lines])
+        points = np.concatenate(lines) if lines else np.zeros((0, 2))
+        ids = np.arange(len(lines), dtype=np.int64)
+        renumber = np.where(keep, np.cumsum(keep) - 1, -1)
+        return points, offsets, np.asarray(kinds, dtype=np.int8), ids, renumber
+
+
+def chain_road_edges(
+    lines: list[np.ndarray], kinds: list[int]
+) -> tuple[list[np.ndarray], list[int], np.ndarray]:
+    """Open road edges whose end meets another's start (within :data:`_JOIN_GAP` m, nearest first) joined
+    into one polyline, at the place of the chain's first (a chain that comes back to its start is
+    closed); returns the lines, their kinds and ``keep [n]`` (False: joined into an earlier one).
+
+    Why: a curb that turns a junction corner arrives as two polylines (an edge's curb, the corner's),
+    and the off-road rule signs a point beyond a polyline's end by that end segment's line, so the
+    corner of two separate polylines casts a wedge of "off the road" into the junction where one polyline
+    is signed by its neighbour segment (docs/evaluation.md, stop 57)."""
+    edge = [i for i, k in enumerate(kinds) if k in ROAD_EDGE_KINDS and not _closed(lines[i])]
+    keep = np.ones(len(lines), bool)
+    if len(edge) < 2:
+        return list(lines), list(kinds), keep
+    starts = np.array([lines[i][0] for i in edge])
+    ends = np.array([lines[i][-1] for i in edge])
+    gap = np.linalg.norm(ends[:, None] - starts[None], axis=-1)
+    np.fill_diagonal(gap, np.inf)
+    successor = np.full(len(edge), -1)
+    taken = np.zeros(len(edge), bool)
+    for a, b in zip(*np.unravel_index(np.argsort(gap, axis=None, kind="stable"), gap.shape), strict=True):
+        if gap[a, b] > _JOIN_GAP:
+            break
+        if successor[a] < 0 and not taken[b]:
+            successor[a], taken[b] = b, True
+    out = list(lines)
+    done = np.zeros(len(edge), bool)
+    heads = [a for a in range(len(edge)) if not taken[a]] + list(range(len(edge)))  # cycles: any member
+    for head in heads:
+        if done[head] or successor[head] < 0:
+            continue
+        parts, a = [lines[edge[head]]], head
+        done[head] = True
+        while successor[a] >= 0 and not done[successor[a]]:
+            a = successor[a]
+            done[a] = True
+            parts.append(lines[edge[a]][1:])
+            keep[edge[a]] = False
+        chain = np.concatenate(parts)
+        if successor[a] == head:  # around and back: a closed curb, its last point (near its first) dropped
+            chain = np.concatenate([chain[:-1], chain[:1]])
+        out[edge[head]] = chain
+    return (
+        [line for line, k in zip(out, keep, strict=True) if k],
+        [c for c, k in zip(kinds, keep, strict=True) if k],
+        keep,
+    )
+
+
+def _closed(points: np.ndarray) -> bool:
+    return len(points) > 2 and bool(np.allclose(points[0], points[-1]))
+
+
+def _stub(points: np.ndarray) -> bool:
+    """Whether a polyline is open and shorter than :data:`_MIN_CURB`."""
+    return not _closed(points) and float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum()) < _MIN_CURB
 
 
 def _lane_kind(lane: Lane) -> MapKind:
@@ -312,7 +386,8 @@ def build_network_map(net: SumoNet, spacing: float = 1.0) -> NetworkMap:
             links.append(conn.link_index)
             lane_ids.append(movement_id[conn.via])
             stops.append(net.lanes[conn.via].shape[0])
-    points, offsets, kinds, ids = builder.arrays()
+    points, offsets, kinds, ids, renumber = builder.arrays()
+    lane_ids = [int(renumber[i]) for i in lane_ids]
     return NetworkMap(
         points=points,
         offsets=offsets,
