@@ -38,6 +38,9 @@ __all__ = [
 KINDS: tuple[str, ...] = NETWORK_KINDS
 NUM_STEPS = 91
 CURRENT_INDEX = 10
+# 2: curbs that meet end to start are one polyline and curb stubs are left out (sumo_map.chain_road_edges):
+# no wedge of a junction is signed off the road; scenes of version 1 are not resumed into
+GENERATOR_VERSION = 2
 
 
 @dataclass(frozen=True)
