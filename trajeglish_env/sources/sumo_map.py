@@ -146,9 +146,9 @@ def chain_road_edges(
     np.fill_diagonal(gap, np.inf)
     successor = np.full(len(edge), -1)
     taken = np.zeros(len(edge), bool)
-    for a, b in zip(*np.unravel_index(np.argsort(gap, axis=None, kind="stable"), gap.shape), strict=True):
-        if gap[a, b] > _JOIN_GAP:
-            break
+    near_a, near_b = np.nonzero(gap <= _JOIN_GAP)
+    for k in np.argsort(gap[near_a, near_b], kind="stable"):  # nearest pairs first
+        a, b = near_a[k], near_b[k]
         if successor[a] < 0 and not taken[b]:
             successor[a], taken[b] = b, True
     out = list(lines)
