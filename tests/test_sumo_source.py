@@ -429,10 +429,10 @@ def _lane_points_off_road(scenes: list[Scenario], reach: float = 50.0) -> tuple[
 
 
 def test_junctions_of_random_networks_are_on_the_road() -> None:
-    """Curbs that turn a junction corner are chained into one polyline and curb stubs are left out, so no
-    wedge of a junction is signed off the road: the lane centres near the agents are on the road side
-    (before: 148 of these 19,958 points, 0.74 %, off the road, in wedges cast from the corners; now 11, at
-    the acute tips of islands)."""
+    """Curbs that turn a junction corner are chained into one polyline, curb stubs are left out and island
+    rings start in the middle of a side, so no wedge of a junction is signed off the road: every lane
+    centre near the agents is on the road side (before: 148 of these 19,958 points, 0.74 %, off the road,
+    in wedges cast from the corners and spikes from the tips of islands)."""
     try:
         run = sumo.simulate_shard(("random",), 50050, 2, COUNT)  # the development scenes' networks
     except sumo.SumoNotAvailableError as error:
@@ -441,7 +441,7 @@ def test_junctions_of_random_networks_are_on_the_road() -> None:
     assert sumo.GENERATOR_VERSION == 2  # directories of the maps before are not resumed into
     off, total = _lane_points_off_road(scenes)
     assert total > 15000
-    assert off / total < 0.002, (off, total)
+    assert off == 0, (off, total)
     for scene in scenes:
         for line in scene.polylines(ROAD_EDGE_KINDS):
             closed = len(line) > 2 and np.allclose(line[0], line[-1])
@@ -453,7 +453,8 @@ def test_curbs_meeting_at_a_corner_are_chained_and_sign_the_junction_as_road() -
     first curb's end casts a wedge of "off the road" into the junction (its line, extended, signs the
     points nearer its end than the second curb's start); chained, every road point 0.5 m or more from the
     block is on the road side. A block whose four sides come as four curbs closes
-    into one polyline without a backward step; a curb stub is left out, a short lane is not."""
+    into one polyline without a backward step; an island's ring starts in the middle of a side; a curb stub
+    is left out, a short lane is not."""
     from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road_edges
     from trajeglish_env.sources.sumo_map import _MapBuilder, chain_road_edges
 
@@ -478,6 +479,9 @@ def test_curbs_meeting_at_a_corner_are_chained_and_sign_the_junction_as_road() -
     steps = np.diff(ring, axis=0)
     turns = np.einsum("ij,ij->i", steps[:-1], steps[1:])
     assert (turns >= 0).all()  # never a step back
+    run = np.stack([np.linspace(0.0, 20.0, 21), np.zeros(21)], axis=1)
+    island = sumo_map._sliver(run)  # a thin island: its ring starts and ends in the middle of its side
+    assert np.allclose(island[0], run[10]) and np.allclose(island[-1], run[10]) and len(island) == 43
     builder = _MapBuilder(1.0)
     assert builder.add(np.array([[0.0, 0.0], [0.2, 0.1]]), MapKind.ROAD_EDGE_BOUNDARY) == -1
     assert builder.add(np.array([[0.0, 0.0], [0.2, 0.1]]), MapKind.LANE_SURFACE_STREET) == 0

@@ -322,14 +322,22 @@ def _median_islands(medians: dict[tuple[int, int], list[np.ndarray]]) -> list[np
             other = facing.pop(int(np.argmin(gap)))
             apart = np.linalg.norm(run[:, None] - other[None], axis=-1).min(axis=1)
             if np.median(apart) >= _MIN_MEDIAN_WIDTH:  # else the two sides touch: no island between them
-                islands.append(np.concatenate([run, other, run[:1]]))
+                islands.append(_ring_from_middle(np.concatenate([run, other]), len(run) // 2))
         islands.extend(_sliver(run) for run in facing)
     return islands
 
 
 def _sliver(run: np.ndarray, width: float = 0.2) -> np.ndarray:
     """A closed island ``width`` m wide on the right of ``run`` (which keeps the road on its left)."""
-    return np.concatenate([run, offset_polyline(run, -width)[::-1], run[:1]])
+    return _ring_from_middle(np.concatenate([run, offset_polyline(run, -width)[::-1]]), len(run) // 2)
+
+
+def _ring_from_middle(loop: np.ndarray, start: int) -> np.ndarray:
+    """The closed ring of the points ``loop [n,2]`` (in order, not repeated) starting and ending at
+    ``start``, the middle of a side: the off-road rule (the WOSAC reference) treats a ring as open unless
+    it is the map's longest road edge, so its ends are signed by their own segments' lines, which at an
+    island's tip cast a spike of "off the road" into the junction, and along a side continue the side."""
+    return np.concatenate([loop[start:], loop[:start], loop[start : start + 1]])
 
 
 _CURB_PREFERENCE = {"R": 0, "r": 0, "s": 1}
