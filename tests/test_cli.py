@@ -99,6 +99,11 @@ def test_rollout_and_nll_commands_with_the_shipped_model(tmp_path, capsys) -> No
     assert main(args) == 0
     shown = _json(capsys)
     assert shown["horizon"] == 6 and shown["guard"] and shown["green_rule"] and out.stat().st_size > 1000
+    assert shown["road_ahead"] == 5.0
+    assert main([*args, "--road-ahead", "0"]) == 0 and _json(capsys)["road_ahead"] == 0.0  # one-step rule
+    with pytest.raises(SystemExit) as exited:  # a one-line usage error, not a traceback
+        main([*args, "--road-ahead", "-1"])
+    assert exited.value.code == 2 and "--road-ahead" in capsys.readouterr().err
     assert main([*args, "--guard", "off", "--no-green-rule"]) == 0  # the model alone
     assert not _json(capsys)["guard"]
     nll_args = ["nll", "--data", str(tmp_path / "d"), "--windows", "4", "--cache-dtype", "bfloat16"]

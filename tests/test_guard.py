@@ -63,9 +63,8 @@ def test_masks_are_the_envs_rules_over_every_candidate(name: str) -> None:
     external = np.zeros(n, bool)
     external[scene.sdc] = True
     active = scene.valid[:, scene.current_index]
-    engine = RolloutEngine(
-        tiny(), scene, 1, 5, active & ~external, external, config=SamplingConfig(guard=True, seed=3)
-    )
+    config = SamplingConfig(guard=True, seed=3, guard_road_ahead=0.0)  # one-step masks (the road ahead:
+    engine = RolloutEngine(tiny(), scene, 1, 5, active & ~external, external, config=config)  # its own file)
     for _ in range(2):  # play two steps, then stop mid-step: the sdc has moved, the NPCs have not
         while (agent := engine.advance()) is not None:
             engine.supply(agent, scene.xyh[agent, engine.t + 1])
@@ -147,6 +146,8 @@ def test_lazy_checks_draw_what_the_full_mask_draws(
 class _FixedMask:
     """A guard geometry whose ``blocked`` reads a fixed mask ``[m,V]`` (pairs by index)."""
 
+    road_ahead = 0.0
+
     def __init__(self, blocked: np.ndarray):
         self.mask = blocked
 
@@ -208,6 +209,8 @@ def test_guarded_rows_equal_their_solo_runs() -> None:
 class FixedMasks:
     """A stand-in geometry: pair i's candidates collide where ``collide[i]`` and leave the road where
     ``off[i]`` (whatever the tokens asked about, which are all V here)."""
+
+    road_ahead = 0.0
 
     def __init__(self, collide: np.ndarray, off: np.ndarray, escape: np.ndarray | None = None):
         self.collide, self.off = collide, off
@@ -276,7 +279,10 @@ def test_an_agent_driven_into_moves_out_of_the_way_with_guard_escape_when_it_act
     struck = {}
     for place, priority in (("first", [-1.0, 0.0]), ("last", [1.0, 0.0])):
         for escape in (False, True):
-            config = SamplingConfig(temperature=1.0, guard=True, guard_escape=escape, seed=2)
+            # the one-step road rule: the road ahead keeps the untrained sdc out of the logged car's way
+            config = SamplingConfig(
+                temperature=1.0, guard=True, guard_escape=escape, seed=2, guard_road_ahead=0.0
+            )
             engine = RolloutEngine(tiny(), sc, 16, 15, controlled, config=config, priority=np.array(priority))
             engine.run()
             hit, at_fault = collisions_by_fault(engine.xyh, engine.valid, sc.size, 0, sc.current_index)
@@ -310,7 +316,7 @@ def test_an_external_agent_driving_into_an_npc_keeps_its_collision() -> None:
     collision the env must report to the ego's policy."""
     sc = closing_in_scene()
     controlled, external = np.array([True, False]), np.array([False, True])
-    config = SamplingConfig(temperature=1.0, guard=True, seed=2)
+    config = SamplingConfig(temperature=1.0, guard=True, seed=2, guard_road_ahead=0.0)  # as above
     priority = np.array([1.0, 0.0])  # the ego moves first: the NPC's guard sees it drive into its box
     engine = RolloutEngine(
         tiny(), sc, 16, 15, controlled, external=external, config=config, priority=priority

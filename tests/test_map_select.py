@@ -73,10 +73,12 @@ def test_rollouts_of_an_agents_model_are_deterministic_and_see_far_lanes() -> No
     model.load_state_dict(base.model.state_dict())
     ckpt = Checkpoint(model=model, vocabulary=base.vocabulary, training={})
     scene = straight_road_scene(num_agents=6, steps=40)
-    a = rollout(ckpt, scene, 2, 6, config=SamplingConfig(seed=3))
-    b = rollout(ckpt, scene, 2, 6, config=SamplingConfig(seed=3))
+    # the one-step road rule (with the road ahead the untrained draws keep to the same few tokens)
+    config = SamplingConfig(seed=3, guard_road_ahead=0.0)
+    a = rollout(ckpt, scene, 2, 6, config=config)
+    b = rollout(ckpt, scene, 2, 6, config=config)
     np.testing.assert_array_equal(a.tokens, b.tokens)
-    c = rollout(base, scene, 2, 6, config=SamplingConfig(seed=3))
+    c = rollout(base, scene, 2, 6, config=config)
     assert not np.array_equal(a.tokens, c.tokens)  # the far cars' map context differs
 
 

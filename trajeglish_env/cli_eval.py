@@ -11,6 +11,7 @@ from trajeglish_env.cli_args import (
     NON_NEGATIVE,
     POSITIVE,
     add_dtype_args,
+    non_negative_float,
     output_dir,
     positive_float,
     probability,
@@ -58,6 +59,7 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
             cache_dtype=args.cache_dtype,
             compute_dtype=args.compute_dtype,
             guard_green=not args.no_green_rule,
+            guard_road_ahead=args.road_ahead,
             subsets=args.subsets,
         ),
         metrics=args.metrics,
@@ -166,6 +168,7 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
             compute_dtype=args.compute_dtype,
             guard=args.guard == "on",
             guard_green=not args.no_green_rule,
+            guard_road_ahead=args.road_ahead,
         ),
     )
     out = save_render(
@@ -177,8 +180,21 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
         "horizon": horizon,
         "guard": args.guard == "on",
         "green_rule": not args.no_green_rule,
+        "road_ahead": args.road_ahead,
         "out": str(out),
     }
+
+
+def add_road_ahead_arg(p: argparse.ArgumentParser) -> None:
+    """``--road-ahead M``: the guard's road-ahead distance (``SamplingConfig.guard_road_ahead``)."""
+    p.add_argument(
+        "--road-ahead",
+        type=non_negative_float,
+        default=SamplingConfig.guard_road_ahead,
+        metavar="M",
+        help="metres of each candidate's kept-up motion the guard checks against the road edges "
+        "(SamplingConfig.guard_road_ahead; 0: the one-step road rule alone; default: the env's)",
+    )
 
 
 def add_eval_commands(add: AddCommand) -> None:
@@ -217,6 +233,7 @@ def add_eval_commands(add: AddCommand) -> None:
         action="store_true",
         help="guarded methods without the green-light rule (SamplingConfig.guard_green=False)",
     )
+    add_road_ahead_arg(p)
     p.add_argument(
         "--subsets",
         choices=SUBSET_RULES,
@@ -277,6 +294,7 @@ def add_eval_commands(add: AddCommand) -> None:
     p.add_argument("--follow-sdc", action="store_true")
     p.add_argument("--guard", choices=("on", "off"), default="on", help="guarded sampling (default: on)")
     p.add_argument("--no-green-rule", action="store_true", help="the guard without its green-light rule")
+    add_road_ahead_arg(p)
     add_map_coverage_command(add)
     add_scorecard_command(add)
 

@@ -19,6 +19,9 @@ DEFAULT_GUARD = True
 # Metres a guarded vehicle's box corner may reach beyond a road edge: 0, the WOSAC off-road threshold (a
 # corner beyond the edge at all is off the road), stricter than the env's reward margin above.
 GUARD_ROAD_MARGIN = 0.0
+# Metres along its kept-up motion a guarded vehicle's candidate should stay on the road, as far as any
+# candidate can (:mod:`~trajeglish_env.sampler.guard_ahead`); 0: the one-step road-edge rule alone.
+GUARD_ROAD_AHEAD = 5.0
 # How the agents of a step are decoded (see :mod:`~trajeglish_env.sampler.parallel`): "parallel" (fixed-point
 # iteration over a whole run of agents per model call) or "sequential" (one model call per sampled agent).
 INTRA_STEP_MODES = ("parallel", "sequential")
@@ -60,7 +63,11 @@ class SamplingConfig:
     put a corner of a vehicle's box more than ``guard_road_margin`` m beyond a road edge (default
     :data:`GUARD_ROAD_MARGIN`; a vehicle off the road already may not go farther off), are masked before
     the token is drawn, and so are those that would take a vehicle or cyclist across the stop line of a
-    red light on its lane; with ``guard_green`` (default on) a vehicle or cyclist behind the stop line of a
+    red light on its lane; with ``guard_road_ahead`` > 0 (default :data:`GUARD_ROAD_AHEAD` m) the moving
+    candidates whose motion, kept up, stays on the road a shorter way (up to that distance) than another
+    allowed candidate's are masked too (:mod:`~trajeglish_env.sampler.guard_ahead`: vehicles turn where
+    the road bends instead of running up to its edge and standing there); with ``guard_green`` (default
+    on) a vehicle or cyclist behind the stop line of a
     green light on its lane, the way ahead clear, may not stand still (the model reads no signals, so
     without it a queue stopped at red stays stopped at green). An agent whose box overlaps the current box
     already is left out (no move undoes that overlap); with ``guard_escape`` (default on) one that *moved*
@@ -95,6 +102,7 @@ class SamplingConfig:
     guard_road_margin: float = GUARD_ROAD_MARGIN
     guard_green: bool = True
     guard_escape: bool = True
+    guard_road_ahead: float = GUARD_ROAD_AHEAD
     intra_step: str = "parallel"
     compute_dtype: str = "auto"
 
@@ -104,6 +112,8 @@ class SamplingConfig:
         for name in ("guard_green", "guard_escape"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"SamplingConfig.{name} must be a bool, got {getattr(self, name)!r}")
+        if not (self.guard_road_ahead >= 0):
+            raise ValueError(f"SamplingConfig.guard_road_ahead must be >= 0 (m), got {self.guard_road_ahead}")
         if not (self.guard_road_margin >= 0):
             raise ValueError(
                 f"SamplingConfig.guard_road_margin must be >= 0 (m), got {self.guard_road_margin}"

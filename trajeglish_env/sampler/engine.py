@@ -103,7 +103,11 @@ class BatchEngine(WindowedRows):
 
             self.guard = SamplingGuard(
                 GuardGeometry(
-                    self.vocab.templates, config.guard_road_margin, config.guard_green, config.guard_escape
+                    self.vocab.templates,
+                    config.guard_road_margin,
+                    config.guard_green,
+                    config.guard_escape,
+                    config.guard_road_ahead,
                 )
             )
             self.with_edges = True

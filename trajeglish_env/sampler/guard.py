@@ -9,8 +9,10 @@ each of its candidate tokens -- every template of its class, applied to its curr
 checked against them (:mod:`~trajeglish_env.sampler.guard_geometry`). A candidate is masked when its box
 overlaps one of those boxes, or, for a vehicle or cyclist, when a corner of its box lies more than the
 env's off-road margin beyond a road edge, or when it breaks a signal rule
-(:mod:`~trajeglish_env.sampler.guard_signals`). When every candidate is masked, these map rules are
-dropped; when that still leaves none, the token is drawn unguarded.
+(:mod:`~trajeglish_env.sampler.guard_signals`). With the road ahead
+(:mod:`~trajeglish_env.sampler.guard_ahead`) a vehicle's moving candidates whose kept-up motion stays on the
+road a shorter way than another allowed one's are masked too. When every candidate is masked, the map
+rules are dropped; when that still leaves none, the token is drawn unguarded.
 
 The token is the one :func:`~trajeglish_env.sampler.sampling.sample_with_uniform` draws from the masked
 logits with the agent's own counter-based number (so a row's rollout never depends on the other rows), but
@@ -18,7 +20,8 @@ checking all V candidates of every agent would cost more than the model. So (wit
 temperature 0) the 6 most likely ones (LAZY_CANDIDATES) are checked first: the masses of the allowed ones
 and of the unchecked rest bound the cumulative distribution of every possible mask, and when those bounds
 put the draw on the same token, that token is the one the full mask gives (at temperature 0: the most
-likely allowed one, when one of them is allowed). The other agents (when the draw falls near a token
+likely allowed one, when one of them is allowed; a checked candidate whose road-ahead verdict turns on
+unchecked ones counts as unchecked). The other agents (when the draw falls near a token
 boundary, or when most of the likely candidates are masked) are checked with 24, then 96 (then 384 in a
 larger vocabulary), then all; a pass whose candidates hold less than half the probability (an untrained
 model) is skipped."""
@@ -30,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from trajeglish_env.sampler.guard_ahead import ahead_masks, ahead_of_all
 from trajeglish_env.sampler.guard_geometry import GuardGeometry, Pairs
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.sampler.sampling import (
@@ -148,7 +152,14 @@ class SamplingGuard:
         collide, off = self.geometry.blocked(pairs, sel, order)
         ok = ~(collide | off)
         first = np.argmax(ok, axis=1)
-        return order[np.arange(len(sel)), first], ok.any(axis=1)
+        r = np.arange(len(sel))
+        done = ok.any(axis=1)
+        if self.geometry.road_ahead > 0:  # decided where no unsure candidate comes before the first
+            masked, unsure = ahead_masks(*self.geometry.reach(pairs, sel, order, ok))
+            sure = ok & ~masked & ~unsure
+            first = np.argmax(sure, axis=1)
+            done = sure.any(axis=1) & ~(unsure & (np.arange(k) < first[:, None])).any(axis=1)
+        return order[r, first], done
 
     def _lazy_draw(
         self,
@@ -174,12 +185,17 @@ class SamplingGuard:
             return chosen, done
         top, mass, cdf, uniform = top[try_], mass[try_], cdf[try_], uniform[try_]
         collide, off = self.geometry.blocked(pairs, sel[try_], top)
+        ok = ~(collide | off)
+        unsure = np.zeros_like(ok)
+        if self.geometry.road_ahead > 0:  # unsure: the road-ahead rule waits on unchecked candidates
+            masked, unsure = ahead_masks(*self.geometry.reach(pairs, sel[try_], top, ok))
+            ok &= ~masked & ~unsure
         order = np.argsort(top, axis=1)  # the checked candidates in token order
         top, mass = np.take_along_axis(top, order, 1), np.take_along_axis(mass, order, 1)
-        ok = np.take_along_axis(~(collide | off), order, 1)
+        ok, unsure = np.take_along_axis(ok, order, 1), np.take_along_axis(unsure, order, 1)
         sure = np.where(ok, mass, 0.0)
-        z = sure.sum(axis=1)  # allowed for sure; eps: unchecked, either way
-        eps = np.maximum(cdf[:, -1] - mass.sum(axis=1), 0.0)
+        z = sure.sum(axis=1)  # allowed for sure; eps: unchecked or unsure, either way
+        eps = np.maximum(cdf[:, -1] - mass.sum(axis=1), 0.0) + np.where(unsure, mass, 0.0).sum(axis=1)
         # the masked draw's token is at most the first allowed candidate whose allowed mass up to it beats
         # the largest threshold (``latest``) ...
         past = np.cumsum(sure, axis=1) > (uniform * (z + eps) + _SLACK)[:, None]
@@ -188,7 +204,7 @@ class SamplingGuard:
         latest = top[r, first]
         # ... and at least it when all the mass before it, less the candidates found blocked, stays under
         # the smallest one
-        blocked_before = np.where(~ok & (top < latest[:, None]), mass, 0.0).sum(axis=1)
+        blocked_before = np.where(~ok & ~unsure & (top < latest[:, None]), mass, 0.0).sum(axis=1)
         before = np.where(latest > 0, cdf[r, np.maximum(latest - 1, 0)] - blocked_before, -np.inf)
         chosen[try_] = latest
         done[try_] = (z > 0) & past.any(axis=1) & (before <= uniform * z - _SLACK)
@@ -205,10 +221,11 @@ class SamplingGuard:
     ) -> np.ndarray:
         """Check every candidate of pairs ``sel`` and draw from the masked logits, with the fallbacks."""
         v = logits.shape[1]
-        collide, escape, off = self.geometry.blocked_parts(
-            pairs, sel, np.broadcast_to(np.arange(v), (len(sel), v))
-        )
+        every = np.broadcast_to(np.arange(v), (len(sel), v))
+        collide, escape, off = self.geometry.blocked_parts(pairs, sel, every)
         ok = ~(collide | escape | off)
+        if self.geometry.road_ahead > 0:
+            ok &= ~ahead_of_all(*self.geometry.reach(pairs, sel, every, ok))
         trapped = ~ok.any(axis=1)  # no candidate escapes what moved into it: those agents are left out
         ok[trapped] = ~(collide | off)[trapped]
         self.stats.escape_fallback += int((trapped & ok.any(axis=1)).sum())

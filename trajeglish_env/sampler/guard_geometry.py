@@ -20,6 +20,7 @@ from trajeglish_env.batch_geometry import PaddedRows, latest_states, nearest_fir
 from trajeglish_env.edge_cells import EdgeCells
 from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
+from trajeglish_env.sampler.guard_ahead import AHEAD_MIN_MOVE, road_reach
 from trajeglish_env.sampler.guard_edges import RoadView, road_view
 from trajeglish_env.sampler.guard_signals import DEPART_STEP, SceneSignals, SignalCache
 from trajeglish_env.sampler.rows import RowStates
@@ -86,16 +87,23 @@ def way_clear(
 class GuardGeometry:
     """Obstacles and road edges of the sampled pairs of an engine's rows (``templates [classes,V,3]``:
     the motion tokens; ``road_margin``: how far a candidate corner may lie beyond a road edge;
-    ``green_rule``: whether riders at a green light with the way clear must move), with each row-agent's
+    ``green_rule``: whether riders at a green light with the way clear must move; ``road_ahead``: metres
+    of each candidate's kept-up motion checked against the road edges, 0 for none), with each row-agent's
     road-edge list kept between steps."""
 
     def __init__(
-        self, templates: np.ndarray, road_margin: float = 0.0, green_rule: bool = True, escape: bool = False
+        self,
+        templates: np.ndarray,
+        road_margin: float = 0.0,
+        green_rule: bool = True,
+        escape: bool = False,
+        road_ahead: float = 0.0,
     ):
         self.templates = np.asarray(templates, dtype=np.float64)
         self.road_margin = float(road_margin)
         self.green_rule = bool(green_rule)
         self.escape = bool(escape)
+        self.road_ahead = float(road_ahead)
         self.move = np.hypot(self.templates[..., 0], self.templates[..., 1]).max(axis=1)  # per class
         self._columns = PaddedRows(0.0, last=True)
         self._links = PaddedRows(-1, last=True)
@@ -213,6 +221,19 @@ class GuardGeometry:
         applies, across the stop line of a red light on its lane, or leave it standing at a green one)."""
         collide, escape, off = self.blocked_parts(p, sel, tokens)
         return collide | escape, off
+
+    def reach(
+        self, p: Pairs, sel: np.ndarray, tokens: np.ndarray, allowed: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """For pairs ``sel [m]`` and their candidate ``tokens [m,c]`` that the one-step rules ``allowed``:
+        the candidates the road-ahead rule looks at ``[m,c]`` (moving vehicles and cyclists under the
+        road-edge rule) and their reach (:func:`~trajeglish_env.sampler.guard_ahead.road_reach`)."""
+        step = self.templates[p.kind[sel][:, None], tokens]
+        look = allowed & p.edges.road[sel][:, None] & (np.hypot(step[..., 0], step[..., 1]) >= AHEAD_MIN_MOVE)
+        if self.road_ahead <= 0:
+            look[:] = False
+        reach = road_reach(p.edges, sel, p.origin[sel], p.size[sel], step, self.road_ahead, look)
+        return reach, look
 
     def blocked_parts(
         self, p: Pairs, sel: np.ndarray, tokens: np.ndarray
