@@ -246,6 +246,29 @@ def test_fallbacks_drop_the_road_rule_then_the_guard() -> None:
     assert 0.5 < same < 1.0 and 0.3 < allowed.mean() < 0.7
 
 
+def test_allowed_draws_stand_and_the_guarded_draw_is_exactly_the_masked_distribution() -> None:
+    """The guard keeps the model's draw where the rules allow it and redraws from the masked logits with a
+    second number elsewhere (``_full_draw(..., keep)``, what ``sample`` does at top_p = 1): every allowed draw
+    stands, no blocked token comes out, and over 200,000 numbers each token's frequency is its probability
+    under the mask (p / Z), not the model's p."""
+    v, n = 10, 200_000
+    logits = torch.from_numpy(np.random.default_rng(3).normal(size=v) * 1.5)[None].repeat(n, 1)
+    blocked = np.zeros((n, v), bool)
+    blocked[:, [1, 4, int(logits[0].argmax())]] = True  # the most likely token among them
+    uniform = (np.arange(n) + 0.5) / n
+    guard = guard_module.SamplingGuard(FixedMasks(blocked, np.zeros_like(blocked)))  # type: ignore[arg-type]
+    plain = guard_module.sample_with_uniform(logits, 1.0, 1.0, uniform)
+    redraw = sampling.second_uniform(uniform)
+    tokens = guard._full_draw(None, np.arange(n), logits, 1.0, 1.0, redraw, plain)  # type: ignore[arg-type]
+    allowed = ~blocked[0, plain]
+    assert np.array_equal(tokens[allowed], plain[allowed]) and not blocked[0, tokens].any()
+    p = torch.softmax(logits[0], -1).numpy()
+    q = np.where(blocked[0], 0.0, p) / p[~blocked[0]].sum()
+    freq = np.bincount(tokens, minlength=v) / n
+    assert np.abs(freq - q).max() < 0.005 and np.abs(freq - p).max() > 0.05
+    assert 0.2 < (~allowed).mean() < 0.95  # the mask takes a real share of the mass
+
+
 def test_with_nothing_to_escape_to_the_agents_to_escape_are_dropped_first() -> None:
     v, n = 12, 300
     logits = torch.randn(n, v, generator=torch.Generator().manual_seed(1)) * 2

@@ -95,3 +95,17 @@ def test_greedy_rollout_is_a_fixed_point_of_the_teacher_forced_model(
     other.run()
     assert np.array_equal(other.tokens[0, ~controlled], engine.tokens[0, ~controlled])  # replay: the log
     assert not np.array_equal(other.tokens[0, controlled], engine.tokens[0, controlled])
+
+
+def test_the_second_number_is_uniform_reproducible_and_unrelated_to_the_first() -> None:
+    """``second_uniform`` (the guard's redraw number): the same numbers for the same first ones, in [0, 1),
+    uniform (mean, deciles) and uncorrelated with the first, over a million counter numbers."""
+    from trajeglish_env.sampler.sampling import counter_uniform, second_uniform
+
+    first = counter_uniform(np.full(1_000_000, 11), np.arange(1_000_000) // 50, np.arange(1_000_000) % 50)
+    second = second_uniform(first)
+    assert np.array_equal(second, second_uniform(first.copy()))
+    assert second.min() >= 0.0 and second.max() < 1.0
+    assert abs(second.mean() - 0.5) < 0.002
+    assert np.abs(np.histogram(second, bins=10, range=(0, 1))[0] / 1e6 - 0.1).max() < 0.002
+    assert abs(np.corrcoef(first, second)[0, 1]) < 0.005

@@ -14,17 +14,28 @@ env's off-road margin beyond a road edge, or when it breaks a signal rule
 road a shorter way than another allowed one's are masked too. When every candidate is masked, the map
 rules are dropped; when that still leaves none, the token is drawn unguarded.
 
-The token is the one :func:`~trajeglish_env.sampler.sampling.sample_with_uniform` draws from the masked
-logits with the agent's own counter-based number (so a row's rollout never depends on the other rows), but
-checking all V candidates of every agent would cost more than the model. So (with top_p = 1, or at
-temperature 0) the 6 most likely ones (LAZY_CANDIDATES) are checked first: the masses of the allowed ones
-and of the unchecked rest bound the cumulative distribution of every possible mask, and when those bounds
-put the draw on the same token, that token is the one the full mask gives (at temperature 0: the most
-likely allowed one, when one of them is allowed; a checked candidate whose road-ahead verdict turns on
-unchecked ones counts as unchecked). The other agents (when the draw falls near a token
-boundary, or when most of the likely candidates are masked) are checked with 24, then 96 (then 384 in a
-larger vocabulary), then all; a pass whose candidates hold less than half the probability (an untrained
-model) is skipped."""
+The token keeps the model's own draw where the rules allow it: the draw of
+:func:`~trajeglish_env.sampler.sampling.sample_with_uniform` with the agent's counter-based number ``u`` (so a
+row's rollout never depends on the other rows) is checked first, and only where it breaks a rule is the token
+drawn from the masked logits, with a second number of the agent's
+(:func:`~trajeglish_env.sampler.sampling.second_uniform`). This is exactly the masked distribution (a token
+the rules allow comes out with probability p + (1 - Z) p / Z = p / Z, Z the allowed mass), and it changes no
+draw the rules allow: a vehicle keeps the model's speed where masked mass elsewhere would have shifted the
+inverted number onto a neighbouring token, and the drafts of parallel decoding (the unguarded draws) stay
+right (:mod:`~trajeglish_env.sampler.parallel`). Under a nucleus (top_p < 1) the masked logits are drawn at
+``u`` (a nucleus of the masked logits is not a coupling of the unmasked draw); at temperature 0 the token is
+the most likely allowed one.
+
+Checking all V candidates of every agent would cost more than the model, so (with top_p = 1, or at
+temperature 0) the draw itself is checked first, then the 6 most likely candidates (LAZY_CANDIDATES): the
+masses of the allowed ones and of the unchecked rest bound the cumulative distribution of every possible
+mask, and when those bounds put the redraw on the same token, that token is the one the full mask gives (at
+temperature 0: the most likely allowed one, when one of them is allowed; a checked candidate whose
+road-ahead verdict turns on unchecked ones counts as unchecked). The other agents (when the redraw falls near
+a token boundary, or when most of the likely candidates are masked) are checked with 24, then 96 (then 384
+in a larger vocabulary), then all; a pass whose candidates hold less than half the probability (an untrained
+model) is skipped. With no lazy passes (LAZY_CANDIDATES empty) every candidate of every agent is checked,
+the draw itself too (the reference the tests compare with)."""
 
 from __future__ import annotations
 
@@ -33,7 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from trajeglish_env.sampler.guard_ahead import ahead_masks, ahead_of_all
+from trajeglish_env.sampler.guard_ahead import AHEAD_CHECKS, ahead_masks, ahead_of_all
 from trajeglish_env.sampler.guard_geometry import GuardGeometry, Pairs
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.sampler.sampling import (
@@ -41,6 +52,7 @@ from trajeglish_env.sampler.sampling import (
     sample_from_cdf,
     sample_from_probs,
     sample_with_uniform,
+    second_uniform,
     token_probs,
 )
 
@@ -120,7 +132,13 @@ class SamplingGuard:
         sub_probs = None if probs is None else probs[at].numpy()
         sub_cdf = None if cdf is None else cdf[at].numpy()
         chosen, done = plain.copy(), np.zeros(len(guarded), bool)
-        for k in [k for k in LAZY_CANDIDATES if k < logits.shape[1]] if lazy else ():
+        passes = [k for k in LAZY_CANDIDATES if k < logits.shape[1]] if lazy else []
+        keep = temperature > 0 and lazy  # the model's draw stands where allowed; else a redraw at ``redraw``
+        redraw = second_uniform(uniform) if keep else uniform
+        beat = np.full(len(guarded), -2)  # a redraw stands where a checked candidate reaches farther
+        if keep and passes:  # the draw itself first: most draws break no rule
+            done, beat = self._draw_allowed(pairs, guarded, plain)
+        for k in passes:
             rest = np.flatnonzero(~done)
             if not len(rest):
                 break
@@ -129,17 +147,40 @@ class SamplingGuard:
                 chosen[rest], done[rest] = self._lazy_argmax(pairs, sel, sub[torch.from_numpy(rest)], k)
             else:
                 chosen[rest], done[rest] = self._lazy_draw(
-                    pairs, sel, sub_probs[rest], sub_cdf[rest], k, uniform[sel]
+                    pairs, sel, sub_probs[rest], sub_cdf[rest], k, redraw[sel], beat[rest]
                 )
         rest = np.flatnonzero(~done)
         if len(rest):
             chosen[rest] = self._full_draw(
-                pairs, guarded[rest], sub[torch.from_numpy(rest)], temperature, top_p, uniform[guarded[rest]]
+                pairs,
+                guarded[rest],
+                sub[torch.from_numpy(rest)],
+                temperature,
+                top_p,
+                redraw[guarded[rest]],
+                plain[rest] if keep else None,
             )
         tokens[guarded] = chosen
         self.stats.full += len(rest)
         self.stats.masked += int((chosen != plain).sum())
         return tokens
+
+    def _draw_allowed(self, pairs: Pairs, sel: np.ndarray, draw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For pairs ``sel [m]`` and the model's draws ``draw [m]``: ``[m]`` draws every rule allows for sure
+        (nothing is masked then but what the draw does not take), and ``[m]`` the reach a checked candidate
+        must pass for the full mask to mask the draw: -2 (none) where the draw breaks a one-step rule (with
+        any candidate allowed, the full mask masks it too), the draw's own reach where it is allowed by the
+        one-step rules but short of the road ahead's full reach (*unsure*: a candidate reaching farther
+        masks it, else it stands)."""
+        collide, escape, off = self.geometry.blocked_parts(pairs, sel, draw[:, None])
+        ok = ~(collide | escape | off)
+        beat = np.full(len(sel), -2)
+        if self.geometry.road_ahead <= 0:
+            return ok[:, 0], beat
+        reach, look = self.geometry.reach(pairs, sel, draw[:, None], ok)
+        unsure = (look & (reach < AHEAD_CHECKS))[:, 0]
+        beat[unsure] = reach[unsure, 0]
+        return ok[:, 0] & ~unsure, beat
 
     def _lazy_argmax(
         self, pairs: Pairs, sel: np.ndarray, logits: torch.Tensor, k: int
@@ -169,11 +210,14 @@ class SamplingGuard:
         cdf: np.ndarray,
         k: int,
         uniform: np.ndarray,
+        beat: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The draw of the fully masked distribution (``probs [m,V]``: :func:`token_probs` of the pairs,
         ``cdf [m,V]`` their cumulative sums) where the ``k`` most likely candidates decide it (see the module
         docstring); ``done [m]`` says where. Beyond choosing the candidates, O(k) a pair: the bounds at a
-        token are read from the CDF and the checked candidates (no V-sized pass)."""
+        token are read from the CDF and the checked candidates (no V-sized pass). ``beat [m]``: decided
+        only where a checked candidate reaches farther than this (the model's own draw, unsure, is then
+        masked; see :meth:`_draw_allowed`)."""
         m, v = probs.shape
         k = min(k, v)
         top = np.argpartition(-probs, k - 1, axis=1)[:, :k]
@@ -187,8 +231,11 @@ class SamplingGuard:
         collide, off = self.geometry.blocked(pairs, sel[try_], top)
         ok = ~(collide | off)
         unsure = np.zeros_like(ok)
+        farthest = np.full(len(try_), -1)
         if self.geometry.road_ahead > 0:  # unsure: the road-ahead rule waits on unchecked candidates
-            masked, unsure = ahead_masks(*self.geometry.reach(pairs, sel[try_], top, ok))
+            reach, look = self.geometry.reach(pairs, sel[try_], top, ok)
+            masked, unsure = ahead_masks(reach, look)
+            farthest = np.where(look, reach, -1).max(axis=1, initial=-1)
             ok &= ~masked & ~unsure
         order = np.argsort(top, axis=1)  # the checked candidates in token order
         top, mass = np.take_along_axis(top, order, 1), np.take_along_axis(mass, order, 1)
@@ -208,6 +255,8 @@ class SamplingGuard:
         before = np.where(latest > 0, cdf[r, np.maximum(latest - 1, 0)] - blocked_before, -np.inf)
         chosen[try_] = latest
         done[try_] = (z > 0) & past.any(axis=1) & (before <= uniform * z - _SLACK)
+        if beat is not None:
+            done[try_] &= farthest > beat[try_]
         return chosen, done
 
     def _full_draw(
@@ -218,8 +267,10 @@ class SamplingGuard:
         temperature: float,
         top_p: float,
         uniform: np.ndarray,
+        keep: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Check every candidate of pairs ``sel`` and draw from the masked logits, with the fallbacks."""
+        """Check every candidate of pairs ``sel`` and draw from the masked logits, with the fallbacks;
+        ``keep [m]``: the model's draws, which stand where the final mask allows them."""
         v = logits.shape[1]
         every = np.broadcast_to(np.arange(v), (len(sel), v))
         collide, escape, off = self.geometry.blocked_parts(pairs, sel, every)
@@ -236,4 +287,7 @@ class SamplingGuard:
         self.stats.edge_fallback += int((no_edge & ~nothing).sum())
         self.stats.plain_fallback += int(nothing.sum())
         masked = logits.masked_fill(torch.from_numpy(~ok), float("-inf"))
-        return sample_with_uniform(masked, temperature, top_p, uniform)
+        drawn = sample_with_uniform(masked, temperature, top_p, uniform)
+        if keep is None:
+            return drawn
+        return np.where(ok[np.arange(len(sel)), keep], keep, drawn)

@@ -47,6 +47,14 @@ def counter_uniform(seed: np.ndarray, step: np.ndarray, agent: np.ndarray) -> np
     return (x >> np.uint64(11)).astype(np.float64) * 2.0**-53
 
 
+def second_uniform(uniform: np.ndarray) -> np.ndarray:
+    """A second number in [0, 1) per draw, derived from ``uniform`` (a :func:`counter_uniform` number) by
+    hashing its 53 bits: as independent of it as the first is of its counter, and as reproducible (the
+    guard's redraw where the model's own draw breaks a rule, :mod:`~trajeglish_env.sampler.guard`)."""
+    bits = (np.asarray(uniform, dtype=np.float64) * 2.0**53).astype(np.uint64)
+    return (_splitmix(bits ^ _MIX2) >> np.uint64(11)).astype(np.float64) * 2.0**-53
+
+
 def token_probs(logits: torch.Tensor, temperature: float) -> torch.Tensor:
     """Probabilities ``[n, V]`` (float64) of logits ``[n, V]`` at ``temperature > 0``: what every draw of
     :func:`sample_from_probs` inverts (computed once a call, the guard's checks read them too)."""
