@@ -3,8 +3,9 @@
 The trajeglish decoder makes the agents of a step sequential: agent ``a``'s input carries the token that
 agent ``a - 1`` chose this step. Sequential decoding therefore costs one model call per sampled agent.
 Every token, though, is a deterministic function of its inputs and of the agent's own counter-based
-number (:func:`~trajeglish_env.sampler.sampling.counter_uniform`): the draw inverts the CDF of the (guarded)
-conditional at that number. So a whole run of agents can be decoded in one call from *drafted* tokens of
+number (:func:`~trajeglish_env.sampler.sampling.counter_uniform`): the draw inverts the CDF of the
+conditional at that number (the guard keeps it where allowed, else redraws the masked conditional with a
+second number derived from it). So a whole run of agents can be decoded in one call from *drafted* tokens of
 the agents before each one; where the drafts were right, the tokens are the ones sequential decoding
 draws. A call is exact up to and including the first agent whose new token differs from its draft (its
 inputs were all right); the agents after it are decoded again from the new tokens, which become their
