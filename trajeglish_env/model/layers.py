@@ -20,6 +20,10 @@ import torch.nn.functional as F
 from torch import nn
 
 MIN_GEMM_ROWS = 32  # below this many rows MKL switches kernels and a row's result depends on the batch
+# below this many queries SDPA's CPU kernels round a query's result differently (float32 and bfloat16,
+# masked or not; from 4 on, any number of queries and any slot give the same numbers): cached decoding
+# computes at least this many
+MIN_QUERIES = 4
 _COMPUTE: list[torch.dtype] = []  # the dtype inference linear layers multiply in (empty: their own)
 
 

@@ -48,6 +48,14 @@ class NeighbourView:
         """The same features at ``index`` of the leading dimensions (e.g. a batch's busy rows)."""
         return self._map(lambda x: x[index])
 
+    def padded(self, n: int) -> NeighbourView:
+        """``[B,m,...]`` -> ``[B,n,...]`` (``n >= m``): zeros after the first ``m`` positions."""
+
+        def pad(x: torch.Tensor) -> torch.Tensor:
+            return torch.cat([x, x.new_zeros(x.shape[0], n - x.shape[1], *x.shape[2:])], dim=1)
+
+        return self._map(pad)
+
     def flat_time_major(self) -> NeighbourView:
         """``[B,T,A,...]`` -> ``[B,T*A,...]``: the decoder's flattened sequence."""
         b, t, a = self.own.shape[:3]

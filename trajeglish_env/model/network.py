@@ -20,6 +20,7 @@ from trajeglish_env.model.config import ModelConfig, Variant
 from trajeglish_env.model.encoder import SceneEncoder, SceneInputs
 from trajeglish_env.model.lanes import LaneEncoder
 from trajeglish_env.model.layers import (
+    MIN_QUERIES,
     DecoderBlock,
     DecoderCache,
     Linear,
@@ -302,9 +303,11 @@ class TrajeglishModel(nn.Module):
         ``carried_ids [B,n]``: joint ids of the tokens those positions carry as input (:data:`START`: the
         start token, ``-1``: unobserved; see :mod:`~trajeglish_env.model.masks`); ``own_ids [B,n]``: joint
         ids of the same agents' tokens one step earlier (-1: none; only the trajeglish variant uses them).
-        ``start``/``count`` are host arrays (no device sync). Rows whose chunks end in the same model step
-        attend together over the keys up to the end of that step (masked), so every shape a row meets
-        depends on that row alone and its result never depends on the other rows of the batch. ``view
+        ``start``/``count`` are host arrays (no device sync). A position's numbers depend neither on the
+        other rows nor on its chunk: a row attends over the keys up to the end of the step after its chunk's
+        first position (masked; or of its last position's step, for chunks of more than two steps), rows
+        bounded alike attend together, and attention gets at least :data:`~trajeglish_env.model.layers.
+        MIN_QUERIES` queries (inputs are padded), the fewest from which SDPA's CPU kernels round alike. ``view
         [B,n]``: the positions' neighbour features (models with ``neighbour_input``). ``read = (first,
         stop)``: only the outputs of input slots ``first .. stop - 1`` are read (the others are zeros; the
         last layer stores their keys and values only, as priming does)."""
@@ -334,6 +337,16 @@ class TrajeglishModel(nn.Module):
                 f"({n}) >= count and must fit the cache ({cache.capacity})"
             )
         dev = carried_ids.device
+        if n < MIN_QUERIES:  # pad with idle inputs: attention computes a few queries otherwise rounded
+            pad = carried_ids.new_full((carried_ids.shape[0], MIN_QUERIES - n), -1)
+            carried_ids, own_ids = torch.cat([carried_ids, pad], 1), torch.cat([own_ids, pad], 1)
+            if view is not None:
+                view = view.padded(MIN_QUERIES)
+            out = self._decode(cache, agents, carried_ids, own_ids, start, count, outputs, view, read)
+            return None if out is None else out[:, :n]
+        if read is not None:  # at least MIN_QUERIES read slots (within the inputs)
+            first = min(read[0], n - MIN_QUERIES)
+            read = (first, max(read[1], first + MIN_QUERIES))
         batch, cache_of, rows_np, cross_runs = len(count), None, np.arange(len(count)), None
         memory_mask = cache.memory_mask
         if busy.any() and not busy.all():  # compute the busy rows only (a row's numbers are the same)
@@ -344,7 +357,12 @@ class TrajeglishModel(nn.Module):
             start, count, busy = start[rows_np], count[rows_np], busy[rows_np]
             memory_mask = memory_mask[cache_of]
             cross_runs = row_runs(rows_np)  # attention reads the caches' rows as views, run by run
-        step = (start + count - 1) // a  # the model step of each row's last position
+        # the model step whose end bounds a row's keys: its last position's; when decoding, at least the step
+        # after its first position's (capped by the cache), so that a chunk that looks one step ahead attends
+        # as one that does not (attention rounds with the number of keys, masked ones too)
+        step = (start + count - 1) // a
+        if outputs:
+            step = np.maximum(step, np.minimum(start // a + 1, cache.capacity // a - 1))
         if busy.any():  # idle rows ride along with the largest group (nothing written), so it needs no copy
             values, counts = np.unique(step[busy], return_counts=True)
             step = np.where(busy, step, values[np.argmax(counts)])

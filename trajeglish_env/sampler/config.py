@@ -80,9 +80,8 @@ class SamplingConfig:
     ``intra_step``: how the agents of a timestep are decoded (:data:`INTRA_STEP_MODES`). Both draw each
     agent's token from the model's conditional given the tokens of the agents before it, with the agent's
     own counter-based number; "parallel" needs about 2 model calls a step instead of one per agent. The two
-    agree token for token but where the float rounding of a multi-query attention call differs from a
-    single-query one by enough to move a draw across a token boundary (about one draw in 10^4 with the
-    shipped model; docs/architecture.md).
+    agree token for token (a position's numbers do not depend on the call that decodes it; docs/
+    architecture.md).
 
     ``compute_dtype``: the dtype the model's linear layers multiply in (:data:`COMPUTE_DTYPES`; inputs and
     weights rounded to it, float32 accumulation). ``"auto"`` (default) is bfloat16 for batches of at least

@@ -39,7 +39,7 @@ from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.geometry import to_global
 from trajeglish_env.heap import keep_freed_memory
 from trajeglish_env.model.config import Variant
-from trajeglish_env.model.layers import MIN_GEMM_ROWS, linear_compute
+from trajeglish_env.model.layers import linear_compute
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.parallel import (
     LOOK_AHEAD_MAX_POSITIONS,
@@ -92,9 +92,6 @@ class BatchEngine(WindowedRows):
         super().__init__(model, ckpt.vocabulary, rows, prime, every, config.subsets, cache_dtype)
         self.config = config
         self._compute_dtype = config.torch_compute_dtype(self.device, rows)
-        # the float32 single-query attention kernel rounds differently from the multi-query one: pad to 2
-        # queries so that a row's result never depends on the chunk lengths of the other rows
-        self._min_queries = 1 if cache_dtype == torch.bfloat16 else 2
         self._rank = 0  # subset rank being decoded in this step
         self.guard: SamplingGuard | None = None
         if config.guard:  # guarded sampling (its geometry needs the rows' road edges)
@@ -286,10 +283,7 @@ class BatchEngine(WindowedRows):
             # chunks that end the step look one step ahead (parallel.look_ahead_rows)
             ahead = look_ahead_rows(count, self._slot, tau, self.now, self.end, A, self.cfg.steps)
         extent = count + A * ahead
-        n = max(self._min_queries, int(extent.max()))
-        if self._draft is not None:  # at least MIN_GEMM_ROWS rows x queries: the linear layers then take the
-            # inputs as they are instead of padding each one (the same numbers: padding is never stored)
-            n = max(n, -(-MIN_GEMM_ROWS // self.B))
+        n = max(1, int(extent.max()))  # a position's numbers do not depend on n (model.layers.MIN_QUERIES)
         start = np.where(count > 0, tau * A + self._slot, 0)
         offsets = np.arange(n)
         inside = offsets[None] < count[:, None]
@@ -376,11 +370,11 @@ class BatchEngine(WindowedRows):
     def _read_span(self, wanted: np.ndarray, n: int) -> tuple[int, int]:
         """The input slots ``(first, stop)`` of a call whose outputs are read (``wanted [B,n]``): the known
         agents that open a subset (those that acted in an earlier one) and padding are only context, so
-        the last layer computes their keys and values only. At least ``_min_queries`` slots."""
+        the last layer computes their keys and values only. At least one slot."""
         used = np.flatnonzero(wanted.any(axis=0))
         first, stop = (int(used[0]), int(used[-1]) + 1) if len(used) else (0, 0)
-        stop = min(n, max(stop, first + self._min_queries))
-        return max(0, min(first, stop - self._min_queries)), stop
+        stop = min(n, max(stop, first + 1))
+        return max(0, min(first, stop - 1)), stop
 
     def _keep_logits(self, rr: np.ndarray, who: np.ndarray, tt: np.ndarray, logits: torch.Tensor) -> None:
         """Keep the class logits ``[n,V]`` that agents ``who`` of rows ``rr`` drew their tokens of steps

@@ -9,8 +9,9 @@ second number derived from it). So a whole run of agents can be decoded in one c
 the agents before each one; where the drafts were right, the tokens are the ones sequential decoding
 draws. A call is exact up to and including the first agent whose new token differs from its draft (its
 inputs were all right); the agents after it are decoded again from the new tokens, which become their
-drafts. The result is bit for bit the sequential one, whatever the drafts; good drafts (an agent's token
-of the previous step) only make the iteration end sooner.
+drafts. The result is bit for bit the sequential one, whatever the drafts (a position's numbers do not
+depend on the call that decodes it: :meth:`~trajeglish_env.model.network.TrajeglishModel.decode_at`); good
+drafts (an agent's token of the previous step) only make the iteration end sooner.
 
 Drafts come from looking one step ahead: a call whose run of agents ends the step also decodes the
 positions of the next step (their inputs guessed from this step's drafts), and draws from them, with the
