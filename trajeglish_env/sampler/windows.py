@@ -24,7 +24,10 @@ from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
 MAP_RADIUS = 100.0  # metres around a window's centre agent, as in training windows
-ROW_BLOCK = 8  # rows encoded and primed per model call when windows are (re)built: activations stay in cache
+# rows encoded and primed per model call when windows are (re)built (activations stay in cache): 16 rather
+# than 8 runs the WOMD scene's 16 x 40 rollouts 2-3 % faster (12.9 / 12.7 against 13.3 / 13.0 s) and a
+# batch of 128 scenes alike (26.2 / 26.3 against 26.6 / 26.4 s), the same tokens (stop 60)
+ROW_BLOCK = 16
 
 
 @dataclass
