@@ -39,7 +39,7 @@ from trajeglish_env.checkpoint import Checkpoint
 from trajeglish_env.geometry import to_global
 from trajeglish_env.heap import keep_freed_memory
 from trajeglish_env.model.config import Variant
-from trajeglish_env.model.layers import linear_compute
+from trajeglish_env.model.layers import MIN_GEMM_ROWS, linear_compute
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.parallel import (
     LOOK_AHEAD_MAX_POSITIONS,
@@ -284,6 +284,9 @@ class BatchEngine(WindowedRows):
             ahead = look_ahead_rows(count, self._slot, tau, self.now, self.end, A, self.cfg.steps)
         extent = count + A * ahead
         n = max(1, int(extent.max()))  # a position's numbers do not depend on n (model.layers.MIN_QUERIES)
+        if self._draft is not None:  # at least MIN_GEMM_ROWS rows x queries: the linear layers then take the
+            # inputs as they are instead of padding each one (the same numbers: padding is never stored)
+            n = max(n, -(-MIN_GEMM_ROWS // self.B))
         start = np.where(count > 0, tau * A + self._slot, 0)
         offsets = np.arange(n)
         inside = offsets[None] < count[:, None]
