@@ -166,3 +166,33 @@ def _expected(rr: np.ndarray, who: np.ndarray, draft: np.ndarray) -> np.ndarray:
             if rr[q] == rr[p] and draft[q] >= 0:
                 out[p, who[q]] = True
     return out
+
+
+def test_the_look_ahead_is_taken_for_few_rows_of_subsets_mostly_to_draft() -> None:
+    """Its positions (stepping rows x slots) stay within 256 times the share of slots it drafts: a
+    24-agent env scene (23 NPCs) looks ahead up to 10 rows, subsets with 8 agents to draft up to 3."""
+    from trajeglish_env.sampler.parallel import look_ahead_pays
+
+    assert all(look_ahead_pays(rows, 24, 23 * rows) for rows in range(1, 11))
+    assert not look_ahead_pays(11, 24, 23 * 11)
+    assert all(look_ahead_pays(rows, 24, 8 * rows) for rows in (1, 2, 3))
+    assert not look_ahead_pays(4, 24, 8 * 4)
+    assert not look_ahead_pays(0, 24, 0)
+
+
+@pytest.mark.parametrize(("rollouts", "looks"), [(1, True), (16, False)])
+def test_a_scene_of_few_agents_looks_ahead_alone_only(rollouts: int, looks: bool) -> None:
+    """2 agents in the tiny model's 6-slot context: one rollout looks ahead (6 positions for 2 drafts),
+    16 do not (96 positions for 32: 96 x 96 > 256 x 32); the tokens are the sequential ones either way."""
+    sc = straight_road_scene(num_agents=3, steps=40)  # the third enters late
+    live = sc.valid[:, sc.current_index]
+    assert live.sum() == 2
+    out = {}
+    for mode in ("sequential", "parallel"):
+        cfg = SamplingConfig(seed=5, intra_step=mode)
+        eng = RolloutEngine(tiny_checkpoint(), sc, rollouts, 8, live, config=cfg)
+        eng.run()
+        out[mode] = (eng.tokens.copy(), eng.look_ahead_calls)
+    np.testing.assert_array_equal(out["parallel"][0], out["sequential"][0])
+    assert out["sequential"][1] == 0
+    assert (out["parallel"][1] > 0) == looks, out["parallel"][1]

@@ -42,10 +42,10 @@ from trajeglish_env.model.config import Variant
 from trajeglish_env.model.layers import MIN_GEMM_ROWS, linear_compute
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.parallel import (
-    LOOK_AHEAD_MAX_POSITIONS,
     accepted,
     coupled_drafts,
     guard_view,
+    look_ahead_pays,
     look_ahead_rows,
     previous_tokens,
 )
@@ -93,6 +93,7 @@ class BatchEngine(WindowedRows):
         self.config = config
         self._compute_dtype = config.torch_compute_dtype(self.device, rows)
         self._rank = 0  # subset rank being decoded in this step
+        self._ahead_ok = (-1, False)  # (rank, whether its chunks that end the step look ahead: parallel.py)
         self.guard: SamplingGuard | None = None
         if config.guard:  # guarded sampling (its geometry needs the rows' road edges)
             from trajeglish_env.sampler.guard import SamplingGuard
@@ -110,6 +111,7 @@ class BatchEngine(WindowedRows):
             self.with_edges = True
         self._slot = np.zeros(self.B, dtype=np.int64)  # per row: next slot of that rank to decode
         self.model_calls = 0  # decoding calls made (a measure of the cost of a step)
+        self.look_ahead_calls = 0  # of them, calls that also decoded the next step (parallel.look_ahead_pays)
 
     # ------------------------------------------------------------------ stepping
     def advance(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -150,6 +152,7 @@ class BatchEngine(WindowedRows):
                 self._build_windows(np.flatnonzero(rebuild))
             self._in_step = True
             self._rank = 0
+            self._ahead_ok = (-1, False)
             self._slot = np.where(self.num_subsets > 0, 0, self.cfg.max_agents)
             self._draft = None
             if self.config.intra_step == "parallel":  # drafts: the look-ahead of the last step, else repeats
@@ -169,6 +172,9 @@ class BatchEngine(WindowedRows):
             safe = np.maximum(w.slots, 0)
             undecided = (w.slots >= 0) & ~self.known[r_ix, safe, t_safe[:, None]] & stepping[:, None]
             sample = undecided & self.row_controlled[r_ix, safe]
+            if self._ahead_ok[0] != self._rank:  # decided once per rank, from all the agents it samples
+                rows = int((stepping & (self.num_subsets > self._rank)).sum())
+                self._ahead_ok = (self._rank, look_ahead_pays(rows, A, int(sample.sum())))
             wait = undecided & self.row_external[r_ix, safe] & self.valid[r_ix, safe, t_safe[:, None]]
             prev = np.clip(self._slot - 1, 0, A - 1)
             waiting = (self._slot > 0) & wait[np.arange(self.B), prev]
@@ -278,7 +284,7 @@ class BatchEngine(WindowedRows):
         if (
             self._draft is not None
             and not self.cfg.reads_states  # the next step's states are not known yet
-            and int((count > 0).sum()) * A <= LOOK_AHEAD_MAX_POSITIONS
+            and self._ahead_ok[1]
         ):
             # chunks that end the step look one step ahead (parallel.look_ahead_rows)
             ahead = look_ahead_rows(count, self._slot, tau, self.now, self.end, A, self.cfg.steps)
@@ -305,6 +311,7 @@ class BatchEngine(WindowedRows):
         read = self._read_span(todo | (decoded & ~inside & ahead[:, None]), n)
         hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, extent, view, read)
         self.model_calls += 1
+        self.look_ahead_calls += int(ahead.any())
         if ahead.any():
             self._draw_ahead(w, hidden, decoded & ~inside, slots)
         if not todo.any():
