@@ -74,8 +74,9 @@ def look_ahead_pays(rows: int, agents: int, sampled: int) -> bool:
     slots it drafts. Measured with one thread (stop 61; drafts never change a token), the look-ahead taken
     everywhere against nowhere: 24-agent env scenes (23 to draft) 17 % faster with it at B = 1, 18 % at 2,
     7 % at 4, even at 8; the 50-agent WOMD scene (6 subsets: the first drafts 21-24 agents, the others 2-8)
-    4 % faster with one rollout, even with 2, 19 % slower with 4 and 8 and 10 % with 16; bundled scenes of
-    5-12 agents 9 % slower with 4 rollouts, 24 % with 8."""
+    4 % faster with one rollout, even with 2, 19 % slower with 4 and 8, and with 16 25 % slower (5 % when
+    taken in follow-up calls only, the rule before); bundled scenes of 5-12 agents 9 % slower with 4
+    rollouts, 24 % with 8."""
     positions = rows * agents
     return positions > 0 and positions * positions <= LOOK_AHEAD_MAX_POSITIONS * sampled
 
