@@ -10,6 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import torch
 from helpers import womd_tfrecord
 
 from trajeglish_env.benchmark import measure, suite, womd
@@ -27,6 +28,7 @@ from trajeglish_env.benchmark.workloads import benchmark_scenes
 from trajeglish_env.cli import main
 from trajeglish_env.cores import usable_cores
 from trajeglish_env.sources.womd import read_womd
+from trajeglish_env.training.precision import step_dtype
 
 
 def test_benchmark_scenes_have_exactly_the_requested_agents() -> None:
@@ -109,12 +111,17 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(["bench", "--device", "gpu", "--quiet"]) == 2
     assert "--device must name a torch device" in capsys.readouterr().err
     out = tmp_path / "bench.json"
-    assert main(["bench", "--sections", "metrics", "--quick", "--json", "--quiet", "--out", str(out)]) == 0
+    args = ["bench", "--sections", "metrics", "training", "--quick", "--json", "--quiet", "--out", str(out)]
+    assert main(args) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 7
+    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 8
     assert printed["complete"] is True and written == printed
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
+    training = written["training"]  # train's default precision beside float32 (schema 8)
+    assert training["precision"] == str(step_dtype("auto", torch.device("cpu"))).removeprefix("torch.")
+    assert training["tokens_per_s"] > 0 and training["tokens_per_s_float32"] > 0
+    assert f"tokens/s in {training['precision']}" in "\n".join(summary_lines(written))
 
 
 def test_a_suite_stopped_early_keeps_the_runs_it_finished(

@@ -40,6 +40,7 @@ def _commands(root: Path, out: str) -> list[list[str]]:
     inputs = sorted(str(p) for p in root.glob("validation.tfrecord-*"))
     train = ["train", "--data", shards, "--out", run, "--init", str(root / "tiny.pt"), "--steps", "2"]
     train += ["--batch-size", "2", "--warmup", "1", "--val-every", "100", "--workers", "0"]
+    train += ["--precision", "float32"]  # bfloat16 rounds each rank's weight gradients before the sum
     # both runs export the one-process fine-tuned model (two-rank training matches it to 1e-6, not bitwise)
     export = ["export-submission", "--data", shards, "--out", sub, "--ckpt", str(root / "one/run/model.pt")]
     generate = [

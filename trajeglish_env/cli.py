@@ -141,6 +141,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         offroad_positions=args.offroad_positions,
         history_dropout=args.history_dropout,
         noise_on_device=args.noise_on_device,
+        precision=args.precision,
     )
     ranks = init_ranks(rank_device())
     result = train(

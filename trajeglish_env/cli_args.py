@@ -11,6 +11,7 @@ from typing import Any, NoReturn
 
 from trajeglish_env.model.config import MAP_SELECT
 from trajeglish_env.sampler.config import CACHE_DTYPES, COMPUTE_DTYPES
+from trajeglish_env.training.precision import PRECISIONS
 
 # Errors that mean bad input (a wrong value, a missing, corrupt or misplaced file): one line on stderr and
 # exit code 2. ScenarioError, CheckpointError, WomdFormatError, UnknownSceneError and the validation errors
@@ -191,6 +192,13 @@ def add_budget_and_mix_args(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="draw the noisy input tokens in the training process on the model's device (a GPU) instead of "
         "in the loading processes: the same draws up to rounding, a fraction of the loaders' work",
+    )
+    p.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        default="auto",
+        help="a step's arithmetic on CPU: 'auto' (bfloat16 autocast where the CPU multiplies bfloat16 "
+        "natively, float32 elsewhere), 'float32' or 'bfloat16'; CUDA always autocasts to bfloat16",
     )
 
 

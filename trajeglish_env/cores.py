@@ -48,3 +48,13 @@ def can_fork() -> bool:
     """Whether work may be split over forked processes (rollouts, scenes of a batched env): on Linux
     (macOS forks, but its system libraries are not safe to use in a forked child)."""
     return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+
+
+def native_bfloat16() -> bool:
+    """Whether this machine's CPU multiplies bfloat16 matrices natively (oneDNN says so)."""
+    import torch
+
+    try:
+        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False

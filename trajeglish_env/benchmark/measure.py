@@ -23,6 +23,7 @@ from trajeglish_env.benchmark.workloads import (
 )
 from trajeglish_env.model import TrajeglishModel, preset
 from trajeglish_env.model.masks import teacher_inputs
+from trajeglish_env.training.precision import step_autocast
 
 GUARDED = {"trajeglish": False, "trajeglish_guard": True}  # model NPCs of the env runs: guarded sampling?
 MAX_ROUNDS = 32  # timed rounds of one env measurement at most (see env_speed's min_seconds)
@@ -139,17 +140,21 @@ def dataset_speed(data: Path, windows: int = 2000, batch: int = 32, workers: int
     return result
 
 
-def training_speed(name: str = "small", batch: int = 8, steps: int = 5) -> float:
-    """Training tokens per second (forward, backward, AdamW step) of a preset on random full windows."""
+def training_speed(name: str = "small", batch: int = 8, steps: int = 5, precision: str = "float32") -> float:
+    """Training tokens per second (forward, backward, AdamW step) of a preset on random full windows, in a
+    training precision (:mod:`~trajeglish_env.training.precision`)."""
     cfg = preset(name)
     model = TrajeglishModel(cfg)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
     scene, tokens = random_inputs(cfg, batch)
-    loss, _ = model.loss(scene, tokens, tokens)  # warm-up
+    autocast = step_autocast(precision, torch.device("cpu"))
+    with autocast:
+        loss, _ = model.loss(scene, tokens, tokens)  # warm-up
     loss.backward()
     start = time.perf_counter()
     for _ in range(steps):
-        loss, n = model.loss(scene, tokens, tokens)
+        with autocast:
+            loss, n = model.loss(scene, tokens, tokens)
         loss.backward()
         opt.step()
         opt.zero_grad()

@@ -26,7 +26,7 @@ from typing import Any
 # env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section; 4: the womd and busy
 # sections and their ratios; 5: split env runs (env.<npc>_split, busy "<B>_split") and env runs' processes;
 # 6: ``complete`` (False in the documents written after each run while the suite goes on)
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "womd", "env", "busy")
 
 
@@ -228,15 +228,20 @@ def _rollouts(rollouts: int, horizon: int) -> dict[str, Any]:
 
 
 def _training(steps: int) -> dict[str, Any]:
+    """Training tokens/s at the default precision (``train --precision auto``) and in float32."""
     import torch
 
     from trajeglish_env.benchmark.measure import training_speed
+    from trajeglish_env.training.precision import step_dtype
 
+    default = step_dtype("auto", torch.device("cpu"))
     return {
         "preset": "small",
         "batch": 8,
         "torch_threads": torch.get_num_threads(),
-        "tokens_per_s": round(training_speed("small", 8, steps), 1),
+        "precision": str(default).removeprefix("torch."),
+        "tokens_per_s": round(training_speed("small", 8, steps, "auto"), 1),
+        "tokens_per_s_float32": round(training_speed("small", 8, steps, "float32"), 1),
     }
 
 
@@ -363,7 +368,11 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
     if "dataset" in result:
         lines.append(f"dataset: {result['dataset']['windows_per_s_single_process']} windows/s")
     if "training" in result:
-        lines.append(f"training (small preset): {result['training']['tokens_per_s']} tokens/s")
+        t = result["training"]
+        lines.append(
+            f"training (small preset): {t['tokens_per_s']} tokens/s in {t['precision']}, "
+            f"{t['tokens_per_s_float32']} in float32"
+        )
     if "decoding" in result:
         d = result["decoding"]
         lines.append(

@@ -118,12 +118,29 @@ class Attention(nn.Module):
         return self.split(k), self.split(v)
 
     def attend(
-        self, x: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None
+        self,
+        x: torch.Tensor,
+        k: torch.Tensor,
+        v: torch.Tensor,
+        mask: torch.Tensor | None,
+        causal: bool = False,
     ) -> torch.Tensor:
-        """Queries from ``x [B,N,C]`` against split keys/values; ``mask`` broadcastable to [B,H,N,K]."""
+        """Queries from ``x [B,N,C]`` against split keys/values; ``mask`` broadcastable to [B,H,N,K], or
+        (``causal``, training only) the causal mask of a square attention, which SDPA then skips by blocks."""
         q = self.split(self.q(x)).to(k.dtype)  # a reduced-precision cache computes in its own dtype
         p = self.dropout if self.training else 0.0
-        return self._project(F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p), x.dtype)
+        if causal and not torch.is_grad_enabled():
+            raise ValueError("Attention.attend: causal=True is for training; pass the mask at inference")
+        if torch.is_grad_enabled() and q.device.type == "cpu" and torch.is_autocast_enabled("cpu"):
+            # bfloat16 autocast on CPU (training): the products run in bfloat16, attention in float32,
+            # whose CPU flash kernel's backward is 1.7x faster than in bfloat16 (training/precision.py)
+            with torch.autocast("cpu", enabled=False):
+                y = F.scaled_dot_product_attention(
+                    q.float(), k.float(), v.float(), attn_mask=mask, dropout_p=p, is_causal=causal
+                )
+        else:
+            y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p, is_causal=causal)
+        return self._project(y, x.dtype)
 
     def attend_runs(
         self,
@@ -295,11 +312,13 @@ class DecoderBlock(nn.Module):
         cross_k: torch.Tensor,
         cross_v: torch.Tensor,
         memory_mask: torch.Tensor | None,
+        causal: bool = False,
     ) -> torch.Tensor:
-        """The whole sequence ``x [B,N,C]`` at once (teacher forcing), self-attention under ``self_mask``."""
+        """The whole sequence ``x [B,N,C]`` at once (teacher forcing), self-attention under ``self_mask``
+        (``causal``: under the causal mask, ``self_mask`` None; training only)."""
         h = self.norm_self(x)
         k, v = self.self_attn.keys_values(h)
-        x = x + self.self_attn.attend(h, k, v, self_mask)
+        x = x + self.self_attn.attend(h, k, v, self_mask, causal)
         return self._cross_and_ff(x, cross_k, cross_v, memory_mask)
 
     def decode(

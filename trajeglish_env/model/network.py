@@ -178,6 +178,14 @@ class TrajeglishModel(nn.Module):
         ``neighbour_input``.
         """
         b, a, t = input_tokens.shape
+        kind = scene.agent_kind[:, None, :].expand(b, t, a)
+        return self.class_logits(self.hidden(scene, input_tokens, view), kind)
+
+    def hidden(
+        self, scene: SceneInputs, input_tokens: torch.Tensor, view: NeighbourView | None = None
+    ) -> torch.Tensor:
+        """The decoder's last states ``[B,T,A,C]`` of :meth:`forward` (before the head)."""
+        b, a, t = input_tokens.shape
         if a > self.cfg.max_agents or t > self.cfg.steps:
             raise ValueError(
                 f"model takes at most {self.cfg.max_agents} agents x {self.cfg.steps} steps, got {a} x {t}"
@@ -187,17 +195,21 @@ class TrajeglishModel(nn.Module):
         flat = None if view is None else view.index(slice(None), slice(0, t)).flat_time_major()
         x = self._decoder_inputs(*teacher_inputs(self.cfg.variant, ids, a), flat)
         x = x + self._positions(agents, torch.arange(t * a, device=x.device))
+        # training: the trajeglish variant's mask is the causal one, which SDPA skips block by block (the
+        # same numbers; inference keeps the explicit mask, bit for bit the cached decoding's)
+        causal = self.cfg.variant is Variant.TRAJEGLISH and torch.is_grad_enabled()
         mask = (
-            decoder_mask(self.cfg.variant, t, a, x.device)
+            None
+            if causal
+            else decoder_mask(self.cfg.variant, t, a, x.device)
             if a != self.cfg.max_agents
             else self.mask[: t * a, : t * a]
         )
         mem_mask = memory_mask[:, None, None, :]
         for block in self.blocks:
             k, v = block.cross_attn.keys_values(memory)
-            x = block(x, mask, k, v, mem_mask)
-        kind = scene.agent_kind[:, None, :].expand(b, t, a)
-        return self.class_logits(x.view(b, t, a, -1), kind)
+            x = block(x, mask, k, v, mem_mask, causal)
+        return x.view(b, t, a, -1)
 
     def loss(
         self,
@@ -209,8 +221,43 @@ class TrajeglishModel(nn.Module):
     ) -> tuple[torch.Tensor, float]:
         """Mean cross-entropy (nats) over observed targets ``[B,A,T]`` (``-1`` ignored) and their count; with
         ``weights [B,A,T]`` (training's :mod:`~trajeglish_env.training.interaction_weights`) the weighted mean
-        and the observed targets' weight sum."""
+        and the observed targets' weight sum. With gradients on (training) the head multiplies only the
+        positions that have a target, each by its class's slice (:meth:`_target_loss`)."""
+        if torch.is_grad_enabled():
+            return self._target_loss(self.hidden(scene, input_tokens, view), scene, targets, weights)
         return self.loss_of_logits(self.forward(scene, input_tokens, view), scene, targets, weights)
+
+    def _target_loss(
+        self,
+        hidden: torch.Tensor,
+        scene: SceneInputs,
+        targets: torch.Tensor,
+        weights: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, float]:
+        """:meth:`loss_of_logits` of :meth:`class_logits` at the observed targets alone: the same sums, the
+        head's work cut to the positions with a target (in training windows of small scenes most of the
+        24 slots are empty) and to their class's tokens (a third of the tied head's rows)."""
+        k, d = self.cfg.num_kinds, self.cfg.drawn
+        tgt = self.drawn_targets(targets, scene.agent_kind[:, :, None]).transpose(1, 2)  # [B,T,A]
+        tgt = torch.where(scene.agent_mask[:, None, :], tgt, torch.full_like(tgt, -1))
+        keep = tgt >= 0
+        x, tgt = self.norm(hidden[keep]), tgt[keep]  # [n,C], [n]
+        kind = scene.agent_kind.clamp(0, k - 1)[:, None, :].expand_as(keep)[keep]
+        weight, bias = self._head()
+        weight = weight.view(k, d, -1)
+        each = x.new_zeros(len(tgt), dtype=torch.float32)
+        for c in torch.unique(kind).tolist():
+            rows = kind == c
+            logits = F.linear(x[rows], weight[c], None if bias is None else bias[c * d : (c + 1) * d])
+            each = each.index_put(
+                (rows.nonzero()[:, 0],), F.cross_entropy(logits.float(), tgt[rows], reduction="none")
+            )
+        if weights is None:
+            n = len(tgt)
+            return each.sum() / max(n, 1), n
+        w = weights.transpose(1, 2)[keep].to(each.dtype)
+        total = float(w.sum())
+        return (each * w).sum() / max(total, 1e-9), total
 
     def loss_of_logits(
         self,

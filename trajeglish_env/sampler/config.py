@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
+from trajeglish_env.cores import native_bfloat16
 from trajeglish_env.sampler.subsets import SUBSET_RULES
 
 CACHE_DTYPES = ("float32", "bfloat16")
@@ -34,16 +35,6 @@ COMPUTE_DTYPES = ("auto", "float32", "bfloat16")
 # faster (24 agents; the WOMD scene's AEC env 7 %) and 8 scenes 11 %, while 16 scenes gain 4 % and 32
 # scenes 5 % from bfloat16 (README "Float32 for small batches").
 AUTO_BFLOAT16_ROWS = 16
-
-
-def native_bfloat16() -> bool:
-    """Whether this machine's CPU multiplies bfloat16 matrices natively (oneDNN says so)."""
-    import torch
-
-    try:
-        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
-        return False
 
 
 @dataclass(frozen=True)

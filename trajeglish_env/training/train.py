@@ -2,7 +2,8 @@
 
 Random time window, random agent's frame, random agent order, noisy input tokens (sigma 0.008, nucleus
 0.95) with argmin targets, AdamW with warmup and linear decay, gradient clipping. On CUDA: bf16 autocast
-(attention runs through SDPA, i.e. flash attention where available); on CPU: float32. Progress bar with
+(attention runs through SDPA, i.e. flash attention where available); on CPU: bf16 autocast where the CPU
+multiplies bfloat16 natively, else float32 (``TrainConfig.precision``, :mod:`.precision`). Progress bar with
 loss and tokens/s, CSV metrics, periodic validation NLL, atomic checkpoints, exact ``--resume``.
 Under ``torchrun`` each process takes its share of every global batch (DistributedDataParallel); the
 loss is normalised by the global token count so that W processes compute exactly the one-process update.
@@ -16,7 +17,6 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -52,6 +52,7 @@ from trajeglish_env.training.device_noise import DeviceTemplates, device_input_t
 from trajeglish_env.training.kind_repeat import window_order
 from trajeglish_env.training.loss import TrainingLoss
 from trajeglish_env.training.offroad_mass import OffroadTerm
+from trajeglish_env.training.precision import check_precision, step_autocast
 from trajeglish_env.training.run_records import run_facts, save_last, training_info
 from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
@@ -113,6 +114,9 @@ class TrainConfig:
     # next tokens must be told from the current states a neighbour_input model reads, not their own trend
     history_dropout: float = 0.0
     noise_on_device: bool = False  # noisy inputs drawn on the model's device (training/device_noise.py; GPU)
+    # the arithmetic of a step on CPU (training/precision.py): "auto" (bfloat16 autocast where the CPU has
+    # native bfloat16, else float32), "float32" or "bfloat16"; CUDA always autocasts to bfloat16
+    precision: str = "auto"
 
     def __post_init__(self) -> None:
         if not self.signal_lr_scale > 0:
@@ -134,6 +138,7 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.collision_horizon must be >= 1 step, got {self.collision_horizon}")
         if not 0 <= self.history_dropout < 1:
             raise ValueError(f"TrainConfig.history_dropout must be in [0, 1), got {self.history_dropout}")
+        check_precision(self.precision)
         self.closed_loop()  # ClosedLoopConfig checks its settings
 
     def closed_loop(self) -> ClosedLoopConfig | None:
@@ -248,6 +253,7 @@ def train(
         # may go on on a machine with another number of cores
         saved["num_workers"] = config.num_workers
         saved["noise_on_device"] = config.noise_on_device  # the same draws either way (up to rounding)
+        saved["precision"] = config.precision  # arithmetic, not the schedule: a run may go on on another CPU
         saved["repeat"] = tuple((str(k), int(n)) for k, n in saved["repeat"])  # lists once serialized
         if fit_steps:  # the schedule's length was fitted to the first call's budget
             config = dataclasses.replace(config, steps=int(saved["steps"]))
@@ -292,7 +298,7 @@ def train(
         persistent_workers=False,
         pin_memory=device.type == "cuda",
     )
-    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else nullcontext()
+    autocast = step_autocast(config.precision, device)
     out.mkdir(parents=True, exist_ok=True)
     metrics_path = out / "metrics.csv"
     bar = tqdm(
