@@ -56,7 +56,7 @@ def main() -> None:
     targets = 0
     for i, batch in enumerate(batches):
         t0 = time.perf_counter()
-        with step_autocast(args.precision, cpu):
+        with step_autocast(args.precision, cpu, cfg.d_model):
             total, n = loss(batch)
         t1 = time.perf_counter()
         (total / n).backward()
@@ -76,7 +76,7 @@ def main() -> None:
             {
                 "init": args.init,
                 "precision": args.precision,
-                "dtype": str(step_dtype(args.precision, cpu)).removeprefix("torch."),
+                "dtype": str(step_dtype(args.precision, cpu, cfg.d_model)).removeprefix("torch."),
                 "seconds_a_step": round(sum(seconds.values()), 3),
                 **seconds,
                 "targets_a_step": targets / args.steps,

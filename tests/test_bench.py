@@ -119,7 +119,7 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert printed["complete"] is True and written == printed
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
     training = written["training"]  # train's default precision beside float32 (schema 8)
-    assert training["precision"] == str(step_dtype("auto", torch.device("cpu"))).removeprefix("torch.")
+    assert training["precision"] == str(step_dtype("auto", torch.device("cpu"), 128)).removeprefix("torch.")
     assert training["tokens_per_s"] > 0 and training["tokens_per_s_float32"] > 0
     assert f"tokens/s in {training['precision']}" in "\n".join(summary_lines(written))
 

@@ -25,16 +25,17 @@ def test_the_choices_and_the_dtype_each_gives(monkeypatch) -> None:
         ValueError, match=r"precision must be one of \('auto', 'float32', 'bfloat16'\), got 'half'"
     ):
         TrainConfig(precision="half")
-    assert step_dtype("float32", CPU) == torch.float32
-    assert step_dtype("bfloat16", CPU) == torch.bfloat16
+    assert step_dtype("float32", CPU, 128) == torch.float32
+    assert step_dtype("bfloat16", CPU, 32) == torch.bfloat16
     for native, auto in ((True, torch.bfloat16), (False, torch.float32)):
         monkeypatch.setattr(precision, "native_bfloat16", lambda native=native: native)
-        assert step_dtype("auto", CPU) == auto
-        assert step_dtype("float32", CUDA) == torch.bfloat16  # CUDA always autocasts
+        assert step_dtype("auto", CPU, 128) == step_dtype("auto", CPU, 64) == auto
+        assert step_dtype("auto", CPU, 32) == torch.float32  # too narrow: bfloat16's casts cost more
+        assert step_dtype("float32", CUDA, 32) == torch.bfloat16  # CUDA always autocasts
     assert not torch.is_autocast_enabled("cpu")
-    with step_autocast("bfloat16", CPU):
+    with step_autocast("bfloat16", CPU, 32):
         assert torch.is_autocast_enabled("cpu")
-    with step_autocast("float32", CPU):
+    with step_autocast("float32", CPU, 128):
         assert not torch.is_autocast_enabled("cpu")
 
 
@@ -116,7 +117,7 @@ def test_bfloat16_autocast_multiplies_in_bfloat16_attends_in_float32_and_follows
 
     def grads(name: str) -> tuple[torch.Tensor, list[torch.Tensor]]:
         model.zero_grad(set_to_none=True)
-        with step_autocast(name, CPU):
+        with step_autocast(name, CPU, cfg.d_model):
             mean, _ = model.loss(scene, tokens, targets)
         mean.backward()
         return mean.detach(), [p.grad.clone() for p in model.parameters() if p.grad is not None]

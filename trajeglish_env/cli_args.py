@@ -198,7 +198,8 @@ def add_budget_and_mix_args(p: argparse.ArgumentParser) -> None:
         choices=PRECISIONS,
         default="auto",
         help="a step's arithmetic on CPU: 'auto' (bfloat16 autocast where the CPU multiplies bfloat16 "
-        "natively, float32 elsewhere), 'float32' or 'bfloat16'; CUDA always autocasts to bfloat16",
+        "natively and the model is at least 64 wide, float32 elsewhere), 'float32' or 'bfloat16'; CUDA "
+        "always autocasts to bfloat16",
     )
 
 

@@ -147,7 +147,7 @@ def training_speed(name: str = "small", batch: int = 8, steps: int = 5, precisio
     model = TrajeglishModel(cfg)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
     scene, tokens = random_inputs(cfg, batch)
-    autocast = step_autocast(precision, torch.device("cpu"))
+    autocast = step_autocast(precision, torch.device("cpu"), cfg.d_model)
     with autocast:
         loss, _ = model.loss(scene, tokens, tokens)  # warm-up
     loss.backward()

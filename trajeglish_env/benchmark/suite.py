@@ -232,9 +232,10 @@ def _training(steps: int) -> dict[str, Any]:
     import torch
 
     from trajeglish_env.benchmark.measure import training_speed
+    from trajeglish_env.model import preset
     from trajeglish_env.training.precision import step_dtype
 
-    default = step_dtype("auto", torch.device("cpu"))
+    default = step_dtype("auto", torch.device("cpu"), preset("small").d_model)
     return {
         "preset": "small",
         "batch": 8,

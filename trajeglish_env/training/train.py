@@ -298,7 +298,7 @@ def train(
         persistent_workers=False,
         pin_memory=device.type == "cuda",
     )
-    autocast = step_autocast(config.precision, device)
+    autocast = step_autocast(config.precision, device, model_config.d_model)
     out.mkdir(parents=True, exist_ok=True)
     metrics_path = out / "metrics.csv"
     bar = tqdm(
