@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from trajeglish_env.model.lanes import POINT_FEATURES, ROAD_POINTS, near_states, road_points_of, road_view
+from trajeglish_env.model.lanes import POINT_FEATURES, ROAD_POINTS
+from trajeglish_env.sampler.road_grid import grid_road_view, road_grid_of
 
 if TYPE_CHECKING:
     from trajeglish_env.sampler.rows import RowStates
@@ -64,28 +65,17 @@ class RowRoads:
             return
         now = st.now[rows]
         xyh, valid = st.mxyh[rows, :, now], st.valid[rows, :, now]  # [k,N,3], [k,N]
-        points, point_mask = _row_points(st, rows, xyh, valid)
-        feats, mask = road_view(points, point_mask, torch.from_numpy(xyh), torch.from_numpy(valid))
-        self.feats[rows], self.mask[rows] = feats, mask
+        self.feats[rows], self.mask[rows] = _view(st, rows, xyh, valid)
         self.step[rows] = now
 
 
-def _row_points(
+def _view(
     st: RowStates, rows: np.ndarray, xyh: np.ndarray, valid: np.ndarray
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each row's scene road points near its agents ``xyh [k,m,3]`` (``valid [k,m]``), padded:
-    ``[k,P,4]`` and mask ``[k,P]``."""
-    near = []
-    for i, b in enumerate(rows.tolist()):
-        sc = st.scenes[b]
-        points = road_points_of(sc) if sc is not None else np.zeros((0, 4))
-        near.append(near_states(points, xyh[i][valid[i]][:, :2]))
-    width = max(len(p) for p in near)
-    points = np.zeros((len(rows), width, 4))
-    point_mask = np.zeros((len(rows), width), dtype=bool)
-    for i, p in enumerate(near):
-        points[i, : len(p)], point_mask[i, : len(p)] = p, True
-    return torch.from_numpy(points), torch.from_numpy(point_mask)
+    """Road features ``[k,m,R,6]`` and mask of agents at ``xyh [k,m,3]`` (``valid [k,m]``) of ``rows [k]``,
+    each read from the road points of the grid cells around it (:mod:`sampler.road_grid`)."""
+    grids = [road_grid_of(st.scenes[b]) if st.scenes[b] is not None else None for b in rows.tolist()]
+    return grid_road_view(grids, xyh, valid)
 
 
 def _at(
@@ -93,11 +83,5 @@ def _at(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Features ``[k,R,6]`` of single positions: agent ``agents[i]`` of row ``rows[i]`` at ``steps[i]``."""
     xyh, valid = st.mxyh[rows, agents, steps], st.valid[rows, agents, steps]
-    feats = torch.zeros(len(rows), ROAD_POINTS, POINT_FEATURES)
-    mask = torch.zeros(len(rows), ROAD_POINTS, dtype=torch.bool)
-    for b in np.unique(rows).tolist():  # one pass per row: its scene's points
-        i = np.flatnonzero(rows == b)
-        points, point_mask = _row_points(st, np.array([b]), xyh[i][None], valid[i][None])
-        f, m = road_view(points, point_mask, torch.from_numpy(xyh[i])[None], torch.from_numpy(valid[i])[None])
-        feats[i], mask[i] = f[0], m[0]
-    return feats, mask
+    feats, mask = _view(st, rows, xyh[:, None], valid[:, None])
+    return feats[:, 0], mask[:, 0]
