@@ -196,3 +196,48 @@ def test_a_scene_of_few_agents_looks_ahead_alone_only(rollouts: int, looks: bool
     np.testing.assert_array_equal(out["parallel"][0], out["sequential"][0])
     assert out["sequential"][1] == 0
     assert (out["parallel"][1] > 0) == looks, out["parallel"][1]
+
+
+@pytest.mark.parametrize("added", ["neighbour_input", "lane_input"])
+@pytest.mark.parametrize("guard", [False, True])
+def test_state_reading_models_look_ahead_from_drafted_states_exactly(added: str, guard: bool) -> None:
+    """Models that read their step's states (neighbours, the road) look ahead too: the look-ahead positions
+    read the next step's states as the drafts give them (parallel.drafted_next_step) and the states are
+    put back, so parallel decoding still draws the sequential tokens and states, in fewer calls."""
+    from helpers import extended_tiny_checkpoint
+
+    ckpt = extended_tiny_checkpoint(added)
+    sc = straight_road_scene(num_agents=6, steps=40)
+    live = sc.valid[:, sc.current_index]
+    out = {}
+    for mode in ("sequential", "parallel"):
+        cfg = SamplingConfig(seed=5, guard=guard, intra_step=mode, guard_road_ahead=0.0)
+        eng = RolloutEngine(ckpt, sc, 1, 10, live, config=cfg)
+        eng.run()
+        calls = (eng.model_calls, eng.look_ahead_calls)
+        out[mode] = (eng.tokens.copy(), eng.xyh.copy(), eng.valid.copy(), *calls)
+    for i in range(3):
+        np.testing.assert_array_equal(out["parallel"][i], out["sequential"][i])
+    assert out["sequential"][4] == 0 and out["parallel"][4] >= 5, out["parallel"][4]
+    assert out["parallel"][3] < out["sequential"][3]
+
+
+def test_a_road_reading_model_decodes_a_real_womd_scene_in_a_batch_exactly() -> None:
+    """The WOMD scene's 50 agents (several contexts), rows of a batch: parallel = sequential per row, with
+    look-ahead calls where they pay."""
+    from helpers import extended_tiny_checkpoint
+
+    from trajeglish_env.sources.womd import read_womd
+
+    sc = next(read_womd(womd_tfrecord()))
+    live = sc.valid[:, sc.current_index]
+    ckpt = extended_tiny_checkpoint("lane_input")
+    out = {}
+    for mode in ("sequential", "parallel"):
+        eng = BatchEngine(ckpt, 2, SamplingConfig(intra_step=mode, prime_steps=3, guard=True))
+        eng.start_rows([0, 1], RowSpec(sc, 6, live), [11, 12])
+        eng.run()
+        out[mode] = (eng.tokens.copy(), eng.mxyh.copy(), eng.look_ahead_calls)
+    np.testing.assert_array_equal(out["parallel"][0], out["sequential"][0])
+    np.testing.assert_array_equal(out["parallel"][1], out["sequential"][1])
+    assert out["parallel"][2] > 0

@@ -78,3 +78,57 @@ def test_features_read_through_the_grid_are_those_read_against_every_point(womd:
             want = torch.sort(ref[a][ref_mask[a]].flatten()).values
             same += bool(torch.allclose(got, want, atol=1e-5))
     assert total == valid.sum() and same >= total - 2, (same, total)  # 147 of 148
+
+
+def test_kept_road_features_are_those_computed_afresh(
+    womd: Scenario, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A road-reading model's rollouts of the WOMD scene, one row looking ahead: at every step the features
+    the rows read (kept ones reused where an agent is at the state they were computed at: drafts that held)
+    are exactly those computed afresh from the states, and fewer agents are computed than read."""
+    from helpers import extended_tiny_checkpoint
+
+    from trajeglish_env.sampler import SamplingConfig, row_roads
+    from trajeglish_env.sampler.engine import BatchEngine
+    from trajeglish_env.sampler.rows import RowSpec
+
+    computed = []
+    fresh_view = row_roads._view
+
+    def counting(st, rows, xyh, valid):  # type: ignore[no-untyped-def]
+        computed.append(int(valid.sum()))
+        return fresh_view(st, rows, xyh, valid)
+
+    eng = BatchEngine(extended_tiny_checkpoint("lane_input"), 1, SamplingConfig(temperature=0.0))
+    live = womd.valid[:, womd.current_index] & (np.arange(womd.num_agents) < 6)  # one context, looks ahead
+    eng.start_rows([0], RowSpec(womd, 10, live), [3])
+    monkeypatch.setattr(row_roads, "_view", counting)
+    rows, agents = np.array([0]), np.arange(eng.N)[None]
+    read = 0
+    while eng.stepping.any():
+        eng.step()
+        steps = np.full((1, eng.N), eng.now[0])
+        computed_before = sum(computed)
+        feats, mask = eng.roads.features(eng, rows, agents, steps)
+        now = eng.now[0]
+        want, want_mask = fresh_view(eng, rows, eng.mxyh[:, :, now], eng.valid[:, :, now])
+        assert torch.equal(mask, want_mask) and torch.equal(feats, want)
+        read += int(eng.valid[0, :, now].sum())
+        assert sum(computed) - computed_before <= int(eng.valid[0, :, now].sum())
+    assert eng.look_ahead_calls > 0
+    assert sum(computed) < 2 * read  # look-ahead features were reused at the next steps
+
+
+def test_an_agents_features_do_not_depend_on_the_others_read_with_it(womd: Scenario) -> None:
+    """Each agent of the WOMD scene read alone (fewer candidate points in its call) gets, bit for bit, the
+    features it gets among all 50: coincident points of overlapping lanes tie on distance, and ties go by
+    candidate order (21 of the 50 differed when the top-k broke them by the call's width)."""
+    grid = road_grid_of(womd)
+    t = womd.current_index
+    xyh = womd.xyh[womd.valid[:, t], t][None]
+    assert xyh.shape[1] == 50
+    together, together_mask = grid_road_view([grid], xyh, np.ones(xyh.shape[:2], bool))
+    for a in range(xyh.shape[1]):
+        alone, alone_mask = grid_road_view([grid], xyh[:, a : a + 1], np.ones((1, 1), bool))
+        assert torch.equal(alone[0, 0], together[0, a]), a
+        assert torch.equal(alone_mask[0, 0], together_mask[0, a]), a

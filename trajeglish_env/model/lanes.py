@@ -91,13 +91,18 @@ def near_states(points: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def _nearest(key: torch.Tensor, ok: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Indices ``[...,k]`` of the ``k`` smallest ``key`` where ``ok`` (last dim), and whether each is real."""
+    """Indices ``[...,k]`` of the ``k`` smallest ``key`` (float32, >= 0) where ``ok`` (last dim), nearest
+    first, and whether each is real. Equal keys (coincident points of overlapping lanes) go by index, so an
+    agent picks the same points whatever else its call holds (more candidates after its own, other agents):
+    each key is ranked by its bits (non-negative floats order as their bits) with its index below them."""
     if key.shape[-1] < k:  # fewer points than slots: pad with absent ones
         pad = k - key.shape[-1]
         key = torch.cat([key, key.new_full((*key.shape[:-1], pad), float("inf"))], dim=-1)
         ok = torch.cat([ok, ok.new_zeros(*ok.shape[:-1], pad)], dim=-1)
-    masked = torch.where(ok, key, torch.full_like(key, float("inf")))
-    near = masked.topk(k, dim=-1, largest=False).indices
+    masked = torch.where(ok, key.float(), torch.full_like(key, float("inf"), dtype=torch.float32))
+    index = torch.arange(key.shape[-1], device=key.device)
+    rank = (masked.contiguous().view(torch.int32).to(torch.int64) << 32) | index
+    near = rank.topk(k, dim=-1, largest=False).indices
     return near, ok.gather(-1, near)
 
 

@@ -44,6 +44,7 @@ from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.parallel import (
     accepted,
     coupled_drafts,
+    drafted_next_step,
     guard_view,
     look_ahead_pays,
     look_ahead_rows,
@@ -281,11 +282,7 @@ class BatchEngine(WindowedRows):
         A = self.cfg.max_agents
         tau = self.now - w.start
         ahead = np.zeros(self.B, bool)
-        if (
-            self._draft is not None
-            and not self.cfg.reads_states  # the next step's states are not known yet
-            and self._ahead_ok[1]
-        ):
+        if self._draft is not None and self._ahead_ok[1]:
             # chunks that end the step look one step ahead (parallel.look_ahead_rows)
             ahead = look_ahead_rows(count, self._slot, tau, self.now, self.end, A, self.cfg.steps)
         extent = count + A * ahead
@@ -305,7 +302,9 @@ class BatchEngine(WindowedRows):
                 np.arange(self.B), w.slots, w.start, np.where(guess, positions - A, 0)
             )
             carried = torch.where(torch.from_numpy(guess).to(self.device), carried_now, carried)
-        view = self._view(np.arange(self.B), w.slots, w.start, positions, decoded)
+        rows = np.flatnonzero(ahead) if self.cfg.reads_states else np.zeros(0, np.int64)
+        with drafted_next_step(self, rows, w.slots[rows]):  # what look-ahead positions read
+            view = self._view(np.arange(self.B), w.slots, w.start, positions, decoded)
         slots = positions % A
         todo = inside & np.take_along_axis(sample, slots, 1)
         read = self._read_span(todo | (decoded & ~inside & ahead[:, None]), n)

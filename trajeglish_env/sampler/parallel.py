@@ -24,12 +24,19 @@ agent's draft is drawn from its distribution of the step before with its number 
 token (its token of the step before, drawn with another number, agrees less often); an agent without one
 drafts its token of the step before.
 
+A model that reads its step's states (neighbours, the road: ``ModelConfig.reads_states``) reads, at a
+look-ahead position, the next step's states as the drafts give them (:func:`drafted_next_step`): where
+the drafts hold they are the states sequential decoding reads there, and a look-ahead only drafts anyway.
+
 Guarded sampling (:mod:`~trajeglish_env.sampler.guard`) reads, for each agent, the next states of the
 agents that moved before it: in a parallel call those are the drafted states of its predecessors in the
 run, which :func:`guard_view` supplies per agent.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -99,6 +106,33 @@ def draft_states(rs: RowStates, rows: np.ndarray, agents: np.ndarray, draft: np.
     """Next states ``[n,3]`` the drafted tokens ``draft [n]`` (>= 0) give agents ``agents`` of ``rows``."""
     t = rs.now[rows]
     return to_global(rs.mxyh[rows, agents, t], rs.vocab.templates[rs.kind[rows, agents], draft])
+
+
+@contextmanager
+def drafted_next_step(rs: RowStates, rows: np.ndarray, slots: np.ndarray) -> Iterator[None]:
+    """While open, the model's next states (step ``now + 1``) of the window agents ``slots [r,A]`` (-1:
+    none) of ``rows [r]`` whose token of this step is not decided yet are those their drafts
+    (``rs._draft``) give, or their states now where they have none; on leaving, the states are put back
+    (the decoded tokens set them). What a look-ahead position of a state-reading model reads."""
+    if not len(rows):
+        yield
+        return
+    r, j = np.nonzero(slots >= 0)
+    rr, aa = rows[r], slots[r, j]
+    t = rs.now[rr]
+    pick = ~rs.known[rr, aa, t] & rs.valid[rr, aa, t] & (t + 1 < rs.T)
+    rr, aa, t = rr[pick], aa[pick], t[pick]
+    assert rs._draft is not None
+    draft = rs._draft[rr, aa]
+    saved = rs.mxyh[rr, aa, t + 1].copy(), rs.valid[rr, aa, t + 1].copy()
+    nxt = rs.mxyh[rr, aa, t].copy()
+    has = draft >= 0
+    nxt[has] = draft_states(rs, rr[has], aa[has], draft[has])
+    rs.mxyh[rr, aa, t + 1], rs.valid[rr, aa, t + 1] = nxt, True
+    try:
+        yield
+    finally:
+        rs.mxyh[rr, aa, t + 1], rs.valid[rr, aa, t + 1] = saved
 
 
 def guard_view(

@@ -15,7 +15,7 @@ from trajeglish_env.geometry import to_local
 from trajeglish_env.model.layers import DecoderCache
 from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks, signal_classes
 from trajeglish_env.model.masks import START, input_shift
-from trajeglish_env.model.neighbours import NeighbourView, neighbour_view
+from trajeglish_env.model.neighbours import OWN_FEATURES, PAIR_FEATURES, NeighbourView, neighbour_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.sampler.row_roads import RowRoads
 from trajeglish_env.sampler.rows import RowSpec, RowStates
@@ -347,12 +347,17 @@ class WindowedRows(RowStates):
             ok = self.valid[r_ix, a_ix, step] & real[:, None, :]  # [r,n,A]
             return torch.from_numpy(self.mxyh[r_ix, a_ix, step]), torch.from_numpy(ok)
 
-        (cur, ok), (prev, prev_ok) = at(steps), at(np.maximum(steps - 1, 0))
-        prev_ok &= torch.from_numpy(tau > 0)[..., None]  # a window's first step reads no velocity
-        size = torch.from_numpy(self.size[r_ix, a_ix]).expand(-1, positions.shape[1], -1, -1)
-        focal = torch.from_numpy(positions % A)[..., None]  # [r,n,1]
-        view = neighbour_view(cur, ok, prev, prev_ok, size, focal)
-        view = NeighbourView(view.own[:, :, 0], view.pairs[:, :, 0], view.mask[:, :, 0])
+        r, n = positions.shape
+        if self.cfg.neighbour_input:
+            (cur, ok), (prev, prev_ok) = at(steps), at(np.maximum(steps - 1, 0))
+            prev_ok &= torch.from_numpy(tau > 0)[..., None]  # a window's first step reads no velocity
+            size = torch.from_numpy(self.size[r_ix, a_ix]).expand(-1, n, -1, -1)
+            focal = torch.from_numpy(positions % A)[..., None]  # [r,n,1]
+            view = neighbour_view(cur, ok, prev, prev_ok, size, focal)
+            view = NeighbourView(view.own[:, :, 0], view.pairs[:, :, 0], view.mask[:, :, 0])
+        else:  # the road alone: no neighbour features (none read)
+            own, pairs = torch.zeros(r, n, OWN_FEATURES), torch.zeros(r, n, 0, PAIR_FEATURES)
+            view = NeighbourView(own, pairs, torch.zeros(r, n, 0, dtype=torch.bool))
         if self.cfg.lane_input:
             agents = np.where(real, slots, -1)[np.arange(len(rows))[:, None], positions % A]  # [r,n]
             if needed is not None:
