@@ -32,17 +32,21 @@ NEIGHBOUR_PARAMS = "neighbours."  # state-dict prefix of NeighbourEncoder inside
 class NeighbourView:
     """Features of positions ``[...]``: ``own [...,3]``, ``pairs [...,K,9]`` and ``mask [...,K]`` (a real
     neighbour); for models with ``lane_input`` also ``road [...,R,6]`` and ``road_mask [...,R]``
-    (:mod:`~trajeglish_env.model.lanes`). Float32 on the model's device."""
+    (:mod:`~trajeglish_env.model.lanes`), or instead ``road_code [...,C]``, what the model's lane encoder
+    makes of them, computed beforehand (the sampler encodes each agent-step once). Float32 on the model's
+    device."""
 
     own: torch.Tensor
     pairs: torch.Tensor
     mask: torch.Tensor
     road: torch.Tensor | None = None
     road_mask: torch.Tensor | None = None
+    road_code: torch.Tensor | None = None
 
     def _map(self, f: Callable[[torch.Tensor], torch.Tensor]) -> NeighbourView:
         road = None if self.road is None or self.road_mask is None else (f(self.road), f(self.road_mask))
-        return NeighbourView(f(self.own), f(self.pairs), f(self.mask), *(road or (None, None)))
+        code = None if self.road_code is None else f(self.road_code)
+        return NeighbourView(f(self.own), f(self.pairs), f(self.mask), *(road or (None, None)), code)
 
     def index(self, *index: torch.Tensor | slice) -> NeighbourView:
         """The same features at ``index`` of the leading dimensions (e.g. a batch's busy rows)."""

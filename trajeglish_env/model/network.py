@@ -158,6 +158,8 @@ class TrajeglishModel(nn.Module):
         if self.neighbours is not None and view is not None:
             x = x + self.neighbours(view).to(x.dtype)
         if self.lanes is not None and view is not None:
+            if view.road_code is not None:  # encoded beforehand (the sampler)
+                return x + view.road_code.to(x.dtype)
             if view.road is None or view.road_mask is None:
                 raise ValueError(
                     "this model reads the road around its agents (ModelConfig.lane_input): the view has no "

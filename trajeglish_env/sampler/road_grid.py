@@ -15,10 +15,11 @@ import weakref
 import numpy as np
 import torch
 
-from trajeglish_env.model.lanes import POINT_FEATURES, REACH, ROAD_POINTS, road_points_of, road_view
+from trajeglish_env.model.lanes import BEHIND, POINT_FEATURES, REACH, ROAD_POINTS, road_points_of, road_view
 from trajeglish_env.scenario import Scenario
 
-CELL = REACH / 2  # metres: the side of a cell (smaller cells give tighter sets, more cells to visit)
+CELL = REACH / 4  # metres: the side of a cell (smaller cells give tighter sets, more cells to visit)
+MARGIN = 0.01  # metres: a cell is skipped only when it lies this much beyond what road_view can read
 SPAN = math.ceil(REACH / CELL)  # cells each side of an agent's own that can hold a point within REACH
 
 
@@ -42,15 +43,26 @@ class RoadGrid:
         self.start = np.cumsum(self.count) - self.count
         self.local = _local(self.points, self.origin)
 
-    def near(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Indices ``[n,K]`` into :attr:`points` of the points in the cells around each position ``xy
-        [n,2]`` and their mask (``K``: the most any position has; a superset of those within REACH)."""
-        n = len(xy)
-        ij = np.floor((np.asarray(xy, dtype=np.float64) - self.origin) / CELL).astype(np.int64)
+    def near(self, xyh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Indices ``[n,K]`` into :attr:`points` of the points in the cells around each state ``xyh [n,3]``
+        that can hold a point ``road_view`` picks, and their mask (``K``: the most any state has). A cell is
+        skipped when it lies :data:`REACH` or farther away, or wholly :data:`BEHIND` metres or more behind
+        the agent (by a centimetre's margin: no point it holds can be read)."""
+        xyh = np.asarray(xyh, dtype=np.float64).reshape(-1, 3)
+        n = len(xyh)
+        ij = np.floor((xyh[:, :2] - self.origin) / CELL).astype(np.int64)
         d = np.arange(-SPAN, SPAN + 1)
         i = (ij[:, 0, None, None] + d[None, :, None]).repeat(len(d), 2).reshape(n, -1)
         j = (ij[:, 1, None, None] + d[None, None, :]).repeat(len(d), 1).reshape(n, -1)
         inside = (i >= 0) & (i < self.shape[0]) & (j >= 0) & (j < self.shape[1])
+        low_x = self.origin[0] + i * CELL - xyh[:, :1]  # the cells' corners relative to the agent [n,C]
+        low_y = self.origin[1] + j * CELL - xyh[:, 1:2]
+        gap_x = np.maximum(np.maximum(low_x, -(low_x + CELL)), 0.0)
+        gap_y = np.maximum(np.maximum(low_y, -(low_y + CELL)), 0.0)
+        within = gap_x * gap_x + gap_y * gap_y < (REACH + MARGIN) ** 2
+        c, s = np.cos(xyh[:, 2:3]), np.sin(xyh[:, 2:3])  # the farthest ahead of a cell is at a corner
+        ahead = np.maximum(low_x * c, (low_x + CELL) * c) + np.maximum(low_y * s, (low_y + CELL) * s)
+        inside &= within & (ahead > -BEHIND - MARGIN)
         cell = np.where(inside, i * self.shape[1] + j, 0)
         lens = np.where(inside, self.count[cell], 0).ravel()
         starts = self.start[cell].ravel()
@@ -107,7 +119,7 @@ def grid_road_view(
         r = np.asarray(rows)[r]
         states = xyh[r, a].copy()
         states[:, :2] -= grid.origin
-        index, near = grid.near(xyh[r, a, :2])
+        index, near = grid.near(xyh[r, a])
         points = grid.local[torch.from_numpy(index)]  # [n,K,4]
         f, got = road_view(
             points,

@@ -69,7 +69,9 @@ class WindowedRows(RowStates):
         self.window_step = np.full(self.B, -1, dtype=np.int64)
         self.windows: list[Window] = []
         self._chunk_cache: dict[int, tuple[Scenario, MapChunks]] = {}
-        self.roads = RowRoads(self.B)  # the road around each agent (models with lane_input)
+        self.roads: RowRoads | None = None  # the road around each agent (models with lane_input)
+        if model.lanes is not None:
+            self.roads = RowRoads(self.B, model.lanes, self.cfg.d_model, self.device, prime + 1)
 
     def start_rows(self, rows: np.ndarray | list[int], spec: RowSpec, seeds: np.ndarray | list[int]) -> None:
         """See :meth:`RowStates.start_rows`; the rows' windows are built at their next step."""
@@ -80,7 +82,8 @@ class WindowedRows(RowStates):
             self.chunks[r], self.plan[r] = chunks, None
         self.window_step[rows] = -1
         self.num_subsets[rows] = 0
-        self.roads.reset(rows)
+        if self.roads is not None:
+            self.roads.reset(rows)
 
     def _map_chunks(self, sc: Scenario) -> MapChunks:
         hit = self._chunk_cache.get(id(sc))
@@ -136,7 +139,8 @@ class WindowedRows(RowStates):
         self.acting_rank[target] = self.acting_rank[source]
         self.num_subsets[target] = self.num_subsets[source]
         self.window_step[target] = self.window_step[source]
-        self.roads.reset(target)
+        if self.roads is not None:
+            self.roads.reset(target)
         for w in self.windows:
             w.slots[target], w.start[target] = w.slots[source], w.start[source]
             w.agents[dst], w.kind[dst] = w.agents[src], w.kind[src]
@@ -362,8 +366,9 @@ class WindowedRows(RowStates):
             agents = np.where(real, slots, -1)[np.arange(len(rows))[:, None], positions % A]  # [r,n]
             if needed is not None:
                 agents = np.where(needed, agents, -1)
-            road, road_mask = self.roads.features(self, rows, agents, steps[:, :, 0])
-            view = NeighbourView(view.own, view.pairs, view.mask, road, road_mask)
+            assert self.roads is not None
+            code = self.roads.codes(self, rows, agents, steps[:, :, 0])
+            view = NeighbourView(view.own, view.pairs, view.mask, road_code=code)
         return view.to(self.device)
 
     def _prime(
