@@ -3,8 +3,10 @@
 :func:`model.lanes.road_view` compares every agent it is given with every road point it is given. On a
 city map (the shared WOMD scene: 4,124 points within reach of its 83 agents' box) that pairwise work was
 most of what the road features cost a step. A grid of :data:`CELL`-metre cells over the scene's points
-hands each agent only the points of the cells around its own, which hold every point within
-:data:`~trajeglish_env.model.lanes.REACH` of it: the only ones ``road_view`` can pick.
+hands each agent only the points of the cells around its own that can hold a point ``road_view`` picks:
+within :data:`~trajeglish_env.model.lanes.REACH` of it and less than
+:data:`~trajeglish_env.model.lanes.BEHIND` behind it (about 1.4 times the points it can read on the WOMD
+scene).
 """
 
 from __future__ import annotations
