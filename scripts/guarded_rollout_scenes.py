@@ -12,6 +12,14 @@ likelihood targets; training/blocked_mass.py):
     python scripts/guarded_rollout_scenes.py --data out/train_hw --out out/own_hw --rollouts 1 \
         --guard off --as-rollout
     trajeglish train --data out/train_hw out/own_hw --init shipped --collision-weight 1 --out runs/c
+
+or, with ``--guard off --temperature 1 --clean-horizon H``, the model's own samples with what led to a
+failure cut out (filtered self-imitation): each simulated agent's rolled-out states from ``H`` steps before
+its first collision (a pair of pedestrians excepted) or, for a vehicle, its first off-road state on are
+invalid, so training reads only the rolled-out motion that stayed clear:
+
+    python scripts/guarded_rollout_scenes.py --data out/train_hw --out out/clean_hw --rollouts 2 \
+        --guard off --temperature 1 --clean-horizon 10
 """
 
 from __future__ import annotations
@@ -20,12 +28,16 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+from trajeglish_env.metrics.boxes import box_collisions
+from trajeglish_env.metrics.features import prepare_scene
+from trajeglish_env.metrics.road_edges import OFFROAD_THRESHOLD, distance_to_road_edge
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.sampler.rollouts import rollout
-from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario import AgentKind, Scenario
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.training.dataset import ROLLOUT_SOURCE, SceneStore
 
@@ -65,6 +77,54 @@ def guarded_scenes(
     return out
 
 
+def first_failures(scene: Scenario) -> np.ndarray:
+    """``[N]`` the first step after the current one at which each agent valid at the current step collides
+    (boxes overlap; not a pair of pedestrians, nor a pair already overlapping at the current step) or, a
+    vehicle, is off the road (WOSAC's off-road rule); ``num_steps`` where it never does, -1 for the others."""
+    cur, n, t = scene.current_index, scene.num_agents, scene.num_steps
+    sim = np.flatnonzero(scene.valid[:, cur])
+    out = np.full(n, -1, np.int64)
+    out[sim] = t
+    xyh, valid = scene.xyh[sim], scene.valid[sim]
+    i, j = np.triu_indices(len(sim), 1)
+    ped = scene.kind[sim] == AgentKind.PEDESTRIAN
+    keep = ~(ped[i] & ped[j])
+    keep &= ~box_collisions(xyh[i, cur], scene.size[sim][i], xyh[j, cur], scene.size[sim][j])
+    i, j = i[keep], j[keep]
+    hit = box_collisions(xyh[i, cur:], scene.size[sim][i, None], xyh[j, cur:], scene.size[sim][j, None]) & (
+        valid[i, cur:] & valid[j, cur:]
+    )  # [pairs, T - cur]
+    bad = np.zeros((len(sim), t - cur), bool)
+    np.logical_or.at(bad, i, hit)
+    np.logical_or.at(bad, j, hit)
+    vehicle = scene.kind[sim] == AgentKind.VEHICLE
+    if vehicle.any():
+        edges = prepare_scene(scene).road_edges
+        states = xyh[vehicle, cur:]
+        xyz = np.concatenate([states[..., :2], np.zeros_like(states[..., :1])], axis=-1)
+        box = np.concatenate([scene.size[sim][vehicle], np.ones((int(vehicle.sum()), 1))], axis=-1)
+        road = distance_to_road_edge(xyz, states[..., 2], box[:, None], valid[vehicle, cur:], edges)
+        bad[vehicle] |= road > OFFROAD_THRESHOLD
+    bad[:, 0] = False  # the current step is the log's
+    first = np.where(bad.any(axis=1), cur + bad.argmax(axis=1), t)
+    out[sim] = first
+    return out
+
+
+def cut_failures(scene: Scenario, horizon: int) -> tuple[Scenario, int]:
+    """``scene`` with each simulated agent's states from ``horizon`` steps before its first failure
+    (:func:`first_failures`) on invalid (never the current step or before); and how many agents were cut."""
+    first = first_failures(scene)
+    cut = first >= 0
+    cut &= first < scene.num_steps
+    start = np.maximum(first - horizon, scene.current_index + 1)
+    steps = np.arange(scene.num_steps)
+    drop = cut[:, None] & (steps[None] >= start[:, None])
+    valid = scene.valid & ~drop
+    xyh = np.where(valid[..., None], scene.xyh, 0.0)
+    return replace(scene, xyh=xyh, valid=valid), int(cut.sum())
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", nargs="+", required=True, help="scene directories or files")
@@ -80,17 +140,44 @@ def main() -> None:
         help="mark the scenes as a model's rollouts (source + '+rollout'): train --collision-weight then "
         "trains on them by its colliding-mass term alone past their current step",
     )
+    p.add_argument(
+        "--clean-horizon",
+        type=int,
+        help="cut each agent's rolled-out states from this many steps before its first collision or "
+        "off-road state on (filtered self-imitation; default: keep every state)",
+    )
     args = p.parse_args()
     ckpt = load_checkpoint(args.ckpt) if args.ckpt else load_pretrained()
-    made: list[Scenario] = []
-    for k, scene in enumerate(tqdm(SceneStore(args.data).scenes, desc="rollouts")):
-        made += guarded_scenes(
-            ckpt, scene, args.rollouts, args.seed + k, args.temperature, args.guard == "on", args.as_rollout
-        )
+    scenes = SceneStore(args.data).scenes
     out = Path(args.out)
-    for i in range(0, len(made), SCENES_PER_SHARD):
-        save_scenarios(out / f"guarded-{i // SCENES_PER_SHARD:05d}.scn.npz", made[i : i + SCENES_PER_SHARD])
-    print(f"{len(made)} scenes in {out}")
+    per_shard = max(1, SCENES_PER_SHARD // args.rollouts)  # input scenes per output shard
+    cut = simulated = made = 0
+    for first in tqdm(range(0, len(scenes), per_shard), desc="rollout shards"):
+        path = out / f"guarded-{first // per_shard:05d}.scn.npz"
+        if path.exists():  # written by an earlier run: resume after it
+            continue
+        shard: list[Scenario] = []
+        for k in range(first, min(first + per_shard, len(scenes))):
+            rolled = guarded_scenes(
+                ckpt,
+                scenes[k],
+                args.rollouts,
+                args.seed + k,
+                args.temperature,
+                args.guard == "on",
+                args.as_rollout,
+            )
+            if args.clean_horizon is not None:
+                for r, scene in enumerate(rolled):
+                    rolled[r], n = cut_failures(scene, args.clean_horizon)
+                    cut += n
+                    simulated += int(scene.valid[:, scene.current_index].sum())
+            shard += rolled
+        save_scenarios(path, shard)  # atomic: a killed run loses at most the shard it was on
+        made += len(shard)
+    if args.clean_horizon is not None:
+        print(f"agents cut at a failure: {cut} of {simulated} ({cut / max(simulated, 1):.3f}) in this run")
+    print(f"{made} scenes written to {out} in this run")
 
 
 if __name__ == "__main__":

@@ -35,12 +35,7 @@ def test_guarded_rollout_scenes(tmp_path: Path) -> None:
 
 def test_guarded_rollout_scenes_take_the_temperature() -> None:
     """At temperature 0 every rollout is the guarded argmax one, whatever its seed; at 1 seeds differ."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("grs", REPO / "scripts" / "guarded_rollout_scenes.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = _script_module()
     from trajeglish_env.checkpoint import load_pretrained
 
     ckpt = load_pretrained()
@@ -49,3 +44,74 @@ def test_guarded_rollout_scenes_take_the_temperature() -> None:
     hot = [module.guarded_scenes(ckpt, scene, 1, seed, temperature=1.0)[0].xyh for seed in (1, 2)]
     np.testing.assert_array_equal(cold[0], cold[1])
     assert not np.array_equal(hot[0], hot[1])
+
+
+def _script_module():  # type: ignore[no-untyped-def]
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("grs", REPO / "scripts" / "guarded_rollout_scenes.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_failure_cut_drops_what_led_to_a_collision_and_nothing_of_a_clean_log() -> None:
+    """--clean-horizon: a generated log never fails; a vehicle moved onto another at step s loses its
+    states (and its partner's) from s - H on, a vehicle pushed off the road loses its own, the rest stay."""
+    from dataclasses import replace
+
+    module = _script_module()
+    scene = bundle_scene("highway-merge-999000")
+    cur, sim = scene.current_index, np.flatnonzero(scene.valid[:, scene.current_index])
+    first = module.first_failures(scene)
+    assert (first[sim] == scene.num_steps).all() and (first[~scene.valid[:, cur]] == -1).all()
+    kept, cut = module.cut_failures(scene, 10)
+    assert cut == 0 and np.array_equal(kept.valid, scene.valid)
+
+    a, b, c = sim[:3]
+    s, wide = cur + 30, cur + 50
+    xyh = scene.xyh.copy()
+    xyh[a, s:] = xyh[b, s:]  # a sits on b from step s on
+    xyh[c, wide:, 1] += 60.0  # c leaves the road sideways at step `wide`
+    valid = scene.valid.copy()
+    valid[[a, b, c], s:] = True
+    broken = replace(scene, xyh=xyh, valid=valid)
+    first = module.first_failures(broken)
+    assert first[a] == first[b] == s and first[c] == wide
+    others = np.setdiff1d(sim, [a, b, c])
+    assert (first[others] > s).all()  # none of the others fails by then
+    kept, cut = module.cut_failures(broken, 10)
+    assert not kept.valid[[a, b], s - 10 :].any() and kept.valid[[a, b], s - 11].all()
+    assert (
+        not kept.valid[c, wide - 10 :].any() and kept.valid[c, : wide - 10][scene.valid[c, : wide - 10]].all()
+    )
+    np.testing.assert_array_equal(kept.valid[:, : cur + 1], scene.valid[:, : cur + 1])  # history untouched
+    assert (kept.xyh[~kept.valid] == 0).all()
+
+
+def test_a_killed_run_resumes_after_its_written_shards(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Each shard holds the rollouts of its own input scenes, written atomically: a rerun skips the shards
+    on disk and writes the missing ones exactly as the first run did (seeds follow the scene index)."""
+    from dataclasses import replace
+
+    module = _script_module()
+    monkeypatch.setattr(module, "SCENES_PER_SHARD", 2)  # 2 rollouts a scene: one input scene a shard
+    scene = bundle_scene("highway-merge-999000")
+    scenes = [scene, replace(scene, scenario_id="second")]
+    save_scenarios(tmp_path / "in" / "s.scn.npz", scenes)
+    argv = ["grs", "--data", str(tmp_path / "in"), "--out", str(tmp_path / "out"), "--rollouts", "2"]
+    monkeypatch.setattr(sys, "argv", [*argv, "--guard", "off", "--clean-horizon", "10"])
+    module.main()
+    first, second = sorted((tmp_path / "out").glob("*.scn.npz"))
+    assert [s.scenario_id for s in load_scenarios(second)] == ["second-alone0", "second-alone1"]
+    kept_bytes, lost = first.read_bytes(), load_scenarios(second)
+    second.unlink()  # the run was killed while it was on the second shard
+    mtime = first.stat().st_mtime_ns
+    module.main()
+    assert first.stat().st_mtime_ns == mtime and first.read_bytes() == kept_bytes  # not written again
+    for again, before in zip(
+        load_scenarios(second), lost, strict=True
+    ):  # the same rollouts, cut the same way
+        np.testing.assert_array_equal(again.xyh, before.xyh)
+        np.testing.assert_array_equal(again.valid, before.valid)
