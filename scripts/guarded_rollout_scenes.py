@@ -25,6 +25,7 @@ invalid, so training reads only the rolled-out motion that stayed clear:
 from __future__ import annotations
 
 import argparse
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -38,7 +39,7 @@ from trajeglish_env.metrics.road_edges import OFFROAD_THRESHOLD, distance_to_roa
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.sampler.rollouts import rollout
 from trajeglish_env.scenario import AgentKind, Scenario
-from trajeglish_env.scenario_io import save_scenarios
+from trajeglish_env.scenario_io import atomic_path, save_scenarios
 from trajeglish_env.training.dataset import ROLLOUT_SOURCE, SceneStore
 
 SCENES_PER_SHARD = 16
@@ -125,6 +126,25 @@ def cut_failures(scene: Scenario, horizon: int) -> tuple[Scenario, int]:
     return replace(scene, xyh=xyh, valid=valid), int(cut.sum())
 
 
+def settings_guard(out: Path, settings: dict[str, object]) -> None:
+    """Refuse to resume into ``out`` when its shards were written with other settings (``settings.json``,
+    written on the first run), naming each field that differs; a new directory records ``settings``."""
+    path = out / "settings.json"
+    if path.exists():
+        try:
+            before = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise SystemExit(f"{path}: unreadable ({e}); remove {out} or choose another --out") from None
+        differ = {k: (before.get(k), v) for k, v in settings.items() if before.get(k) != v}
+        if differ:
+            named = "; ".join(f"{k}: {a!r} there, {b!r} now" for k, (a, b) in differ.items())
+            raise SystemExit(f"{out} holds rollouts made with other settings ({named}); choose another --out")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(settings, indent=2))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", nargs="+", required=True, help="scene directories or files")
@@ -147,6 +167,14 @@ def main() -> None:
         "off-road state on (filtered self-imitation; default: keep every state)",
     )
     args = p.parse_args()
+    if args.rollouts < 1:
+        p.error(f"--rollouts must be at least 1, got {args.rollouts}")
+    if args.clean_horizon is not None and args.clean_horizon < 0:
+        p.error(f"--clean-horizon must be 0 or more steps, got {args.clean_horizon}")
+    settings = {k: v for k, v in vars(args).items() if k != "out"}
+    settings["data"] = [str(Path(d).resolve()) for d in args.data]
+    settings["ckpt"] = str(Path(args.ckpt).resolve()) if args.ckpt else "shipped"
+    settings_guard(Path(args.out), settings)
     ckpt = load_checkpoint(args.ckpt) if args.ckpt else load_pretrained()
     scenes = SceneStore(args.data).scenes
     out = Path(args.out)

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from helpers import REPO, bundle_scene
 
 from trajeglish_env.scenario_io import load_scenarios, save_scenarios
@@ -115,3 +116,9 @@ def test_a_killed_run_resumes_after_its_written_shards(tmp_path: Path, monkeypat
     ):  # the same rollouts, cut the same way
         np.testing.assert_array_equal(again.xyh, before.xyh)
         np.testing.assert_array_equal(again.valid, before.valid)
+    monkeypatch.setattr(sys, "argv", [*argv, "--guard", "off", "--clean-horizon", "5"])
+    with pytest.raises(SystemExit, match=r"other settings \(clean_horizon: 10 there, 5 now\)"):
+        module.main()  # never mixes rollouts of other settings into the shards there
+    monkeypatch.setattr(sys, "argv", [*argv, "--clean-horizon", "-1"])
+    with pytest.raises(SystemExit):
+        module.main()
