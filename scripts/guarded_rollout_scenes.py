@@ -34,11 +34,10 @@ from tqdm import tqdm
 
 from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
 from trajeglish_env.metrics.boxes import box_collisions
-from trajeglish_env.metrics.features import prepare_scene
-from trajeglish_env.metrics.road_edges import OFFROAD_THRESHOLD, distance_to_road_edge
+from trajeglish_env.metrics.road_edges import OFFROAD_THRESHOLD, RoadEdges, distance_to_road_edge
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.sampler.rollouts import rollout
-from trajeglish_env.scenario import AgentKind, Scenario
+from trajeglish_env.scenario import ROAD_EDGE_KINDS, AgentKind, Scenario
 from trajeglish_env.scenario_io import atomic_path, save_scenarios
 from trajeglish_env.training.dataset import ROLLOUT_SOURCE, SceneStore
 
@@ -81,7 +80,8 @@ def guarded_scenes(
 def first_failures(scene: Scenario) -> np.ndarray:
     """``[N]`` the first step after the current one at which each agent valid at the current step collides
     (boxes overlap; not a pair of pedestrians, nor a pair already overlapping at the current step) or, a
-    vehicle, is off the road (WOSAC's off-road rule); ``num_steps`` where it never does, -1 for the others."""
+    vehicle, is off the road (WOSAC's off-road rule; not one off it already at the current step, nor on a map
+    without road edges); ``num_steps`` where it never does, -1 for the others."""
     cur, n, t = scene.current_index, scene.num_agents, scene.num_steps
     sim = np.flatnonzero(scene.valid[:, cur])
     out = np.full(n, -1, np.int64)
@@ -99,13 +99,18 @@ def first_failures(scene: Scenario) -> np.ndarray:
     np.logical_or.at(bad, i, hit)
     np.logical_or.at(bad, j, hit)
     vehicle = scene.kind[sim] == AgentKind.VEHICLE
-    if vehicle.any():
-        edges = prepare_scene(scene).road_edges
+    lines = [line for line in scene.polylines(ROAD_EDGE_KINDS) if len(line) >= 2]
+    if vehicle.any() and lines:  # a map without road edges: collisions alone
         states = xyh[vehicle, cur:]
         xyz = np.concatenate([states[..., :2], np.zeros_like(states[..., :1])], axis=-1)
         box = np.concatenate([scene.size[sim][vehicle], np.ones((int(vehicle.sum()), 1))], axis=-1)
-        road = distance_to_road_edge(xyz, states[..., 2], box[:, None], valid[vehicle, cur:], edges)
-        bad[vehicle] |= road > OFFROAD_THRESHOLD
+        edges = RoadEdges.from_polylines(lines)
+        off = (
+            distance_to_road_edge(xyz, states[..., 2], box[:, None], valid[vehicle, cur:], edges)
+            > OFFROAD_THRESHOLD
+        )
+        # a vehicle off the road in the log at the current step is left alone
+        bad[vehicle] |= off & ~off[:, :1]
     bad[:, 0] = False  # the current step is the log's
     first = np.where(bad.any(axis=1), cur + bad.argmax(axis=1), t)
     out[sim] = first
@@ -126,18 +131,28 @@ def cut_failures(scene: Scenario, horizon: int) -> tuple[Scenario, int]:
     return replace(scene, xyh=xyh, valid=valid), int(cut.sum())
 
 
+def _shown(value: object) -> str:
+    """``value`` for an error message: a long list by its length."""
+    text = repr(value)
+    return f"{len(value)} entries" if isinstance(value, list) and len(text) > 80 else text
+
+
 def settings_guard(out: Path, settings: dict[str, object]) -> None:
-    """Refuse to resume into ``out`` when its shards were written with other settings (``settings.json``,
-    written on the first run), naming each field that differs; a new directory records ``settings``."""
+    """Refuse to resume into ``out`` when its shards were written with other settings (``settings.json``),
+    naming each field that differs, or by a run that recorded none; where no shard is there yet, record
+    ``settings`` (a first run that failed before writing one may be rerun with others)."""
     path = out / "settings.json"
-    if path.exists():
+    shards = sorted(out.glob("guarded-*.scn.npz"))
+    if shards and not path.exists():
+        raise SystemExit(f"{out} holds {len(shards)} shards but no settings.json; choose another --out")
+    if shards:
         try:
             before = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
             raise SystemExit(f"{path}: unreadable ({e}); remove {out} or choose another --out") from None
         differ = {k: (before.get(k), v) for k, v in settings.items() if before.get(k) != v}
         if differ:
-            named = "; ".join(f"{k}: {a!r} there, {b!r} now" for k, (a, b) in differ.items())
+            named = "; ".join(f"{k}: {_shown(a)} there, {_shown(b)} now" for k, (a, b) in differ.items())
             raise SystemExit(f"{out} holds rollouts made with other settings ({named}); choose another --out")
         return
     out.mkdir(parents=True, exist_ok=True)
@@ -171,12 +186,13 @@ def main() -> None:
         p.error(f"--rollouts must be at least 1, got {args.rollouts}")
     if args.clean_horizon is not None and args.clean_horizon < 0:
         p.error(f"--clean-horizon must be 0 or more steps, got {args.clean_horizon}")
+    ckpt = load_checkpoint(args.ckpt) if args.ckpt else load_pretrained()
+    scenes = SceneStore(args.data).scenes
     settings = {k: v for k, v in vars(args).items() if k != "out"}
     settings["data"] = [str(Path(d).resolve()) for d in args.data]
     settings["ckpt"] = str(Path(args.ckpt).resolve()) if args.ckpt else "shipped"
+    settings["scenes"] = [scene.scenario_id for scene in scenes]  # the input may not change under a resume
     settings_guard(Path(args.out), settings)
-    ckpt = load_checkpoint(args.ckpt) if args.ckpt else load_pretrained()
-    scenes = SceneStore(args.data).scenes
     out = Path(args.out)
     per_shard = max(1, SCENES_PER_SHARD // args.rollouts)  # input scenes per output shard
     cut = simulated = made = 0

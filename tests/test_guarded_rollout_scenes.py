@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from helpers import REPO, bundle_scene
 
+from trajeglish_env.scenario import MapKind
 from trajeglish_env.scenario_io import load_scenarios, save_scenarios
 
 
@@ -90,6 +91,14 @@ def test_failure_cut_drops_what_led_to_a_collision_and_nothing_of_a_clean_log() 
     np.testing.assert_array_equal(kept.valid[:, : cur + 1], scene.valid[:, : cur + 1])  # history untouched
     assert (kept.xyh[~kept.valid] == 0).all()
 
+    parked = scene.xyh.copy()
+    parked[c, :, 1] += 60.0  # c off the road in the log itself, from its first step on
+    first = module.first_failures(replace(scene, xyh=parked))
+    assert first[c] == scene.num_steps  # a vehicle already off the road is not cut for it
+    roadless = replace(broken, map_kind=np.full_like(scene.map_kind, int(MapKind.LANE_SURFACE_STREET)))
+    first = module.first_failures(roadless)  # a map without road edges: collisions alone
+    assert first[a] == first[b] == s and first[c] == scene.num_steps
+
 
 def test_a_killed_run_resumes_after_its_written_shards(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     """Each shard holds the rollouts of its own input scenes, written atomically: a rerun skips the shards
@@ -119,6 +128,13 @@ def test_a_killed_run_resumes_after_its_written_shards(tmp_path: Path, monkeypat
     monkeypatch.setattr(sys, "argv", [*argv, "--guard", "off", "--clean-horizon", "5"])
     with pytest.raises(SystemExit, match=r"other settings \(clean_horizon: 10 there, 5 now\)"):
         module.main()  # never mixes rollouts of other settings into the shards there
-    monkeypatch.setattr(sys, "argv", [*argv, "--clean-horizon", "-1"])
-    with pytest.raises(SystemExit):
+    monkeypatch.setattr(
+        sys, "argv", [*argv[:4], str(tmp_path / "other"), "--rollouts", "2", "--clean-horizon", "-1"]
+    )
+    with pytest.raises(SystemExit):  # argparse's error (exit status 2), before anything is written
+        module.main()
+    assert not (tmp_path / "other").exists()
+    (tmp_path / "out" / "settings.json").unlink()  # shards of an unknown run
+    monkeypatch.setattr(sys, "argv", [*argv, "--guard", "off", "--clean-horizon", "10"])
+    with pytest.raises(SystemExit, match="2 shards but no settings.json"):
         module.main()
