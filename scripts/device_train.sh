@@ -82,6 +82,9 @@
 #   COLLISION_ROLLED_OUT_ONLY  1: COLLISION_WEIGHT on the rolled-out targets of own-rollout scenes alone
 #                  (`train --collision-rolled-out-only`; the logged targets keep plain likelihood) [0]; kept
 #                  when resuming
+#   COLLISION_SOURCES  space-separated scene sources whose windows COLLISION_WEIGHT acts on alone (`train
+#                  --collision-sources`, e.g. sumo; own rollouts of a source count as it); empty: every window
+#                  []; kept when resuming
 #   OFFROAD_WEIGHT  weight of the loss term against the probability on candidate tokens that would take a
 #                  vehicle off the road (`train --offroad-weight`; the guard's road-edge rule); 0: off [0];
 #                  kept when resuming
@@ -115,7 +118,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest); a resumed run
 # keeps these (trajeglish_env/device_job.py SAVED)
-SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT LANE_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT BEND_WEIGHT COLLISION_WEIGHT COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT HISTORY_DROPOUT"
+SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT LANE_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT BEND_WEIGHT COLLISION_WEIGHT COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY COLLISION_SOURCES OFFROAD_WEIGHT HISTORY_DROPOUT"
 declare -A GIVEN=()
 for v in $SAVED_VARS; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
@@ -229,6 +232,13 @@ case $COLLISION_ROLLED_OUT_ONLY in
 1) CLOSED_ARGS+=(--collision-rolled-out-only) ;;
 *) die "COLLISION_ROLLED_OUT_ONLY=$COLLISION_ROLLED_OUT_ONLY: expected 0 or 1" ;;
 esac
+COLLISION_SOURCES=${COLLISION_SOURCES:-}
+if [ -n "$COLLISION_SOURCES" ]; then
+    [[ "$COLLISION_SOURCES" =~ ^[a-z0-9_]+( [a-z0-9_]+)*$ ]] ||
+        die "COLLISION_SOURCES=$COLLISION_SOURCES: expected scene sources separated by spaces, such as sumo"
+    read -r -a COLLISION_SOURCE_LIST <<<"$COLLISION_SOURCES"
+    CLOSED_ARGS+=(--collision-sources "${COLLISION_SOURCE_LIST[@]}")
+fi
 OFFROAD_WEIGHT=${OFFROAD_WEIGHT:-0}
 [[ "$OFFROAD_WEIGHT" =~ ^[0-9]+([.][0-9]+)?$ ]] ||
     die "OFFROAD_WEIGHT=$OFFROAD_WEIGHT: expected a loss weight >= 0 (0: off)"
@@ -285,7 +295,7 @@ esac
     die "BEND_WEIGHT=$BEND_WEIGHT needs LANE_INPUT=1 (the bends are found in the lane points the model reads)"
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT LANE_INPUT=$LANE_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT BEND_WEIGHT=$BEND_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT COLLISION_HORIZON=$COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY=$COLLISION_ROLLED_OUT_ONLY OFFROAD_WEIGHT=$OFFROAD_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT LANE_INPUT=$LANE_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT BEND_WEIGHT=$BEND_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT COLLISION_HORIZON=$COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY=$COLLISION_ROLLED_OUT_ONLY COLLISION_SOURCES="$COLLISION_SOURCES" OFFROAD_WEIGHT=$OFFROAD_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh

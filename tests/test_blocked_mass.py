@@ -14,8 +14,14 @@ from trajeglish_env.checkpoint import load_checkpoint
 from trajeglish_env.geometry import to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.scenario_io import save_scenarios
-from trajeglish_env.training.blocked_mass import blocked_candidates, blocked_loss, logged_weights
+from trajeglish_env.training.blocked_mass import (
+    batch_blocked,
+    blocked_candidates,
+    blocked_loss,
+    logged_weights,
+)
 from trajeglish_env.training.dataset import ROLLOUT_SOURCE, WindowConfig, make_window
+from trajeglish_env.training.term_sources import collision_scenes
 from trajeglish_env.training.train import TrainConfig, train
 
 CAR = (4.5, 2.0)
@@ -155,8 +161,14 @@ def test_rolled_out_targets_are_kept_out_of_the_likelihood() -> None:
     assert doubled is not None and doubled[1, 2, 4] == 2.0 and doubled[1, 2, 5] == 0.0
 
 
-@pytest.mark.parametrize("rolled_out_only", [False, True], ids=["all-targets", "rolled-out-only"])
-def test_training_with_the_colliding_mass_term(tmp_path, rolled_out_only: bool) -> None:
+@pytest.mark.parametrize(
+    ("rolled_out_only", "sources"),
+    [(False, ()), (True, ()), (False, ("test",))],
+    ids=["all-targets", "rolled-out-only", "one-source"],
+)
+def test_training_with_the_colliding_mass_term(
+    tmp_path, rolled_out_only: bool, sources: tuple[str, ...]
+) -> None:
     scenes = [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)]
     # half of them a model's rollouts: their windows train past the current step by the term alone
     scenes[2:] = [replace(s, source=s.source + ROLLOUT_SOURCE) for s in scenes[2:]]
@@ -164,7 +176,7 @@ def test_training_with_the_colliding_mass_term(tmp_path, rolled_out_only: bool) 
     cfg = TrainConfig(
         steps=4, batch_size=4, warmup_steps=1, val_every=100, log_every=1, checkpoint_every=4,
         num_workers=0, val_fraction=0.0, collision_weight=2.0, collision_horizon=5,
-        collision_rolled_out_only=rolled_out_only,
+        collision_rolled_out_only=rolled_out_only, collision_sources=sources,
     )  # fmt: skip
     vocab = grid_vocabulary()
     result = train(tmp_path / "data", tmp_path / "run", tiny_config(), cfg, vocabulary=vocab, progress=False)
@@ -172,6 +184,7 @@ def test_training_with_the_colliding_mass_term(tmp_path, rolled_out_only: bool) 
     saved = load_checkpoint(tmp_path / "run" / "last.pt").trainer["train_config"]
     assert saved["collision_weight"] == 2.0 and saved["collision_horizon"] == 5
     assert saved["collision_rolled_out_only"] is rolled_out_only
+    assert tuple(saved["collision_sources"]) == sources
     with pytest.raises(ValueError, match="collision_weight must be >= 0, got -1"):
         TrainConfig(collision_weight=-1.0)
     with pytest.raises(ValueError, match="collision_horizon must be >= 1 step, got 0"):
@@ -233,3 +246,54 @@ def test_a_horizon_counts_the_moves_that_stay_on_a_collision_course() -> None:
     assert blocked_candidates(xyh, valid, size, kind, tokens, templates, horizon=5).count == 0
     with pytest.raises(ValueError, match="horizon must be >= 1 step, got 0"):
         blocked_candidates(xyh, valid, size, kind, tokens, templates, horizon=0)
+
+
+class _Drawn:
+    """A stand-in model whose drawn targets are the tokens themselves (the templates' own indices)."""
+
+    @staticmethod
+    def drawn_targets(tokens: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
+        return tokens
+
+
+def test_the_term_on_some_sources_reads_their_windows_alone() -> None:
+    templates = forward_templates()
+    steps = 6
+    tokens = np.full((1, 3, steps), -1)
+    tokens[0, 2, :2] = 1
+    windows = [
+        follow_window(12.0, 0.0, steps),
+        follow_window(12.0, 0.0, steps),
+        follow_window(12.0, 1.0, steps),
+    ]
+    xyh, valid, size, kind = (np.concatenate(parts) for parts in zip(*windows, strict=True))
+    batch = {
+        "agent_xyh": torch.from_numpy(xyh),
+        "agent_valid": torch.from_numpy(valid),
+        "agent_mask": torch.from_numpy(valid.any(-1)),
+        "agent_size": torch.from_numpy(size),
+        "agent_kind": torch.from_numpy(kind),
+        "tokens": torch.from_numpy(np.repeat(tokens, 3, axis=0)),
+        "logged_targets": torch.full((3,), steps),
+        "scene": torch.tensor([2, 0, 1]),  # the windows' scenes: highway-env, SUMO, a SUMO rollout
+    }
+    everywhere = batch_blocked(_Drawn(), batch, templates, horizon=5)
+    assert sorted(set(everywhere.batch.tolist())) == [0, 1, 2]
+    term = collision_scenes(["sumo", "sumo+rollout", "highway"], ["sumo"])
+    assert term is not None and term.tolist() == [True, True, False]
+    rows = np.flatnonzero(term[batch["scene"]])
+    assert rows.tolist() == [1, 2]
+    some = batch_blocked(_Drawn(), batch, templates, horizon=5, rows=rows)
+    keep = everywhere.batch > 0  # the positions of windows 1 and 2, as found in the whole batch
+    for name in ("batch", "agent", "step", "mask"):
+        np.testing.assert_array_equal(getattr(some, name), getattr(everywhere, name)[keep])
+    none = batch_blocked(_Drawn(), batch, templates, horizon=5, rows=np.zeros(0, np.int64))
+    assert none.count == 0 and none.mask.shape == (0, templates.shape[1])
+    assert collision_scenes(["sumo", "highway"], []) is None
+    with pytest.raises(
+        ValueError,
+        match="--collision-sources womd: no training scene has that source; the sources there: highway, sumo",
+    ):
+        collision_scenes(["sumo+rollout", "highway"], ["sumo", "womd"])
+    with pytest.raises(ValueError, match="collision_sources needs collision_weight > 0"):
+        TrainConfig(collision_sources=("sumo",))

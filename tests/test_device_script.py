@@ -217,6 +217,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         COLLISION_WEIGHT="1.5",
         COLLISION_HORIZON="4",
         COLLISION_ROLLED_OUT_ONLY="1",
+        COLLISION_SOURCES="highway",
         HISTORY_DROPOUT="0.3",
     )
     assert job.returncode == 0, job.stdout[-3000:]
@@ -241,6 +242,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert ckpt.training["train_config"]["collision_horizon"] == 4
     assert summary["params"]["COLLISION_ROLLED_OUT_ONLY"] == "1"  # kept for a resumed call
     assert ckpt.training["train_config"]["collision_rolled_out_only"] is True
+    assert summary["params"]["COLLISION_SOURCES"] == "highway"  # kept for a resumed call
+    assert tuple(ckpt.training["train_config"]["collision_sources"]) == ("highway",)
     assert summary["params"]["HISTORY_DROPOUT"] == "0.3"  # kept for a resumed call
     assert ckpt.training["train_config"]["history_dropout"] == 0.3
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
@@ -268,6 +271,11 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     )
     bad_scope = _job(tmp_path, "vo", COLLISION_ROLLED_OUT_ONLY="yes")
     assert bad_scope.returncode == 2 and "COLLISION_ROLLED_OUT_ONLY=yes: expected 0 or 1" in bad_scope.stdout
+    bad_sources = _job(tmp_path, "vz", COLLISION_SOURCES="sumo;rm")
+    assert (
+        bad_sources.returncode == 2
+        and "COLLISION_SOURCES=sumo;rm: expected scene sources" in bad_sources.stdout
+    )
     # OFFROAD_WEIGHT reaches `train`, which refuses it beside CAT-K windows (masks cut at logged states)
     clash_offroad = _job(
         tmp_path, "vq", SCENES="10", DATA_IN="", OFFROAD_WEIGHT="0.5", CLOSED_LOOP="3", NEIGHBOUR_INPUT="1"

@@ -137,6 +137,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         collision_weight=args.collision_weight,
         collision_horizon=args.collision_horizon,
         collision_rolled_out_only=args.collision_rolled_out_only,
+        collision_sources=tuple(args.collision_sources),
         offroad_weight=args.offroad_weight,
         offroad_positions=args.offroad_positions,
         history_dropout=args.history_dropout,
@@ -344,6 +345,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="apply --collision-weight to the rolled-out targets of own-rollout scenes alone (the logged "
         "targets keep plain likelihood)",
+    )
+    p.add_argument(
+        "--collision-sources",
+        nargs="+",
+        default=[],
+        metavar="SOURCE",
+        help="apply --collision-weight to the windows of these scene sources alone, e.g. sumo (a model's own "
+        "rollouts of a source count as it; default: every window)",
     )
     p.add_argument(
         "--offroad-weight",

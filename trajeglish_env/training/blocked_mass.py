@@ -18,7 +18,7 @@ before the last move that makes them.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -26,6 +26,8 @@ import torch
 from trajeglish_env.geometry import to_global
 from trajeglish_env.metrics.boxes import box_collisions
 
+# what batch_blocked reads of a batch
+TERM_KEYS = ("agent_kind", "tokens", "agent_valid", "agent_mask", "agent_xyh", "agent_size", "logged_targets")
 MAX_MASS = 0.99  # colliding mass above which a position adds a constant (a situation no token escapes)
 
 
@@ -190,8 +192,18 @@ def batch_blocked(
     templates: np.ndarray,
     horizon: int = 1,
     rolled_out_only: bool = False,
+    rows: np.ndarray | None = None,
 ) -> BlockedCandidates:
-    """:func:`blocked_candidates` of a collated training batch, targets as the model draws them."""
+    """:func:`blocked_candidates` of a collated training batch, targets as the model draws them; ``rows``:
+    of those windows alone (their positions still index the whole batch; None: every window)."""
+    if rows is not None and not len(rows):
+        empty = np.zeros(0, dtype=np.int64)
+        return BlockedCandidates(empty, empty, empty, np.zeros((0, len(templates[0])), dtype=bool))
+    if rows is not None:
+        index = torch.from_numpy(rows).to(batch["tokens"].device)
+        sub = {k: batch[k][index] for k in TERM_KEYS if k in batch}
+        blocked = batch_blocked(model, sub, templates, horizon, rolled_out_only)
+        return replace(blocked, batch=rows[blocked.batch])
     if rolled_out_only and "logged_targets" not in batch:
         raise ValueError("collision_rolled_out_only: the batch has no logged_targets (an older dataset's)")
     kind = batch["agent_kind"]

@@ -24,7 +24,13 @@ class TrainingLoss(nn.Module):
     """Wraps the model so that DDP sees one forward that returns (summed loss, token count): the likelihood
     (interaction weights; rolled-out targets left out) plus the colliding- and off-road-mass terms."""
 
-    def __init__(self, model: TrajeglishModel, config: TrainConfig, templates: np.ndarray | None = None):
+    def __init__(
+        self,
+        model: TrajeglishModel,
+        config: TrainConfig,
+        templates: np.ndarray | None = None,
+        term_scenes: np.ndarray | None = None,
+    ):
         super().__init__()
         self.model = model
         self.interaction_weight = config.interaction_weight
@@ -33,6 +39,9 @@ class TrainingLoss(nn.Module):
         self.templates = templates  # the drawn tokens' motion templates [classes,D,3] (collision_weight)
         self.collision_horizon = config.collision_horizon
         self.only_rolled = config.collision_rolled_out_only
+        self.term_scenes = (
+            term_scenes  # [N] the scenes whose windows the colliding-mass term acts on (None: all)
+        )
         self.offroad_weight = config.offroad_weight
 
     def _weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
@@ -54,7 +63,10 @@ class TrainingLoss(nn.Module):
         if self.collision_weight:
             assert self.templates is not None
             horizon, only_rolled = self.collision_horizon, self.only_rolled
-            blocked = batch_blocked(self.model, batch, self.templates, horizon, only_rolled)
+            rows = (
+                None if self.term_scenes is None else np.flatnonzero(self.term_scenes[batch["scene"].cpu()])
+            )
+            blocked = batch_blocked(self.model, batch, self.templates, horizon, only_rolled, rows)
             total = total + self.collision_weight * blocked_loss(logits, blocked)
         if self.offroad_weight:
             drawn = self.model.drawn_targets(batch["tokens"], batch["agent_kind"][:, :, None])

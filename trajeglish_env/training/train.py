@@ -55,6 +55,7 @@ from trajeglish_env.training.offroad_mass import OffroadTerm
 from trajeglish_env.training.precision import check_precision, step_autocast
 from trajeglish_env.training.run_records import run_facts, save_last, training_info
 from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
+from trajeglish_env.training.term_sources import collision_scenes, scene_source_list
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
 from trajeglish_env.training.validation import batch_to, validation_nll
 
@@ -106,6 +107,9 @@ class TrainConfig:
     collision_weight: float = 0.0
     collision_horizon: int = 1
     collision_rolled_out_only: bool = False
+    # the term on the windows of these scene sources alone (a model's own rollouts of a source count as it;
+    # empty: every window): highway-env's IDM logs keep gaps the term teaches against (docs/evaluation.md)
+    collision_sources: tuple[str, ...] = ()
     # off-road-mass term (training/offroad_mass.py): W * -log(1 - m) at `offroad_positions` vehicle targets
     # per window, m the probability on candidates the guard's road-edge rule masks (0: off)
     offroad_weight: float = 0.0
@@ -134,6 +138,8 @@ class TrainConfig:
                 "TrainConfig: offroad_weight masks are cut at logged states; closed_loop_top_k rolls "
                 "them out (use one or the other)"
             )
+        if self.collision_sources and not self.collision_weight:
+            raise ValueError("TrainConfig.collision_sources needs collision_weight > 0 (the term it limits)")
         if not self.collision_horizon >= 1:
             raise ValueError(f"TrainConfig.collision_horizon must be >= 1 step, got {self.collision_horizon}")
         if not 0 <= self.history_dropout < 1:
@@ -255,6 +261,7 @@ def train(
         saved["noise_on_device"] = config.noise_on_device  # the same draws either way (up to rounding)
         saved["precision"] = config.precision  # arithmetic, not the schedule: a run may go on on another CPU
         saved["repeat"] = tuple((str(k), int(n)) for k, n in saved["repeat"])  # lists once serialized
+        saved["collision_sources"] = tuple(str(k) for k in saved["collision_sources"])
         if fit_steps:  # the schedule's length was fitted to the first call's budget
             config = dataclasses.replace(config, steps=int(saved["steps"]))
         if saved != dataclasses.asdict(config):
@@ -270,7 +277,8 @@ def train(
             load_into(model, start_ckpt, vocabulary)
 
     drawn = vocabulary.templates[:, : model.cfg.drawn]
-    loss_module: nn.Module = TrainingLoss(model, config, drawn)
+    term_scenes = collision_scenes(scene_source_list(train_scenes), config.collision_sources)
+    loss_module: nn.Module = TrainingLoss(model, config, drawn, term_scenes)
     if dd.world > 1:
         loss_module = nn.parallel.DistributedDataParallel(
             loss_module, device_ids=[device.index] if device.type == "cuda" else None
