@@ -85,6 +85,9 @@
 #   COLLISION_SOURCES  space-separated scene sources whose windows COLLISION_WEIGHT acts on alone (`train
 #                  --collision-sources`, e.g. sumo; own rollouts of a source count as it); empty: every window
 #                  []; kept when resuming
+#   COLLISION_FORM  the form of COLLISION_WEIGHT's term (`train --collision-form`): mass (-log(1 - m) of the
+#                  colliding mass) or versus-target (log(1 + m / p), p the target token's probability) [mass];
+#                  kept when resuming
 #   OFFROAD_WEIGHT  weight of the loss term against the probability on candidate tokens that would take a
 #                  vehicle off the road (`train --offroad-weight`; the guard's road-edge rule); 0: off [0];
 #                  kept when resuming
@@ -118,7 +121,7 @@ command -v timeout >/dev/null || die "coreutils' timeout is missing"
 
 # user-set schedule values (checked against a resumed run's before defaults fill the rest); a resumed run
 # keeps these (trajeglish_env/device_job.py SAVED)
-SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT LANE_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT BEND_WEIGHT COLLISION_WEIGHT COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY COLLISION_SOURCES OFFROAD_WEIGHT HISTORY_DROPOUT"
+SAVED_VARS="PRESET STEPS BATCH LR WARMUP SEED VAL_EVERY CKPT_EVERY SIGNAL_INPUT SIGNAL_LR_SCALE NEIGHBOUR_INPUT LANE_INPUT VOCAB EXTEND COVER_RADIUS DATA_SHARE MAP_SELECT MAP_STRIDE FIT_STEPS REPEAT CLOSED_LOOP INTERACTION_WEIGHT BEND_WEIGHT COLLISION_WEIGHT COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY COLLISION_SOURCES COLLISION_FORM OFFROAD_WEIGHT HISTORY_DROPOUT"
 declare -A GIVEN=()
 for v in $SAVED_VARS; do
     if [ -n "${!v:-}" ]; then GIVEN[$v]=${!v}; fi
@@ -239,6 +242,12 @@ if [ -n "$COLLISION_SOURCES" ]; then
     read -r -a COLLISION_SOURCE_LIST <<<"$COLLISION_SOURCES"
     CLOSED_ARGS+=(--collision-sources "${COLLISION_SOURCE_LIST[@]}")
 fi
+COLLISION_FORM=${COLLISION_FORM:-mass}
+case $COLLISION_FORM in
+mass) ;;
+versus-target) CLOSED_ARGS+=(--collision-form versus-target) ;;
+*) die "COLLISION_FORM=$COLLISION_FORM: expected mass or versus-target" ;;
+esac
 OFFROAD_WEIGHT=${OFFROAD_WEIGHT:-0}
 [[ "$OFFROAD_WEIGHT" =~ ^[0-9]+([.][0-9]+)?$ ]] ||
     die "OFFROAD_WEIGHT=$OFFROAD_WEIGHT: expected a loss weight >= 0 (0: off)"
@@ -295,7 +304,7 @@ esac
     die "BEND_WEIGHT=$BEND_WEIGHT needs LANE_INPUT=1 (the bends are found in the lane points the model reads)"
 GEN_SEED=${GEN_SEED:-$((1000 + CALL))}
 [ "$PRESET" != paper ] || die "PRESET=paper: its checkpoint (about 170 MB, 520 MB with the optimizer) cannot come back (8 files of 16 MiB); use small"
-say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT LANE_INPUT=$LANE_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT BEND_WEIGHT=$BEND_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT COLLISION_HORIZON=$COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY=$COLLISION_ROLLED_OUT_ONLY COLLISION_SOURCES="$COLLISION_SOURCES" OFFROAD_WEIGHT=$OFFROAD_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
+say "run: call $CALL, PRESET=$PRESET STEPS=$STEPS BATCH=$BATCH LR=$LR WARMUP=$WARMUP SEED=$SEED SIGNAL_INPUT=$SIGNAL_INPUT SIGNAL_LR_SCALE=$SIGNAL_LR_SCALE NEIGHBOUR_INPUT=$NEIGHBOUR_INPUT LANE_INPUT=$LANE_INPUT VOCAB=$VOCAB EXTEND=$EXTEND COVER_RADIUS=$COVER_RADIUS DATA_SHARE=$DATA_SHARE MAP_SELECT=$MAP_SELECT MAP_STRIDE=$MAP_STRIDE FIT_STEPS=$FIT_STEPS REPEAT="$REPEAT" CLOSED_LOOP=$CLOSED_LOOP INTERACTION_WEIGHT=$INTERACTION_WEIGHT BEND_WEIGHT=$BEND_WEIGHT COLLISION_WEIGHT=$COLLISION_WEIGHT COLLISION_HORIZON=$COLLISION_HORIZON COLLISION_ROLLED_OUT_ONLY=$COLLISION_ROLLED_OUT_ONLY COLLISION_SOURCES="$COLLISION_SOURCES" COLLISION_FORM=$COLLISION_FORM OFFROAD_WEIGHT=$OFFROAD_WEIGHT HISTORY_DROPOUT=$HISTORY_DROPOUT, scenes seed $GEN_SEED"
 
 # ---- 2. packages: the carried wheels, installed only when something is missing
 # shellcheck source=scripts/device_packages.sh

@@ -19,6 +19,7 @@ from trajeglish_env.training.blocked_mass import (
     blocked_candidates,
     blocked_loss,
     logged_weights,
+    versus_target_loss,
 )
 from trajeglish_env.training.dataset import ROLLOUT_SOURCE, WindowConfig, make_window
 from trajeglish_env.training.term_sources import collision_scenes
@@ -140,6 +141,38 @@ def test_blocked_loss_is_minus_log_of_the_free_mass_and_its_gradient_frees_it() 
     assert none.count == 0 and float(blocked_loss(logits, none).detach()) == 0.0
 
 
+def test_the_versus_target_form_moves_the_colliding_mass_to_the_target_alone() -> None:
+    templates = forward_templates()
+    xyh, valid, size, kind = two_cars(gap=6.0, ahead_moves=0.0)
+    tokens = np.full((1, 3, 1), -1)
+    tokens[0, 1:, 0] = (0, 3)
+    got = blocked_candidates(xyh, valid, size, kind, tokens, templates)
+    colliding = got.mask[0]
+    assert colliding.any() and not colliding[3] and not colliding[0]  # standing (token 0) never collides
+    targets = torch.from_numpy(tokens)
+    logits = torch.randn(1, 1, 3, 16, dtype=torch.float64, requires_grad=True)
+    p = torch.softmax(logits[0, 0, 2], -1).detach().numpy()
+    loss = versus_target_loss(logits, got, targets)
+    assert float(loss.detach()) == pytest.approx(np.log1p(p[colliding].sum() / p[3]), rel=1e-6)
+    loss.backward()
+    assert logits.grad is not None
+    grad = logits.grad[0, 0, 2].numpy()
+    moved = colliding.copy()
+    moved[3] = True
+    assert np.all(grad[~moved] == 0.0) and grad[3] < 0 and np.all(grad[colliding] > 0)
+    # more mass on standing does not lower it (the mass form falls), so freezing is no way out
+    stand = logits.detach().clone()
+    stand[0, 0, 2, 0] += 5.0
+    assert float(versus_target_loss(stand, got, targets)) == pytest.approx(float(loss.detach()), rel=1e-6)
+    assert float(blocked_loss(stand, got)) < float(blocked_loss(logits.detach(), got))
+    # a model's own rolled-out target that collides is no anchor: the position is left out
+    rolled = tokens.copy()
+    rolled[0, 2, 0] = int(np.flatnonzero(colliding)[0])
+    own = blocked_candidates(xyh, valid, size, kind, rolled, templates, logged=np.array([0]))
+    assert own.count == 1
+    assert float(versus_target_loss(logits, own, torch.from_numpy(rolled)).detach()) == 0.0
+
+
 def test_rolled_out_targets_are_kept_out_of_the_likelihood() -> None:
     scene = bundle_scene("highway-merge-999000")
     config = WindowConfig(steps=25, max_agents=8)
@@ -169,6 +202,7 @@ def test_rolled_out_targets_are_kept_out_of_the_likelihood() -> None:
 def test_training_with_the_colliding_mass_term(
     tmp_path, rolled_out_only: bool, sources: tuple[str, ...]
 ) -> None:
+    form = "versus_target" if sources else "mass"
     scenes = [straight_road_scene(num_agents=5, seed=s, steps=40) for s in range(4)]
     # half of them a model's rollouts: their windows train past the current step by the term alone
     scenes[2:] = [replace(s, source=s.source + ROLLOUT_SOURCE) for s in scenes[2:]]
@@ -176,7 +210,7 @@ def test_training_with_the_colliding_mass_term(
     cfg = TrainConfig(
         steps=4, batch_size=4, warmup_steps=1, val_every=100, log_every=1, checkpoint_every=4,
         num_workers=0, val_fraction=0.0, collision_weight=2.0, collision_horizon=5,
-        collision_rolled_out_only=rolled_out_only, collision_sources=sources,
+        collision_rolled_out_only=rolled_out_only, collision_sources=sources, collision_form=form,
     )  # fmt: skip
     vocab = grid_vocabulary()
     result = train(tmp_path / "data", tmp_path / "run", tiny_config(), cfg, vocabulary=vocab, progress=False)
@@ -184,7 +218,11 @@ def test_training_with_the_colliding_mass_term(
     saved = load_checkpoint(tmp_path / "run" / "last.pt").trainer["train_config"]
     assert saved["collision_weight"] == 2.0 and saved["collision_horizon"] == 5
     assert saved["collision_rolled_out_only"] is rolled_out_only
-    assert tuple(saved["collision_sources"]) == sources
+    assert tuple(saved["collision_sources"]) == sources and saved["collision_form"] == form
+    with pytest.raises(ValueError, match="collision_form must be one of"):
+        TrainConfig(collision_weight=1.0, collision_form="hinge")
+    with pytest.raises(ValueError, match="collision_form needs collision_weight > 0"):
+        TrainConfig(collision_form="versus_target")
     with pytest.raises(ValueError, match="collision_weight must be >= 0, got -1"):
         TrainConfig(collision_weight=-1.0)
     with pytest.raises(ValueError, match="collision_horizon must be >= 1 step, got 0"):

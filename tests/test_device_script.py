@@ -218,6 +218,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         COLLISION_HORIZON="4",
         COLLISION_ROLLED_OUT_ONLY="1",
         COLLISION_SOURCES="highway",
+        COLLISION_FORM="versus-target",
         HISTORY_DROPOUT="0.3",
     )
     assert job.returncode == 0, job.stdout[-3000:]
@@ -244,6 +245,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert ckpt.training["train_config"]["collision_rolled_out_only"] is True
     assert summary["params"]["COLLISION_SOURCES"] == "highway"  # kept for a resumed call
     assert tuple(ckpt.training["train_config"]["collision_sources"]) == ("highway",)
+    assert summary["params"]["COLLISION_FORM"] == "versus-target"  # kept for a resumed call
+    assert ckpt.training["train_config"]["collision_form"] == "versus_target"
     assert summary["params"]["HISTORY_DROPOUT"] == "0.3"  # kept for a resumed call
     assert ckpt.training["train_config"]["history_dropout"] == 0.3
     clash = _job(tmp_path, "vi", VOCAB="640", INIT="shipped")
@@ -275,6 +278,10 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert (
         bad_sources.returncode == 2
         and "COLLISION_SOURCES=sumo;rm: expected scene sources" in bad_sources.stdout
+    )
+    bad_form = _job(tmp_path, "vf", COLLISION_FORM="hinge")
+    assert bad_form.returncode == 2 and "COLLISION_FORM=hinge: expected mass or versus-target" in (
+        bad_form.stdout
     )
     # OFFROAD_WEIGHT reaches `train`, which refuses it beside CAT-K windows (masks cut at logged states)
     clash_offroad = _job(

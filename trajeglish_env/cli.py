@@ -138,6 +138,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         collision_horizon=args.collision_horizon,
         collision_rolled_out_only=args.collision_rolled_out_only,
         collision_sources=tuple(args.collision_sources),
+        collision_form=args.collision_form.replace("-", "_"),
         offroad_weight=args.offroad_weight,
         offroad_positions=args.offroad_positions,
         history_dropout=args.history_dropout,
@@ -353,6 +354,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SOURCE",
         help="apply --collision-weight to the windows of these scene sources alone, e.g. sumo (a model's own "
         "rollouts of a source count as it; default: every window)",
+    )
+    p.add_argument(
+        "--collision-form",
+        choices=("mass", "versus-target"),
+        default="mass",
+        help="the form of --collision-weight's term: mass, -log(1 - m) of the colliding mass m (standing "
+        "lowers it too), or versus-target, log(1 + m / p) of m against the target token's probability p "
+        "(only the target and the colliding tokens move)",
     )
     p.add_argument(
         "--offroad-weight",

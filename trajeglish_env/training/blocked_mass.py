@@ -174,6 +174,31 @@ def blocked_loss(logits: torch.Tensor, blocked: BlockedCandidates) -> torch.Tens
     return -torch.log(-torch.expm1(log_m.clamp(max=math.log(MAX_MASS)))).sum()
 
 
+def versus_target_loss(
+    logits: torch.Tensor, blocked: BlockedCandidates, targets: torch.Tensor
+) -> torch.Tensor:
+    """Sum over ``blocked``'s positions of ``log(1 + m / p)``: ``m`` the probability ``logits [B,T,A,D]``
+    put on their colliding candidates, ``p`` the one on their target token (``targets [B,A,T]``, as
+    drawn). Only the target and the colliding candidates get gradients, so no other token (standing among
+    them) lowers it: the colliding mass is taught away towards the target's motion, not away from motion.
+    Positions whose target collides itself, or is not drawn, are left out (0-d; 0 when none is left)."""
+    dev = logits.device
+    index = [torch.from_numpy(x).to(dev) for x in (blocked.batch, blocked.step, blocked.agent)]
+    token = targets[index[0], index[2], index[1]].long()
+    mask = torch.from_numpy(blocked.mask).to(dev)
+    drawn = (token >= 0) & (token < mask.shape[1])
+    rows = torch.arange(len(token), device=dev)
+    keep = drawn & ~mask[rows, token.clamp(0, mask.shape[1] - 1)]
+    if not bool(keep.any()):
+        return logits.sum() * 0.0
+    lg = logits[index[0][keep], index[1][keep], index[2][keep]]  # [Q,D]
+    lg = lg.to(torch.promote_types(lg.dtype, torch.float32))
+    # log m - log p without the softmax's normaliser (it cancels), so no other token gets a gradient
+    log_m = torch.logsumexp(lg.masked_fill(~mask[keep], float("-inf")), dim=-1)
+    log_p = lg.gather(1, token[keep][:, None])[:, 0]
+    return torch.nn.functional.softplus(log_m - log_p).sum()
+
+
 def logged_weights(batch: dict[str, torch.Tensor], weights: torch.Tensor | None) -> torch.Tensor | None:
     """The likelihood weights ``[B,A,T]`` of a batch with its rolled-out targets weighed 0 (those past each
     window's ``logged_targets``: a model's own tokens are not data), ``weights`` kept elsewhere (None: 1)."""

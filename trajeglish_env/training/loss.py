@@ -12,7 +12,12 @@ from torch import nn
 from trajeglish_env.model.neighbours import batch_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.training.bend_weights import bend_weights
-from trajeglish_env.training.blocked_mass import batch_blocked, blocked_loss, logged_weights
+from trajeglish_env.training.blocked_mass import (
+    batch_blocked,
+    blocked_loss,
+    logged_weights,
+    versus_target_loss,
+)
 from trajeglish_env.training.interaction_weights import interaction_weights
 from trajeglish_env.training.offroad_mass import offroad_candidates
 
@@ -39,6 +44,7 @@ class TrainingLoss(nn.Module):
         self.templates = templates  # the drawn tokens' motion templates [classes,D,3] (collision_weight)
         self.collision_horizon = config.collision_horizon
         self.only_rolled = config.collision_rolled_out_only
+        self.collision_form = config.collision_form
         self.term_scenes = (
             term_scenes  # [N] the scenes whose windows the colliding-mass term acts on (None: all)
         )
@@ -67,7 +73,12 @@ class TrainingLoss(nn.Module):
                 None if self.term_scenes is None else np.flatnonzero(self.term_scenes[batch["scene"].cpu()])
             )
             blocked = batch_blocked(self.model, batch, self.templates, horizon, only_rolled, rows)
-            total = total + self.collision_weight * blocked_loss(logits, blocked)
+            if self.collision_form == "versus_target":
+                drawn = self.model.drawn_targets(batch["tokens"], batch["agent_kind"][:, :, None])
+                term = versus_target_loss(logits, blocked, drawn)
+            else:
+                term = blocked_loss(logits, blocked)
+            total = total + self.collision_weight * term
         if self.offroad_weight:
             drawn = self.model.drawn_targets(batch["tokens"], batch["agent_kind"][:, :, None])
             total = total + self.offroad_weight * blocked_loss(logits, offroad_candidates(batch, drawn))
