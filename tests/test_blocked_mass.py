@@ -15,6 +15,7 @@ from trajeglish_env.geometry import to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.training.blocked_mass import (
+    BlockedCandidates,
     batch_blocked,
     blocked_candidates,
     blocked_loss,
@@ -113,12 +114,18 @@ def test_the_term_on_rolled_out_targets_alone_leaves_the_logged_ones_out() -> No
         blocked_candidates(*window, rolled_out_only=True)
 
 
-def test_blocked_loss_is_minus_log_of_the_free_mass_and_its_gradient_frees_it() -> None:
+def car_behind_a_standing_one() -> tuple[tuple, np.ndarray, BlockedCandidates]:
+    """Two cars 6 m apart, the one ahead standing and the one behind drawing tokens 0 then 3: the scene
+    (``blocked_candidates``' arguments but the tokens), the tokens and its blocked candidates."""
     templates = forward_templates()
     xyh, valid, size, kind = two_cars(gap=6.0, ahead_moves=0.0)
     tokens = np.full((1, 3, 1), -1)
     tokens[0, 1:, 0] = (0, 3)
-    got = blocked_candidates(xyh, valid, size, kind, tokens, templates)
+    return (xyh, valid, size, kind), tokens, blocked_candidates(xyh, valid, size, kind, tokens, templates)
+
+
+def test_blocked_loss_is_minus_log_of_the_free_mass_and_its_gradient_frees_it() -> None:
+    _, tokens, got = car_behind_a_standing_one()
     logits = torch.randn(1, 1, 3, 16, dtype=torch.float64, requires_grad=True)  # [B,T,A,D]
     p = torch.softmax(logits[0, 0, 2], -1).detach().numpy()
     m = p[got.mask[0]].sum()
@@ -137,16 +144,12 @@ def test_blocked_loss_is_minus_log_of_the_free_mass_and_its_gradient_frees_it() 
     capped.backward()
     assert trapped.grad is not None and float(trapped.grad.abs().max()) == 0.0
     # no position: a zero that still backpropagates
-    none = blocked_candidates(*two_cars(gap=30.0, ahead_moves=0.0), tokens, templates)
+    none = blocked_candidates(*two_cars(gap=30.0, ahead_moves=0.0), tokens, forward_templates())
     assert none.count == 0 and float(blocked_loss(logits, none).detach()) == 0.0
 
 
 def test_the_versus_target_form_moves_the_colliding_mass_to_the_target_alone() -> None:
-    templates = forward_templates()
-    xyh, valid, size, kind = two_cars(gap=6.0, ahead_moves=0.0)
-    tokens = np.full((1, 3, 1), -1)
-    tokens[0, 1:, 0] = (0, 3)
-    got = blocked_candidates(xyh, valid, size, kind, tokens, templates)
+    scene, tokens, got = car_behind_a_standing_one()
     colliding = got.mask[0]
     assert colliding.any() and not colliding[3] and not colliding[0]  # standing (token 0) never collides
     targets = torch.from_numpy(tokens)
@@ -168,7 +171,7 @@ def test_the_versus_target_form_moves_the_colliding_mass_to_the_target_alone() -
     # a model's own rolled-out target that collides is no anchor: the position is left out
     rolled = tokens.copy()
     rolled[0, 2, 0] = int(np.flatnonzero(colliding)[0])
-    own = blocked_candidates(xyh, valid, size, kind, rolled, templates, logged=np.array([0]))
+    own = blocked_candidates(*scene, rolled, forward_templates(), logged=np.array([0]))
     assert own.count == 1
     assert float(versus_target_loss(logits, own, torch.from_numpy(rolled)).detach()) == 0.0
 
