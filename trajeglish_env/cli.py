@@ -416,7 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--data", nargs="+", required=True, help="held-out scene directories")
     p.add_argument(
-        "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
+        "--ckpt",
+        action="append",
+        help="[NAME=]checkpoint or 'shipped' (repeatable; default: the shipped model)",
     )
     p.add_argument("--windows", type=POSITIVE, default=256)
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)

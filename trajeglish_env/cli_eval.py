@@ -27,13 +27,14 @@ AddCommand = Callable[..., argparse.ArgumentParser]  # build_parser's add(name, 
 
 
 def checkpoints(items: list[str] | None) -> dict[str, Any]:
-    """``[NAME=]PATH`` items -> {name: Checkpoint}; none -> the shipped pretrained model."""
-    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
+    """``[NAME=]PATH`` items (PATH ``shipped``: the pretrained model) -> {name: Checkpoint}; none -> the
+    shipped pretrained model."""
+    from trajeglish_env.checkpoint import load_named, load_pretrained
 
     ckpts = {}
     for item in items or []:
         name, _, path = item.rpartition("=")
-        ckpt = load_checkpoint(path)
+        ckpt = load_named(path)
         ckpts[name or ckpt.config.variant.value] = ckpt
     return ckpts or {"trajeglish": load_pretrained()}
 
@@ -202,7 +203,9 @@ def add_eval_commands(add: AddCommand) -> None:
     p = add("evaluate", cmd_evaluate, "realism of rollouts vs the log and baselines on held-out scenes")
     p.add_argument("--data", nargs="+", required=True, help="held-out scene directories")
     p.add_argument(
-        "--ckpt", action="append", help="[NAME=]checkpoint (repeatable); default: the shipped model"
+        "--ckpt",
+        action="append",
+        help="[NAME=]checkpoint or 'shipped' (repeatable; default: the shipped model)",
     )
     p.add_argument("--rollouts", type=POSITIVE, default=8)
     p.add_argument("--scenes", type=POSITIVE, default=16, help="evaluate the first N scenes")
