@@ -224,7 +224,7 @@ def test_training_with_the_colliding_mass_term(
     assert tuple(saved["collision_sources"]) == sources and saved["collision_form"] == form
     with pytest.raises(ValueError, match="collision_form must be one of"):
         TrainConfig(collision_weight=1.0, collision_form="hinge")
-    with pytest.raises(ValueError, match="collision_form needs collision_weight > 0"):
+    with pytest.raises(ValueError, match="collision_form needs its term's weight > 0"):
         TrainConfig(collision_form="versus_target")
     with pytest.raises(ValueError, match="collision_weight must be >= 0, got -1"):
         TrainConfig(collision_weight=-1.0)

@@ -283,9 +283,20 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert bad_form.returncode == 2 and "COLLISION_FORM=hinge: expected mass or versus-target" in (
         bad_form.stdout
     )
+    bad_offroad_form = _job(tmp_path, "vg", OFFROAD_FORM="hinge")
+    assert bad_offroad_form.returncode == 2 and "OFFROAD_FORM=hinge: expected mass or versus-target" in (
+        bad_offroad_form.stdout
+    )
     # OFFROAD_WEIGHT reaches `train`, which refuses it beside CAT-K windows (masks cut at logged states)
     clash_offroad = _job(
-        tmp_path, "vq", SCENES="10", DATA_IN="", OFFROAD_WEIGHT="0.5", CLOSED_LOOP="3", NEIGHBOUR_INPUT="1"
+        tmp_path,
+        "vq",
+        SCENES="10",
+        DATA_IN="",
+        OFFROAD_WEIGHT="0.5",
+        OFFROAD_FORM="versus-target",
+        CLOSED_LOOP="3",
+        NEIGHBOUR_INPUT="1",
     )
     assert clash_offroad.returncode != 0 and "offroad_weight masks are cut at logged states" in (
         clash_offroad.stdout

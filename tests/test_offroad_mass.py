@@ -7,6 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 from helpers import grid_vocabulary, tiny_config
 
 from trajeglish_env.checkpoint import load_checkpoint
@@ -15,6 +16,7 @@ from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road
 from trajeglish_env.sampler.config import OFFROAD_MARGIN
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario
 from trajeglish_env.scenario_io import save_scenarios
+from trajeglish_env.training.blocked_mass import term_loss
 from trajeglish_env.training.dataset import ROLLOUT_SOURCE, WindowConfig, collate_windows, make_window
 from trajeglish_env.training.offroad_mass import MARGIN, OffroadTerm, add_offroad_masks, offroad_candidates
 from trajeglish_env.training.train import TrainConfig, train
@@ -89,6 +91,13 @@ def test_logged_positions_whose_own_token_leaves_the_road_are_left_out() -> None
     own = mask[np.arange(len(used)), w["tokens"][w["offroad_slot"][used], w["offroad_step"][used]]]
     assert own.any()  # the logged drift beyond the edge: its own tokens leave the road farther
     assert got.count == int((mask.any(1) & ~own).sum())
+    # the versus-target form on them: log(1 + m / p) summed over the very same positions
+    logits = torch.randn(1, batch["tokens"].shape[2], batch["tokens"].shape[1], got.mask.shape[1])
+    p = torch.softmax(logits[got.batch, got.step, got.agent], -1)
+    m = (p * torch.from_numpy(got.mask)).sum(-1)
+    target = p.gather(1, drawn[got.batch, got.agent, got.step].long()[:, None])[:, 0]
+    want = float(torch.log1p(m / target).sum())
+    assert float(term_loss("versus_target", logits, got, drawn)) == pytest.approx(want, rel=1e-5)
     # make another position's own token one of its off-road candidates: it is no longer trained ...
     k = used[np.flatnonzero(mask.any(1) & ~own)[0]]
     a, t = int(w["offroad_slot"][k]), int(w["offroad_step"][k])
@@ -103,19 +112,24 @@ def test_logged_positions_whose_own_token_leaves_the_road_are_left_out() -> None
         OffroadTerm(positions=0)
 
 
-def test_training_with_the_offroad_mass_term(tmp_path) -> None:
+@pytest.mark.parametrize("form", ["mass", "versus_target"])
+def test_training_with_the_offroad_mass_term(tmp_path, form: str) -> None:
     scenes = [road_scene(seed=s) for s in range(4)]
     scenes[3] = replace(scenes[3], source="test" + ROLLOUT_SOURCE)
     save_scenarios(tmp_path / "data" / "a.scn.npz", scenes)
     cfg = TrainConfig(
         steps=3, batch_size=4, warmup_steps=1, val_every=100, log_every=1, checkpoint_every=3,
-        num_workers=0, val_fraction=0.0, offroad_weight=2.0, offroad_positions=8,
+        num_workers=0, val_fraction=0.0, offroad_weight=2.0, offroad_positions=8, offroad_form=form,
     )  # fmt: skip
     vocab = grid_vocabulary()
     result = train(tmp_path / "data", tmp_path / "run", tiny_config(), cfg, vocabulary=vocab, progress=False)
     assert np.isfinite(result["train_loss"])
     saved = load_checkpoint(tmp_path / "run" / "last.pt").trainer["train_config"]
-    assert saved["offroad_weight"] == 2.0 and saved["offroad_positions"] == 8
+    assert (
+        saved["offroad_weight"] == 2.0 and saved["offroad_positions"] == 8 and saved["offroad_form"] == form
+    )
+    with pytest.raises(ValueError, match="offroad_form needs its term's weight > 0"):
+        TrainConfig(offroad_form="versus_target")
     with pytest.raises(ValueError, match="offroad_weight >= 0 and offroad_positions >= 1"):
         TrainConfig(offroad_weight=-1.0)
     with pytest.raises(ValueError, match="masks are cut at logged states; closed_loop_top_k rolls"):

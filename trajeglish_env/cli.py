@@ -141,6 +141,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         collision_form=args.collision_form.replace("-", "_"),
         offroad_weight=args.offroad_weight,
         offroad_positions=args.offroad_positions,
+        offroad_form=args.offroad_form.replace("-", "_"),
         history_dropout=args.history_dropout,
         noise_on_device=args.noise_on_device,
         precision=args.precision,
@@ -375,6 +376,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=POSITIVE,
         default=32,
         help="vehicle target positions per window, drawn at random, that --offroad-weight checks",
+    )
+    p.add_argument(
+        "--offroad-form",
+        choices=("mass", "versus-target"),
+        default="mass",
+        help="the form of --offroad-weight's term, as --collision-form (versus-target: m the off-road mass "
+        "against the target token's probability)",
     )
     p.add_argument(
         "--interaction-weight",

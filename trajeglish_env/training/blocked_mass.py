@@ -199,6 +199,28 @@ def versus_target_loss(
     return torch.nn.functional.softplus(log_m - log_p).sum()
 
 
+TERM_FORMS = ("mass", "versus_target")  # the forms of the colliding- and off-road-mass terms (TrainConfig)
+
+
+def check_term_form(field: str, form: str, weight: float) -> None:
+    """Refuse an unknown form of a mass term, or a form set for a term that is off (TrainConfig fields)."""
+    if form not in TERM_FORMS:
+        raise ValueError(f"TrainConfig.{field} must be one of {TERM_FORMS}, got {form!r}")
+    if form != "mass" and not weight:
+        raise ValueError(f"TrainConfig.{field} needs its term's weight > 0 (the term it shapes)")
+
+
+def term_loss(
+    form: str, logits: torch.Tensor, blocked: BlockedCandidates, targets: torch.Tensor
+) -> torch.Tensor:
+    """A mass term in ``form``: ``blocked_loss`` (mass) or ``versus_target_loss`` (versus_target)."""
+    return (
+        versus_target_loss(logits, blocked, targets)
+        if form == "versus_target"
+        else blocked_loss(logits, blocked)
+    )
+
+
 def logged_weights(batch: dict[str, torch.Tensor], weights: torch.Tensor | None) -> torch.Tensor | None:
     """The likelihood weights ``[B,A,T]`` of a batch with its rolled-out targets weighed 0 (those past each
     window's ``logged_targets``: a model's own tokens are not data), ``weights`` kept elsewhere (None: 1)."""

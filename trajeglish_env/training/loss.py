@@ -12,12 +12,7 @@ from torch import nn
 from trajeglish_env.model.neighbours import batch_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
 from trajeglish_env.training.bend_weights import bend_weights
-from trajeglish_env.training.blocked_mass import (
-    batch_blocked,
-    blocked_loss,
-    logged_weights,
-    versus_target_loss,
-)
+from trajeglish_env.training.blocked_mass import batch_blocked, logged_weights, term_loss
 from trajeglish_env.training.interaction_weights import interaction_weights
 from trajeglish_env.training.offroad_mass import offroad_candidates
 
@@ -45,6 +40,7 @@ class TrainingLoss(nn.Module):
         self.collision_horizon = config.collision_horizon
         self.only_rolled = config.collision_rolled_out_only
         self.collision_form = config.collision_form
+        self.offroad_form = config.offroad_form
         self.term_scenes = (
             term_scenes  # [N] the scenes whose windows the colliding-mass term acts on (None: all)
         )
@@ -66,6 +62,7 @@ class TrainingLoss(nn.Module):
         logits = self.model.forward(scene, batch["input_tokens"], view)
         mean, n = self.model.loss_of_logits(logits, scene, batch["tokens"], weights)
         total = mean * n
+        drawn = self.model.drawn_targets(batch["tokens"], batch["agent_kind"][:, :, None])
         if self.collision_weight:
             assert self.templates is not None
             horizon, only_rolled = self.collision_horizon, self.only_rolled
@@ -73,13 +70,8 @@ class TrainingLoss(nn.Module):
                 None if self.term_scenes is None else np.flatnonzero(self.term_scenes[batch["scene"].cpu()])
             )
             blocked = batch_blocked(self.model, batch, self.templates, horizon, only_rolled, rows)
-            if self.collision_form == "versus_target":
-                drawn = self.model.drawn_targets(batch["tokens"], batch["agent_kind"][:, :, None])
-                term = versus_target_loss(logits, blocked, drawn)
-            else:
-                term = blocked_loss(logits, blocked)
-            total = total + self.collision_weight * term
+            total = total + self.collision_weight * term_loss(self.collision_form, logits, blocked, drawn)
         if self.offroad_weight:
-            drawn = self.model.drawn_targets(batch["tokens"], batch["agent_kind"][:, :, None])
-            total = total + self.offroad_weight * blocked_loss(logits, offroad_candidates(batch, drawn))
+            offroad = offroad_candidates(batch, drawn)
+            total = total + self.offroad_weight * term_loss(self.offroad_form, logits, offroad, drawn)
         return total, torch.tensor(float(n), device=mean.device)

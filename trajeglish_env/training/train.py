@@ -45,6 +45,7 @@ from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
+from trajeglish_env.training.blocked_mass import check_term_form
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
 from trajeglish_env.training.curves import plot_curve, write_metrics
 from trajeglish_env.training.dataset import SceneStore, collate_windows, window_config
@@ -61,7 +62,6 @@ from trajeglish_env.training.validation import batch_to, validation_nll
 
 MAX_UNSTABLE_STEPS = 10  # consecutive non-finite-gradient steps skipped before training stops
 SHOWN = ("loss", "val_nll", "tokens_per_s", "data_wait")  # the progress bar's figures of a logged row
-COLLISION_FORMS = ("mass", "versus_target")  # TrainConfig.collision_form: the colliding-mass term's forms
 
 
 @dataclass(frozen=True)
@@ -111,13 +111,12 @@ class TrainConfig:
     # the term on the windows of these scene sources alone (a model's own rollouts of a source count as it;
     # empty: every window): highway-env's IDM logs keep gaps the term teaches against (docs/evaluation.md)
     collision_sources: tuple[str, ...] = ()
-    # the term's form: "mass" (W * -log(1 - m)) or "versus_target" (W * log(1 + m / p), p the target token's
-    # probability: only the target and the colliding tokens move, so standing is no way to lower it)
-    collision_form: str = "mass"
+    collision_form: str = "mass"  # or "versus_target": W * log(1 + m / p), p the target's (blocked_mass.py)
     # off-road-mass term (training/offroad_mass.py): W * -log(1 - m) at `offroad_positions` vehicle targets
     # per window, m the probability on candidates the guard's road-edge rule masks (0: off)
     offroad_weight: float = 0.0
     offroad_positions: int = 32
+    offroad_form: str = "mass"  # or "versus_target": W * log(1 + m / p), as collision_form
     # share of each window's agents whose input tokens are all hidden (training_data.drop_histories): their
     # next tokens must be told from the current states a neighbour_input model reads, not their own trend
     history_dropout: float = 0.0
@@ -144,12 +143,8 @@ class TrainConfig:
             )
         if self.collision_sources and not self.collision_weight:
             raise ValueError("TrainConfig.collision_sources needs collision_weight > 0 (the term it limits)")
-        if self.collision_form not in COLLISION_FORMS:
-            raise ValueError(
-                f"TrainConfig.collision_form must be one of {COLLISION_FORMS}, got {self.collision_form!r}"
-            )
-        if self.collision_form != "mass" and not self.collision_weight:
-            raise ValueError("TrainConfig.collision_form needs collision_weight > 0 (the term it shapes)")
+        check_term_form("collision_form", self.collision_form, self.collision_weight)
+        check_term_form("offroad_form", self.offroad_form, self.offroad_weight)
         if not self.collision_horizon >= 1:
             raise ValueError(f"TrainConfig.collision_horizon must be >= 1 step, got {self.collision_horizon}")
         if not 0 <= self.history_dropout < 1:
