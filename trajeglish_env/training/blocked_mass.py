@@ -202,14 +202,6 @@ def versus_target_loss(
 TERM_FORMS = ("mass", "versus_target")  # the forms of the colliding- and off-road-mass terms (TrainConfig)
 
 
-def check_term_form(field: str, form: str, weight: float) -> None:
-    """Refuse an unknown form of a mass term, or a form set for a term that is off (TrainConfig fields)."""
-    if form not in TERM_FORMS:
-        raise ValueError(f"TrainConfig.{field} must be one of {TERM_FORMS}, got {form!r}")
-    if form != "mass" and not weight:
-        raise ValueError(f"TrainConfig.{field} needs its term's weight > 0 (the term it shapes)")
-
-
 def term_loss(
     form: str, logits: torch.Tensor, blocked: BlockedCandidates, targets: torch.Tensor
 ) -> torch.Tensor:

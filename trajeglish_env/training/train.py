@@ -45,13 +45,13 @@ from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
-from trajeglish_env.training.blocked_mass import check_term_form
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
 from trajeglish_env.training.curves import plot_curve, write_metrics
 from trajeglish_env.training.dataset import SceneStore, collate_windows, window_config
 from trajeglish_env.training.device_noise import DeviceTemplates, device_input_tokens
 from trajeglish_env.training.kind_repeat import window_order
 from trajeglish_env.training.loss import TrainingLoss
+from trajeglish_env.training.mass_term_checks import check_mass_terms
 from trajeglish_env.training.offroad_mass import OffroadTerm
 from trajeglish_env.training.precision import check_precision, step_autocast
 from trajeglish_env.training.run_records import run_facts, save_last, training_info
@@ -132,21 +132,7 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.interaction_weight must be >= 1, got {self.interaction_weight}")
         if not self.bend_weight >= 1:
             raise ValueError(f"TrainConfig.bend_weight must be >= 1, got {self.bend_weight}")
-        if not self.collision_weight >= 0:
-            raise ValueError(f"TrainConfig.collision_weight must be >= 0, got {self.collision_weight}")
-        if not (self.offroad_weight >= 0 and self.offroad_positions >= 1):
-            raise ValueError(f"TrainConfig: offroad_weight >= 0 and offroad_positions >= 1, got {self}")
-        if self.offroad_weight and self.closed_loop_top_k:
-            raise ValueError(
-                "TrainConfig: offroad_weight masks are cut at logged states; closed_loop_top_k rolls "
-                "them out (use one or the other)"
-            )
-        if self.collision_sources and not self.collision_weight:
-            raise ValueError("TrainConfig.collision_sources needs collision_weight > 0 (the term it limits)")
-        check_term_form("collision_form", self.collision_form, self.collision_weight)
-        check_term_form("offroad_form", self.offroad_form, self.offroad_weight)
-        if not self.collision_horizon >= 1:
-            raise ValueError(f"TrainConfig.collision_horizon must be >= 1 step, got {self.collision_horizon}")
+        check_mass_terms(self)
         if not 0 <= self.history_dropout < 1:
             raise ValueError(f"TrainConfig.history_dropout must be in [0, 1), got {self.history_dropout}")
         check_precision(self.precision)
