@@ -259,34 +259,18 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     assert bad_stride.returncode == 2 and "MAP_STRIDE=0: expected a whole number >= 1" in bad_stride.stdout
     bad_closed = _job(tmp_path, "vc", CLOSED_LOOP="-1")
     assert bad_closed.returncode == 2 and "CLOSED_LOOP=-1: expected a number of tokens" in bad_closed.stdout
-    bad_weight = _job(tmp_path, "vw", INTERACTION_WEIGHT="0.5")
-    assert (
-        bad_weight.returncode == 2
-        and "INTERACTION_WEIGHT=0.5: expected a loss weight >= 1" in bad_weight.stdout
+    refused = (  # (run name, setting, what the refusal says)
+        ("vw", {"INTERACTION_WEIGHT": "0.5"}, "INTERACTION_WEIGHT=0.5: expected a loss weight >= 1"),
+        ("vx", {"COLLISION_WEIGHT": "-1"}, "COLLISION_WEIGHT=-1: expected a loss weight >= 0"),
+        ("vh", {"COLLISION_HORIZON": "0"}, "COLLISION_HORIZON=0: expected a whole number of steps"),
+        ("vo", {"COLLISION_ROLLED_OUT_ONLY": "yes"}, "COLLISION_ROLLED_OUT_ONLY=yes: expected 0 or 1"),
+        ("vz", {"COLLISION_SOURCES": "sumo;rm"}, "COLLISION_SOURCES=sumo;rm: expected scene sources"),
+        ("vf", {"COLLISION_FORM": "hinge"}, "COLLISION_FORM=hinge: expected mass or versus-target"),
+        ("vg", {"OFFROAD_FORM": "hinge"}, "OFFROAD_FORM=hinge: expected mass or versus-target"),
     )
-    bad_collision = _job(tmp_path, "vx", COLLISION_WEIGHT="-1")
-    assert bad_collision.returncode == 2 and "COLLISION_WEIGHT=-1: expected a loss weight >= 0" in (
-        bad_collision.stdout
-    )
-    bad_horizon = _job(tmp_path, "vh", COLLISION_HORIZON="0")
-    assert bad_horizon.returncode == 2 and "COLLISION_HORIZON=0: expected a whole number of steps" in (
-        bad_horizon.stdout
-    )
-    bad_scope = _job(tmp_path, "vo", COLLISION_ROLLED_OUT_ONLY="yes")
-    assert bad_scope.returncode == 2 and "COLLISION_ROLLED_OUT_ONLY=yes: expected 0 or 1" in bad_scope.stdout
-    bad_sources = _job(tmp_path, "vz", COLLISION_SOURCES="sumo;rm")
-    assert (
-        bad_sources.returncode == 2
-        and "COLLISION_SOURCES=sumo;rm: expected scene sources" in bad_sources.stdout
-    )
-    bad_form = _job(tmp_path, "vf", COLLISION_FORM="hinge")
-    assert bad_form.returncode == 2 and "COLLISION_FORM=hinge: expected mass or versus-target" in (
-        bad_form.stdout
-    )
-    bad_offroad_form = _job(tmp_path, "vg", OFFROAD_FORM="hinge")
-    assert bad_offroad_form.returncode == 2 and "OFFROAD_FORM=hinge: expected mass or versus-target" in (
-        bad_offroad_form.stdout
-    )
+    for name, setting, says in refused:
+        bad = _job(tmp_path, name, **setting)
+        assert bad.returncode == 2 and says in bad.stdout, (setting, bad.stdout[-2000:])
     # OFFROAD_WEIGHT reaches `train`, which refuses it beside CAT-K windows (masks cut at logged states)
     clash_offroad = _job(
         tmp_path,

@@ -140,43 +140,38 @@ def test_the_old_dataset_module_name_is_a_deprecated_alias() -> None:
     assert old.WindowDataset is WindowDataset
 
 
-def test_evaluate_subsets_reach_the_sampling_config(monkeypatch) -> None:
-    """``evaluate --subsets cover`` samples with ``SamplingConfig(subsets="cover")``."""
+def evaluate_with(monkeypatch, *argv: str) -> dict:
+    """Run ``trajeglish evaluate --data d ARGV`` with the evaluation itself replaced: the checkpoints and
+    config it would have been given."""
     import trajeglish_env.evaluation as evaluation
     from trajeglish_env.cli_eval import cmd_evaluate
 
     seen = {}
 
     def fake_evaluate(data, ckpts, config, *args, **kwargs):
-        seen["config"] = config
+        seen.update(ckpts=ckpts, config=config)
         return {"scenes": 0}
 
     monkeypatch.setattr(evaluation, "evaluate", fake_evaluate)
-    args = build_parser().parse_args(["evaluate", "--data", "d", "--subsets", "cover", "--processes", "1"])
-    cmd_evaluate(args)
+    cmd_evaluate(build_parser().parse_args(["evaluate", "--data", "d", *argv]))
+    return seen
+
+
+def test_evaluate_subsets_reach_the_sampling_config(monkeypatch) -> None:
+    """``evaluate --subsets cover`` samples with ``SamplingConfig(subsets="cover")``."""
+    seen = evaluate_with(monkeypatch, "--subsets", "cover", "--processes", "1")
     assert seen["config"].sampling.subsets == "cover"
 
 
 def test_evaluate_takes_the_shipped_model_by_name(monkeypatch) -> None:
     """``evaluate --ckpt ref=shipped`` scores the pretrained model as ``ref`` (as ``scorecard`` and ``train
     --init`` name it); a missing file is still refused by name."""
-    import trajeglish_env.evaluation as evaluation
     from trajeglish_env.checkpoint import CheckpointError, load_pretrained
-    from trajeglish_env.cli_eval import cmd_evaluate
 
-    seen = {}
-
-    def fake_evaluate(data, ckpts, config, *args, **kwargs):
-        seen["ckpts"] = ckpts
-        return {"scenes": 0}
-
-    monkeypatch.setattr(evaluation, "evaluate", fake_evaluate)
-    args = build_parser().parse_args(["evaluate", "--data", "d", "--ckpt", "ref=shipped", "--processes", "1"])
-    cmd_evaluate(args)
+    seen = evaluate_with(monkeypatch, "--ckpt", "ref=shipped", "--processes", "1")
     assert list(seen["ckpts"]) == ["ref"]
     want = load_pretrained().model.state_dict()
     got = seen["ckpts"]["ref"].model.state_dict()
     assert got.keys() == want.keys() and all(torch.equal(got[k].cpu(), want[k]) for k in want)
-    args = build_parser().parse_args(["evaluate", "--data", "d", "--ckpt", "x=no/such.pt"])
     with pytest.raises(CheckpointError, match="no/such.pt: no such checkpoint file"):
-        cmd_evaluate(args)
+        evaluate_with(monkeypatch, "--ckpt", "x=no/such.pt")
