@@ -115,7 +115,7 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(args) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 8
+    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 9
     assert printed["complete"] is True and written == printed
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
     training = written["training"]  # train's default precision beside float32 (schema 8)
@@ -160,6 +160,19 @@ def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> Non
     assert cost["slowdown"] == pytest.approx(
         learned["agent_steps_per_s"] / guarded["agent_steps_per_s"], rel=1e-2
     )
+    # the AEC env (the lead API) on the four bundled 24-agent scenes, one timestep an env step (schema 9)
+    aec = result["aec"]
+    assert aec["api"] == "aec" and aec["agents"] == 24 and aec["torch_threads"] == 1
+    assert [r["scenario_id"] for r in aec["scenes"]] == [s.scenario_id for s in benchmark_scenes(24)]
+    assert all(
+        r["timed_steps"] == 3 and r["agents"] == 24 and r["env_steps_per_s"] > 0 for r in aec["scenes"]
+    )
+    seconds = sum(3 / r["env_steps_per_s"] for r in aec["scenes"])  # the rate of all timed steps together
+    assert aec["env_steps_per_s"] == pytest.approx(12 / seconds, rel=1e-2)
+    assert aec["agent_steps_per_s"] == pytest.approx(aec["env_steps_per_s"] * 24, rel=1e-2)
+    aec_ratio = aec["env_steps_per_s"] / result["highway_env"]["steps_per_s"]
+    assert result["ratios"]["aec_env_to_highway_env"] == pytest.approx(aec_ratio, rel=1e-2)
+    assert any(line.startswith("AEC env, 24 agents") for line in summary_lines(result))
 
 
 # ------------------------------------------------------------------------------------- womd section

@@ -7,7 +7,7 @@ the AEC env, :mod:`~trajeglish_env.benchmark.womd`), the batched ego env (Trajeg
 each batch size, each in a fresh process so that its peak memory is its own, and highway-env's own
 stepping speed measured in the same run, before and after the batched envs (their mean is the baseline),
 and the batched env idle and beside one busy process (:mod:`~trajeglish_env.benchmark.busy`). Ratios to
-highway-env make the figures comparable across noisy runs. JSON layout: see the README ("Benchmarks").
+highway-env make the figures comparable across noisy runs. JSON layout: see docs/speed.md ("Benchmarks").
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 # env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section; 4: the womd and busy
 # sections and their ratios; 5: split env runs (env.<npc>_split, busy "<B>_split") and env runs' processes;
 # 6: ``complete`` (False in the documents written after each run while the suite goes on)
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "womd", "env", "busy")
 
 
@@ -139,6 +139,7 @@ def run_suite(
             ("highway_env_highway", lambda: measure.highway_env_speed(config.agents, hw_steps, "highway")),
         ]
         jobs += [(f"{name}/before", job) for name, job in baselines]
+        jobs.append(("aec", lambda: _aec(q)))
         models = [name for name, guard in measure.GUARDED.items() if guard in config.guards]
         for npc in (*models, "replay"):
             for b in config.batches:
@@ -266,6 +267,13 @@ def _womd_job(config: BenchConfig) -> Callable[[], dict[str, Any]]:
     return lambda: womd_section(found, scene, config.quick)
 
 
+def _aec(quick: bool) -> dict[str, Any]:
+    """The env section's AEC run: the lead API on the bundled 24-agent scenes (quick: 3 steps each)."""
+    from trajeglish_env.benchmark.aec import AEC_STEPS, AEC_WARMUP, QUICK_AEC_STEPS, aec_scenes_speed
+
+    return aec_scenes_speed(24, QUICK_AEC_STEPS if quick else AEC_STEPS, 1 if quick else AEC_WARMUP)
+
+
 def default_npc() -> str:
     """The env run of the env's default NPCs (default sampling: guarded or not)."""
     from trajeglish_env.sampler.config import SamplingConfig
@@ -341,6 +349,9 @@ def ratios(result: dict[str, Any]) -> dict[str, Any]:
         for npc, runs in result.get("env", {}).items():
             for b, run in runs.items():
                 out[f"{npc}_B{b}_to_{key}"] = round(run["agent_steps_per_s"] / base, 3)
+    base_steps = result.get("highway_env", {}).get("steps_per_s")
+    if "aec" in result and base_steps:
+        out["aec_env_to_highway_env"] = round(result["aec"]["env_steps_per_s"] / base_steps, 3)
     if (womd := womd_ratio(result.get("womd", {}))) is not None:
         out["womd_env_to_highway_env"] = womd
     for b, run in result.get("busy", {}).items():
@@ -389,6 +400,13 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
                 f"highway-env {h.get('env', '')}: {h['steps_per_s']} steps/s x {h['mean_vehicles']} "
                 f"vehicles = {h['agent_steps_per_s']} agent-steps/s"
             )
+    if "aec" in result:
+        a = result["aec"]
+        lines.append(
+            f"AEC env, {a['agents']} agents (sdc replays its log, {len(a['scenes'])} bundled scenes): "
+            f"{a['env_steps_per_s']} steps/s "
+            f"({result['ratios'].get('aec_env_to_highway_env')}x intersection-v0)"
+        )
     for npc, runs in result.get("env", {}).items():
         for b, run in runs.items():
             ratio = result["ratios"].get(f"{npc}_B{b}_to_highway_env")

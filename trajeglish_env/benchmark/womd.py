@@ -12,10 +12,10 @@ The scenario file is never downloaded: ``--womd FILE``, else the shared data fol
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 from typing import Any
 
+from trajeglish_env.benchmark.aec import aec_env_speed, present_agents
 from trajeglish_env.cores import usable_cores
 from trajeglish_env.scenario import Scenario
 
@@ -70,11 +70,6 @@ def load_womd(path: Path) -> Scenario:
     return scene
 
 
-def present_agents(scene: Scenario) -> int:
-    """Agents valid at the scene's current step: the ones a full-control rollout drives."""
-    return int(scene.valid[:, scene.current_index].sum())
-
-
 def womd_section(path: Path, scene: Scenario | None = None, quick: bool = False) -> dict[str, Any]:
     """The section's figures for the scene in ``path`` (``scene``: that scene, already read):
     ``rollouts`` (one torch thread, as the ``rollout`` section), ``rollouts_split`` (the same over the usable
@@ -108,48 +103,6 @@ def womd_section(path: Path, scene: Scenario | None = None, quick: bool = False)
         "rollouts_split": {**each, "processes": cores, **split} if split else {"skipped": "one core"},
         "env": env,
         "highway_env": highway_env_speed(40, 60 if quick else 300),
-    }
-
-
-def aec_env_speed(scene: Scenario, steps: int, warmup: int) -> dict[str, Any]:
-    """Env steps/s of the AEC env on ``scene`` at its default settings (shipped model, default sampling,
-    one torch thread), the sdc external and replaying its log; episodes never end early. Times
-    ``env.step`` over ``steps`` timesteps after ``warmup`` untimed ones (the actions are computed
-    outside the timed region); ``setup_seconds``: building the env and its reset."""
-    import torch
-
-    from trajeglish_env.benchmark.measure import log_action
-    from trajeglish_env.env import RewardConfig, raw_env
-
-    never_end = RewardConfig(
-        terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False
-    )
-    start = time.perf_counter()
-    env = raw_env([scene], reward=never_end, max_cycles=steps + warmup + 1)
-    env.reset(seed=0)
-    setup = time.perf_counter() - start
-    (ego,) = env.agents  # external="sdc": one AEC agent, so one env.step is one timestep
-    elapsed = 0.0
-    for k in range(steps + warmup):
-        action = log_action(env, ego)
-        start = time.perf_counter()
-        env.step(action)
-        if k >= warmup:
-            elapsed += time.perf_counter() - start
-        if env.terminations[ego] or env.truncations[ego]:
-            raise RuntimeError(f"bench womd: the ego's episode ended after {k + 1} of {steps + warmup} steps")
-    rate = steps / elapsed
-    agents = present_agents(scene)
-    return {
-        "api": "aec",
-        "ego": "sdc, replaying its log",
-        "npc": "trajeglish",
-        "agents": agents,
-        "torch_threads": torch.get_num_threads(),
-        "timed_steps": steps,
-        "env_steps_per_s": round(rate, 3),
-        "agent_steps_per_s": round(rate * agents, 1),
-        "setup_seconds": round(setup, 2),
     }
 
 

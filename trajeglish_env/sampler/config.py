@@ -33,7 +33,7 @@ COMPUTE_DTYPES = ("auto", "float32", "bfloat16")
 # Below this many rows (scenes or rollouts decoded together) a call's matrices are small, and bfloat16's
 # casts and separate bias sums cost more than its faster products save: float32 steps a single env 16 %
 # faster (24 agents; the WOMD scene's AEC env 7 %) and 8 scenes 11 %, while 16 scenes gain 4 % and 32
-# scenes 5 % from bfloat16 (README "Float32 for small batches").
+# scenes 5 % from bfloat16 (docs/speed.md, "Float32 for small batches").
 AUTO_BFLOAT16_ROWS = 16
 
 

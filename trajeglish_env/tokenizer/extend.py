@@ -3,7 +3,7 @@ and meaning, the new ones cover every motion of the class's envelope, and a trai
 tokens on with embeddings copied from the nearest old template (``train --init CKPT --vocab EXTENDED``).
 
 A vocabulary that meets the 5 cm coverage target needs a 3 cm cover of the vehicle envelope (703
-templates; README, "Motion vocabulary coverage"), which a model trained on the shipped 384 templates has
+templates; docs/vocabulary.md), which a model trained on the shipped 384 templates has
 never seen. Appending that cover to the shipped templates keeps the model's knowledge (every old token
 means what it meant) while a fine-tune learns to use the finer, faster, reversing templates, at a
 fraction of the cost of training from scratch. The vehicle cover also spans the env's kinematic bicycle
@@ -46,7 +46,7 @@ from trajeglish_env.tokenizer.distance import corner_distance
 from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, VocabularyError
 
-VEHICLE_COVER_RADIUS = 0.03  # m: keeps every vehicle envelope track within 5 cm (README)
+VEHICLE_COVER_RADIUS = 0.03  # m: keeps every vehicle envelope track within 5 cm (docs/vocabulary.md)
 DEFAULT_DT = 0.1
 # a track's first step farther than this from its true state gets a catch-up template
 CATCH_UP_TARGET_M = 0.035

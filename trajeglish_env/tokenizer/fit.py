@@ -39,7 +39,7 @@ from trajeglish_env.tokenizer.vocabulary import KIND_NAMES, MotionVocabulary
 
 METHODS = ("xyh-grid", "xy-grid", "k-means", "k-disks")
 PAPER_VOCAB_SIZES = (128, 256, 384, 512)
-VOCAB_SIZES = (*PAPER_VOCAB_SIZES, 640, 768, 1024)  # the paper's sizes and larger (README: coverage)
+VOCAB_SIZES = (*PAPER_VOCAB_SIZES, 640, 768, 1024)  # the paper's sizes and larger (docs/vocabulary.md)
 MIN_TRANSITIONS_PER_TEMPLATE = 10
 # k-disks tries the paper's epsilon and these multiples of it (data unlike WOMD may want another radius).
 EPSILON_SCALES = (0.75, 1.0, 1.5, 2.0)
@@ -104,8 +104,8 @@ def fit_vocabulary(
     a limit can lag more than one step's error). At least ``min_data_share`` of the templates stay for
     data: a cover that does not fit is made at a wider radius (recorded, with a warning). The envelope
     templates all lie on the unicycle surface, so on their own they cannot correct a tokenized state that
-    is off it (lateral slip, noise): with a small data share, real tracks tokenize worse (README, "Motion
-    vocabulary coverage"). ``cover_radius`` (m) replaces the vehicle envelope's radius (4.5 cm): a 3 cm
+    is off it (lateral slip, noise): with a small data share, real tracks tokenize worse
+    (docs/vocabulary.md). ``cover_radius`` (m) replaces the vehicle envelope's radius (4.5 cm): a 3 cm
     cover (703 templates, e.g. V = 1024 with ``min_data_share=0.2``) keeps every envelope track within
     5 cm. The result depends only on the inputs (deterministic).
 
