@@ -58,9 +58,11 @@ def test_env_speed_repeats_rounds_until_the_timed_steps_last_min_seconds() -> No
     more = env_speed(1, npc="replay", steps=2, warmup=1, min_seconds=0.05)
     assert 2 <= more["rounds"] <= measure.MAX_ROUNDS and more["timed_steps"] == 2
     assert more["rounds"] == measure.MAX_ROUNDS or more["timed_seconds"] >= 0.05
-    # the rate is of every timed step of every round
-    rate = more["rounds"] * more["timed_steps"] / more["timed_seconds"]
-    assert more["env_steps_per_s"] == pytest.approx(rate, rel=0.01)
+    # the rate is of every timed step of every round (timed_seconds is rounded to the millisecond, which
+    # on a run of about 0.05 s moves the rate by up to 1 %: bounded by the rounding, not a fixed share)
+    steps = more["rounds"] * more["timed_steps"]
+    low, high = steps / (more["timed_seconds"] + 5e-4), steps / max(more["timed_seconds"] - 5e-4, 1e-9)
+    assert low - 1e-3 <= more["env_steps_per_s"] <= high + 1e-3
     # an impossible wish stops at MAX_ROUNDS
     capped = env_speed(1, npc="replay", steps=1, warmup=0, min_seconds=1e9)
     assert capped["rounds"] == measure.MAX_ROUNDS

@@ -181,6 +181,65 @@ def test_a_run_scores_generated_scenes_and_resumes_from_its_saved_parts(tmp_path
     assert again["parts"]["tiny"]["highway"]["methods"]["log"]["metametric"] > 0.8
 
 
+def test_rows_over_several_seeds_judge_the_mean_and_show_the_range() -> None:
+    # the model alone at three seeds: collisions 0.05 / 0.06 / 0.04 (mean 0.05 <= half of constant
+    # velocity's 0.112) and meta 0.66 / 0.64 / 0.65 (mean 0.65 >= 0.57 + 0.08); one seed alone misses each
+    def run(coll: float, meta: float, first: float, last: float) -> dict:
+        return _source(32, _scores(0.81, 0.0, 0.1), _scores(meta, coll, 0.3), first, last)
+
+    parts = {
+        "highway": run(0.05, 0.66, 0.14, 0.05),
+        "highway@seed1": run(0.06, 0.64, 0.10, 0.12),
+        "highway@seed2": run(0.04, 0.65, 0.15, 0.07),
+    }
+    rows = _rows_by_name(target_rows(parts))
+    alone = rows["highway-env model alone: collision rate (every evaluated agent)"]
+    assert alone["value"] == "0.050 (0.040-0.060 over 3 seeds)" and alone["met"] is True
+    meta = rows["highway-env model alone: meta-metric"]
+    assert meta["value"] == "0.6500 (0.6400-0.6600 over 3 seeds)" and meta["met"] is True
+    assert rows["highway-env guarded: meta-metric"]["value"] == "0.8100 (0.8100-0.8100 over 3 seeds)"
+    partial = rows["highway-env partial control (32 scenes): collisions acting first / last"]
+    # the means: first 0.130, last 0.080; seed 1 alone has last > first
+    assert partial["value"] == "0.130 (0.100-0.150 over 3 seeds) / 0.080 (0.050-0.120 over 3 seeds)"
+    assert partial["met"] is True
+    # seed 1 alone: every model-alone row misses, partial control too
+    one = _rows_by_name(target_rows({"highway": parts["highway@seed1"]}))
+    assert one["highway-env model alone: collision rate (every evaluated agent)"] == {
+        "row": "highway-env model alone: collision rate (every evaluated agent)",
+        "value": "0.060",
+        "target": "<= 0.056 (half of constant velocity's)",
+        "met": False,
+    }
+    assert one["highway-env model alone: meta-metric"]["met"] is False
+    assert one["highway-env partial control (32 scenes): collisions acting first / last"]["met"] is False
+    with pytest.raises(ValueError, match="more_seeds must be ints >= 0 that differ .* from seed 0"):
+        ScorecardConfig(more_seeds=(1, 0))
+    with pytest.raises(ValueError, match="more_seeds"):
+        ScorecardConfig(more_seeds=(2, 2))
+
+
+def test_more_seeds_compute_the_source_parts_again_and_save_them_apart(tmp_path: Path) -> None:
+    path = save_checkpoint(tmp_path / "tiny.pt", tiny_checkpoint().model, tiny_checkpoint().vocabulary)
+    config = ScorecardConfig(
+        highway=SceneSet("highway", 1, 2), rollouts=1, parts=("highway", "tokenize"), more_seeds=(7,)
+    )
+    out, data = tmp_path / "card", tmp_path / "data"
+    result = run_scorecard({"tiny": load_checkpoint(path)}, config, out, data, progress=False)
+    parts = result["parts"]["tiny"]
+    assert set(parts) == {"highway", "highway@seed7", "tokenize"}  # tokenize does not depend on the seed
+    seeds = [parts[k]["methods"][ALONE]["min_ade"] for k in ("highway", "highway@seed7")]
+    assert seeds[0] != seeds[1]  # other rollouts of the same scenes
+    assert parts["highway"]["methods"]["log"] == parts["highway@seed7"]["methods"]["log"]
+    key = scorecard.file_sha256(path)[:16]
+    saved = json.loads((out / "parts" / key / "highway@seed7.json").read_text())
+    assert saved["settings"]["seed"] == 7 and (out / "parts" / key / "highway.json").is_file()
+    assert (out / "evaluate" / f"highway_1_seed2_{key}@seed7").is_dir()
+    row = _rows_by_name(result["rows"]["tiny"])["highway-env model alone: meta-metric"]
+    metas = [parts[k]["methods"][ALONE]["metametric"] for k in ("highway", "highway@seed7")]
+    assert row["value"].startswith(f"{sum(metas) / 2:.4f} (") and row["value"].endswith(" over 2 seeds)")
+    assert json.loads((out / "scorecard.json").read_text())["config"]["more_seeds"] == [7]
+
+
 def replace_rollouts(config: ScorecardConfig, rollouts: int) -> ScorecardConfig:
     from dataclasses import replace
 
@@ -264,6 +323,10 @@ def test_the_command_prints_the_table_and_writes_the_json(tmp_path: Path, capsys
     document = json.loads((tmp_path / "c" / "scorecard.json").read_text())
     assert document["checkpoints"] == {"t": str(path)} and document["config"]["parts"] == ["tokenize"]
     assert document["parts"]["t"]["tokenize"]["max_cm"]["vehicle"] > 5.0
+    assert main([*argv, "--quiet", "--more-seeds", "3", "0"]) == 2  # 0 is the scorecard's own seed
+    assert "more_seeds must be ints >= 0 that differ from each other and from seed 0, got (3, 0)" in (
+        capsys.readouterr().err
+    )
 
 
 def test_two_checkpoints_share_each_row_and_a_skipped_part_is_not_saved(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]

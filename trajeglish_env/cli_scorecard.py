@@ -35,7 +35,12 @@ def cmd_scorecard(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.scorecard import PARTS, QUICK, ScorecardConfig, run_scorecard
 
     base = QUICK if args.quick else ScorecardConfig()
-    changes: dict[str, Any] = {"parts": tuple(args.parts or PARTS), "seed": args.seed, "womd": args.womd}
+    changes: dict[str, Any] = {
+        "parts": tuple(args.parts or PARTS),
+        "seed": args.seed,
+        "more_seeds": tuple(args.more_seeds or ()),
+        "womd": args.womd,
+    }
     if args.rollouts is not None:
         changes["rollouts"] = args.rollouts
     # one process per free core (looked at once), as `evaluate` does
@@ -72,6 +77,14 @@ def add_scorecard_command(add: AddCommand) -> None:
         "leave free)",
     )
     p.add_argument("--seed", type=NON_NEGATIVE, default=0)
+    p.add_argument(
+        "--more-seeds",
+        nargs="+",
+        type=NON_NEGATIVE,
+        metavar="SEED",
+        help="the highway-env and SUMO parts again at these rollout seeds: their rows show the mean (judged) "
+        "and the range (the model-alone rows move by up to 0.03 between seeds)",
+    )
     p.add_argument("--womd", help="WOMD scenario file (default: the shared one)")
     p.add_argument(
         "--data-dir", help="where the held-out scenes are generated (default: OUT/data; reused when there)"

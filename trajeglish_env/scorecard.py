@@ -6,9 +6,10 @@ The held-out scenes are generated with fixed seeds (``trajeglish generate``; res
 runs on two machines score the same scenes. Each part of each checkpoint is saved as it finishes, keyed by
 the checkpoint file's sha256, the part's settings and a digest of the package's code: a run that stops
 resumes where it stopped, a candidate is scored beside an earlier run's rows of the shipped model without
-recomputing them, and a part computed by other code (a changed guard, say) is computed again. The
-report is ``scorecard.json`` and ``scorecard.md`` (one column per checkpoint, every row against its
-target)."""
+recomputing them, and a part computed by other code (a changed guard, say) is computed again. With
+``more_seeds`` the highway-env and SUMO parts are computed again at those rollout seeds, and their rows give
+the mean over the seeds (which is judged) and the range. The report is ``scorecard.json`` and
+``scorecard.md`` (one column per checkpoint, every row against its target)."""
 
 from __future__ import annotations
 
@@ -27,6 +28,10 @@ from trajeglish_env.scenario_io import atomic_path
 
 FORMAT = 1  # of the saved parts: a part saved by another format is computed again
 PARTS = ("highway", "sumo", "sumo_partial", "womd", "brake", "long", "demo", "tokenize", "speed")
+# the parts whose model-alone rows move with the rollout seed by more than candidates differ
+# (docs/evaluation.md, "How far the scorecard's rows move with the rollout seed alone"): `more_seeds` computes
+# them again
+SEEDED_PARTS = ("highway", "sumo")
 SCORES = ("metametric", "collision_rate", "offroad_rate", "traffic_light_violation_rate", "min_ade")
 
 
@@ -61,6 +66,7 @@ class ScorecardConfig:
     long_seconds: float = 30.0
     long_rollouts: int = 2
     seed: int = 0
+    more_seeds: tuple[int, ...] = ()  # SEEDED_PARTS again at these rollout seeds: rows show mean and range
     processes: int = 1  # rollout processes of the evaluations (the same rollouts)
     womd: str | None = None  # the WOMD scenario file (None: the shared one, see benchmark.womd)
     speed_batches: tuple[int, ...] = (1, 8)  # env batch sizes timed against the shipped model
@@ -86,6 +92,14 @@ class ScorecardConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ScorecardConfig.{name} must be an int >= 1, got {value!r}")
+        seeds = (self.seed, *self.more_seeds)
+        if any(isinstance(s, bool) or not isinstance(s, int) or s < 0 for s in seeds) or len(
+            set(seeds)
+        ) < len(seeds):
+            raise ValueError(
+                f"ScorecardConfig.more_seeds must be ints >= 0 that differ from each other and from seed "
+                f"{self.seed!r}, got {self.more_seeds!r}"
+            )
         if not self.long_seconds > 8.0:
             raise ValueError(f"ScorecardConfig.long_seconds must be > 8 (the split), got {self.long_seconds}")
 
@@ -138,6 +152,7 @@ class Scorecard:
     data_dir: Path
     progress: bool = True
     log: Callable[[str], None] = field(default=lambda text: print(text, file=sys.stderr))
+    tag: str = ""  # suffix of this card's part files and evaluation folders ("@seed3" for a further seed)
 
     def scenes_of(self, scene_set: SceneSet) -> Path:
         """The folder of ``scene_set``'s scenes, generated (or finished) first."""
@@ -174,7 +189,7 @@ class Scorecard:
         settings = part_settings(self.config, name)
         sha = file_sha256(ckpt.path)
         key = sha[:16]  # the folder of this checkpoint file's parts and outputs
-        path = self.out / "parts" / key / f"{name}.json"
+        path = self.out / "parts" / key / f"{name}{self.tag}.json"
         if path.is_file():
             try:
                 saved = json.loads(path.read_text())
@@ -276,7 +291,7 @@ def _evaluate(
         guards=guards,
         rollout_processes=card.config.processes,
     )
-    out = card.out / "evaluate" / f"{data.name}_{key}"
+    out = card.out / "evaluate" / f"{data.name}_{key}{card.tag}"
     result = evaluate(
         data, {"model": ckpt}, config, out, partial="model" if partial else None, progress=card.progress
     )
@@ -415,6 +430,18 @@ PART_FUNCTIONS: dict[str, Callable[[Scorecard, str, Any], dict[str, Any]]] = {
 }
 
 
+def _parts(card: Scorecard, label: str, ckpt: Any) -> dict[str, Any]:
+    """Every configured part of one checkpoint, then :data:`SEEDED_PARTS` at each of ``more_seeds``
+    (keyed ``NAME@seedS``, saved apart)."""
+    parts = {name: card.part(name, label, ckpt) for name in card.config.parts}
+    for seed in card.config.more_seeds:
+        again = replace(card, config=replace(card.config, seed=seed, more_seeds=()), tag=f"@seed{seed}")
+        for name in SEEDED_PARTS:
+            if name in card.config.parts:
+                parts[f"{name}{again.tag}"] = again.part(name, label, ckpt)
+    return parts
+
+
 def run_scorecard(
     checkpoints: dict[str, Any],
     config: ScorecardConfig = ScorecardConfig(),
@@ -440,10 +467,7 @@ def run_scorecard(
         )
     out = Path(out)
     card = Scorecard(config, out, Path(data_dir) if data_dir else out / "data", progress)
-    parts = {
-        label: {name: card.part(name, label, ckpt) for name in config.parts}
-        for label, ckpt in checkpoints.items()
-    }
+    parts = {label: _parts(card, label, ckpt) for label, ckpt in checkpoints.items()}
     rows = {label: target_rows(p) for label, p in parts.items()}
     result = {
         "checkpoints": {label: str(ckpt.path) for label, ckpt in checkpoints.items()},

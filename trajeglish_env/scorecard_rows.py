@@ -4,6 +4,7 @@ report."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from trajeglish_env.evaluation import method_name
@@ -20,65 +21,101 @@ def _row(row: str, value: str, target: str, met: bool | None) -> dict[str, Any]:
     return {"row": row, "value": value, "target": target, "met": met}
 
 
-def _source_rows(title: str, part: dict[str, Any], red_light: bool) -> list[dict[str, Any]]:
+class _Seeds:
+    """One figure over a part's rollout seeds (the part, then ``more_seeds``' ``NAME@seedS``): its mean
+    judges the row, and with two seeds or more the value shows the range as well."""
+
+    def __init__(self, runs: list[dict[str, Any]]):
+        self.runs = runs
+
+    def mean(self, pick: Callable[[dict[str, Any]], float]) -> float:
+        return sum(pick(r) for r in self.runs) / len(self.runs)
+
+    def text(self, pick: Callable[[dict[str, Any]], float], digits: int) -> str:
+        values = [pick(r) for r in self.runs]
+        mean = f"{sum(values) / len(values):.{digits}f}"
+        if len(values) == 1:
+            return mean
+        return f"{mean} ({min(values):.{digits}f}-{max(values):.{digits}f} over {len(values)} seeds)"
+
+
+def _seeded(parts: dict[str, dict[str, Any]], name: str) -> _Seeds:
+    """Part ``name`` at the scorecard's seed and at each further seed, in the order they were computed."""
+    return _Seeds([parts[name]] + [p for key, p in parts.items() if key.startswith(f"{name}@seed")])
+
+
+def _source_rows(title: str, seeds: _Seeds, red_light: bool) -> list[dict[str, Any]]:
     """Guarded realism, collisions, off-road (and red lights) against the log; the model alone against
-    constant velocity."""
-    m = part["methods"]
-    g, log = m[GUARDED], m["log"]
+    constant velocity (the log's and constant velocity's figures do not depend on the seed)."""
+    m = seeds.runs[0]["methods"]
+    log = m["log"]
+
+    def score(method: str, key: str) -> Callable[[dict[str, Any]], float]:
+        return lambda run: float(run["methods"][method][key])
+
+    meta, coll, off = (score(GUARDED, k) for k in ("metametric", "collision_rate", "offroad_rate"))
     rows = [
-        _row(f"{title} guarded: meta-metric", f"{g['metametric']:.4f}", ">= 0.80", g["metametric"] >= 0.80),
+        _row(f"{title} guarded: meta-metric", seeds.text(meta, 4), ">= 0.80", seeds.mean(meta) >= 0.80),
         _row(
             f"{title} guarded: collision rate (every evaluated agent)",
-            f"{g['collision_rate']:.3f}",
+            seeds.text(coll, 3),
             "<= 0.02",
-            g["collision_rate"] <= 0.02,
+            seeds.mean(coll) <= 0.02,
         ),
         _row(
             f"{title} guarded: off-road rate",
-            f"{g['offroad_rate']:.3f}",
+            seeds.text(off, 3),
             f"<= {log['offroad_rate'] + 0.02:.3f} (log + 0.02)",
-            g["offroad_rate"] <= log["offroad_rate"] + 0.02,
+            seeds.mean(off) <= log["offroad_rate"] + 0.02,
         ),
     ]
     if red_light:
-        rate, limit = g["traffic_light_violation_rate"], log["traffic_light_violation_rate"] + 0.01
+        red, limit = (
+            score(GUARDED, "traffic_light_violation_rate"),
+            log["traffic_light_violation_rate"] + 0.01,
+        )
         rows.append(
             _row(
                 f"{title} guarded: red-light violations",
-                f"{rate:.4f}",
+                seeds.text(red, 4),
                 f"<= {limit:.4f} (log + 0.01)",
-                rate <= limit,
+                seeds.mean(red) <= limit,
             )
         )
     if ALONE in m:
-        a, cv = m[ALONE], m["constant_velocity"]
+        cv = m["constant_velocity"]
+        meta, coll = score(ALONE, "metametric"), score(ALONE, "collision_rate")
         rows += [
             _row(
                 f"{title} model alone: meta-metric",
-                f"{a['metametric']:.4f}",
+                seeds.text(meta, 4),
                 f">= {cv['metametric'] + 0.08:.4f} (constant velocity + 0.08)",
-                a["metametric"] >= cv["metametric"] + 0.08,
+                seeds.mean(meta) >= cv["metametric"] + 0.08,
             ),
             _row(
                 f"{title} model alone: collision rate (every evaluated agent)",
-                f"{a['collision_rate']:.3f}",
+                seeds.text(coll, 3),
                 f"<= {cv['collision_rate'] / 2:.3f} (half of constant velocity's)",
-                a["collision_rate"] <= cv["collision_rate"] / 2,
+                seeds.mean(coll) <= cv["collision_rate"] / 2,
             ),
         ]
     return rows
 
 
-def _partial_row(title: str, part: dict[str, Any]) -> dict[str, Any]:
-    pc, scenes = part["partial_control"], part["scenes"]
-    first, last = pc["first"]["collision_rate"], pc["last"]["collision_rate"]
+def _partial_row(title: str, seeds: _Seeds) -> dict[str, Any]:
+    scenes = seeds.runs[0]["scenes"]
+
+    def rate(placement: str) -> Callable[[dict[str, Any]], float]:
+        return lambda run: float(run["partial_control"][placement]["collision_rate"])
+
+    first, last = rate("first"), rate("last")
     enough = scenes >= PARTIAL_MIN_SCENES
     target = "last < first" + ("" if enough else f" (needs >= {PARTIAL_MIN_SCENES} scenes)")
     return _row(
         f"{title} partial control ({scenes} scenes): collisions acting first / last",
-        f"{first:.3f} / {last:.3f}",
+        f"{seeds.text(first, 3)} / {seeds.text(last, 3)}",
         target,
-        last < first if enough else None,
+        seeds.mean(last) < seeds.mean(first) if enough else None,
     )
 
 
@@ -91,12 +128,12 @@ def target_rows(parts: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     rows without a target (shown for context) or whose part is too small to judge."""
     rows: list[dict[str, Any]] = []
     if "highway" in parts:
-        rows += _source_rows("highway-env", parts["highway"], red_light=False)
-        rows.append(_partial_row("highway-env", parts["highway"]))
+        rows += _source_rows("highway-env", _seeded(parts, "highway"), red_light=False)
+        rows.append(_partial_row("highway-env", _seeded(parts, "highway")))
     if "sumo" in parts:
-        rows += _source_rows("SUMO", parts["sumo"], red_light=True)
+        rows += _source_rows("SUMO", _seeded(parts, "sumo"), red_light=True)
     if "sumo_partial" in parts:
-        rows.append(_partial_row("SUMO", parts["sumo_partial"]))
+        rows.append(_partial_row("SUMO", _Seeds([parts["sumo_partial"]])))
     if "brake" in parts:
         npcs = parts["brake"]["npcs"]
         idm = npcs["idm"]["rear_end_rate"]
