@@ -45,7 +45,10 @@ def aec_env_speed(scene: Scenario, steps: int, warmup: int) -> dict[str, Any]:
         if k >= warmup:
             elapsed += time.perf_counter() - start
         if env.terminations[ego] or env.truncations[ego]:
-            raise RuntimeError(f"bench womd: the ego's episode ended after {k + 1} of {steps + warmup} steps")
+            raise RuntimeError(
+                f"bench aec ({scene.scenario_id}): the ego's episode ended after {k + 1} of "
+                f"{steps + warmup} steps"
+            )
     rate = steps / elapsed
     agents = present_agents(scene)
     return {
