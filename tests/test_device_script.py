@@ -267,6 +267,8 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
         ("vz", {"COLLISION_SOURCES": "sumo;rm"}, "COLLISION_SOURCES=sumo;rm: expected scene sources"),
         ("vf", {"COLLISION_FORM": "hinge"}, "COLLISION_FORM=hinge: expected mass or versus-target"),
         ("vg", {"OFFROAD_FORM": "hinge"}, "OFFROAD_FORM=hinge: expected mass or versus-target"),
+        ("vk", {"OFFROAD_HORIZON": "0"}, "OFFROAD_HORIZON=0: expected steps >= 1"),
+        ("vj", {"OFFROAD_HORIZON": "5"}, "OFFROAD_HORIZON=5 needs OFFROAD_WEIGHT > 0"),
     )
     for name, setting, says in refused:
         bad = _job(tmp_path, name, **setting)

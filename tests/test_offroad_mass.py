@@ -48,11 +48,11 @@ def road_scene(steps: int = 40, seed: int = 0) -> Scenario:
     )  # fmt: skip
 
 
-def masked_window(scene: Scenario, positions: int = 1000) -> dict[str, np.ndarray]:
+def masked_window(scene: Scenario, positions: int = 1000, horizon: int = 1) -> dict[str, np.ndarray]:
     vocab = grid_vocabulary()
     window = make_window(scene, WindowConfig(steps=25, max_agents=8), np.random.default_rng(0))
     with_tokens([window], vocab)
-    term = OffroadTerm(positions=positions, drawn=vocab.size)
+    term = OffroadTerm(positions=positions, drawn=vocab.size, horizon=horizon)
     add_offroad_masks([window], [scene], vocab.templates, term, [np.random.default_rng(1)])
     return window
 
@@ -78,6 +78,33 @@ def test_the_masks_follow_the_reference_road_edge_rule() -> None:
     np.testing.assert_array_equal(mask, want)
     assert 0 < mask.any(1).sum() < len(mask)  # some positions have off-road candidates, some none
     assert (now > 0).any()  # ... the vehicle off the road among them, held to going no farther off
+
+
+def test_a_horizon_masks_moves_that_kept_up_leave_the_road_within_it() -> None:
+    """Horizon H: a candidate counts when the same move repeated H times (a constant turn) takes a corner
+    beyond the edge at any of those steps; the reference rule step by step, and H = 1 is the one-step rule."""
+    scene = road_scene()
+    one, wide = masked_window(scene), masked_window(scene, horizon=10)
+    np.testing.assert_array_equal(one["offroad_slot"], wide["offroad_slot"])  # the same positions drawn
+    used = wide["offroad_slot"] >= 0
+    slot, step = wide["offroad_slot"][used], wide["offroad_step"][used]
+    edges = RoadEdges.from_polylines([p for p in scene.polylines() if len(p) >= 2])
+    origin = to_global(wide["frame"], wide["agent_xyh"][slot, step].astype(np.float64))
+    size = wide["agent_size"][slot].astype(np.float64)
+    now = signed_distance_to_road_edges(box_corners(origin, size), edges).max(-1)
+    moves = grid_vocabulary().templates[AgentKind.VEHICLE][None]
+    state, want = origin[:, None], np.zeros(wide["offroad_mask"][used].shape, bool)
+    for _ in range(10):
+        state = to_global(state, moves)
+        excess = signed_distance_to_road_edges(box_corners(state, size[:, None]), edges).max(-1)
+        want |= excess > np.maximum(OFFROAD_MARGIN, now)[:, None]
+    np.testing.assert_array_equal(wide["offroad_mask"][used], want)
+    # every move off the road in one step is so kept up, and the horizon finds many more: the drifts that
+    # reach the edge within a second
+    assert (wide["offroad_mask"] >= one["offroad_mask"]).all()
+    assert wide["offroad_mask"].sum() > 2 * one["offroad_mask"].sum()
+    with pytest.raises(ValueError, match="horizon must be >= 1"):
+        OffroadTerm(horizon=0)
 
 
 def test_logged_positions_whose_own_token_leaves_the_road_are_left_out() -> None:
@@ -120,6 +147,7 @@ def test_training_with_the_offroad_mass_term(tmp_path, form: str) -> None:
     cfg = TrainConfig(
         steps=3, batch_size=4, warmup_steps=1, val_every=100, log_every=1, checkpoint_every=3,
         num_workers=0, val_fraction=0.0, offroad_weight=2.0, offroad_positions=8, offroad_form=form,
+        offroad_horizon=3,
     )  # fmt: skip
     vocab = grid_vocabulary()
     result = train(tmp_path / "data", tmp_path / "run", tiny_config(), cfg, vocabulary=vocab, progress=False)
@@ -128,6 +156,11 @@ def test_training_with_the_offroad_mass_term(tmp_path, form: str) -> None:
     assert (
         saved["offroad_weight"] == 2.0 and saved["offroad_positions"] == 8 and saved["offroad_form"] == form
     )
+    assert saved["offroad_horizon"] == 3
+    with pytest.raises(ValueError, match="offroad_horizon needs offroad_weight > 0"):
+        TrainConfig(offroad_horizon=5)
+    with pytest.raises(ValueError, match="offroad_horizon must be >= 1 step, got 0"):
+        TrainConfig(offroad_weight=1.0, offroad_horizon=0)
     with pytest.raises(ValueError, match="offroad_form needs its term's weight > 0"):
         TrainConfig(offroad_form="versus_target")
     with pytest.raises(ValueError, match="offroad_weight >= 0 and offroad_positions >= 1"):

@@ -141,6 +141,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         collision_form=args.collision_form.replace("-", "_"),
         offroad_weight=args.offroad_weight,
         offroad_positions=args.offroad_positions,
+        offroad_horizon=args.offroad_horizon,
         offroad_form=args.offroad_form.replace("-", "_"),
         history_dropout=args.history_dropout,
         noise_on_device=args.noise_on_device,
@@ -376,6 +377,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=POSITIVE,
         default=32,
         help="vehicle target positions per window, drawn at random, that --offroad-weight checks",
+    )
+    p.add_argument(
+        "--offroad-horizon",
+        type=POSITIVE,
+        default=1,
+        help="steps a candidate's move is kept up (the same template repeated) for --offroad-weight's rule: "
+        "a move that takes a corner off the road within them counts as off-road (1: the next step only)",
     )
     p.add_argument(
         "--offroad-form",

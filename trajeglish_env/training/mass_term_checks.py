@@ -31,5 +31,9 @@ def check_mass_terms(config: Any) -> None:
         raise ValueError("TrainConfig.collision_sources needs collision_weight > 0 (the term it limits)")
     check_term_form("collision_form", config.collision_form, config.collision_weight)
     check_term_form("offroad_form", config.offroad_form, config.offroad_weight)
+    if not config.offroad_horizon >= 1:
+        raise ValueError(f"TrainConfig.offroad_horizon must be >= 1 step, got {config.offroad_horizon}")
+    if config.offroad_horizon > 1 and not config.offroad_weight:
+        raise ValueError("TrainConfig.offroad_horizon needs offroad_weight > 0 (the term it widens)")
     if not config.collision_horizon >= 1:
         raise ValueError(f"TrainConfig.collision_horizon must be >= 1 step, got {config.collision_horizon}")

@@ -11,7 +11,10 @@ full road edges (:class:`~trajeglish_env.edge_cells.EdgeCells`, the env's rule n
 ``W * -log(1 - m)`` is added to the loss, ``m`` the model's probability on them (the colliding-mass term's
 form, :func:`~trajeglish_env.training.blocked_mass.blocked_loss`). A logged position whose own token leaves
 the road (highway-env's controllers cut the corners where they leave a roundabout) is left out, so the term
-never pushes against the data; the model's own rolled-out tokens are no data and stay in.
+never pushes against the data; the model's own rolled-out tokens are no data and stay in. ``horizon`` H
+(``train --offroad-horizon``) widens the rule from one step to H, as the colliding-mass term's: a move kept
+up (the same template repeated: a constant turn) that takes a corner off the road within H steps counts too,
+so a vehicle driving straight on where the road bends meets the term before its box reaches the edge.
 
 The masks are computed where the windows are cut (the loading processes), so the training step only reads
 them: ``offroad_slot [K]`` (-1: unused), ``offroad_step [K]`` and ``offroad_mask [K,D]`` per window.
@@ -39,11 +42,13 @@ MARGIN = 0.5  # m: the guard's (sampler.config.OFFROAD_MARGIN; training does not
 @dataclass(frozen=True)
 class OffroadTerm:
     """Where the off-road term looks: ``positions`` vehicle target positions per window, candidates over
-    the first ``drawn`` templates, a corner allowed ``margin`` m beyond a road edge (the guard's)."""
+    the first ``drawn`` templates kept up ``horizon`` steps, a corner allowed ``margin`` m beyond a road
+    edge (the guard's)."""
 
     positions: int = 32
     drawn: int = 384
     margin: float = MARGIN
+    horizon: int = 1
 
     def __post_init__(self) -> None:
         if self.positions < 1:
@@ -52,6 +57,8 @@ class OffroadTerm:
             raise ValueError(f"OffroadTerm.drawn must be >= 1 template, got {self.drawn}")
         if not self.margin >= 0:
             raise ValueError(f"OffroadTerm.margin must be >= 0 m, got {self.margin}")
+        if self.horizon < 1:
+            raise ValueError(f"OffroadTerm.horizon must be >= 1 step, got {self.horizon}")
 
 
 _EDGES: weakref.WeakKeyDictionary[Scenario, tuple[np.ndarray, np.ndarray]] = weakref.WeakKeyDictionary()
@@ -100,17 +107,23 @@ def add_offroad_masks(
         n = len(a)
         origin = to_global(w["frame"], w["agent_xyh"][a, t].astype(np.float64))  # [n,3] global
         size = w["agent_size"][a].astype(np.float64)
-        cand = to_global(origin[:, None], drawn[AgentKind.VEHICLE][None])  # [n,D,3]
+        moves = drawn[AgentKind.VEHICLE][None]  # [1,D,3]
+        cand = [to_global(origin[:, None], moves)]  # [n,D,3] after one step
+        for _ in range(1, term.horizon):  # the same move kept up from where the last one ended
+            cand.append(to_global(cand[-1], moves))
+        kept = np.stack(cand, axis=1)  # [n,H,D,3]
         corners = np.concatenate(
-            [box_corners(origin, size)[:, None], box_corners(cand, size[:, None])], axis=1
-        )  # [n,1+D,4,2]: the box now, then its candidates
+            [box_corners(origin, size)[:, None], box_corners(kept, size[:, None, None]).reshape(n, -1, 4, 2)],
+            axis=1,
+        )  # [n,1+H*D,4,2]: the box now, then its candidates at each step kept up
         cells = _cells()
         maps = np.full(corners.size // 2, cells.map_ids([(columns, links)])[0])
         padded = (columns[None], links[None], np.array([columns.shape[1]]))
         signed = cells.signed(maps, np.zeros(len(maps), np.int64), corners.reshape(-1, 2), padded)
-        excess = signed.reshape(n, 1 + d, 4).max(axis=-1)
+        excess = signed.reshape(n, -1, 4).max(axis=-1)
         limit = np.maximum(term.margin, excess[:, 0])  # a box off the road may not go farther off
-        slot[:n], step[:n], mask[:n] = a, t, excess[:, 1:] > limit[:, None]
+        worst = excess[:, 1:].reshape(n, term.horizon, d).max(axis=1)  # [n,D]: the farthest off over H
+        slot[:n], step[:n], mask[:n] = a, t, worst > limit[:, None]
 
 
 def offroad_candidates(batch: dict[str, torch.Tensor], drawn_targets: torch.Tensor) -> BlockedCandidates:

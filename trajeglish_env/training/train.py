@@ -116,6 +116,7 @@ class TrainConfig:
     # per window, m the probability on candidates the guard's road-edge rule masks (0: off)
     offroad_weight: float = 0.0
     offroad_positions: int = 32
+    offroad_horizon: int = 1  # candidates kept up this many steps (a constant turn) must stay on the road
     offroad_form: str = "mass"  # or "versus_target": W * log(1 + m / p), as collision_form
     # share of each window's agents whose input tokens are all hidden (training_data.drop_histories): their
     # next tokens must be told from the current states a neighbour_input model reads, not their own trend
@@ -286,7 +287,9 @@ def train(
         order,
         config.history_dropout,
         config.noise_on_device,
-        OffroadTerm(config.offroad_positions, model.cfg.drawn) if config.offroad_weight else None,
+        OffroadTerm(config.offroad_positions, model.cfg.drawn, horizon=config.offroad_horizon)
+        if config.offroad_weight
+        else None,
     )
     sampler = StepBatchSampler(config.batch_size, start_step, config.steps, dd.rank, dd.world)
     loader = DataLoader(
