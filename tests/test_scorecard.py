@@ -268,7 +268,8 @@ def test_speed_is_timed_in_interleaved_pairs_against_the_shipped_model(tmp_path:
     candidate = load_checkpoint(save_checkpoint(tmp_path / "c.pt", tiny().model, tiny().vocabulary))
     order: list[tuple[str, int]] = []
 
-    def fake_env_speed(batch, npc, torch_threads, checkpoint):  # type: ignore[no-untyped-def]
+    def fake_env_speed(batch, npc, torch_threads, checkpoint, min_seconds):  # type: ignore[no-untyped-def]
+        assert min_seconds == 2.0  # every run long enough for a rate that holds (one window cycle is not)
         who = "shipped" if checkpoint.path == pretrained_path() else "model"
         order.append((who, batch))
         return {"agent_steps_per_s": (1000.0 if who == "shipped" else 900.0) * batch + len(order)}
@@ -298,6 +299,8 @@ def test_bad_settings_are_named() -> None:
         ScorecardConfig(rollouts=0)
     with pytest.raises(ValueError, match="ScorecardConfig.speed_batches"):
         ScorecardConfig(speed_batches=(1, 0))
+    with pytest.raises(ValueError, match="ScorecardConfig.speed_min_seconds must be >= 0 s, got -1"):
+        ScorecardConfig(speed_min_seconds=-1.0)
     with pytest.raises(ValueError, match="not loaded from a file"):
         run_scorecard({"memory": tiny_checkpoint()}, ScorecardConfig(parts=("tokenize",)))
 

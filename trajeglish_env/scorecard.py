@@ -71,6 +71,9 @@ class ScorecardConfig:
     womd: str | None = None  # the WOMD scenario file (None: the shared one, see benchmark.womd)
     speed_batches: tuple[int, ...] = (1, 8)  # env batch sizes timed against the shipped model
     speed_repeats: int = 2  # interleaved pairs per batch size (the machine's speed drifts)
+    # each timed env run repeats its window cycle until this long (one cycle at B = 1 lasts about 0.3 s: too
+    # short for a rate that holds; stop 74's two pairs of such runs read 1.21x for two models within 3 %)
+    speed_min_seconds: float = 2.0
     parts: tuple[str, ...] = PARTS
 
     def __post_init__(self) -> None:
@@ -80,6 +83,10 @@ class ScorecardConfig:
         if not self.speed_batches or any(b < 1 for b in self.speed_batches):
             raise ValueError(
                 f"ScorecardConfig.speed_batches must be batch sizes >= 1, got {self.speed_batches}"
+            )
+        if not self.speed_min_seconds >= 0:
+            raise ValueError(
+                f"ScorecardConfig.speed_min_seconds must be >= 0 s, got {self.speed_min_seconds}"
             )
         for name in (
             "rollouts",
@@ -115,6 +122,7 @@ QUICK = ScorecardConfig(
     long_rollouts=1,
     speed_batches=(1,),
     speed_repeats=1,
+    speed_min_seconds=0.0,
 )  # a smoke run: every part, small
 
 
@@ -239,7 +247,11 @@ def part_settings(config: ScorecardConfig, name: str) -> dict[str, Any]:
         "long": {"scenes": asdict(config.sumo), "config": asdict(long_config(config))},
         "demo": {},
         "tokenize": {},
-        "speed": {"batches": list(config.speed_batches), "repeats": config.speed_repeats},
+        "speed": {
+            "batches": list(config.speed_batches),
+            "repeats": config.speed_repeats,
+            "min_seconds": config.speed_min_seconds,
+        },
     }
     return json.loads(json.dumps({"part": name, **common, **by_part[name]}, default=str))
 
@@ -385,8 +397,9 @@ def _tokenize_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
 
 def _speed_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
     """Agent-steps/s of the batched env (24 agents a scene, guarded NPCs of this checkpoint, one torch
-    thread) against the shipped model's, in interleaved pairs (the order alternates), per batch size; the
-    ratio of the medians. The shipped model itself is the reference."""
+    thread) against the shipped model's, in interleaved pairs (the order alternates), per batch size, each
+    run timed over at least ``speed_min_seconds``; the ratio of the medians. The shipped model itself is
+    the reference."""
     import statistics
 
     from trajeglish_env.benchmark.measure import env_speed
@@ -402,7 +415,13 @@ def _speed_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
         for batch in card.config.speed_batches:
             pair = (("shipped", shipped), ("model", ckpt))
             for who, model in pair if rep % 2 == 0 else pair[::-1]:
-                run = env_speed(batch, "trajeglish_guard", torch_threads=1, checkpoint=model)
+                run = env_speed(
+                    batch,
+                    "trajeglish_guard",
+                    torch_threads=1,
+                    checkpoint=model,
+                    min_seconds=card.config.speed_min_seconds,
+                )
                 rates[who].setdefault(batch, []).append(run["agent_steps_per_s"])
     return {
         str(batch): {
