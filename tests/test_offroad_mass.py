@@ -167,3 +167,20 @@ def test_training_with_the_offroad_mass_term(tmp_path, form: str) -> None:
         TrainConfig(offroad_weight=-1.0)
     with pytest.raises(ValueError, match="masks are cut at logged states; closed_loop_top_k rolls"):
         TrainConfig(offroad_weight=1.0, closed_loop_top_k=3)
+
+
+def test_the_train_command_sets_every_mass_term_field() -> None:
+    from trajeglish_env.cli import build_parser
+    from trajeglish_env.cli_mass_terms import mass_term_settings
+
+    args = build_parser().parse_args(
+        ["train", "--data", "d", "--out", "o", "--collision-weight", "60", "--collision-horizon", "10"]
+        + ["--collision-sources", "sumo", "--collision-form", "versus-target", "--offroad-weight", "20"]
+        + ["--offroad-positions", "8", "--offroad-horizon", "10", "--offroad-form", "versus-target"]
+    )
+    cfg = TrainConfig(**mass_term_settings(args))
+    assert (cfg.collision_weight, cfg.collision_horizon, cfg.collision_sources) == (60.0, 10, ("sumo",))
+    assert (cfg.offroad_weight, cfg.offroad_positions, cfg.offroad_horizon) == (20.0, 8, 10)
+    assert cfg.collision_form == cfg.offroad_form == "versus_target" and not cfg.collision_rolled_out_only
+    with pytest.raises(SystemExit):  # a horizon below one step is refused by the parser
+        build_parser().parse_args(["train", "--data", "d", "--out", "o", "--offroad-horizon", "0"])

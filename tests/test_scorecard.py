@@ -278,7 +278,7 @@ def test_speed_is_timed_in_interleaved_pairs_against_the_shipped_model(tmp_path:
     card = scorecard.Scorecard(
         ScorecardConfig(speed_batches=(1, 8), speed_repeats=2), tmp_path, tmp_path, False
     )
-    result = scorecard._speed_part(card, "c", candidate)
+    result = scorecard.speed_part(card, "c", candidate)
     assert order == [("shipped", 1), ("model", 1), ("shipped", 8), ("model", 8)] + [
         ("model", 1),
         ("shipped", 1),
@@ -288,7 +288,7 @@ def test_speed_is_timed_in_interleaved_pairs_against_the_shipped_model(tmp_path:
     assert result["1"]["runs"] == {"model": [902.0, 905.0], "shipped": [1001.0, 1006.0]}
     assert result["1"]["ratio"] == round(903.5 / 1003.5, 3) and result["8"]["ratio"] < 0.91
     shipped = load_checkpoint(pretrained_path())
-    assert scorecard._speed_part(card, "shipped", shipped) == {"reference": True}  # nothing timed
+    assert scorecard.speed_part(card, "shipped", shipped) == {"reference": True}  # nothing timed
     assert len(order) == 8
 
 

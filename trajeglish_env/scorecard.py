@@ -14,7 +14,6 @@ the mean over the seeds (which is judged) and the range. The report is ``scoreca
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import os
 import sys
@@ -24,7 +23,9 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from trajeglish_env.file_digest import file_sha256, source_digest
 from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.scorecard_speed import speed_part
 
 FORMAT = 1  # of the saved parts: a part saved by another format is computed again
 PARTS = ("highway", "sumo", "sumo_partial", "womd", "brake", "long", "demo", "tokenize", "speed")
@@ -126,28 +127,11 @@ QUICK = ScorecardConfig(
 )  # a smoke run: every part, small
 
 
-def source_digest(root: Path) -> str:
-    """The sha256 (16 hex digits) of the Python sources under ``root``, their paths and contents."""
-    digest = hashlib.sha256()
-    for source in sorted(root.rglob("*.py")):
-        digest.update(source.relative_to(root).as_posix().encode() + b"\0")
-        digest.update(source.read_bytes())
-    return digest.hexdigest()[:16]
-
-
 @functools.cache
 def code_digest() -> str:
     """This package's :func:`source_digest`: a saved part whose digest differs was computed by other code,
     so its figures may not be today's."""
     return source_digest(Path(__file__).resolve().parent)
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 @dataclass
@@ -395,47 +379,6 @@ def _tokenize_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
     }
 
 
-def _speed_part(card: Scorecard, key: str, ckpt: Any) -> dict[str, Any]:
-    """Agent-steps/s of the batched env (24 agents a scene, guarded NPCs of this checkpoint, one torch
-    thread) against the shipped model's, in interleaved pairs (the order alternates), per batch size, each
-    run timed over at least ``speed_min_seconds``; the ratio of the medians. The shipped model itself is
-    the reference."""
-    import statistics
-
-    from trajeglish_env.benchmark.measure import env_speed
-    from trajeglish_env.checkpoint import load_pretrained, pretrained_path
-
-    if not pretrained_path().is_file():
-        return {"skipped": f"no shipped model to time against ({pretrained_path()} is missing)"}
-    if file_sha256(ckpt.path) == file_sha256(pretrained_path()):
-        return {"reference": True}
-    shipped = load_pretrained()
-    rates: dict[str, dict[int, list[float]]] = {"model": {}, "shipped": {}}
-    for rep in range(card.config.speed_repeats):
-        for batch in card.config.speed_batches:
-            pair = (("shipped", shipped), ("model", ckpt))
-            for who, model in pair if rep % 2 == 0 else pair[::-1]:
-                run = env_speed(
-                    batch,
-                    "trajeglish_guard",
-                    torch_threads=1,
-                    checkpoint=model,
-                    min_seconds=card.config.speed_min_seconds,
-                )
-                rates[who].setdefault(batch, []).append(run["agent_steps_per_s"])
-    return {
-        str(batch): {
-            "model": statistics.median(rates["model"][batch]),
-            "shipped": statistics.median(rates["shipped"][batch]),
-            "ratio": round(
-                statistics.median(rates["model"][batch]) / statistics.median(rates["shipped"][batch]), 3
-            ),
-            "runs": {who: rates[who][batch] for who in rates},
-        }
-        for batch in card.config.speed_batches
-    }
-
-
 PART_FUNCTIONS: dict[str, Callable[[Scorecard, str, Any], dict[str, Any]]] = {
     "highway": _source_part(lambda c: c.highway, (False, True), partial=True),
     "sumo": _source_part(lambda c: c.sumo, (False, True), partial=False),
@@ -445,7 +388,7 @@ PART_FUNCTIONS: dict[str, Callable[[Scorecard, str, Any], dict[str, Any]]] = {
     "long": _long_part,
     "demo": _demo_part,
     "tokenize": _tokenize_part,
-    "speed": _speed_part,
+    "speed": speed_part,
 }
 
 
