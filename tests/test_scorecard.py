@@ -132,7 +132,14 @@ def test_a_run_scores_generated_scenes_and_resumes_from_its_saved_parts(tmp_path
     assert figures["log"]["collision_rate"] == 0.0 and figures["log"]["metametric"] > 0.8
     assert set(figures) >= {"constant_velocity", GUARDED, ALONE, "tokenized_log"}
     assert figures[GUARDED]["collision_rate"] == 0.0  # the guard keeps even an untrained model apart
+    assert 0.0 <= figures["log"]["vehicle_standing"] < 0.5  # highway-env traffic moves
     rows = _rows_by_name(result["rows"]["tiny"])
+    standing = rows["highway-env guarded: vehicles standing (share of steps under 0.5 m/s)"]
+    assert standing["met"] is None and standing["value"] == f"{figures[GUARDED]['vehicle_standing']:.3f}"
+    assert (
+        standing["target"]
+        == f"(context: the log's {figures['log']['vehicle_standing']:.3f}; more is timid traffic)"
+    )
     assert rows["highway-env partial control (1 scenes): collisions acting first / last"]["met"] is None
     assert rows[TOKENS]["met"] is False
     assert json.loads((out / "scorecard.json").read_text())["rows"] == result["rows"]
@@ -179,6 +186,16 @@ def test_a_run_scores_generated_scenes_and_resumes_from_its_saved_parts(tmp_path
     again = run_scorecard({"tiny": load_checkpoint(path)}, config, out, data, progress=False)
     assert calls[-1] == "highway" and len(calls) == 5
     assert again["parts"]["tiny"]["highway"]["methods"]["log"]["metametric"] > 0.8
+
+
+def test_vehicle_standing_pools_the_steps_of_every_scene_kind() -> None:
+    by_kind = {
+        "sumo/grid": {"vehicle": {"standing": 30, "steps": 100}, "pedestrian": {"standing": 5, "steps": 10}},
+        "sumo/spider": {"vehicle": {"standing": 10, "steps": 100}},
+        "sumo/random": {"cyclist": {"standing": 1, "steps": 2}},
+    }
+    assert scorecard.vehicle_standing(by_kind) == 40 / 200  # pooled, not the mean of 0.3 and 0.1 by kind
+    assert scorecard.vehicle_standing({"sumo/random": {"cyclist": {"standing": 1, "steps": 2}}}) is None
 
 
 def test_rows_over_several_seeds_judge_the_mean_and_show_the_range() -> None:

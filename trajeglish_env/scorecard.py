@@ -36,6 +36,14 @@ SEEDED_PARTS = ("highway", "sumo")
 SCORES = ("metametric", "collision_rate", "offroad_rate", "traffic_light_violation_rate", "min_ade")
 
 
+def vehicle_standing(by_kind: dict[str, dict[str, dict[str, int]]]) -> float | None:
+    """Share of vehicle agent-steps standing over every scene kind of ``evaluate``'s ``standing_by_kind``
+    (None: no vehicle steps)."""
+    counts = [c["vehicle"] for c in by_kind.values() if "vehicle" in c]
+    steps = sum(c["steps"] for c in counts)
+    return sum(c["standing"] for c in counts) / steps if steps else None
+
+
 @dataclass(frozen=True)
 class SceneSet:
     """Held-out scenes ``trajeglish generate --source SOURCE --scenes SCENES --seed SEED`` makes."""
@@ -279,6 +287,7 @@ def _evaluate(
     """``trajeglish evaluate`` of one checkpoint, named ``model`` in the methods (``partial``: with partial
     control), kept to the rows' figures (every method's: the log's and constant velocity's set targets)."""
     from trajeglish_env.evaluation import EvalConfig, evaluate
+    from trajeglish_env.scorecard_rows import STANDING
 
     config = EvalConfig(
         rollouts=rollouts,
@@ -294,7 +303,10 @@ def _evaluate(
     figures = {
         "scenes": result["scenes"],
         "rollouts": rollouts,
-        "methods": {method: {k: r["scores"][k] for k in SCORES} for method, r in result["methods"].items()},
+        "methods": {
+            method: {**{k: r["scores"][k] for k in SCORES}, STANDING: vehicle_standing(r["standing_by_kind"])}
+            for method, r in result["methods"].items()
+        },
         "report": result["markdown"],
     }
     if partial:

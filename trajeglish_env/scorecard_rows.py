@@ -13,6 +13,7 @@ from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE
 PARTIAL_MIN_SCENES = 32  # the partial-control row asks for at least this many scenes
 GUARDED = method_name("model", DEFAULT_TEMPERATURE, True)
 ALONE = method_name("model", DEFAULT_TEMPERATURE, False)
+STANDING = "vehicle_standing"  # share of vehicle steps under 0.5 m/s (a timid model stands more than the log)
 CONTEXT = "(context: the env's NPCs are guarded)"
 SPEED_FLOOR = 0.95  # interleaved pairs of env runs on a 2-core machine differ by a few % between runs
 
@@ -80,6 +81,15 @@ def _source_rows(title: str, seeds: _Seeds, red_light: bool) -> list[dict[str, A
                 seeds.text(red, 4),
                 f"<= {limit:.4f} (log + 0.01)",
                 seeds.mean(red) <= limit,
+            )
+        )
+    if all(run["methods"][GUARDED].get(STANDING) is not None for run in seeds.runs):
+        rows.append(
+            _row(
+                f"{title} guarded: vehicles standing (share of steps under 0.5 m/s)",
+                seeds.text(score(GUARDED, STANDING), 3),
+                f"(context: the log's {log[STANDING]:.3f}; more is timid traffic)",
+                None,
             )
         )
     if ALONE in m:
