@@ -10,6 +10,7 @@ from helpers import tiny
 from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC
 from trajeglish_env.env.aec import raw_env
 from trajeglish_env.env.vector import BatchedEgoEnv
+from trajeglish_env.sampler.config import SamplingConfig
 
 KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
 CROSSING = "highway-intersection-999001"  # 7 agents at the current step, 4 more enter later
@@ -109,7 +110,8 @@ def test_log_bound_npcs_refuse_episodes_longer_than_the_log(npc: str) -> None:
 
 
 def test_batched_ego_env_past_the_log_equals_separate_envs() -> None:
-    kw = {"npc": TrajeglishNPC(tiny()), "max_cycles": 90, "reward": KEEP_GOING}
+    float32 = SamplingConfig(compute_dtype="float32")  # as "auto" for one scene, whatever the batch
+    kw = {"npc": TrajeglishNPC(tiny(), float32), "max_cycles": 90, "reward": KEEP_GOING}
     venv = BatchedEgoEnv(2, **kw)
     obs, _ = venv.reset(seed=4, options={"scene": CROSSING})
     refs = [EgoEnv(**kw) for _ in range(2)]

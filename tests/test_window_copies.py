@@ -10,13 +10,16 @@ from helpers import bundle_scene, record_encoded, tiny_checkpoint
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import RolloutEngine
 
+# float32: under "auto" one rollout multiplies in float32 and four in bfloat16 on CPUs with native bfloat16
+CONFIG = SamplingConfig(seed=7, guard=True, compute_dtype="float32")
+
 
 def test_identical_rows_are_built_once_and_roll_out_as_built_alone(monkeypatch: pytest.MonkeyPatch) -> None:
     ckpt = tiny_checkpoint()
     sc = bundle_scene("highway-roundabout-999000")
     active = sc.valid[:, sc.current_index].copy()
     encoded = record_encoded(monkeypatch, ckpt.model)
-    built = RolloutEngine(ckpt, sc, 4, 12, active, config=SamplingConfig(seed=7, guard=True))
+    built = RolloutEngine(ckpt, sc, 4, 12, active, config=CONFIG)
     built._build_windows(np.arange(4))  # what the first step does before it decodes
     engine = built
     subsets = int(engine.num_subsets[0])
@@ -27,14 +30,11 @@ def test_identical_rows_are_built_once_and_roll_out_as_built_alone(monkeypatch: 
         for tensor in (*w.cache.self_k, *w.cache.cross_v):
             assert torch_equal_rows(tensor)
     encoded.clear()
-    engine = RolloutEngine(ckpt, sc, 4, 12, active, config=SamplingConfig(seed=7, guard=True))
+    engine = RolloutEngine(ckpt, sc, 4, 12, active, config=CONFIG)
     engine.run()
     built = len(encoded)
     monkeypatch.undo()
-    alone = [
-        RolloutEngine(ckpt, sc, 1, 12, active, config=SamplingConfig(seed=7, guard=True), first_rollout=r)
-        for r in range(4)
-    ]
+    alone = [RolloutEngine(ckpt, sc, 1, 12, active, config=CONFIG, first_rollout=r) for r in range(4)]
     for r, single in enumerate(alone):
         single.run()
         assert np.array_equal(single.xyh[0], engine.xyh[r]), f"rollout {r}"

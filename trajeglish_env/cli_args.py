@@ -143,7 +143,7 @@ def add_dtype_args(p: argparse.ArgumentParser) -> None:
         "--compute-dtype",
         choices=COMPUTE_DTYPES,
         default="auto",
-        help="dtype the linear layers multiply in (auto: bfloat16 for batches of 16 rows or more where the "
+        help="dtype the linear layers multiply in (auto: bfloat16 for batches of 2 rows or more where the "
         "CPU has it natively)",
     )
 

@@ -79,7 +79,7 @@ def add_bench_command(add: AddCommand) -> None:
         "--compute-dtype",
         choices=COMPUTE_DTYPES,
         default="auto",
-        help="dtype the NPC model's linear layers multiply in (auto: bfloat16 for batches of 16 rows or more "
+        help="dtype the NPC model's linear layers multiply in (auto: bfloat16 for batches of 2 rows or more "
         "where the CPU has it natively)",
     )
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure")

@@ -30,11 +30,12 @@ INTRA_STEP_MODES = ("parallel", "sequential")
 # AUTO_BFLOAT16_ROWS rows on a CPU with native bfloat16 arithmetic (AVX512-BF16 / AMX: 4-7x float32's
 # matrix throughput), float32 elsewhere.
 COMPUTE_DTYPES = ("auto", "float32", "bfloat16")
-# Below this many rows (scenes or rollouts decoded together) a call's matrices are small, and bfloat16's
-# casts and separate bias sums cost more than its faster products save: float32 steps a single env 16 %
-# faster (24 agents; the WOMD scene's AEC env 7 %) and 8 scenes 11 %, while 16 scenes gain 4 % and 32
-# scenes 5 % from bfloat16 (docs/speed.md, "Float32 for small batches").
-AUTO_BFLOAT16_ROWS = 16
+# Below this many rows (scenes or rollouts decoded together) bfloat16's casts and separate bias sums cost
+# more than its faster products save: a single env (one row, 24 agents) steps 3 % faster in float32. From 2
+# rows on the calls' products (a row decodes about 48 positions a call since intra-step decoding went
+# parallel) are large enough for bfloat16 to win: 2 scenes +3 %, 4 +15 %, 8 +23 % with one thread, +8 % with
+# two (docs/speed.md, "Bfloat16 from two rows").
+AUTO_BFLOAT16_ROWS = 2
 
 
 @dataclass(frozen=True)
