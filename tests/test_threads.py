@@ -12,7 +12,9 @@ from trajeglish_env.sampler import rollout
 
 
 def test_threads_fit_beside_the_cores_other_processes_keep_busy() -> None:
-    assert [auto_threads(b, cores=2) for b in (1, 7, 8, 128)] == [1, 1, 2, 2]
+    assert [auto_threads(b, cores=2) for b in (1, 3, 4, 7, 8, 128)] == [1, 1, 2, 2, 2, 2]
+    assert [auto_threads(b, cores=16) for b in (3, 4, 8, 12, 32, 128)] == [1, 2, 2, 3, 8, 16]
+    assert auto_threads(4, cores=1) == 1
     assert threads_for(0.0, wanted=2, cores=2) == 2  # an idle machine
     assert threads_for(0.95, wanted=2, cores=2) == 1  # one busy process beside us
     assert threads_for(1.9, wanted=2, cores=2) == 1  # never fewer than one
