@@ -28,8 +28,8 @@ FIRST_CHECK_S = 0.25
 
 def auto_threads(num_scenes: int, cores: int | None = None) -> int:
     """Threads for a batch on an idle machine: 1 for up to 3 scenes (small calls are fastest
-    single-threaded), at least 2 from 4 scenes on (a row's decoding call holds a step's whole run of agents,
-    so 4 scenes already gain: +24 % on 2 cores), one per 4 scenes beyond 8, up to the usable cores."""
+    single-threaded), at least 2 from 4 scenes on (4 scenes in bfloat16 gain +24 % from a second core),
+    one per 4 scenes beyond 8, up to the usable cores."""
     if num_scenes < 4:
         return 1
     return max(1, min(cores or usable_cores(), max(2, num_scenes // 4)))

@@ -32,9 +32,9 @@ INTRA_STEP_MODES = ("parallel", "sequential")
 COMPUTE_DTYPES = ("auto", "float32", "bfloat16")
 # Below this many rows (scenes or rollouts decoded together) bfloat16's casts and separate bias sums cost
 # more than its faster products save: a single env (one row, 24 agents) steps 3 % faster in float32. From 2
-# rows on the calls' products (a row decodes about 48 positions a call since intra-step decoding went
-# parallel) are large enough for bfloat16 to win: 2 scenes +3 %, 4 +15 %, 8 +23 % with one thread, +8 % with
-# two (docs/speed.md, "Bfloat16 from two rows").
+# rows on the calls' products (a row decodes about 48 positions a call) are large enough for bfloat16 to
+# win: 2 scenes +3 %, 4 +15 %, 8 +24 % with one thread, +8 % with two (docs/speed.md, "Bfloat16 from two
+# rows"; stop 41 had measured the opposite up to 16 rows, before the row buckets of stop 44).
 AUTO_BFLOAT16_ROWS = 2
 
 
