@@ -11,6 +11,7 @@ from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import RolloutEngine
 from trajeglish_env.sampler.sampling import (
     counter_uniform,
+    draft_draws,
     nucleus_mask,
     sample_from_probs,
     sample_with_uniform,
@@ -50,6 +51,9 @@ def test_probabilities_are_computed_once_and_drawn_from_alike() -> None:
         drawn = sample_from_probs(probs, top_p, u)
         assert np.array_equal(drawn, sample_with_uniform(logits, 0.75, top_p, u))
     assert len(set(drawn.tolist())) > 20  # draws, not one argmax
+    as_float64 = logits.double()
+    token_probs(as_float64, 0.75)
+    assert torch.equal(as_float64, logits.double())  # the caller's logits are left as they were
     with pytest.raises(ValueError, match="temperature must be > 0 for probabilities, got 0"):
         token_probs(logits, 0.0)
 
@@ -109,3 +113,24 @@ def test_the_second_number_is_uniform_reproducible_and_unrelated_to_the_first() 
     assert abs(second.mean() - 0.5) < 0.002
     assert np.abs(np.histogram(second, bins=10, range=(0, 1))[0] / 1e6 - 0.1).max() < 0.002
     assert abs(np.corrcoef(first, second)[0, 1]) < 0.005
+
+
+def test_draft_draws_are_the_float64_draws_but_at_float32_rounding() -> None:
+    """Drafts (:func:`draft_draws`, float32 in place) draw what the exact draw does wherever the number is
+    not within float32 rounding of a CDF boundary; greedy and nucleus drafts are the exact draws."""
+    g = torch.Generator().manual_seed(3)
+    logits = torch.randn(4000, 384, generator=g) * 3
+    u = counter_uniform(np.full(4000, 11, np.uint64), np.arange(4000), np.zeros(4000))
+    exact = sample_with_uniform(logits, 0.75, 1.0, u)
+    scratch = logits.numpy().copy()
+    drafts = draft_draws(scratch, 0.75, 1.0, u)
+    assert not np.array_equal(scratch, logits.numpy())  # drawn in place
+    cdf = token_probs(logits, 0.75).cumsum(-1).numpy()
+    gap = np.abs(cdf - u[:, None]).min(axis=1)  # how close each number lies to a boundary
+    assert np.array_equal(drafts[gap > 1e-5], exact[gap > 1e-5])
+    assert (drafts == exact).mean() > 0.999 and len(set(drafts.tolist())) > 200
+    for temperature, top_p in ((0.0, 1.0), (0.75, 0.9)):
+        drawn = draft_draws(logits.numpy().copy(), temperature, top_p, u)
+        assert np.array_equal(drawn, sample_with_uniform(logits, temperature, top_p, u))
+    with pytest.raises(ValueError, match="temperature must be >= 0"):
+        draft_draws(logits.numpy().copy(), -1.0, 1.0, u)

@@ -71,6 +71,7 @@ class TrajeglishModel(nn.Module):
         self.norm = nn.LayerNorm(c)
         nn.init.normal_(self.token.weight, std=0.02)
         self.register_buffer("mask", decoder_mask(cfg.variant, cfg.steps, cfg.max_agents), persistent=False)
+        self._additive: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}  # see _additive_mask
 
     # ---------------------------------------------------------------------------------- helpers
     def global_ids(self, tokens: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
@@ -364,6 +365,26 @@ class TrajeglishModel(nn.Module):
         assert out is not None
         return out
 
+    def _group_mask(
+        self, first: np.ndarray, queries: torch.Tensor, keys: int, cache: DecoderCache
+    ) -> torch.Tensor:
+        """The additive self-attention mask ``[g,1,n,keys]`` of a row group whose rows decode the (clamped)
+        cache positions ``queries [g,n]`` from ``first [g]`` on: rows of :meth:`_additive_mask`, one shared by
+        every row (expanded, no copy) when they all start alike, as the rows of a lockstep batch do."""
+        full = self._additive_mask(cache.self_k[0].dtype)
+        if (first == first[0]).all():
+            return full[queries[0], :keys][None, None].expand(len(first), 1, -1, -1)
+        return full[queries][:, None, :, :keys].contiguous()
+
+    def _additive_mask(self, dtype: torch.dtype) -> torch.Tensor:
+        """The decoder mask as the additive one SDPA derives from it (0 / -inf, :func:`additive_mask`) in
+        ``dtype``, made once per dtype and device instead of at every call (the same numbers)."""
+        key = (dtype, self.mask.device)
+        cached = self._additive.get(key)
+        if cached is None:
+            cached = self._additive[key] = additive_mask(self.mask, dtype)
+        return cached
+
     def _decode(
         self,
         cache: DecoderCache,
@@ -427,8 +448,7 @@ class TrajeglishModel(nn.Module):
             index = None if len(rows) == len(step) else torch.from_numpy(rows).to(dev)
             queries = torch.from_numpy(start[rows]).to(dev)[:, None] + torch.arange(n, device=dev)
             keys = (s + 1) * a
-            allowed = self.mask[queries.clamp(max=cache.capacity - 1)][:, None, :, :keys]  # [g,1,n,keys]
-            mask = additive_mask(allowed, cache.self_k[0].dtype)
+            mask = self._group_mask(start[rows], queries.clamp(max=cache.capacity - 1), keys, cache)
             local, slot = np.nonzero(count[rows][:, None] > np.arange(n))  # host side: no device sync
             writes = (torch.from_numpy(rows[local]).to(dev), torch.from_numpy(slot).to(dev))
             positions = queries[torch.from_numpy(local).to(dev), writes[1]]

@@ -53,6 +53,7 @@ from trajeglish_env.sampler.parallel import (
 from trajeglish_env.sampler.rows import RowSpec
 from trajeglish_env.sampler.sampling import (
     counter_uniform,
+    draft_draws,
     draw_tables,
     sample_from_cdf,
     sample_with_uniform,
@@ -373,7 +374,8 @@ class BatchEngine(WindowedRows):
         sel = (torch.from_numpy(rr).to(self.device), torch.from_numpy(cc).to(self.device))
         logits = self.model.class_logits_by_kind(hidden[sel], self.kind[rr, who]).cpu()
         u = counter_uniform(self.seed[rr], t1, who)
-        self._ahead[rr, who] = sample_with_uniform(logits, self.config.temperature, self.config.top_p, u)
+        config = self.config
+        self._ahead[rr, who] = draft_draws(logits.float().numpy(), config.temperature, config.top_p, u)
         self._ahead_rank[rr, who] = self._rank
 
     def _read_span(self, wanted: np.ndarray, n: int) -> tuple[int, int]:

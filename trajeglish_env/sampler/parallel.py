@@ -39,11 +39,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import numpy as np
-import torch
 
 from trajeglish_env.geometry import to_global
 from trajeglish_env.sampler.rows import RowStates
-from trajeglish_env.sampler.sampling import counter_uniform, sample_with_uniform
+from trajeglish_env.sampler.sampling import counter_uniform, draft_draws
 
 # The look-ahead's budget of positions (stepping rows x agent slots) for subsets whose every slot is an agent
 # to draft; a subset with fewer gets that share of it (:func:`look_ahead_pays`).
@@ -69,7 +68,7 @@ def coupled_drafts(
     rr, aa = np.nonzero((drawn_at == (rs.now - 1)[:, None]) & (rs.now > 0)[:, None])
     if len(rr):
         u = counter_uniform(rs.seed[rr], rs.now[rr], aa)
-        out[rr, aa] = sample_with_uniform(torch.from_numpy(logits[rr, aa]), temperature, top_p, u)
+        out[rr, aa] = draft_draws(logits[rr, aa], temperature, top_p, u)  # a copy: drawn in place
     return out
 
 
