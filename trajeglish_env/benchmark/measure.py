@@ -371,8 +371,9 @@ def _peak_gpu_mb(device: str) -> float | None:
 
 def _window_steps(venv: Any) -> np.ndarray:
     """The window steps of a batched env's Trajeglish engine (empty for rule-based NPCs)."""
-    engine = getattr(venv.core.batch.rows, "engine", None)
-    return np.zeros(0) if engine is None else engine.window_step.copy()
+    rows = venv.core.batch.rows
+    engines = getattr(rows, "engines", [rows.engine] if hasattr(rows, "engine") else [])
+    return np.concatenate([np.zeros(0)] + [engine.window_step for engine in engines])
 
 
 def _torch_threads(venv: Any) -> int:

@@ -110,21 +110,29 @@ class SceneBatch:
             )
         import torch
 
+        from trajeglish_env.env.engine_shards import ShardedEngineRows, engine_shards
         from trajeglish_env.sampler.engine import BatchEngine
 
+        def make_engine(rows: int) -> BatchEngine:
+            assert self.settings is not None
+            return BatchEngine(
+                self.checkpoint,  # type: ignore[arg-type]
+                rows,
+                self.settings.sampling,
+                self.settings.torch_cache_dtype,
+            )
+
+        first, entering = self.config.order == "first", self.settings.drive_entering
+        device = str(next(self.checkpoint.model.parameters()).device)  # type: ignore[union-attr]
+        shards = engine_shards(self.num_scenes, torch_threads, device)
+        if shards > 1:  # two shards in threads of one torch thread each, instead of two torch threads
+            torch.set_num_threads(1)
+            return ShardedEngineRows(make_engine, self.num_scenes, shards, first, entering)
         if torch_threads == "auto":
             self.threads = AdaptiveThreads(self.num_scenes)
         elif torch_threads is not None:
             torch.set_num_threads(int(torch_threads))
-        engine = BatchEngine(
-            self.checkpoint,  # type: ignore[arg-type]
-            self.num_scenes,
-            self.settings.sampling,
-            self.settings.torch_cache_dtype,
-        )
-        return EngineRows(
-            engine, externals_first=self.config.order == "first", entering=self.settings.drive_entering
-        )
+        return EngineRows(make_engine(self.num_scenes), externals_first=first, entering=entering)
 
     # ------------------------------------------------------------------ scenes
     def start(self, scene: int, scenario: Scenario, rng: np.random.Generator) -> Simulation:

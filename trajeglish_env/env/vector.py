@@ -96,9 +96,12 @@ class BatchCore:
         return None if sim is None else self.renderers[scene].of(sim).frame(sim.t)
 
     def close(self) -> None:
-        """Release the renderers."""
+        """Release the renderers (and the engine shards' threads)."""
         for renderer in self.renderers:
             renderer.close()
+        close_rows = getattr(self.batch.rows, "close", None)
+        if close_rows is not None:
+            close_rows()
 
 
 class EgoScene:

@@ -10,6 +10,7 @@ batch-dependent prefix.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -24,7 +25,18 @@ MIN_GEMM_ROWS = 32  # below this many rows MKL switches kernels and a row's resu
 # masked or not; from 4 on, any number of queries and any slot give the same numbers): cached decoding
 # computes at least this many
 MIN_QUERIES = 4
-_COMPUTE: list[torch.dtype] = []  # the dtype inference linear layers multiply in (empty: their own)
+
+
+class _ComputeStack(threading.local):
+    """Per thread (engines may decode in threads side by side): the dtypes of :func:`linear_compute`."""
+
+    def __init__(self) -> None:
+        self.dtypes: list[
+            torch.dtype
+        ] = []  # the dtype inference linear layers multiply in (empty: their own)
+
+
+_COMPUTE_STACK = _ComputeStack()
 
 
 @contextmanager
@@ -36,11 +48,11 @@ def linear_compute(dtype: torch.dtype | None) -> Iterator[None]:
     if dtype is None or dtype == torch.float32:
         yield
         return
-    _COMPUTE.append(dtype)
+    _COMPUTE_STACK.dtypes.append(dtype)
     try:
         yield
     finally:
-        _COMPUTE.pop()
+        _COMPUTE_STACK.dtypes.pop()
 
 
 def invariant_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
@@ -82,8 +94,9 @@ class Linear(nn.Linear):
     _compute_copy: tuple[tuple[torch.dtype, int, int], torch.Tensor] | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if _COMPUTE and not torch.is_grad_enabled():
-            y = bucketed_linear(x, self._weight_in(_COMPUTE[-1]))
+        compute = _COMPUTE_STACK.dtypes
+        if compute and not torch.is_grad_enabled():
+            y = bucketed_linear(x, self._weight_in(compute[-1]))
             # in the parameters' dtype whatever the input's: widening y is exact, and the bias is added in
             # place (the numbers of a mixed-dtype sum, which costs up to 1.4x a widening and an add)
             y = y.to(self.weight.dtype)
@@ -167,7 +180,8 @@ class Attention(nn.Module):
 
     def _project(self, y: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         """The output projection of attention's result ``y [B,H,N,Dh]``."""
-        if not (_COMPUTE and _COMPUTE[-1] == y.dtype and not torch.is_grad_enabled()):
+        compute = _COMPUTE_STACK.dtypes
+        if not (compute and compute[-1] == y.dtype and not torch.is_grad_enabled()):
             y = y.to(dtype)  # else the output projection multiplies in y's dtype: no round trip
         b, h, n, dh = y.shape
         return self.out(y.transpose(1, 2).reshape(b, n, h * dh))
