@@ -31,9 +31,8 @@ class _ComputeStack(threading.local):
     """Per thread (engines may decode in threads side by side): the dtypes of :func:`linear_compute`."""
 
     def __init__(self) -> None:
-        self.dtypes: list[
-            torch.dtype
-        ] = []  # the dtype inference linear layers multiply in (empty: their own)
+        # inference linear layers multiply in the last of these dtypes (none: in their own)
+        self.dtypes: list[torch.dtype] = []
 
 
 _COMPUTE_STACK = _ComputeStack()
