@@ -117,7 +117,7 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(args) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 9
+    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 10
     assert printed["complete"] is True and written == printed
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
     training = written["training"]  # train's default precision beside float32 (schema 8)
@@ -154,6 +154,11 @@ def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> Non
     # quick: 3 timed steps after the warm-up, inside one window cycle of the model (no re-priming step)
     assert learned["timed_steps"] == 3 and learned["window_rebuild_steps"] == 0
     assert result["env"]["replay"]["2"]["window_rebuild_steps"] is None
+    # one engine below 96 scenes; the shards a run used are in the JSON and its printed line (schema 10)
+    assert learned["engine_shards"] == result["env"]["replay"]["2"]["engine_shards"] == 1
+    assert suite._parallelism({**learned, "engine_shards": 2, "torch_threads": 1}) == (
+        "2 engine shards in threads x threads 1"
+    )
     ratio = learned["agent_steps_per_s"] / result["highway_env"]["agent_steps_per_s"]
     assert result["ratios"]["trajeglish_B2_to_highway_env"] == pytest.approx(ratio, rel=1e-2)
     guarded = result["env"]["trajeglish_guard"]["2"]

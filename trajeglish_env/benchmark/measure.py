@@ -327,6 +327,7 @@ def env_speed(
                     after = venv.apply(_window_steps)
                     rebuilds += int(any((a != b).any() for a, b in zip(after, before, strict=True)))
         threads = venv.apply(_torch_threads)
+        shards = venv.apply(_engine_shards)
         split = isinstance(venv, SplitEgoEnv)  # peaks of the caller and its workers (shared pages in each)
         peak = peak_rss_mb() + (sum(venv.apply(_peak_rss)) if split else 0.0)
     finally:
@@ -338,6 +339,7 @@ def env_speed(
         "agents_per_scene": agents,
         "processes": len(threads),
         "torch_threads": threads[0],
+        "engine_shards": shards[0],
         "device": device if model else None,
         "peak_gpu_mb": _peak_gpu_mb(device) if model else None,
         "cache_dtype": cache_dtype if model else None,
@@ -374,6 +376,12 @@ def _window_steps(venv: Any) -> np.ndarray:
     rows = venv.core.batch.rows
     engines = getattr(rows, "engines", [rows.engine] if hasattr(rows, "engine") else [])
     return np.concatenate([np.zeros(0)] + [engine.window_step for engine in engines])
+
+
+def _engine_shards(venv: Any) -> int:
+    """The engines a batched env's rows run as (2: :class:`~trajeglish_env.env.engine_shards.
+    ShardedEngineRows` in threads; 1: one engine, or rule-based NPCs)."""
+    return len(getattr(venv.core.batch.rows, "engines", [None]))
 
 
 def _torch_threads(venv: Any) -> int:

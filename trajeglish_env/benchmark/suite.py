@@ -26,7 +26,7 @@ from typing import Any
 # env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section; 4: the womd and busy
 # sections and their ratios; 5: split env runs (env.<npc>_split, busy "<B>_split") and env runs' processes;
 # 6: ``complete`` (False in the documents written after each run while the suite goes on)
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "womd", "env", "busy")
 
 
@@ -462,4 +462,6 @@ def _parallelism(run: dict[str, Any]) -> str:
     if device not in (None, "cpu"):
         return f"model on {device}"
     threads = f"threads {run.get('torch_threads')}"
+    if run.get("engine_shards", 1) > 1:  # big batches on 2 cores: engines over parts of the rows, in threads
+        threads = f"{run['engine_shards']} engine shards in threads x {threads}"
     return threads if processes == 1 else f"{processes} processes x {threads}"
