@@ -30,12 +30,22 @@ THREADED_MIN_SCENES = 96  # from here two shards in threads beat one engine on t
 
 
 def engine_shards(
-    num_scenes: int, torch_threads: int | str | None, device: str, cores: int | None = None
+    num_scenes: int,
+    torch_threads: int | str | None,
+    device: str,
+    externals_first: bool = True,
+    cores: int | None = None,
 ) -> int:
     """How many engine shards a batch of ``num_scenes`` runs: 2 on the CPU under ``torch_threads="auto"``
     where the policy would give the batch exactly two threads (a 2-core machine) and it holds at least
-    :data:`THREADED_MIN_SCENES` scenes, else 1 (more shards on more cores are not measured: the GIL)."""
+    :data:`THREADED_MIN_SCENES` scenes, else 1 (more shards on more cores are not measured: the GIL).
+    Only with the external agents acting first (``EnvConfig.order="first"``, the default): with externals
+    later in the step, an engine's rows play otherwise from its first window rebuild depending on how many
+    rows it holds (found in stop 76, before the shards; docs/speed.md), so shards would not play what one
+    engine plays."""
     if torch_threads != "auto" or not str(device).startswith("cpu") or num_scenes < THREADED_MIN_SCENES:
+        return 1
+    if not externals_first:
         return 1
     return 2 if auto_threads(num_scenes, cores) == 2 else 1
 
