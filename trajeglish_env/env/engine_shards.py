@@ -40,9 +40,10 @@ def engine_shards(
     where the policy would give the batch exactly two threads (a 2-core machine) and it holds at least
     :data:`THREADED_MIN_SCENES` scenes, else 1 (more shards on more cores are not measured: the GIL).
     Only with the external agents acting first (``EnvConfig.order="first"``, the default): with externals
-    later in the step, once a row of an engine restarts (its clock then behind the others'), the others'
-    rollouts depend on how many rows the engine holds (found in stop 76, before the shards; docs/speed.md),
-    so shards would not play what one engine plays."""
+    later in the step, a row whose ego comes in a later agent subset is observed short of it while another
+    row of its engine waits in an earlier subset (one rank counter for all rows; found in stop 76, before the
+    shards; docs/speed.md), so its rollout depends on its engine's other rows and shards would not play what
+    one engine plays."""
     if torch_threads != "auto" or not str(device).startswith("cpu") or num_scenes < THREADED_MIN_SCENES:
         return 1
     if not externals_first:
