@@ -219,19 +219,21 @@ def random_scene_inputs(cfg: ModelConfig, g: torch.Generator) -> SceneInputs:
     )
 
 
-def assert_batched_ego_env_equals_separate_envs(kw: dict, steps: int = 9, seed: int = 11) -> None:
-    """A BatchedEgoEnv of two scenes, stepped with random actions through ends and auto-resets, gives each
-    scene what a separate EgoEnv gives (observations, rewards, flags and the final step's info)."""
+def assert_batched_ego_env_equals_separate_envs(
+    kw: dict, steps: int = 9, seed: int = 11, scenes: int = 2
+) -> None:
+    """A BatchedEgoEnv of ``scenes`` scenes, stepped with random actions through ends and auto-resets, gives
+    each scene what a separate EgoEnv gives (observations, rewards, flags and the final step's info)."""
     from trajeglish_env.env import EgoEnv
     from trajeglish_env.env.vector import BatchedEgoEnv
 
-    venv = BatchedEgoEnv(2, **kw)
+    venv = BatchedEgoEnv(scenes, **kw)
     obs, _ = venv.reset(seed=seed)
     rng = np.random.default_rng(3)
-    actions = [rng.uniform(-1, 1, (2, 2)).astype(np.float32) for _ in range(steps)]
+    actions = [rng.uniform(-1, 1, (scenes, 2)).astype(np.float32) for _ in range(steps)]
     batched = [venv.step(a) for a in actions]
-    assert sum(int((r[2] | r[3]).sum()) for r in batched) >= 2  # scenes ended and restarted
-    for i in range(2):
+    assert sum(int((r[2] | r[3]).sum()) for r in batched) >= scenes  # scenes ended and restarted
+    for i in range(scenes):
         env = EgoEnv(**kw)
         o, _ = env.reset(seed=seed + i)
         assert np.array_equal(o, obs[i])

@@ -11,9 +11,11 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
 from trajeglish_env.env.sb3 import SB3VecEnv
 from trajeglish_env.env.vector import BatchedParallelEnv
+from trajeglish_env.sampler.config import SamplingConfig
 
 KEEP_GOING = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False, terminate_on_goal=False)
 RING = "highway-roundabout-999001"
+FLOAT32 = SamplingConfig(compute_dtype="float32")  # a batch multiplies as one env (see the README)
 
 
 def same_dicts(got: dict, want: dict) -> bool:
@@ -47,6 +49,19 @@ def test_batched_parallel_env_equals_separate_envs_for_every_order(order: str) -
 def test_batched_ego_env_acting_last_equals_separate_envs_with_autoreset() -> None:
     assert_batched_ego_env_equals_separate_envs(
         {"npc": TrajeglishNPC(tiny()), "order": "last", "max_cycles": 5}
+    )
+
+
+@pytest.mark.parametrize("order", ["last", "random"])
+def test_five_scenes_with_the_ego_later_in_the_step_equal_separate_envs(order: str) -> None:
+    """Each row stands at its own ego when observed, whatever subset of its step the ego comes in and
+    wherever the other rows wait: with five scenes restarting at different steps (their clocks apart), rows
+    whose egos come in different subsets share the engine's steps (each row has its own subset cursor)."""
+    assert_batched_ego_env_equals_separate_envs(
+        {"npc": TrajeglishNPC(tiny(), FLOAT32), "order": order, "max_cycles": 9},
+        steps=24,
+        seed=3,
+        scenes=5,
     )
 
 

@@ -21,7 +21,6 @@ from trajeglish_env.sampler.config import SamplingConfig
 def test_shards_only_where_auto_would_run_two_threads_on_a_big_cpu_batch() -> None:
     assert engine_shards(128, "auto", "cpu", cores=2) == 2
     assert engine_shards(THREADED_MIN_SCENES, "auto", "cpu", cores=2) == 2
-    assert engine_shards(128, "auto", "cpu", externals_first=False, cores=2) == 1  # see its docstring
     assert engine_shards(THREADED_MIN_SCENES - 1, "auto", "cpu", cores=2) == 1  # the GIL: slower below
     assert engine_shards(128, 1, "cpu", cores=2) == 1  # threads asked for: as asked
     assert engine_shards(128, None, "cpu", cores=2) == 1
@@ -37,18 +36,20 @@ def ego_actions(steps: int, n: int) -> list[np.ndarray]:
     return [rng.uniform(-1, 1, (n, 2)).astype(np.float32) for _ in range(steps)]
 
 
-@pytest.mark.parametrize(("guard", "order"), [(False, "first"), (True, "first")])
+@pytest.mark.parametrize(
+    ("guard", "order"), [(False, "first"), (True, "first"), (True, "last"), (False, "random")]
+)
 def test_a_sharded_batch_plays_what_one_engine_plays(
     monkeypatch: pytest.MonkeyPatch, guard: bool, order: str
 ) -> None:
     """5 scenes as two shards in threads (rows 0-1 and 2-4; forced, as ``"auto"`` does from 96 scenes on
     2 cores) against one engine of the 5 rows on one thread: the same observations, rewards, episode ends
-    and final observations, bit for bit, over 24 steps in which every scene ends and restarts (the ego acting
-    first, the order under which ``engine_shards`` shards)."""
+    and final observations, bit for bit, over 24 steps in which every scene ends and restarts, wherever the
+    ego acts in its step."""
     monkeypatch.setattr(
         shards_module,
         "engine_shards",
-        lambda n, threads, device, externals_first=True, cores=None: 2 if threads == "auto" else 1,
+        lambda n, threads, device, cores=None: 2 if threads == "auto" else 1,
     )
     spec = TrajeglishNPC(tiny(), SamplingConfig(guard=guard))
     runs = []

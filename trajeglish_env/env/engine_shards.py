@@ -33,20 +33,14 @@ def engine_shards(
     num_scenes: int,
     torch_threads: int | str | None,
     device: str,
-    externals_first: bool = True,
     cores: int | None = None,
 ) -> int:
     """How many engine shards a batch of ``num_scenes`` runs: 2 on the CPU under ``torch_threads="auto"``
     where the policy would give the batch exactly two threads (a 2-core machine) and it holds at least
     :data:`THREADED_MIN_SCENES` scenes, else 1 (more shards on more cores are not measured: the GIL).
-    Only with the external agents acting first (``EnvConfig.order="first"``, the default): with externals
-    later in the step, a row whose ego comes in a later agent subset is observed short of it while another
-    row of its engine waits in an earlier subset (one rank counter for all rows; found in stop 76, before the
-    shards; docs/speed.md), so its rollout depends on its engine's other rows and shards would not play what
-    one engine plays."""
+    Any intra-timestep order: each row of an engine walks the agent subsets of its step with its own
+    cursor, so where a row's external agents come in its step never depends on the engine's other rows."""
     if torch_threads != "auto" or not str(device).startswith("cpu") or num_scenes < THREADED_MIN_SCENES:
-        return 1
-    if not externals_first:
         return 1
     return 2 if auto_threads(num_scenes, cores) == 2 else 1
 

@@ -124,7 +124,7 @@ class SceneBatch:
 
         first, entering = self.config.order == "first", self.settings.drive_entering
         device = str(next(self.checkpoint.model.parameters()).device)  # type: ignore[union-attr]
-        shards = engine_shards(self.num_scenes, torch_threads, device, externals_first=first)
+        shards = engine_shards(self.num_scenes, torch_threads, device)
         if shards > 1:  # two shards in threads of one torch thread each, instead of two torch threads
             torch.set_num_threads(1)
             return ShardedEngineRows(make_engine, self.num_scenes, shards, first, entering)

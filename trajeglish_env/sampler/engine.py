@@ -24,7 +24,7 @@ the batch: draws are counter-based (:func:`~trajeglish_env.sampler.sampling.coun
 the step and the agent) and inference is batch-invariant (:mod:`trajeglish_env.model.layers`).
 
 Layers of the engine: :mod:`~trajeglish_env.sampler.rows` (per-row state: starting rows, supplying
-external agents) <- :mod:`~trajeglish_env.sampler.windows` (building and priming the model contexts) <-
+external agents, handing entering agents to the model) <- :mod:`~trajeglish_env.sampler.windows` (building and priming the model contexts) <-
 this module (stepping: decoding and sampling the positions of each step).
 """
 
@@ -94,7 +94,7 @@ class BatchEngine(WindowedRows):
         super().__init__(model, ckpt.vocabulary, rows, prime, every, config.subsets, cache_dtype)
         self.config = config
         self._compute_dtype = config.torch_compute_dtype(self.device, rows)
-        self._rank = 0  # subset rank being decoded in this step
+        self._rank = np.zeros(self.B, dtype=np.int64)  # per row: the subset rank it decodes in this step
         self._ahead_ok = (-1, False)  # (rank, whether its chunks that end the step look ahead: parallel.py)
         self.guard: SamplingGuard | None = None
         if config.guard:  # guarded sampling (its geometry needs the rows' road edges)
@@ -153,7 +153,7 @@ class BatchEngine(WindowedRows):
             if rebuild.any():
                 self._build_windows(np.flatnonzero(rebuild))
             self._in_step = True
-            self._rank = 0
+            self._rank = np.zeros(self.B, dtype=np.int64)
             self._ahead_ok = (-1, False)
             self._slot = np.where(self.num_subsets > 0, 0, self.cfg.max_agents)
             self._draft = None
@@ -168,33 +168,46 @@ class BatchEngine(WindowedRows):
         A = self.cfg.max_agents
         ranks = int(self.num_subsets[stepping].max(initial=0))
         t_safe = np.minimum(self.now, self.T - 2)
-        r_ix = np.arange(self.B)[:, None]
-        while self._rank < ranks:
-            w = self.windows[self._rank]
-            safe = np.maximum(w.slots, 0)
-            undecided = (w.slots >= 0) & ~self.known[r_ix, safe, t_safe[:, None]] & stepping[:, None]
-            sample = undecided & self.row_controlled[r_ix, safe]
-            if self._ahead_ok[0] != self._rank:  # decided once per rank, from all the agents it samples
-                rows = int((stepping & (self.num_subsets > self._rank)).sum())
-                self._ahead_ok = (self._rank, look_ahead_pays(rows, A, int(sample.sum())))
+        r_ix, b_ix = np.arange(self.B)[:, None], np.arange(self.B)
+        slots = np.stack([w.slots for w in self.windows[:ranks]]) if ranks else np.zeros((0, self.B, A), int)
+        while True:
+            at = np.minimum(self._rank, max(ranks - 1, 0))
+            row_slots = slots[at, b_ix] if ranks else np.full((self.B, A), -1)  # [B,A] each row's subset
+            safe = np.maximum(row_slots, 0)
+            undecided = (row_slots >= 0) & ~self.known[r_ix, safe, t_safe[:, None]] & stepping[:, None]
             wait = undecided & self.row_external[r_ix, safe] & self.valid[r_ix, safe, t_safe[:, None]]
             prev = np.clip(self._slot - 1, 0, A - 1)
-            waiting = (self._slot > 0) & wait[np.arange(self.B), prev]
+            waiting = stepping & (self._rank < self.num_subsets) & (self._slot > 0) & wait[b_ix, prev]
+            # a row through its subset goes on to its next one (or has acted in every subset)
+            through = stepping & (self._slot >= A) & ~waiting & (self._rank < self.num_subsets)
+            if through.any():
+                self._rank[through] += 1
+                self._slot[through] = np.where(self.num_subsets[through] > self._rank[through], 0, A)
+                continue
             active = stepping & (self._slot < A) & ~waiting
             if not active.any():
                 if waiting.any():  # no row can go on without a supply: hand the waiting ones out
                     rows = np.flatnonzero(waiting)
-                    return rows, w.slots[rows, prev[rows]]
-                self._rank += 1
-                self._slot = np.where(self.num_subsets > self._rank, 0, A)
-                continue
+                    return rows, row_slots[rows, prev[rows]]
+                break
+            # the rows at the lowest subset rank that can go on decode together (the others wait for them)
+            k = int(self._rank[active].min())
+            w = self.windows[k]
+            here = active & (self._rank == k)
+            sample = undecided & self.row_controlled[r_ix, safe] & (self._rank == k)[:, None]
+            if self._ahead_ok[0] != k:  # decided once per rank, from all the agents it samples
+                n_rows = int((stepping & (self.num_subsets > k)).sum())
+                k_slots = np.maximum(slots[k], 0)
+                k_sample = (slots[k] >= 0) & ~self.known[r_ix, k_slots, t_safe[:, None]] & stepping[:, None]
+                k_sample &= self.row_controlled[r_ix, k_slots]
+                self._ahead_ok = (k, look_ahead_pays(n_rows, A, int(k_sample.sum())))
             if self.cfg.variant is not Variant.TRAJEGLISH:
                 blocker = np.zeros_like(sample)
             else:
                 blocker = wait if self._draft is not None else sample | wait
             blocker &= np.arange(A)[None] >= self._slot[:, None]
             stop = np.where(blocker.any(1), np.argmax(blocker, axis=1), A - 1)
-            count = np.where(active, stop - self._slot + 1, 0)
+            count = np.where(here, stop - self._slot + 1, 0)
             self._slot = self._slot + self._decode_chunk(w, count, sample, stepping, t_safe)
         late = self._pending_external(stepping, t_safe)
         if late is not None:
@@ -219,60 +232,6 @@ class BatchEngine(WindowedRows):
                 self.valid[r, agents, t + 1 : end + 1] = True
                 self.window_step[r] = -1
             self.handover[r] = False
-
-    def _hand_over_entering(self, stepping: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Agents of ``entering`` rows at their first logged step become controlled (the model drives them
-        from this step on, as at the log's end); returns them as ``(rows, agents)``."""
-        rows = np.flatnonzero(stepping)
-        now = self.now[rows]
-        arrived = self.entering[rows] & self.valid[rows, :, now]
-        r, a = np.nonzero(arrived)
-        if not len(r):
-            return r, a
-        rows = rows[r]
-        self.entering[rows, a] = False
-        self.row_controlled[rows, a] = True
-        span = np.arange(self.T)[None, :]
-        future = (span >= self.now[rows, None]) & (span <= self.end[rows, None])
-        self.known[rows, a] &= ~future[:, : self.T - 1]
-        self.valid[rows, a] |= future & (span > self.now[rows, None])
-        return rows, a
-
-    def _delay_blocked_entries(self, rows: np.ndarray) -> None:
-        """Entering agents whose box, where the log brings them in at the next step, would overlap an agent
-        there enter a step later (at the same place; again until it is clear; not at all if the rollout
-        ends first)."""
-        t1 = self.now[rows] + 1
-        live = t1 < self.T
-        rows, t1 = rows[live], t1[live]
-        if not len(rows):
-            return
-        entry = self.entering[rows] & self.valid[rows, :, t1] & ~self.valid[rows, :, t1 - 1]
-        r, a = np.nonzero(entry)
-        if not len(r):
-            return
-        from trajeglish_env.metrics.boxes import box_collisions
-
-        rr, tt = rows[r], t1[r]
-        others = self.valid[rr, :, tt].copy()  # [k, N] every agent present there, the agent itself not
-        others[np.arange(len(r)), a] = False
-        k, b = np.nonzero(others)
-        hit = box_collisions(
-            self.xyh[rr[k], a[k], tt[k]],
-            self.size[rr[k], a[k]],
-            self.xyh[rr[k], b, tt[k]],
-            self.size[rr[k], b],
-        )
-        blocked = np.zeros(len(r), bool)
-        blocked[k[hit]] = True
-        rr, a, tt = rr[blocked], a[blocked], tt[blocked]
-        later = tt + 1 < self.T  # at the rollout's last step a blocked agent does not enter at all
-        for arr in (self.xyh, self.mxyh):
-            arr[rr[later], a[later], tt[later] + 1] = arr[rr[later], a[later], tt[later]]
-            arr[rr, a, tt] = 0.0
-        self.valid[rr[later], a[later], tt[later] + 1] = True
-        self.valid[rr, a, tt] = False
-        self.tokens[rr[later], a[later], tt[later]] = -1
 
     def _decode_chunk(
         self, w: Window, count: np.ndarray, sample: np.ndarray, stepping: np.ndarray, t: np.ndarray
@@ -366,7 +325,8 @@ class BatchEngine(WindowedRows):
         rr, cc = np.nonzero(where & (np.take_along_axis(w.slots, slots, 1) >= 0))
         who = w.slots[rr, slots[rr, cc]]
         t1 = self.now[rr] + 1
-        pick = self.row_controlled[rr, who] & (self._ahead_rank[rr, who] >= self._rank) & (t1 < self.end[rr])
+        pick = self.row_controlled[rr, who] & (self._ahead_rank[rr, who] >= self._rank[rr])
+        pick &= t1 < self.end[rr]
         pick &= ~self.known[rr, who, np.minimum(t1, self.T - 2)]
         rr, cc, who, t1 = rr[pick], cc[pick], who[pick], t1[pick]
         if not len(rr):
@@ -376,7 +336,7 @@ class BatchEngine(WindowedRows):
         u = counter_uniform(self.seed[rr], t1, who)
         config = self.config
         self._ahead[rr, who] = draft_draws(logits.float().numpy(), config.temperature, config.top_p, u)
-        self._ahead_rank[rr, who] = self._rank
+        self._ahead_rank[rr, who] = self._rank[rr]
 
     def _read_span(self, wanted: np.ndarray, n: int) -> tuple[int, int]:
         """The input slots ``(first, stop)`` of a call whose outputs are read (``wanted [B,n]``): the known

@@ -1,5 +1,6 @@
 """Per-row state of :class:`~trajeglish_env.sampler.engine.BatchEngine`: what each row simulates, its
-exact and tokenized states, and how rows are (re)started, stopped and fed the states of external agents.
+exact and tokenized states, and how rows are (re)started, stopped, fed the states of external agents and
+given the agents the log brings in later.
 """
 
 from __future__ import annotations
@@ -196,6 +197,60 @@ class RowStates:
         self.seed[rows] = seeds
         self.first[rows] = sc.sdc if spec.first is None else int(spec.first)
         self.live[rows] = True
+
+    def _hand_over_entering(self, stepping: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Agents of ``entering`` rows at their first logged step become controlled (the model drives them
+        from this step on, as at the log's end); returns them as ``(rows, agents)``."""
+        rows = np.flatnonzero(stepping)
+        now = self.now[rows]
+        arrived = self.entering[rows] & self.valid[rows, :, now]
+        r, a = np.nonzero(arrived)
+        if not len(r):
+            return r, a
+        rows = rows[r]
+        self.entering[rows, a] = False
+        self.row_controlled[rows, a] = True
+        span = np.arange(self.T)[None, :]
+        future = (span >= self.now[rows, None]) & (span <= self.end[rows, None])
+        self.known[rows, a] &= ~future[:, : self.T - 1]
+        self.valid[rows, a] |= future & (span > self.now[rows, None])
+        return rows, a
+
+    def _delay_blocked_entries(self, rows: np.ndarray) -> None:
+        """Entering agents whose box, where the log brings them in at the next step, would overlap an agent
+        there enter a step later (at the same place; again until it is clear; not at all if the rollout
+        ends first)."""
+        t1 = self.now[rows] + 1
+        live = t1 < self.T
+        rows, t1 = rows[live], t1[live]
+        if not len(rows):
+            return
+        entry = self.entering[rows] & self.valid[rows, :, t1] & ~self.valid[rows, :, t1 - 1]
+        r, a = np.nonzero(entry)
+        if not len(r):
+            return
+        from trajeglish_env.metrics.boxes import box_collisions
+
+        rr, tt = rows[r], t1[r]
+        others = self.valid[rr, :, tt].copy()  # [k, N] every agent present there, the agent itself not
+        others[np.arange(len(r)), a] = False
+        k, b = np.nonzero(others)
+        hit = box_collisions(
+            self.xyh[rr[k], a[k], tt[k]],
+            self.size[rr[k], a[k]],
+            self.xyh[rr[k], b, tt[k]],
+            self.size[rr[k], b],
+        )
+        blocked = np.zeros(len(r), bool)
+        blocked[k[hit]] = True
+        rr, a, tt = rr[blocked], a[blocked], tt[blocked]
+        later = tt + 1 < self.T  # at the rollout's last step a blocked agent does not enter at all
+        for arr in (self.xyh, self.mxyh):
+            arr[rr[later], a[later], tt[later] + 1] = arr[rr[later], a[later], tt[later]]
+            arr[rr, a, tt] = 0.0
+        self.valid[rr[later], a[later], tt[later] + 1] = True
+        self.valid[rr, a, tt] = False
+        self.tokens[rr[later], a[later], tt[later]] = -1
 
     def guard_moved(self, rows: np.ndarray, agents: np.ndarray, t: np.ndarray) -> np.ndarray:
         """``[n,N]``: the agents whose next state the guard of agent ``agents[i]`` of row ``rows[i]`` at step
