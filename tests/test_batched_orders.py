@@ -9,6 +9,7 @@ from helpers import MERGE, assert_batched_ego_env_equals_separate_envs, tiny
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from trajeglish_env.env import EgoEnv, RewardConfig, TrajeglishNPC, parallel_env
+from trajeglish_env.env.config import RandomAgents
 from trajeglish_env.env.sb3 import SB3VecEnv
 from trajeglish_env.env.vector import BatchedParallelEnv
 from trajeglish_env.sampler.config import SamplingConfig
@@ -63,6 +64,42 @@ def test_five_scenes_with_the_ego_later_in_the_step_equal_separate_envs(order: s
         seed=3,
         scenes=5,
     )
+
+
+@pytest.mark.parametrize("order", ["last", "random"])
+def test_three_external_agents_in_five_scenes_equal_separate_envs_through_staggered_restarts(
+    order: str,
+) -> None:
+    """Three external agents per scene, anywhere in their step (``RandomAgents(3)``), five scenes restarted
+    one at a time at different steps (the others' unfinished step undone and redone) and when their episodes
+    end: every observation, reward and agent list equals that of five separate parallel envs."""
+    kw = {"npc": TrajeglishNPC(tiny(), FLOAT32), "external": RandomAgents(3), "order": order, "max_cycles": 6}
+    n, restarts = 5, {3: 1, 5: 3, 8: 0, 11: 4}
+    penv = BatchedParallelEnv(n, **kw)
+    refs = [parallel_env(**kw) for _ in range(n)]
+    seeds = [20 + i for i in range(n)]
+
+    def restart(i: int, seed: int) -> None:
+        seeds[i] = seed
+        assert same_dicts(penv.reset_scenes([i], seed=seed)[0][0], refs[i].reset(seed=seed)[0])
+
+    for i in range(n):
+        restart(i, seeds[i])
+    rng = np.random.default_rng(0)
+    ended = 0
+    for k in range(16):
+        if k in restarts:
+            restart(restarts[k], seeds[restarts[k]] + 100)
+        actions = [{a: rng.uniform(-1, 1, 2).astype(np.float32) for a in agents} for agents in penv.agents]
+        out = penv.step(actions)
+        for i, ref in enumerate(refs):
+            want = ref.step(actions[i])
+            assert same_dicts(out[0][i], want[0]) and out[1][i] == pytest.approx(dict(want[1]))
+            assert penv.agents[i] == ref.agents
+            if not ref.agents:
+                ended += 1
+                restart(i, seeds[i] + 1000)
+    assert ended >= n  # every scene's episode also ended and restarted
 
 
 def test_a_bad_action_in_one_scene_changes_nothing_and_a_retry_plays_on() -> None:

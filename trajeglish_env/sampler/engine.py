@@ -24,8 +24,9 @@ the batch: draws are counter-based (:func:`~trajeglish_env.sampler.sampling.coun
 the step and the agent) and inference is batch-invariant (:mod:`trajeglish_env.model.layers`).
 
 Layers of the engine: :mod:`~trajeglish_env.sampler.rows` (per-row state: starting rows, supplying
-external agents, handing entering agents to the model) <- :mod:`~trajeglish_env.sampler.windows` (building and priming the model contexts) <-
-this module (stepping: decoding and sampling the positions of each step).
+external agents, handing entering agents to the model) <- :mod:`~trajeglish_env.sampler.windows` (building
+and priming the model contexts) <- this module (stepping: decoding and sampling the positions of each
+step, each row with its own cursor through the agent subsets).
 """
 
 from __future__ import annotations
