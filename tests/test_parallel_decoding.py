@@ -10,7 +10,7 @@ from helpers import straight_road_scene, tiny_checkpoint, womd_tfrecord
 from trajeglish_env.metrics.collision_fault import collisions_by_fault
 from trajeglish_env.sampler import RolloutEngine, SamplingConfig
 from trajeglish_env.sampler.engine import BatchEngine
-from trajeglish_env.sampler.parallel import accepted, guard_view
+from trajeglish_env.sampler.parallel import accepted, guard_view, kept_every_draft
 from trajeglish_env.sampler.rows import RowSpec
 
 
@@ -126,6 +126,44 @@ def test_the_shipped_model_decodes_a_24_agent_step_in_about_two_calls() -> None:
     np.testing.assert_array_equal(out["parallel"][0], out["sequential"][0])
     assert out["sequential"][1] == 6 * 24
     assert out["parallel"][1] <= 6 * 3
+
+
+def test_with_the_ego_acting_last_a_step_takes_about_one_call() -> None:
+    """The shipped model's 23 NPCs before an external sdc acting last: a call whose every draw keeps its
+    draft decides its whole chunk, the sdc's position after the last NPC included, so the step needs no
+    second call for it once the sdc's state is supplied (26 calls for these 12 steps before)."""
+    from trajeglish_env.benchmark.measure import benchmark_scenes
+    from trajeglish_env.checkpoint import load_pretrained
+
+    sc = benchmark_scenes(24)[0]
+    external = np.zeros(sc.num_agents, bool)
+    external[sc.sdc] = True
+    priority = np.where(external, 1.0, 0.0)
+    out = {}
+    for mode in ("sequential", "parallel"):
+        config = SamplingConfig(intra_step=mode, compute_dtype="float32")
+        live = sc.valid[:, sc.current_index] & ~external
+        eng = RolloutEngine(
+            load_pretrained(), sc, 1, 12, live, external=external, config=config, priority=priority
+        )
+        while eng.stepping.any():
+            agent = eng.advance()
+            if agent is not None:
+                eng.supply(agent, sc.xyh[agent, eng.t + 1][None])
+        out[mode] = (eng.tokens.copy(), eng.model_calls)
+    np.testing.assert_array_equal(out["parallel"][0], out["sequential"][0])
+    assert out["sequential"][1] == 12 * 24
+    assert 12 <= out["parallel"][1] <= 12 * 1.5
+
+
+def test_a_chunk_is_decided_whole_only_where_every_pair_was_checked_and_kept_its_draft() -> None:
+    rr = np.array([0, 0, 1, 1, 2, 2])
+    tokens = np.array([7, 8, 1, 2, 4, 5])
+    draft = np.array([7, 8, 1, 9, 4, 5])
+    checked = np.array([0, 1, 2, 3, 4])  # the guard saw row 2's first pair only
+    whole = kept_every_draft(rr, rr[checked], tokens[checked], draft[checked], 4)
+    # row 0 kept both drafts; row 1 missed one; row 2 has an unchecked pair; row 3 sampled nothing
+    np.testing.assert_array_equal(whole, [True, False, False, False])
 
 
 def test_acceptance_stops_at_the_first_token_that_differs_from_its_draft() -> None:

@@ -47,6 +47,7 @@ from trajeglish_env.sampler.parallel import (
     coupled_drafts,
     drafted_next_step,
     guard_view,
+    kept_every_draft,
     look_ahead_pays,
     look_ahead_rows,
     previous_tokens,
@@ -317,7 +318,8 @@ class BatchEngine(WindowedRows):
         keep = cc <= last[rr]
         self._finish(rr[keep], who[keep], tt[keep], tok[keep])
         self._keep_logits(rr[keep], who[keep], tt[keep], logits[torch.from_numpy(np.flatnonzero(keep))])
-        return np.where(last >= 0, last + 1, count)
+        whole = kept_every_draft(rr, rr_c, tok_c, drafts_c, self.B) | (last < 0)
+        return np.where(whole, count, last + 1)
 
     def _draw_ahead(self, w: Window, hidden: torch.Tensor, where: np.ndarray, slots: np.ndarray) -> None:
         """Draw next-step drafts (unguarded, each with its own number of the next step) for the controlled

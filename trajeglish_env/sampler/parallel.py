@@ -87,6 +87,19 @@ def look_ahead_pays(rows: int, agents: int, sampled: int) -> bool:
     return positions > 0 and positions * positions <= LOOK_AHEAD_MAX_POSITIONS * sampled
 
 
+def kept_every_draft(
+    rr: np.ndarray, rr_c: np.ndarray, tokens: np.ndarray, draft: np.ndarray, rows: int
+) -> np.ndarray:
+    """``[rows]`` rows of a parallel call whose every sampled pair (rows ``rr``) was checked (``rr_c``: the
+    pairs the guard saw, all of them without it) and kept its draft (``tokens`` drawn, ``draft`` carried):
+    every position of their chunk is then exact, the known ones after the last pair too (their inputs are
+    decided tokens), so the whole chunk is decided, not only up to its last pair."""
+    pairs = np.bincount(rr, minlength=rows)
+    checked = np.bincount(rr_c, minlength=rows)
+    missed = np.bincount(rr_c[tokens != draft], minlength=rows)
+    return (pairs > 0) & (checked == pairs) & (missed == 0)
+
+
 def look_ahead_rows(
     count: np.ndarray,
     slot: np.ndarray,
