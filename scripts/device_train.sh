@@ -53,7 +53,8 @@
 #                  carried DATA_IN/vocab_extended_EXTEND.npz (`make device-vocab`) that extends INIT's
 #                  vocabulary to EXTEND tokens is used as it is (the extension is deterministic: half a
 #                  minute of the call saved)
-#   MAP_SELECT     frame | agents: a window's map chunks nearest its frame agent or any of its agents
+#   MAP_SELECT     frame | agents | ahead: a window's map chunks nearest its frame agent, any of its agents, or
+#                  those and where each drives to in 0.8 / 1.6 / 2.4 s
 #                  (`train --map-select`; with INIT it may differ from the checkpoint's) [the checkpoint's,
 #                  or frame]
 #   MAP_STRIDE     a map chunk takes every Nth point of its polyline (`train --map-stride`; 4: chunks 38 m
@@ -283,8 +284,8 @@ esac
 MAP_ARGS=()
 case $MAP_SELECT in
 '') ;;
-frame | agents) MAP_ARGS=(--map-select "$MAP_SELECT") ;;
-*) die "MAP_SELECT=$MAP_SELECT: expected frame or agents" ;;
+frame | agents | ahead) MAP_ARGS=(--map-select "$MAP_SELECT") ;;
+*) die "MAP_SELECT=$MAP_SELECT: expected frame, agents or ahead" ;;
 esac
 case $MAP_STRIDE in
 '') ;;

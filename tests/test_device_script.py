@@ -254,7 +254,7 @@ def test_a_new_run_can_train_on_a_vocabulary_fitted_on_its_scenes(tmp_path: Path
     bad = _job(tmp_path, "vb", VOCAB="big")
     assert bad.returncode == 2 and "VOCAB=big: expected a number of tokens" in bad.stdout
     bad_map = _job(tmp_path, "vm", MAP_SELECT="lanes")
-    assert bad_map.returncode == 2 and "MAP_SELECT=lanes: expected frame or agents" in bad_map.stdout
+    assert bad_map.returncode == 2 and "MAP_SELECT=lanes: expected frame, agents or ahead" in bad_map.stdout
     bad_stride = _job(tmp_path, "vs", MAP_STRIDE="0")
     assert bad_stride.returncode == 2 and "MAP_STRIDE=0: expected a whole number >= 1" in bad_stride.stdout
     bad_closed = _job(tmp_path, "vc", CLOSED_LOOP="-1")

@@ -210,8 +210,9 @@ def add_map_args(p: argparse.ArgumentParser) -> None:
         "--map-select",
         choices=MAP_SELECT,
         help="map chunks of a window: nearest its frame agent ('frame', the default) "
-        "or nearest any of its agents ('agents': every agent sees the road near it); with --init, the "
-        "checkpoint's",
+        "or nearest any of its agents ('agents': every agent sees the road near it), or nearest any of "
+        "them and where each would be 0.8 / 1.6 / 2.4 s on at its speed and turn rate ('ahead': the road "
+        "the agents drive onto); with --init, the checkpoint's",
     )
     p.add_argument(
         "--map-stride",

@@ -19,7 +19,7 @@ class Variant(str, Enum):
         return self is not Variant.NO_MAP
 
 
-MAP_SELECT = ("frame", "agents")  # see ModelConfig.map_select
+MAP_SELECT = ("frame", "agents", "ahead")  # see ModelConfig.map_select
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,11 @@ class ModelConfig:
 
     ``map_select``: which ``max_polylines`` map chunks a window holds: ``"frame"`` those nearest the
     window's frame agent (the default; 64 chunks of 20 points at 0.5 m reach only 26-49 m, so
-    agents farther away see no map), ``"agents"`` those nearest to any of the window's agents.
+    agents farther away see no map), ``"agents"`` those nearest to any of the window's agents, ``"ahead"``
+    those nearest to any of them or to where each would be 0.8, 1.6 and 2.4 s on at its speed and turn
+    rate of the window's first step (:func:`~trajeglish_env.model.map_chunks.ahead_anchors`: the same
+    chunks spent on the road the agents drive onto; a median vehicle's next 2.4 s on highway-env lie on
+    shown lanes 0.90 of the way against 0.47).
 
     ``map_stride``: a chunk takes every ``map_stride``-th point of its polyline (and its last): 1 (the
     shipped model's) gives 20 points at the maps' 0.5 m, a chunk 9.5 m long, so 64 chunks show a vehicle

@@ -167,6 +167,36 @@ def signal_classes(scenario: Scenario, chunks: MapChunks, step: int) -> np.ndarr
     return out
 
 
+AHEAD_STEPS = (8, 16, 24)  # map_select="ahead": anchors this many 0.1 s steps on
+
+
+def ahead_anchors(now: np.ndarray, prev: np.ndarray, prev_ok: np.ndarray) -> np.ndarray:
+    """``[n * (1 + len(AHEAD_STEPS)), 2]`` world xy for ``map_select="ahead"``: the agents' positions
+    ``now [n,3]`` and where each would be :data:`AHEAD_STEPS` steps on at the speed and turn rate of its move
+    from ``prev [n,3]`` (one step before; where ``prev_ok [n]`` is False, where it stands)."""
+    now, prev = np.asarray(now, np.float64), np.asarray(prev, np.float64)
+    step = np.where(prev_ok[:, None], now[:, :2] - prev[:, :2], 0.0)
+    speed = np.hypot(step[:, 0], step[:, 1])  # m a step
+    turn = np.where(prev_ok, np.angle(np.exp(1j * (now[:, 2] - prev[:, 2]))), 0.0)  # rad a step
+    k = np.arange(max(AHEAD_STEPS))
+    heading = now[:, 2, None] + turn[:, None] * k[None]  # [n,K] the heading of each step's move
+    moves = speed[:, None, None] * np.stack([np.cos(heading), np.sin(heading)], -1)
+    path = now[:, None, :2] + np.cumsum(moves, axis=1)  # [n,K,2] after 1..K steps
+    picked = path[:, np.asarray(AHEAD_STEPS) - 1]  # [n,H,2]
+    return np.concatenate([now[:, :2], picked.transpose(1, 0, 2).reshape(-1, 2)]).astype(np.float64)
+
+
+def map_anchors(map_select: str, now: np.ndarray, prev: np.ndarray, prev_ok: np.ndarray) -> np.ndarray | None:
+    """The ``anchors`` of :func:`nearest_chunks` for ``ModelConfig.map_select``: None (``"frame"``), the
+    agents' positions ``now [n,3]`` (``"agents"``), or those and the road ahead (``"ahead"``,
+    :func:`ahead_anchors` from their states ``prev [n,3]`` one step before, known where ``prev_ok``)."""
+    if map_select == "frame":
+        return None
+    if map_select == "agents":
+        return now[:, :2]
+    return ahead_anchors(now, prev, prev_ok)
+
+
 def nearest_chunks(
     chunks: MapChunks,
     origin: np.ndarray,

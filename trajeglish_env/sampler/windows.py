@@ -13,7 +13,7 @@ import torch
 
 from trajeglish_env.geometry import to_local
 from trajeglish_env.model.layers import DecoderCache
-from trajeglish_env.model.map_chunks import MapChunks, chunk_map, nearest_chunks, signal_classes
+from trajeglish_env.model.map_chunks import MapChunks, chunk_map, map_anchors, nearest_chunks, signal_classes
 from trajeglish_env.model.masks import START, input_shift
 from trajeglish_env.model.neighbours import OWN_FEATURES, PAIR_FEATURES, NeighbourView, neighbour_view
 from trajeglish_env.model.network import SceneInputs, TrajeglishModel
@@ -266,6 +266,8 @@ class WindowedRows(RowStates):
         seg = self.valid[r_ix, idx] & window[:, None]  # [r, A, T]
         first = np.where(seg.any(-1), np.argmax(seg, axis=-1), s0[:, None])
         init = self.mxyh[r_ix, idx, first]
+        prior = np.maximum(first - 1, 0)  # the step before: the agents' speed and turn rate ("ahead" map)
+        before, before_ok = self.mxyh[r_ix, idx, prior], self.valid[r_ix, idx, prior] & (first > 0)
         cseg = self.valid[rows, centres] & (steps[None] >= s0[:, None])
         cfirst = np.where(cseg.any(-1), np.argmax(cseg, axis=-1), s0)
         frames = self.mxyh[rows, centres, cfirst]
@@ -280,7 +282,7 @@ class WindowedRows(RowStates):
             chunks, sc = self.chunks[b], self.scenes[b]
             # the signals at the window's first step, as in training (read only by models with signal_input)
             signal = signal_classes(sc, chunks, int(s0[i])) if c.signal_input and sc is not None else None
-            anchors = init[i, real[i], :2] if c.map_select == "agents" else None
+            anchors = map_anchors(c.map_select, init[i, real[i]], before[i, real[i]], before_ok[i, real[i]])
             pts[i], pmask[i], mkind[i], mmask[i], msignal[i] = nearest_chunks(
                 chunks, frames[i], c.max_polylines, MAP_RADIUS, signal, anchors
             )
