@@ -16,7 +16,7 @@ import numpy as np
 
 from trajeglish_env.geometry import to_local
 from trajeglish_env.model.config import ModelConfig
-from trajeglish_env.model.map_chunks import chunk_map, map_anchors, nearest_chunks
+from trajeglish_env.model.map_chunks import chunk_map, nearest_chunks, scene_anchors
 from trajeglish_env.scenario import LANE_KINDS, AgentKind, Scenario, scene_kind
 
 STEPS_PER_SECOND = 10
@@ -63,13 +63,7 @@ def vehicle_coverage(
     live = np.flatnonzero(scene.valid[:, t0])
     gap = np.hypot(*(scene.xyh[live, t0, :2] - frame[:2]).T)
     chosen = live[np.argsort(gap, kind="stable")[: cfg.max_agents]]
-    before = max(t0 - 1, 0)
-    anchors = map_anchors(
-        cfg.map_select,
-        scene.xyh[chosen, t0],
-        scene.xyh[chosen, before],
-        scene.valid[chosen, before] & (t0 > 0),
-    )
+    anchors = scene_anchors(cfg.map_select, scene, chosen, t0)
     chunks = chunk_map(scene, cfg.points_per_polyline, cfg.map_stride)
     points, point_mask, kind, mask, _ = nearest_chunks(
         chunks, frame, cfg.max_polylines, config.map_radius, anchors=anchors

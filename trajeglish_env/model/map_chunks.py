@@ -197,6 +197,13 @@ def map_anchors(map_select: str, now: np.ndarray, prev: np.ndarray, prev_ok: np.
     return ahead_anchors(now, prev, prev_ok)
 
 
+def scene_anchors(map_select: str, scene: Scenario, agents: np.ndarray, step: int) -> np.ndarray | None:
+    """:func:`map_anchors` of a scene's logged ``agents`` at ``step`` (their moves from the step before)."""
+    before = max(step - 1, 0)
+    ok = scene.valid[agents, before] & (step > 0)
+    return map_anchors(map_select, scene.xyh[agents, step], scene.xyh[agents, before], ok)
+
+
 def nearest_chunks(
     chunks: MapChunks,
     origin: np.ndarray,

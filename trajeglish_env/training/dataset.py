@@ -22,7 +22,13 @@ from torch.utils.data import Dataset
 from trajeglish_env.geometry import to_local
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.lanes import road_points_of, window_road_source, window_road_view
-from trajeglish_env.model.map_chunks import MapChunks, chunk_map, map_anchors, nearest_chunks, signal_classes
+from trajeglish_env.model.map_chunks import (
+    MapChunks,
+    chunk_map,
+    nearest_chunks,
+    scene_anchors,
+    signal_classes,
+)
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import list_scenario_files, load_scenarios
 
@@ -173,13 +179,7 @@ def make_window(
 
     chunks = _chunks_for(scene, c.points_per_polyline, c.map_stride)
     signal = signal_classes(scene, chunks, start)
-    before = max(start - 1, 0)
-    anchors = map_anchors(
-        c.map_select,
-        scene.xyh[chosen, start],
-        scene.xyh[chosen, before],
-        scene.valid[chosen, before] & (start > 0),
-    )
+    anchors = scene_anchors(c.map_select, scene, chosen, start)
     pts, pmask, mkind, mmask, msignal = nearest_chunks(
         chunks, frame, c.max_polylines, c.map_radius, signal, anchors
     )
