@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from helpers import bundle_scene, tiny
+from helpers import bundle_scene, tiny, tiny_kwargs
 
+import trajeglish_env
+from trajeglish_env.env.drivers import EngineRows
+from trajeglish_env.env.split import batched_ego_env
 from trajeglish_env.env.threads import AdaptiveThreads, auto_threads, cpu_seconds, threads_for
 from trajeglish_env.sampler import rollout
 
@@ -34,9 +37,9 @@ def test_the_policy_drops_to_one_thread_while_the_cores_are_busy(monkeypatch) ->
     monkeypatch.setattr(module, "usable_cores", lambda: 2)
     try:
         policy = AdaptiveThreads(num_scenes=32)
-        assert policy.threads == 2 and torch.get_num_threads() == 2
+        assert policy.threads == 2 and torch.get_num_threads() == before  # it decides, the env applies
         policy.tick()
-        assert policy.threads == 1 and torch.get_num_threads() == 1
+        assert policy.threads == 1
         policy.tick()
         assert policy.threads == 2
     finally:
@@ -60,7 +63,7 @@ def test_the_first_look_at_the_load_comes_after_a_quarter_second(monkeypatch) ->
         policy.tick()  # 0.1 s: not due yet
         assert policy.threads == 2
         policy.tick()  # 0.3 s: the first look finds a busy core
-        assert policy.threads == 1 and torch.get_num_threads() == 1
+        assert policy.threads == 1
         policy.tick()  # 1.0 s: the next look is 2 s after the first
         assert policy.threads == 1
         policy.tick()  # 2.4 s: the cores are free again
@@ -80,3 +83,41 @@ def test_the_thread_count_never_changes_a_token() -> None:
     finally:
         torch.set_num_threads(before)
     assert np.array_equal(outs[0], outs[1])
+
+
+def test_the_env_sets_its_threads_only_while_it_runs_the_model(monkeypatch) -> None:
+    """A learner in the same process keeps its own torch thread count: the env's count (one thread, or the
+    auto policy's) holds only inside its model calls."""
+    seen: list[int] = []
+    advance = EngineRows.advance
+
+    def recording(self, *args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return advance(self, *args, **kwargs)
+
+    monkeypatch.setattr(EngineRows, "advance", recording)
+    before = torch.get_num_threads()
+    torch.set_num_threads(3)  # the caller's count, unlike any the envs pick here
+    try:
+        env = trajeglish_env.env(scenes=[bundle_scene("highway-exit-999001")], **tiny_kwargs(max_cycles=3))
+        env.reset(seed=0)
+        assert torch.get_num_threads() == 3
+        for agent in env.agent_iter():
+            env.step(
+                None
+                if env.terminations[agent] or env.truncations[agent]
+                else env.action_space(agent).sample()
+            )
+            assert torch.get_num_threads() == 3
+        env.close()
+        assert seen and set(seen) == {1}  # EnvConfig.torch_threads = 1 inside the model calls
+        seen.clear()
+        batch = batched_ego_env(4, scenes=[bundle_scene("highway-exit-999001")], processes=1, **tiny_kwargs())
+        batch.reset(seed=0)
+        batch.step(np.zeros((4, 2), np.float32))
+        assert torch.get_num_threads() == 3 and set(seen) == {
+            batch.core.batch.threads.threads
+        }  # the auto policy's count
+        batch.close()
+    finally:
+        torch.set_num_threads(before)

@@ -141,8 +141,9 @@ class EnvConfig:
       (:class:`trajeglish_env.env.npc.NPCPolicy`).
     action / observation: one of :data:`ACTION_TYPES` / :data:`OBSERVATION_TYPES`.
     max_cycles: steps per episode (None: the rest of the scene's log).
-    torch_threads: torch intra-op threads set when the model is used (1: small decoding calls are far
-      faster single-threaded, and vectorized envs get one thread per worker); None leaves torch alone.
+    torch_threads: torch intra-op threads while the env runs the model (1: small decoding calls are far
+      faster single-threaded, and vectorized envs get one thread per worker); the caller's count is back
+      after every env call; None leaves torch alone.
     """
 
     external: str | tuple[int, ...] | RandomAgents = "sdc"

@@ -23,7 +23,7 @@ from trajeglish_env.env.drivers import EngineRows, NPCRows, RuleRows
 from trajeglish_env.env.npc import NPCPolicy, make_npc_policy
 from trajeglish_env.env.observations import EgoState
 from trajeglish_env.env.simulation import AgentReport, Roles, Simulation, apply_actions, episode_horizon
-from trajeglish_env.env.threads import AdaptiveThreads
+from trajeglish_env.env.threads import AdaptiveThreads, torch_threads_scope
 from trajeglish_env.scenario import Scenario
 
 
@@ -75,7 +75,8 @@ def trajeglish_settings(spec: object) -> TrajeglishNPC | None:
 class SceneBatch:
     """``num_scenes`` scene rows under one NPC driver (see the module docstring). ``torch_threads``: an
     int, None to leave torch alone, or ``"auto"`` (:class:`~trajeglish_env.env.threads.AdaptiveThreads`:
-    several threads for big batches, one while other processes compete for the cores)."""
+    several threads for big batches, one while other processes compete for the cores). The count holds
+    only while the batch runs the model: the caller's torch work keeps the caller's setting."""
 
     def __init__(self, num_scenes: int, config: EnvConfig, torch_threads: int | str | None = None):
         if not isinstance(num_scenes, (int, np.integer)) or num_scenes < 1:
@@ -98,6 +99,7 @@ class SceneBatch:
 
             self.vocabulary = load_default_tokenizer()
         self.threads: AdaptiveThreads | None = None
+        self._fixed_threads: int | None = None  # the count when it does not adapt (None: torch left alone)
         self.rows = self._make_rows(torch_threads)
         self.geometry = BatchGeometry()
         self.sims: list[Simulation | None] = [None] * self.num_scenes
@@ -108,8 +110,6 @@ class SceneBatch:
             return RuleRows(
                 self.num_scenes, (lambda: make_npc_policy(npc)) if isinstance(npc, str) else lambda: npc
             )
-        import torch
-
         from trajeglish_env.env.engine_shards import ShardedEngineRows, engine_shards
         from trajeglish_env.sampler.engine import BatchEngine
 
@@ -126,12 +126,12 @@ class SceneBatch:
         device = str(next(self.checkpoint.model.parameters()).device)  # type: ignore[union-attr]
         shards = engine_shards(self.num_scenes, torch_threads, device)
         if shards > 1:  # two shards in threads of one torch thread each, instead of two torch threads
-            torch.set_num_threads(1)
+            self._fixed_threads = 1
             return ShardedEngineRows(make_engine, self.num_scenes, shards, first, entering)
         if torch_threads == "auto":
             self.threads = AdaptiveThreads(self.num_scenes)
         elif torch_threads is not None:
-            torch.set_num_threads(int(torch_threads))
+            self._fixed_threads = int(torch_threads)
         return EngineRows(make_engine(self.num_scenes), externals_first=first, entering=entering)
 
     # ------------------------------------------------------------------ scenes
@@ -141,9 +141,10 @@ class SceneBatch:
         roles = Roles.draw(scenario, self.config, rng)
         horizon = episode_horizon(scenario, self.config)
         self._check_horizon(scenario, horizon)
-        row = self.rows.start(
-            scene, scenario, roles.mask(scenario.num_agents), horizon, roles.priority, roles.seed
-        )
+        with self.torch_threads():
+            row = self.rows.start(
+                scene, scenario, roles.mask(scenario.num_agents), horizon, roles.priority, roles.seed
+            )
         sim = self.sims[scene] = Simulation(scenario, self.config, self.vocabulary, roles, row, horizon)
         return sim
 
@@ -161,6 +162,10 @@ class SceneBatch:
                 f"the {limit} steps of its log after the current index; use npc='trajeglish' or "
                 "'constant_velocity' for episodes longer than the log"
             )
+
+    def torch_threads(self) -> Any:
+        """A context in which torch runs the batch's thread count (the caller's count again after it)."""
+        return torch_threads_scope(self.threads.threads if self.threads is not None else self._fixed_threads)
 
     def stop(self, scene: int) -> None:
         """Row ``scene`` has no agents left: it stops stepping until it is started again."""
@@ -180,16 +185,17 @@ class SceneBatch:
         """Let the NPCs act until every stepping scene waits for a live external agent: ``(scenes,
         agents)``, one per waiting scene; None once the step is complete in every scene. Retired external
         agents are taken out of the scene when their turn comes."""
-        while True:
-            waiting = self.rows.advance()
-            if waiting is None:
-                return None
-            scenes, agents = waiting
-            retired = np.array([self.sims[s].retired[a] for s, a in zip(scenes, agents, strict=True)])  # type: ignore[union-attr]
-            if not retired.any():
-                return scenes, agents
-            gone = int(retired.sum())
-            self.rows.supply(scenes[retired], agents[retired], np.zeros((gone, 3)), np.zeros(gone, bool))
+        with self.torch_threads():
+            while True:
+                waiting = self.rows.advance()
+                if waiting is None:
+                    return None
+                scenes, agents = waiting
+                retired = np.array([self.sims[s].retired[a] for s, a in zip(scenes, agents, strict=True)])  # type: ignore[union-attr]
+                if not retired.any():
+                    return scenes, agents
+                gone = int(retired.sum())
+                self.rows.supply(scenes[retired], agents[retired], np.zeros((gone, 3)), np.zeros(gone, bool))
 
     def supply(self, scenes: Sequence[int], agents: Sequence[int], actions: Sequence[Any]) -> None:
         """Apply (already validated) actions of external agents ``agents[i]`` of scenes ``scenes[i]``."""
@@ -197,12 +203,13 @@ class SceneBatch:
             return
         sims = [self.sim(s) for s in scenes]
         nxt = apply_actions(sims, agents, actions)
-        self.rows.supply(
-            np.asarray(scenes, dtype=np.int64),
-            np.asarray(agents, dtype=np.int64),
-            nxt,
-            np.ones(len(scenes), bool),
-        )
+        with self.torch_threads():
+            self.rows.supply(
+                np.asarray(scenes, dtype=np.int64),
+                np.asarray(agents, dtype=np.int64),
+                nxt,
+                np.ones(len(scenes), bool),
+            )
 
     def play(self, scenes: Sequence[int], agents: Sequence[int], actions: Sequence[Any]) -> None:
         """Finish the current step of every stepping scene, each external agent acting with its action from
@@ -216,13 +223,14 @@ class SceneBatch:
         given = np.zeros((self.num_scenes, n), dtype=bool)
         states[list(scenes), list(agents)] = nxt
         given[list(scenes), list(agents)] = True
-        while (waiting := self.advance()) is not None:
-            rows, who = waiting
-            missing = ~given[rows, who]
-            if missing.any():
-                s, a = int(rows[missing][0]), int(who[missing][0])
-                raise RuntimeError(f"scene {s}: no action was given for {self.sim(s).names[a]}")
-            self.rows.supply(rows, who, states[rows, who], np.ones(len(rows), bool))
+        with self.torch_threads():
+            while (waiting := self.advance()) is not None:
+                rows, who = waiting
+                missing = ~given[rows, who]
+                if missing.any():
+                    s, a = int(rows[missing][0]), int(who[missing][0])
+                    raise RuntimeError(f"scene {s}: no action was given for {self.sim(s).names[a]}")
+                self.rows.supply(rows, who, states[rows, who], np.ones(len(rows), bool))
 
     def finish(self, scenes: Sequence[int]) -> list[dict[str, AgentReport]]:
         """Score the step just completed in ``scenes`` (their geometry in one pass): per scene, the reports

@@ -2,11 +2,15 @@
 one as soon as other processes compete for the cores (multi-threaded small decoding calls spin-wait and
 collapse on a shared machine: measured 4-9x slower than one thread with one other busy process).
 
-The thread count never changes a sampled token (tested), so it may change between steps."""
+The thread count never changes a sampled token (tested), so it may change between steps. An env applies its
+count only while it runs the model (:func:`torch_threads_scope`): the caller's own torch work (a learner in
+the same process) keeps the caller's setting."""
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from trajeglish_env.cores import cpu_seconds, threads_for, usable_cores
 
@@ -17,6 +21,7 @@ __all__ = [
     "auto_threads",
     "cpu_seconds",
     "threads_for",
+    "torch_threads_scope",
     "usable_cores",
 ]
 
@@ -35,21 +40,36 @@ def auto_threads(num_scenes: int, cores: int | None = None) -> int:
     return max(1, min(cores or usable_cores(), max(2, num_scenes // 4)))
 
 
+@contextmanager
+def torch_threads_scope(threads: int | None) -> Iterator[None]:
+    """Torch runs ``threads`` intra-op threads inside the block and the caller's count again after it
+    (None: torch is left alone). Setting the count costs well under a microsecond."""
+    if threads is None:
+        yield
+        return
+    import torch
+
+    before = torch.get_num_threads()
+    if before != threads:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != before:
+            torch.set_num_threads(before)
+
+
 class AdaptiveThreads:
     """The ``"auto"`` policy: :func:`auto_threads` threads while the cores are free for this process,
     fewer (down to one) while other processes keep them busy; checked :data:`FIRST_CHECK_S` seconds after
     it starts, then every ``every_s`` seconds of stepping, from the machine's CPU time minus this
-    process's own."""
+    process's own. It decides ``threads``; the env applies it in a :func:`torch_threads_scope`."""
 
     def __init__(self, num_scenes: int, every_s: float = CHECK_EVERY_S):
-        import torch
-
-        self._torch = torch
         self.cores = usable_cores()
         self.wanted = auto_threads(num_scenes, self.cores)
         self.every_s = every_s
         self.threads = self.wanted
-        torch.set_num_threads(self.threads)
         self._mark = (time.perf_counter(), cpu_seconds())
         self._interval = min(FIRST_CHECK_S, every_s)
 
@@ -65,7 +85,5 @@ class AdaptiveThreads:
         if cpu is not None and then[1] is not None:
             others = ((cpu[0] - then[1][0]) - (cpu[1] - then[1][1])) / (now - then[0])
             threads = threads_for(max(others, 0.0), self.wanted, self.cores)
-            if threads != self.threads:
-                self.threads = threads
-                self._torch.set_num_threads(threads)
+            self.threads = threads
         self._mark = (now, cpu)
