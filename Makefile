@@ -1,16 +1,19 @@
 # Two commands do all the set-up on a fresh machine: `make demo` and `make test`.
-# torch comes from the local CPU build pinned in constraints.txt (no CUDA downloads).
+# torch is the CPU build pinned in constraints.txt (this machine's pip finds it locally; elsewhere TORCH_INDEX).
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP_FLAGS ?= -q --disable-pip-version-check
+# where pip finds a CPU build of torch when its own configuration has none (on Linux PyPI's torch pulls
+# several GB of CUDA packages): make demo TORCH_INDEX=https://download.pytorch.org/whl/cpu
+TORCH_INDEX ?=
 STAMP := $(VENV)/.installed
 
 .PHONY: venv demo test lint format bench clean device-wheels device-sumo-scenes device-vocab device-keep
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install $(PIP_FLAGS) -c constraints.txt -e ".[dev,sumo]"
+	$(PY) -m pip install $(PIP_FLAGS) $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX)) -c constraints.txt -e ".[dev,sumo]"
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -15,17 +15,20 @@ from pathlib import Path
 from typing import Any
 
 from policies import IDMPolicy, play_episode
+from trajeglish_env.benchmark.womd import locate_womd
 from trajeglish_env.env import TrajeglishNPC, raw_env
 from trajeglish_env.sources.womd import read_womd
-
-SHARED_SAMPLE = Path(__file__).resolve().parents[2] / "shared/data/womd/motion_data_one_scenario.tfrecord"
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--tfrecord", default=str(SHARED_SAMPLE), help="WOMD scenario TFRecord")
+    parser.add_argument(
+        "--tfrecord",
+        help="WOMD scenario TFRecord (default: the shared sample, found under $TRAJEGLISH_SHARED, else in "
+        "a shared/ folder beside the checkout or the current directory)",
+    )
     parser.add_argument(
         "--npc", default="trajeglish", choices=("trajeglish", "idm", "replay", "constant_velocity")
     )
@@ -36,9 +39,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--out", default="out/womd_scene.gif")
     parser.add_argument("--smoke", action="store_true", help="6 steps, a small video")
     args = parser.parse_args(argv)
-    path = Path(args.tfrecord)
-    if not path.is_file():
-        raise SystemExit(f"{path}: no such WOMD TFRecord (pass --tfrecord)")
+    path = locate_womd(args.tfrecord)
+    if not isinstance(path, Path):
+        raise SystemExit(path.replace("--womd", "--tfrecord"))
     scene = next(read_womd(path))
     npc = TrajeglishNPC(args.checkpoint) if args.npc == "trajeglish" else args.npc
     env = raw_env(

@@ -88,6 +88,14 @@ def test_tokenizer_fit_and_eval_commands(tmp_path, capsys) -> None:
     table = json.dumps(_json(capsys))
     for method in ("k-disks", "k-means", "xyh-grid", "xy-grid"):
         assert method in table
+    # too few scenes to hold any out: one line naming the count and the way out, not zip()'s complaint
+    save_scenarios(tmp_path / "few" / "a.scn.npz", [generate_scene("two-way", s) for s in range(3)])
+    assert main([*args[:3], str(tmp_path / "few"), *args[4:], "--trials", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "no held-out scenes" in err and "holds 3 scenes" in err and "--fit-data" in err
+    with pytest.MonkeyPatch.context() as mp, pytest.raises(ValueError, match="no held-out scenes"):
+        mp.setenv("TRAJEGLISH_TRACEBACK", "1")  # the traceback of bad input, when asked for
+        main([*args[:3], str(tmp_path / "few"), *args[4:], "--trials", "1", "--quiet"])
 
 
 def test_rollout_and_nll_commands_with_the_shipped_model(tmp_path, capsys) -> None:

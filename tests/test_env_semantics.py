@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -155,6 +156,29 @@ def test_reset_picks_scenes_by_seed_index_or_id() -> None:
     assert len(picks) == 3
     with pytest.raises(KeyError, match="no scene with scenario_id 'nope'"):
         e.reset(options={"scene": "nope"})
+    with pytest.warns(UserWarning, match=r"reset options: 'scnee' ignored; the env reads only 'scene'"):
+        e.reset(seed=0, options={"scnee": 1})  # a misspelt option is said (PettingZoo's tests pass others)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        e.reset(seed=0, options={})  # what vectorized envs pass without options: no warning
+    assert e.scenario.scenario_id in picks
+
+
+def test_reset_infos_hold_the_step_info_keys() -> None:
+    """The first ``env.last()`` of an AEC loop (and a parallel reset) already has every info key."""
+    from trajeglish_env.env import parallel_env
+
+    e = raw_env(small_scenes(), npc="replay")
+    e.reset(seed=0)
+    *_, info = e.last()
+    assert info == {
+        "collision": False, "offroad": False, "goal": False, "progress_m": 0.0, "route_fraction": 0.0,
+        "collision_steps": 0, "offroad_steps": 0,
+    }  # fmt: skip
+    e.step(e.action_space(e.agent_selection).sample())
+    assert set(e.infos[e.possible_agents[0]]) == set(info)
+    _, infos = parallel_env(small_scenes(), npc="replay").reset(seed=0)
+    assert all(v == info for v in infos.values())
 
 
 def test_collision_terminates_and_the_agent_leaves_the_scene() -> None:

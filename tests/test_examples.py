@@ -8,8 +8,9 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
-from helpers import REPO, tiny_checkpoint
+from helpers import REPO, shared_file, tiny_checkpoint
 
+from trajeglish_env.benchmark.womd import SHARED_FILE as WOMD_SAMPLE
 from trajeglish_env.checkpoint import save_checkpoint
 from trajeglish_env.cli import main as cli_main
 
@@ -56,7 +57,9 @@ def test_partial_control_eval_smoke(tiny_model: Path) -> None:
     assert results["replay/first"]["collision_rate"] == 0.0  # the log never collides with the ego's log path
 
 
-def test_womd_scene_smoke(tmp_path: Path) -> None:
+def test_womd_scene_smoke(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the default sample is found as bench finds it: $TRAJEGLISH_SHARED first (a clone anywhere works)
+    monkeypatch.setenv("TRAJEGLISH_SHARED", str(shared_file(WOMD_SAMPLE).parents[2]))
     out = example("womd_scene").main(["--smoke", "--npc", "idm", "--out", str(tmp_path / "w.gif")])
     assert out["agents"] == 83 and out["steps"] == 6 and Path(out["video"]).is_file()
 

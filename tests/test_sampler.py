@@ -87,6 +87,18 @@ def test_rollouts_are_deterministic_and_respect_control() -> None:
     np.testing.assert_allclose(step, a.xyh[:, 0, cur + 4], atol=1e-9)
 
 
+def test_rollout_takes_a_checkpoint_file_or_the_shipped_name(tmp_path) -> None:
+    from trajeglish_env.checkpoint import save_checkpoint
+
+    sc, ckpt, cfg = straight_road_scene(num_agents=3, steps=30), tiny_checkpoint(), SamplingConfig(seed=1)
+    path = save_checkpoint(tmp_path / "tiny.pt", ckpt.model, ckpt.vocabulary)
+    from_file = rollout(str(path), sc, rollouts=2, horizon=4, config=cfg)
+    np.testing.assert_array_equal(from_file.xyh, rollout(ckpt, sc, rollouts=2, horizon=4, config=cfg).xyh)
+    assert rollout("shipped", sc, rollouts=1, horizon=2).xyh.shape == (1, 3, sc.current_index + 3, 3)
+    with pytest.raises(TypeError, match="a Checkpoint, a checkpoint file or 'shipped'"):
+        rollout(None, sc)  # type: ignore[arg-type]
+
+
 def test_rollouts_split_over_processes_are_the_rollouts_of_one_process(monkeypatch) -> None:
     """Rollouts 0..4 in chunks 0-2 (here) and 3-4 (a forked worker) are those of one engine, bit for bit;
     the torch thread count is restored; a bad process count is refused."""

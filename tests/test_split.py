@@ -249,6 +249,9 @@ def test_split_parallel_env_plays_exactly_what_one_process_plays() -> None:
         with pytest.raises(ValueError, match=r"scene indices \[5\] out of range for 5 scenes"):
             split.reset_scenes([5])
         assert [len(p) for p in split.apply(_scene_count)] == [2, 3]
+        with pytest.raises(TypeError, match="must pickle to reach the worker processes"):
+            split.apply(lambda env: env)  # said before anything is sent, the workers go on
+        assert [len(p) for p in split.apply(_scene_count)] == [2, 3]
     finally:
         split.close()
     assert all(not w.is_alive() for w in split.workers.workers)

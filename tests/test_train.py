@@ -116,7 +116,7 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
     a, b = _weights(tmp_path / "a" / "model.pt"), _weights(tmp_path / "b" / "model.pt")
     for k in a:
         torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, msg=f"parameter {k} differs after resume")
-    with pytest.raises(CheckpointError, match="it was trained with"):
+    with pytest.raises(CheckpointError, match=r"other settings than requested now \(lr: 0\.\d+ -> 0\.001\)"):
         train(
             scenes_dir,
             tmp_path / "b",
@@ -126,6 +126,23 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
             resume=True,
             progress=False,
         )
+    # a new run into a folder that holds one is refused (its checkpoint untouched) unless asked to overwrite
+    kept = (tmp_path / "b" / "last.pt").read_bytes()
+    with pytest.raises(FileExistsError, match=r"holds a run .*--resume to continue it, --overwrite"):
+        train(
+            scenes_dir, tmp_path / "b", tiny_config(), _quick(), vocabulary=grid_vocabulary(), progress=False
+        )
+    assert (tmp_path / "b" / "last.pt").read_bytes() == kept
+    again = train(
+        scenes_dir,
+        tmp_path / "b",
+        tiny_config(),
+        _quick(steps=2),
+        vocabulary=grid_vocabulary(),
+        progress=False,
+        overwrite=True,
+    )
+    assert again["resumed_from"] == 0 and again["steps"] == 2
 
 
 def _free_port() -> int:
@@ -212,6 +229,14 @@ def test_checkpoint_round_trip_and_clear_errors(tmp_path) -> None:
         save_checkpoint(tmp_path / "bad.pt", model, small)
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         load_checkpoint(tmp_path / "missing.pt")
+    with pytest.raises(FileNotFoundError, match="no such checkpoint"):  # either except catches a missing file
+        load_checkpoint(tmp_path / "missing.pt")
+    with pytest.raises(FileNotFoundError, match="a directory, not a checkpoint file"):
+        load_checkpoint(tmp_path)
+    from trajeglish_env.scenario_io import load_scenarios
+
+    with pytest.raises(FileNotFoundError, match=r"a directory, not a scenario file \(\*\.scn\.npz\)"):
+        load_scenarios(tmp_path)
 
 
 def test_curves_command_overlays_runs_and_rejects_bad_files(tmp_path, capsys) -> None:

@@ -13,7 +13,14 @@ import numpy as np
 import pytest
 import torch
 import torch.multiprocessing as mp
-from helpers import grid_vocabulary, small_womd_records, tiny_config, write_tfrecord
+from helpers import (
+    grid_vocabulary,
+    queue_scene,
+    small_womd_records,
+    tiny_config,
+    womd_submission,
+    write_tfrecord,
+)
 
 import trajeglish_env.submission_export as export_module
 from trajeglish_env.checkpoint import load_checkpoint, save_checkpoint
@@ -22,7 +29,7 @@ from trajeglish_env.metrics import score_rollouts
 from trajeglish_env.metrics.log_details_io import details_path, load_log_details
 from trajeglish_env.metrics.submission import read_submission, read_submission_metadata
 from trajeglish_env.model import TrajeglishModel
-from trajeglish_env.scenario_io import load_scenarios
+from trajeglish_env.scenario_io import load_scenarios, save_scenarios
 from trajeglish_env.submission_export import ExportConfig, sample_scenario
 
 ROLLOUTS = "2"  # tiny settings (the README's run has WOSAC's 32)
@@ -210,7 +217,9 @@ def test_bad_inputs_fail_with_one_line(root: Path, tmp_path: Path, capsys) -> No
     assert main(["convert-womd", *inputs, "--out", shards, "--quiet"]) == 0
     export = ["export-submission", "--data", shards, "--ckpt", str(root / "tiny.pt"), "--quiet"]
     assert main([*export, "--out", sub, *METADATA, "--rollouts", "1", "--steps", "1"]) == 0  # quick
-    capsys.readouterr()
+    assert (
+        "--steps 1: WOSAC and score-submission need 80 steps" in capsys.readouterr().err
+    )  # said, not silent
     cases = {
         "missing or invalid: account_name (--account-name)": [*export, "--out", str(tmp_path / "a")],
         "num_model_parameters '1.5M' must be": [
@@ -250,6 +259,15 @@ def test_bad_inputs_fail_with_one_line(root: Path, tmp_path: Path, capsys) -> No
             shards,
         ],
     }
+    other = tmp_path / "other"
+    save_scenarios(other / "queue.scn.npz", [queue_scene()])  # scenes the submission was not sampled on
+    cases["of the submission is not in the data (1 scenes in 1 files"] = [
+        "score-submission",
+        str(womd_submission()),
+        "--data",
+        str(other),
+        "--quiet",
+    ]
     for message, command in cases.items():
         assert main(command) == 2, command
         err = capsys.readouterr().err.strip().splitlines()

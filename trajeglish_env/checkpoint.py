@@ -35,6 +35,11 @@ class CheckpointError(ValueError):
     """A checkpoint file is missing, corrupt, of another format/version, or inconsistent."""
 
 
+class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
+    """No checkpoint file at the path (a directory is not one): both a CheckpointError and a
+    FileNotFoundError, so either ``except`` catches it."""
+
+
 @dataclass
 class Checkpoint:
     """A loaded checkpoint: the model (eval mode), its vocabulary and what training recorded."""
@@ -209,7 +214,8 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     """Read a checkpoint written by :func:`save_checkpoint`; the model is returned in eval mode."""
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
+        what = "a directory, not a checkpoint file" if path.is_dir() else "no such checkpoint file"
+        raise CheckpointNotFoundError(f"{path}: {what}")
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt/truncated/foreign files

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -152,6 +153,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
         init=init,
         time_limit=None if args.minutes is None else args.minutes * 60.0,
         fit_steps=args.fit_steps,
+        overwrite=args.overwrite,
     )
     result["_silent"] = not ranks.main  # under torchrun the main rank prints the run's result
     return result
@@ -343,6 +345,11 @@ def build_parser() -> argparse.ArgumentParser:
         "learned from the current states the model reads (needs --neighbour-input; default 0)",
     )
     p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="start a new run in an --out that holds one (without it, or --resume, that is refused)",
+    )
     add_budget_and_mix_args(p)
     p.add_argument(
         "--shard-cache",
@@ -412,12 +419,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``trajeglish`` console script; returns the process exit code.
 
     Bad input (:data:`USER_ERRORS`) is one line on stderr (and an ``error`` object on stdout with
-    ``--json``) and exit code 2; any other exception is a bug and propagates with its traceback.
+    ``--json``) and exit code 2; any other exception is a bug and propagates with its traceback. With
+    ``TRAJEGLISH_TRACEBACK=1`` bad input propagates too (to see where a ValueError came from).
     """
     args = build_parser().parse_args(argv)
     try:
         result = args.handler(args)
     except USER_ERRORS as exc:
+        if os.environ.get("TRAJEGLISH_TRACEBACK", "") not in ("", "0"):
+            raise
         message = one_line(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
         if getattr(args, "json", False):
             print(json.dumps({"error": message, "type": type(exc).__name__}))

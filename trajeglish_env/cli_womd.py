@@ -5,6 +5,7 @@ the main rank prints the merged result)."""
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -28,7 +29,7 @@ def cmd_export_submission(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.metrics.submission_metadata import SubmissionMetadata, format_parameter_count
     from trajeglish_env.sampler.config import SamplingConfig
     from trajeglish_env.sampler.rollouts import auto_processes
-    from trajeglish_env.submission_export import ExportConfig, export_submission
+    from trajeglish_env.submission_export import WOSAC_STEPS, ExportConfig, export_submission
 
     device = rank_device()
     ranks = init_ranks(device)
@@ -54,6 +55,12 @@ def cmd_export_submission(args: argparse.Namespace) -> dict[str, Any]:
     # one process per free core (looked at once), unless torchrun ranks share the machine's cores already
     processes = args.processes or (auto_processes(args.rollouts) if ranks.world == 1 else 1)
     config = ExportConfig(args.rollouts, args.steps, sampling, args.seed, args.prefix, processes)
+    if args.steps != WOSAC_STEPS and ranks.main:  # allowed (a quick try of the pipeline), never silently
+        print(
+            f"export-submission: warning: --steps {args.steps}: WOSAC and score-submission need "
+            f"{WOSAC_STEPS} steps after the current one; this submission cannot be scored",
+            file=sys.stderr,
+        )
     result = export_submission(
         args.data, ckpt, output_dir(args.out), metadata, config, not args.quiet and ranks.main, ranks
     )

@@ -114,7 +114,7 @@ def _read_shard(path: Path, header_only: bool) -> tuple[int, dict[str, np.ndarra
     Any failure of NumPy or zipfile becomes a :class:`ScenarioError` naming the file.
     """
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such scenario file")
+        raise FileNotFoundError(f"{path}: {_missing_file(path)}")
     try:
         data = np.load(path, allow_pickle=False)
         if not isinstance(data, np.lib.npyio.NpzFile):
@@ -138,7 +138,7 @@ def _scene_strings(path: str | os.PathLike[str], name: str) -> list[str]:
     """One string field of every scene of a file, read without loading the scenes."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such scenario file")
+        raise FileNotFoundError(f"{path}: {_missing_file(path)}")
     try:
         with np.load(path, allow_pickle=False) as data:
             return [str(data[f"{i}/{name}"]) for i in range(_check_header(path, data))]
@@ -197,3 +197,8 @@ def list_scenario_files(directory: str | os.PathLike[str]) -> list[Path]:
     if not directory.is_dir():
         raise FileNotFoundError(f"{directory}: no such scenario file or directory")
     return sorted(p for p in directory.rglob(f"*{SUFFIX}") if not p.name.startswith("."))
+
+
+def _missing_file(path: Path) -> str:
+    """Why a scenario file path is not one (an error message's)."""
+    return "a directory, not a scenario file (*.scn.npz)" if path.is_dir() else "no such scenario file"

@@ -55,12 +55,15 @@ __all__ = [
 MANIFEST = "export.json"
 
 
+WOSAC_STEPS = 80  # a submission's simulated steps after the current one (8 s at 10 Hz), what scoring needs
+
+
 @dataclass(frozen=True)
 class ExportConfig:
     """What to sample (WOSAC: 32 rollouts x 80 steps) and how, and the output files' ``prefix``."""
 
     rollouts: int = 32
-    steps: int = 80
+    steps: int = WOSAC_STEPS
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     seed: int = 0
     prefix: str = "submission"

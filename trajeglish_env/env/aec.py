@@ -106,7 +106,7 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         self._cumulative_rewards = dict.fromkeys(self.possible_agents, 0.0)
         self.terminations = dict.fromkeys(self.possible_agents, False)
         self.truncations = dict.fromkeys(self.possible_agents, False)
-        self.infos: dict[str, dict[str, Any]] = {a: {} for a in self.possible_agents}
+        self.infos: dict[str, dict[str, Any]] = {sim.names[i]: sim.agent_info(i) for i in sim.external_index}
         first = self.batch.advance()
         if first is None:  # no external agent acts (cannot happen: they are present at the current step)
             raise RuntimeError(f"scenario {scenario.scenario_id!r}: no external agent to act")

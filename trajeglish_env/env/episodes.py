@@ -4,6 +4,7 @@ exactly what a separate env reset with the same seed plays."""
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
@@ -11,6 +12,8 @@ from gymnasium.utils import seeding
 
 from trajeglish_env.env.scenes import SceneSet, scene_index
 from trajeglish_env.scenario import Scenario
+
+RESET_OPTIONS = ("scene",)  # the keys reset(options=...) reads
 
 
 class EpisodeStream:
@@ -21,11 +24,20 @@ class EpisodeStream:
         self.np_random, _ = seeding.np_random(None)
 
     def next(self, seed: int | None, options: dict[str, Any] | None) -> tuple[Scenario, np.random.Generator]:
-        """The next episode's scenario and random generator (``options["scene"]``: index or scenario_id;
-        other options are ignored)."""
+        """The next episode's scenario and random generator (``options["scene"]``: index or scenario_id).
+        Other keys are allowed, as PettingZoo's and Gymnasium's conventions (and their API tests) want, but
+        each is named in a warning: a misspelt ``"scene"`` must not pass unnoticed."""
+        unknown = sorted(str(k) for k in (options or {}) if k not in RESET_OPTIONS)
+        if unknown:
+            warnings.warn(
+                f"reset options: {', '.join(map(repr, unknown))} ignored; the env reads only "
+                f"{', '.join(map(repr, RESET_OPTIONS))} (a scene index or scenario_id)",
+                UserWarning,
+                stacklevel=3,
+            )
         if seed is not None:
             self.np_random, _ = seeding.np_random(seed)
-        index = scene_index((options or {}).get("scene"), self.scenes)  # the only option read
+        index = scene_index((options or {}).get("scene"), self.scenes)
         if index is None:
             index = int(self.np_random.integers(len(self.scenes)))
         scenario = self.scenes.get(index)

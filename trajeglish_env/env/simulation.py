@@ -257,6 +257,22 @@ class Simulation:
         self.steps += 1
         return live, replace(outcome, collision=hit, offroad=off)
 
+    def agent_info(
+        self, a: int, collision: bool = False, offroad: bool = False, goal: bool = False
+    ) -> dict[str, Any]:
+        """External agent ``a``'s info: this step's flags, its progress so far (at reset: no flags, no
+        progress, the same keys as after a step)."""
+        row = self.route_row[a]
+        return {
+            "collision": collision,
+            "offroad": offroad,
+            "goal": goal,
+            "progress_m": float(self.progress[row]),
+            "route_fraction": float(self.progress[row] / max(self.routes.length[row], 1e-6)),
+            "collision_steps": int(self.collision_steps[row]),
+            "offroad_steps": int(self.offroad_steps[row]),
+        }
+
     def report(self, live: np.ndarray, out: StepOutcome) -> dict[str, AgentReport]:
         """Rewards, flags and infos of the live external agents after :meth:`finish_step`; a finished agent
         is retired (it leaves the scene at the next step)."""
@@ -269,20 +285,11 @@ class Simulation:
         )
         reports = {}
         for k, a in enumerate(live.tolist()):
-            row = self.route_row[a]
             reports[self.names[a]] = AgentReport(
                 reward=float(out.reward[k]),
                 terminated=bool(done[k]),
                 truncated=bool(truncated and not done[k]),
-                info={
-                    "collision": bool(out.collision[k]),
-                    "offroad": bool(out.offroad[k]),
-                    "goal": bool(out.goal[k]),
-                    "progress_m": float(self.progress[row]),
-                    "route_fraction": float(self.progress[row] / max(self.routes.length[row], 1e-6)),
-                    "collision_steps": int(self.collision_steps[row]),
-                    "offroad_steps": int(self.offroad_steps[row]),
-                },
+                info=self.agent_info(a, bool(out.collision[k]), bool(out.offroad[k]), bool(out.goal[k])),
             )
         self.retired[live[done | truncated]] = True
         return reports

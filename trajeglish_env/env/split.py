@@ -164,7 +164,16 @@ class SplitWorkers:
     def apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> list[Any]:
         """``fn(shard_env, *args, **kwargs)`` in every worker (``shard_env``: the shard's one-process env,
         whose scene ``j`` is scene ``shards[k].start + j`` here); the results, one per shard. ``fn`` must
-        pickle (a module-level function)."""
+        pickle (a module-level function; a lambda or a local function is a TypeError saying so)."""
+        import pickle
+
+        try:
+            pickle.dumps((fn, args, kwargs))
+        except (pickle.PicklingError, AttributeError, TypeError) as exc:
+            raise TypeError(
+                f"apply: {getattr(fn, '__qualname__', fn)!r} and its arguments must pickle to reach the "
+                f"worker processes (a module-level function, not a lambda or a local function): {exc}"
+            ) from exc
         return self.workers.all("apply", [(fn, args, kwargs)] * self.processes)
 
     def _render(self) -> tuple[Any, ...]:

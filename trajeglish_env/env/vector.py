@@ -309,7 +309,7 @@ class BatchedParallelEnv(ParallelBatchAPI):
             sim = self.core.sim(i)
             self.agents[i] = [sim.names[a] for a in sim.external_order()]
             observations.append(self._observe(i, self.agents[i]))
-            infos.append({a: {} for a in self.agents[i]})
+            infos.append({sim.names[a]: sim.agent_info(a) for a in sim.external_order()})
         return observations, infos
 
     def _observe(self, scene: int, names: Sequence[str]) -> dict[str, np.ndarray]:

@@ -29,9 +29,16 @@ from trajeglish_env.metrics.submission import SubmittedRollouts, iter_submission
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import atomic_path, list_scenario_files, load_scenarios, scenario_ids
 
-__all__ = ["SceneIndex", "score_submission", "score_submitted"]
+__all__ = ["MissingScenarioError", "SceneIndex", "score_submission", "score_submitted"]
 
 Paths = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+
+
+class MissingScenarioError(KeyError, ValueError):
+    """A submitted scenario id that the scored data does not hold (bad input: the CLI's one-line error)."""
+
+    def __str__(self) -> str:  # KeyError's own str() would quote the message
+        return str(self.args[0])
 
 
 class SceneIndex:
@@ -62,8 +69,10 @@ class SceneIndex:
     def get(self, scenario_id: str) -> tuple[Scenario, LogDetails | None]:
         """The scene with this id and its details (None for scenes without a details file)."""
         if scenario_id not in self.where:
-            raise KeyError(
-                f"scenario {scenario_id!r} of the submission is not in the data ({len(self.where)} scenes)"
+            raise MissingScenarioError(
+                f"scenario {scenario_id!r} of the submission is not in the data ({len(self.where)} scenes "
+                f"in {len(self.files)} files, e.g. {self.files[0]}): pass --data with the scenes it was "
+                "sampled on"
             )
         k, j = self.where[scenario_id]
         scenes, details = self._shard(k)

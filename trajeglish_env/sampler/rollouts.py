@@ -11,12 +11,13 @@ Python, do not share a core)."""
 from __future__ import annotations
 
 import multiprocessing
+import os
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from trajeglish_env.checkpoint import Checkpoint
+from trajeglish_env.checkpoint import Checkpoint, load_named
 from trajeglish_env.cores import can_fork, others_busy_cores, threads_for, usable_cores
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.engine import RolloutEngine
@@ -40,7 +41,7 @@ class Rollouts:
 
 
 def rollout(
-    ckpt: Checkpoint,
+    ckpt: Checkpoint | str | os.PathLike[str],
     scenario: Scenario,
     rollouts: int = 1,
     horizon: int = 80,
@@ -56,8 +57,13 @@ def rollout(
     all others replay the log. ``priority [N]``: lower acts earlier within a timestep (default: the sdc
     first, then by distance to each subset's centre agent). ``processes``: split the rollouts over this
     many processes (``"auto"``: :func:`auto_processes`; forked, so only for a model on the CPU and on
-    Linux (:func:`can_fork`), else one); the result is the same. Same seed, same rollout.
+    Linux (:func:`can_fork`), else one); the result is the same. Same seed, same rollout. ``ckpt``: a
+    Checkpoint, a checkpoint file or ``"shipped"`` (the pretrained model).
     """
+    if isinstance(ckpt, (str, os.PathLike)):
+        ckpt = load_named(os.fspath(ckpt))
+    if not isinstance(ckpt, Checkpoint):
+        raise TypeError(f"rollout: ckpt must be a Checkpoint, a checkpoint file or 'shipped', got {ckpt!r}")
     scenario.validate()  # a user's scene enters here: fail on its field, not deep inside the engine
     current = scenario.current_index if current_index is None else int(current_index)
     if controlled is None:

@@ -25,6 +25,8 @@ def boxes_overlap(a_xyh: np.ndarray, a_size: np.ndarray, b_xyh: np.ndarray, b_si
 
 def scene_pairs(scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All unordered pairs ``(i, j)``, ``i < j``, of rows that belong to the same scene."""
+    if not len(scene):
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     order = np.argsort(scene, kind="stable")
     counts = np.bincount(scene)
     starts = np.r_[0, np.cumsum(counts)[:-1]]

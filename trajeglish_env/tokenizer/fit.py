@@ -401,6 +401,17 @@ def evaluate_directory(
     else:
         fit_all, evaluation = _load(fit_data, max_scenes), data
     fit, choose = fit_all.split(heldout_every)
+    if not evaluation.num_scenes or not fit.num_scenes:
+        which = "held-out" if not evaluation.num_scenes else "fitting"
+        raise ValueError(
+            f"tokenizer eval: no {which} scenes: --data {_shown(data_dir)} holds {data.num_scenes} scenes"
+            + (
+                f" and every {heldout_every}th is held out, so at least {heldout_every} are needed (or pass "
+                "--fit-data)"
+                if fit_data is None
+                else f", --fit-data {_shown(fit_data)} {fit_all.num_scenes}"
+            )
+        )
     raw = collision_rates(evaluation, evaluation.xyh, evaluation.valid) if collisions else None
     results: list[dict[str, Any]] = []
     table: dict[str, dict[str, float | None]] = {m: {} for m in methods}
@@ -460,3 +471,8 @@ def evaluate_vocabulary_file(
     result["scenes"] = data.num_scenes
     result["transitions"] = data.transition_counts()
     return result
+
+
+def _shown(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> str:
+    """Paths as a command line shows them (an error message's)."""
+    return str(paths) if isinstance(paths, (str, os.PathLike)) else " ".join(map(str, paths))

@@ -1,5 +1,6 @@
 """What a training run's checkpoints record: its data and setup (:class:`RunFacts`), the training info
-stored with every checkpoint, and the atomic save of ``last.pt`` (weights, optimizer, schedule, history)."""
+stored with every checkpoint, and the atomic save of ``last.pt`` (weights, optimizer, schedule, history);
+the checks that keep a run folder from being overwritten or resumed with other settings by mistake."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from trajeglish_env.checkpoint import Checkpoint, save_checkpoint
+from trajeglish_env.checkpoint import Checkpoint, CheckpointError, save_checkpoint
+from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
@@ -75,3 +77,59 @@ def save_last(
     trainer = {"train_config": dataclasses.asdict(config), "step": step, "history": history}
     info = training_info(config, step, history, facts)
     save_checkpoint(path, model, vocabulary, training=info, optimizer=optimizer.state_dict(), trainer=trainer)
+
+
+def check_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
+    """A new run into a folder that holds one (``last.pt``) would overwrite it: refused unless ``resume``
+    (go on with it) or ``overwrite`` (start again) says what is wanted."""
+    last = out / "last.pt"
+    if resume or overwrite or not last.is_file():
+        return
+    raise FileExistsError(
+        f"train: {out} holds a run ({last}): pass --resume to continue it, --overwrite to start it again, "
+        "or another --out"
+    )
+
+
+def differences(saved: dict[str, Any], requested: dict[str, Any]) -> str:
+    """The fields where two settings differ, ``name: saved -> requested`` (an error message's)."""
+    names = sorted(set(saved) | set(requested))
+    return ", ".join(
+        f"{k}: {saved.get(k, '(unset)')!r} -> {requested.get(k, '(unset)')!r}"
+        for k in names
+        if saved.get(k) != requested.get(k)
+    )
+
+
+def resumed_config(
+    last: Path,
+    saved_model: ModelConfig,
+    model: ModelConfig,
+    trainer: dict[str, Any],
+    config: TrainConfig,
+    fit_steps: bool,
+) -> TrainConfig:
+    """The settings a resumed run goes on with: the requested ones, which must be the run's own (a
+    CheckpointError naming the fields that differ otherwise), with the schedule's fitted length kept."""
+    if saved_model != model:
+        raise CheckpointError(
+            f"{last}: its model config differs from the requested one ("
+            f"{differences(dataclasses.asdict(saved_model), dataclasses.asdict(model))})"
+        )
+    saved = {**dataclasses.asdict(type(config)()), **trainer.get("train_config", {})}  # older runs
+    # loader processes do not change the batches (items are pure functions of seed and index), so a run
+    # may go on on a machine with another number of cores
+    saved["num_workers"] = config.num_workers
+    saved["noise_on_device"] = config.noise_on_device  # the same draws either way (up to rounding)
+    saved["precision"] = config.precision  # arithmetic, not the schedule: a run may go on on another CPU
+    saved["repeat"] = tuple((str(k), int(n)) for k, n in saved["repeat"])  # lists once serialized
+    saved["collision_sources"] = tuple(str(k) for k in saved["collision_sources"])
+    if fit_steps:  # the schedule's length was fitted to the first call's budget
+        config = dataclasses.replace(config, steps=int(saved["steps"]))
+    if saved != dataclasses.asdict(config):
+        raise CheckpointError(
+            f"{last}: it was trained with other settings than requested now ("
+            f"{differences(saved, dataclasses.asdict(config))}); resume with its own, or train into "
+            "another --out"
+        )
+    return config

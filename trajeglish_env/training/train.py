@@ -29,7 +29,6 @@ from tqdm import tqdm
 
 from trajeglish_env.checkpoint import (
     Checkpoint,
-    CheckpointError,
     check_compatible,
     check_init,
     load_checkpoint,
@@ -54,7 +53,13 @@ from trajeglish_env.training.loss import TrainingLoss
 from trajeglish_env.training.mass_term_checks import check_mass_terms
 from trajeglish_env.training.offroad_mass import OffroadTerm
 from trajeglish_env.training.precision import check_precision, step_autocast
-from trajeglish_env.training.run_records import run_facts, save_last, training_info
+from trajeglish_env.training.run_records import (
+    check_run_folder,
+    resumed_config,
+    run_facts,
+    save_last,
+    training_info,
+)
 from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
 from trajeglish_env.training.term_sources import collision_scenes, scene_source_list
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
@@ -192,6 +197,7 @@ def train(
     init: str | os.PathLike[str] | Checkpoint | None = None,
     time_limit: float | None = None,
     fit_steps: bool = False,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Train (or resume) a model on scene shards; writes ``last.pt``, ``model.pt`` and ``metrics.csv``.
 
@@ -203,7 +209,8 @@ def train(
     ``resume`` continues the same schedule (``config.steps``, which the limit does not change).
     ``fit_steps`` (with ``time_limit``, a new run): the step rate over the first tenth of the budget sets the
     schedule's length, so the learning rate reaches 0 as the budget ends (``config.steps`` is then the most);
-    the fitted length is saved, and a ``resume`` keeps it.
+    the fitted length is saved, and a ``resume`` keeps it. A new run into a folder with a ``last.pt`` needs
+    ``overwrite`` (:func:`check_run_folder`).
     """
     if fit_steps and time_limit is None:
         raise ValueError("train: fit_steps needs a time_limit (train --fit-steps needs --minutes)")
@@ -219,6 +226,7 @@ def train(
         )
     deadline = None if time_limit is None else time.perf_counter() + time_limit
     out = Path(out)
+    check_run_folder(out, resume, overwrite)
     device = rank_device()
     dd = init_ranks(device)
     start_ckpt = load_checkpoint(init) if isinstance(init, (str, os.PathLike)) else init
@@ -241,23 +249,8 @@ def train(
     last = out / "last.pt"
     if resume and last.is_file():
         ckpt = load_checkpoint(last, map_location=device)
-        if ckpt.config != model_config:
-            raise CheckpointError(
-                f"{last}: saved model config {ckpt.config} differs from the requested {model_config}"
-            )
         trainer = ckpt.trainer or {}
-        saved = {**dataclasses.asdict(TrainConfig()), **trainer.get("train_config", {})}  # older runs
-        # loader processes do not change the batches (items are pure functions of seed and index), so a run
-        # may go on on a machine with another number of cores
-        saved["num_workers"] = config.num_workers
-        saved["noise_on_device"] = config.noise_on_device  # the same draws either way (up to rounding)
-        saved["precision"] = config.precision  # arithmetic, not the schedule: a run may go on on another CPU
-        saved["repeat"] = tuple((str(k), int(n)) for k, n in saved["repeat"])  # lists once serialized
-        saved["collision_sources"] = tuple(str(k) for k in saved["collision_sources"])
-        if fit_steps:  # the schedule's length was fitted to the first call's budget
-            config = dataclasses.replace(config, steps=int(saved["steps"]))
-        if saved != dataclasses.asdict(config):
-            raise CheckpointError(f"{last}: it was trained with {trainer.get('train_config')}, not {config}")
+        config = resumed_config(last, ckpt.config, model_config, trainer, config, fit_steps)
         model.load_state_dict(ckpt.model.state_dict())
         optimizer.load_state_dict(ckpt.optimizer or {})
         start_step = int(trainer["step"])
