@@ -48,6 +48,23 @@ def test_errors_are_one_line_and_exit_2(tmp_path, capsys, straight_scene) -> Non
     path = save_scenario(tmp_path / "s.scn.npz", straight_scene)
     assert main(["render", str(path), "--out", str(tmp_path / "x.bmp")]) == 2
     assert "expected a .png, .gif or .mp4" in capsys.readouterr().err
+    # a bad command line: the same one line naming the (sub)command, and the JSON error with --json
+    usage = {
+        ("tokenizer", "fit", "--data", "d", "--out", "v", "--vocab", "100"): (
+            "trajeglish tokenizer fit: error: argument --vocab: invalid choice: 100"
+        ),
+        ("nll", "--data", "d", "--ckpt", "a", "b"): "trajeglish nll: error: unrecognized arguments: b",
+        ("evaluate", "--data", "d", "--rollouts", "0"): "trajeglish evaluate: error: argument --rollouts",
+    }
+    for command, message in usage.items():
+        with pytest.raises(SystemExit) as exited:
+            main([*command, "--json"])
+        captured = capsys.readouterr()
+        assert exited.value.code == 2 and captured.err.startswith(message) and captured.err.count("\n") == 1
+        shown = json.loads(captured.out)
+        assert shown["type"] == "UsageError" and message.split("error: ")[1] in shown["error"]
+    assert main(["tokenizer", "eval", "--data", str(tmp_path / "none"), "--quiet"]) == 2
+    assert capsys.readouterr().err.startswith("trajeglish tokenizer eval: error: ")
 
 
 def test_tokenizer_fit_and_eval_commands(tmp_path, capsys) -> None:

@@ -20,6 +20,7 @@ from trajeglish_env.cli_args import (
     POSITIVE,
     USER_ERRORS,
     ArgParser,
+    UsageError,
     add_budget_and_mix_args,
     add_map_args,
     at_least_one,
@@ -211,8 +212,12 @@ def build_parser() -> argparse.ArgumentParser:
         p = parent.add_parser(name, help=help_text, description=help_text)
         p.add_argument("--json", action="store_true", help="print one JSON object with the results on stdout")
         p.add_argument("--quiet", action="store_true", help="no progress bar")
-        p.set_defaults(handler=handler)
+        p.set_defaults(handler=handler, command_name=p.prog)  # errors name the (sub)command
+        commands[p.prog] = p
         return p
+
+    commands: dict[str, argparse.ArgumentParser] = {}
+    parser.set_defaults(commands=commands)
 
     p = add("generate", cmd_generate, "generate scenes with a built-in simulator into shard files")
     p.add_argument("--scenes", type=POSITIVE, required=True, help="number of scenes")
@@ -422,7 +427,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ``--json``) and exit code 2; any other exception is a bug and propagates with its traceback. With
     ``TRAJEGLISH_TRACEBACK=1`` bad input propagates too (to see where a ValueError came from).
     """
-    args = build_parser().parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args, extra = build_parser().parse_known_args(words)
+        if extra:  # named by the command they were given to, not by the top-level parser
+            args.commands[args.command_name].error(f"unrecognized arguments: {' '.join(extra)}")
+    except UsageError as exc:
+        if "--json" in words:
+            print(json.dumps({"error": exc.message, "type": "UsageError"}))
+        raise
     try:
         result = args.handler(args)
     except USER_ERRORS as exc:
@@ -431,7 +444,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         message = one_line(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
         if getattr(args, "json", False):
             print(json.dumps({"error": message, "type": type(exc).__name__}))
-        print(f"trajeglish {args.command}: error: {message}", file=sys.stderr)
+        print(f"{args.command_name}: error: {message}", file=sys.stderr)
         return EXIT_BAD_INPUT
     code = int(result.pop("exit_code", 0))
     if not result.pop("_silent", False):  # non-main ranks of a torchrun job print nothing

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
@@ -27,12 +28,22 @@ USER_ERRORS: tuple[type[BaseException], ...] = (
 EXIT_BAD_INPUT = 2
 
 
+class UsageError(SystemExit):
+    """A bad command line, already reported on stderr: exit code 2; ``message`` for ``--json`` output."""
+
+    def __init__(self, message: str):
+        super().__init__(EXIT_BAD_INPUT)
+        self.message = message
+
+
 class ArgParser(argparse.ArgumentParser):
     """An argument parser whose usage errors are one line on stderr (``prog: error: ...``), exit code 2."""
 
     def error(self, message: str) -> NoReturn:
         """Report a bad command line in one line, without the usage block."""
-        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {one_line(message)}\n")
+        text = one_line(message)
+        sys.stderr.write(f"{self.prog}: error: {text}\n")
+        raise UsageError(text)
 
 
 def one_line(message: str) -> str:

@@ -208,7 +208,12 @@ def add_eval_commands(add: AddCommand) -> None:
         help="[NAME=]checkpoint or 'shipped' (repeatable; default: the shipped model)",
     )
     p.add_argument("--rollouts", type=POSITIVE, default=8)
-    p.add_argument("--scenes", type=POSITIVE, default=16, help="evaluate the first N scenes")
+    p.add_argument(
+        "--scenes",
+        type=POSITIVE,
+        default=16,
+        help="N scenes spread evenly over the data (all of them when fewer)",
+    )
     p.add_argument(
         "--temperature",
         type=positive_float,
