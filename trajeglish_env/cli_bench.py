@@ -13,6 +13,9 @@ from trajeglish_env.cli_eval import GUARD_CHOICES
 from trajeglish_env.cli_womd import AddCommand
 from trajeglish_env.sampler.config import COMPUTE_DTYPES
 
+FULL_BATCHES = BenchConfig().batches  # the batched env's scene counts of a full run
+QUICK_BATCHES = (1, 8)  # a smoke run's (--quick without --batches): B = 256 is no smoke test
+
 
 def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
     """Run the suite as configured on the command line; print its digest (or the JSON document)."""
@@ -23,7 +26,7 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"--threads must be 'auto' or a positive integer, got {args.threads!r}")
     threads = args.threads if args.threads == "auto" else int(args.threads)
     config = BenchConfig(
-        batches=tuple(args.batches),
+        batches=tuple(args.batches or (QUICK_BATCHES if args.quick else FULL_BATCHES)),
         agents=args.agents,
         env_steps=args.env_steps,
         env_min_seconds=args.env_min_seconds,
@@ -56,7 +59,11 @@ def add_bench_command(add: AddCommand) -> None:
     """Register ``bench`` with the parser's ``add``."""
     p = add("bench", cmd_bench, "the benchmark suite: speed of every stage, batched env vs highway-env")
     p.add_argument(
-        "--batches", type=POSITIVE, nargs="+", default=[1, 8, 32, 128, 256], help="scenes per batched env"
+        "--batches",
+        type=POSITIVE,
+        nargs="+",
+        help=f"scenes per batched env (default: {' '.join(map(str, FULL_BATCHES))}; with --quick "
+        f"{' '.join(map(str, QUICK_BATCHES))})",
     )
     p.add_argument("--agents", type=POSITIVE, default=24, help="agents per scene")
     p.add_argument(
