@@ -56,7 +56,7 @@ def aec_env_speed(scene: Scenario, steps: int, warmup: int) -> dict[str, Any]:
         "ego": "sdc, replaying its log",
         "npc": "trajeglish",
         "agents": agents,
-        "torch_threads": torch.get_num_threads(),
+        "torch_threads": env.batch.model_threads or torch.get_num_threads(),  # the env's, in its calls
         "timed_steps": steps,
         "env_steps_per_s": round(rate, 3),
         "agent_steps_per_s": round(rate * agents, 1),

@@ -385,7 +385,8 @@ def _engine_shards(venv: Any) -> int:
 
 
 def _torch_threads(venv: Any) -> int:
-    return torch.get_num_threads()
+    """The torch threads of a batched env's model calls (the env applies its count only inside them)."""
+    return venv.core.batch.model_threads or torch.get_num_threads()
 
 
 def _peak_rss(venv: Any) -> float:

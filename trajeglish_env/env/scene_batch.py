@@ -163,9 +163,14 @@ class SceneBatch:
                 "'constant_velocity' for episodes longer than the log"
             )
 
+    @property
+    def model_threads(self) -> int | None:
+        """The torch threads the batch's model calls run on now (None: torch left alone, the caller's)."""
+        return self.threads.threads if self.threads is not None else self._fixed_threads
+
     def torch_threads(self) -> Any:
         """A context in which torch runs the batch's thread count (the caller's count again after it)."""
-        return torch_threads_scope(self.threads.threads if self.threads is not None else self._fixed_threads)
+        return torch_threads_scope(self.model_threads)
 
     def stop(self, scene: int) -> None:
         """Row ``scene`` has no agents left: it stops stepping until it is started again."""
