@@ -338,6 +338,12 @@ def test_pack_splits_the_checkpoint_and_resume_rebuilds_it(tmp_path: Path, monke
     parts[-1].unlink()  # an incomplete series does not load: a clear error, not a crash
     with pytest.raises(device_job.JobError, match="does not load"):
         device_job.resume(tmp_path / "out" / "resume", tmp_path / "again2")
+    # a run whose schedule is done (FIT_STEPS=1 fits it to the first call) is refused, not resumed for nothing
+    done = {"step": 9, "history": [], "train_config": {"steps": 9}}
+    save_checkpoint(run / "last.pt", ckpt.model, ckpt.vocabulary, trainer=done)
+    device_job.pack(run, tmp_path / "out2", facts, None)
+    with pytest.raises(device_job.JobError, match=r"finished its schedule \(step 9 of 9.*FIT_STEPS=0"):
+        device_job.resume(tmp_path / "out2" / "resume", tmp_path / "again3")
 
 
 def test_time_limit_stops_and_the_resume_is_exact(tmp_path: Path) -> None:

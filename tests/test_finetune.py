@@ -74,7 +74,11 @@ def test_incompatible_init_is_refused(scenes_dir: Path, tiny_init: Path, tmp_pat
             init=tiny_init,
         )
     other = MotionVocabulary(grid_vocabulary().templates * 1.01, method="xyh-grid")
-    with pytest.raises(CheckpointError, match="vocabulary differs from the checkpoint's"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"vocabulary differs from the checkpoint's \(xyh-grid vs xyh-grid, "
+        r"the same shape \[3, 144, 3\], templates up to 0\.\d+ apart",
+    ):
         train(
             scenes_dir, tmp_path / "b", tiny_config(), QUICK, vocabulary=other, progress=False, init=tiny_init
         )

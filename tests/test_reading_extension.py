@@ -96,7 +96,7 @@ def test_it_saves_loads_and_gives_back_its_base(tiny_pair, tmp_path: Path) -> No
         ModelConfig(vocab_size=128, drawn_size=200)
 
 
-def test_training_from_it_learns_to_draw_every_token_it_reads(tiny_pair, tmp_path: Path) -> None:  # noqa: ANN001
+def test_training_from_it_learns_to_draw_every_token_it_reads(tiny_pair, tmp_path: Path, capsys) -> None:  # noqa: ANN001
     base, ext, reading = tiny_pair
     start = save_checkpoint(tmp_path / "r.pt", reading.model, reading.vocabulary, reading.training)
     assert training_start(base, None) == (base, None)
@@ -130,6 +130,17 @@ def test_training_from_it_learns_to_draw_every_token_it_reads(tiny_pair, tmp_pat
         == 0
     )
     assert load_checkpoint(tmp_path / "cli" / "model.pt").config == tuned.config
+    err = capsys.readouterr().err  # what the fine-tune changes is said, and that no scene was held out
+    assert "reads 384 tokens and draws 144: this run learns to draw all 384" in err and "--vocab" in err
+    assert "train: warning: no validation scenes" in err
+    # NLLs over different token counts are flagged as not comparable
+    from trajeglish_env.training.density import evaluate_nll
+
+    with pytest.warns(UserWarning, match="models draw different token counts"):
+        shown = evaluate_nll({"reading": reading, "tuned": tuned}, scenes, windows=2)
+    assert (
+        shown["models"]["reading"]["drawn_tokens"] == 144 and shown["models"]["tuned"]["drawn_tokens"] == 384
+    )
 
 
 def test_the_shipped_model_tracks_an_ego_at_40_m_s_within_5_cm() -> None:

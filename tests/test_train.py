@@ -143,6 +143,10 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
         overwrite=True,
     )
     assert again["resumed_from"] == 0 and again["steps"] == 2
+    (tmp_path / "c").mkdir()  # a folder with a finished model alone (a copied model.pt) is a run too
+    (tmp_path / "c" / "model.pt").write_bytes((tmp_path / "b" / "model.pt").read_bytes())
+    with pytest.raises(FileExistsError, match=r"holds a run \(model\.pt\)"):
+        train(scenes_dir, tmp_path / "c", tiny_config(), _quick(), vocabulary=grid_vocabulary())
 
 
 def _free_port() -> int:

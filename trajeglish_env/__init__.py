@@ -12,6 +12,7 @@ _LAZY = {
     "parallel_env": "trajeglish_env.env.parallel",
     "EgoEnv": "trajeglish_env.env.gym_ego",
     "EnvConfig": "trajeglish_env.env.config",
+    "TrajeglishNPC": "trajeglish_env.env.config",
     "load_pretrained": "trajeglish_env.checkpoint",
 }
 

@@ -151,10 +151,16 @@ def check_init(ckpt: Checkpoint, cfg: ModelConfig, vocabulary: MotionVocabulary)
         theirs_cfg["token_bias"] = True
     theirs, ours = ckpt.vocabulary.templates, vocabulary.templates
     if not extended and (theirs.shape != ours.shape or not np.array_equal(theirs, ours)):
+        same = theirs.shape == ours.shape
+        how = (
+            f"the same shape {list(ours.shape)}, templates up to {np.abs(theirs - ours).max():.3g} apart"
+            if same
+            else f"{list(theirs.shape)} vs {list(ours.shape)}"
+        )
         raise CheckpointError(
-            f"{where}: the vocabulary differs from the checkpoint's ({ckpt.vocabulary.method}, "
-            f"{list(theirs.shape)} vs {vocabulary.method}, {list(ours.shape)}; leave --vocab out to use "
-            "the checkpoint's, or pass one that extends it: trajeglish tokenizer extend)"
+            f"{where}: the vocabulary differs from the checkpoint's ({ckpt.vocabulary.method} vs "
+            f"{vocabulary.method}, {how}; leave --vocab out to use the checkpoint's, or pass one that "
+            "extends it: trajeglish tokenizer extend)"
         )
     diffs = [
         f"{name} {theirs_cfg[name]} (checkpoint) vs {ours_cfg[name]} (requested)"

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 
 import torch
 
@@ -105,3 +106,15 @@ def training_start(
     if ckpt is None or not is_reading(ckpt):
         return ckpt, vocabulary
     return drawn_base(ckpt), vocabulary or ckpt.vocabulary
+
+
+def fine_tune_note(name: str, ckpt: Checkpoint) -> str:
+    """What a fine-tune of reading extension ``ckpt`` (``--init name``) trains, and how to keep its form."""
+    v, d = ckpt.config.vocab_size, ckpt.config.drawn
+    return (
+        f"train: --init {name} reads {v} tokens and draws {d}: this run learns to draw all {v} (its NLL "
+        f"counts {v}-way targets, about {math.log(v / d):.2f} nats above the same quality over {d}); to "
+        f"train the drawn model alone pass --vocab with its {d}-token vocabulary (the shipped one: "
+        "trajeglish_env/assets/tokenizer_v384.npz), then extend it again (tokenizer extend --base "
+        "RUN/model.pt --reading-out FILE)"
+    )

@@ -87,7 +87,7 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
 
 def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.checkpoint import load_checkpoint, load_named
-    from trajeglish_env.checkpoint_reading import training_start
+    from trajeglish_env.checkpoint_reading import fine_tune_note, is_reading, training_start
     from trajeglish_env.distributed import init_ranks, rank_device
     from trajeglish_env.model.config import preset
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
@@ -96,9 +96,17 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
 
     vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
     init = load_named(args.init) if args.init else None
-    init, vocabulary = training_start(init, vocabulary)  # a reading extension: its base, on all it reads
     last = Path(args.out) / "last.pt"  # a resumed run goes on with its own model and vocabulary
     own = args.resume and last.is_file() and not (args.preset or args.variant or args.vocab)
+    if (
+        init is not None
+        and is_reading(init)
+        and vocabulary is None
+        and not own
+        and os.environ.get("RANK", "0") == "0"
+    ):
+        print(fine_tune_note(args.init, init), file=sys.stderr)  # what changes: never silently
+    init, vocabulary = training_start(init, vocabulary)  # a reading extension: its base, on all it reads
     overrides: dict[str, Any] = {"variant": args.variant or "trajeglish"}
     overrides.update({"vocab_size": vocabulary.size} if vocabulary is not None else {})
     if own:
@@ -349,7 +357,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="share of each window's agents whose input tokens are all hidden, so that their next tokens are "
         "learned from the current states the model reads (needs --neighbour-input; default 0)",
     )
-    p.add_argument("--resume", action="store_true", help="continue from RUN/last.pt exactly where it stopped")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue from RUN/last.pt exactly where it stopped, with its own model and vocabulary; pass "
+        "the run's schedule flags again (--steps, --batch-size, ...: a difference is refused, naming it)",
+    )
     p.add_argument(
         "--overwrite",
         action="store_true",

@@ -196,6 +196,14 @@ def resume(run_in: Path, run: Path) -> dict[str, str]:
     except CheckpointError as error:
         raise JobError(f"RUN_IN={run_in}: the rebuilt last.pt does not load: {error}") from error
     step = int((ckpt.trainer or {}).get("step", 0))
+    total = int(((ckpt.trainer or {}).get("train_config") or {}).get("steps", 0))
+    if total and step >= total:  # a whole call spent on generation and no step: say so before anything
+        raise JobError(
+            f"RUN_IN={run_in}: the run finished its schedule (step {step} of {total}; with FIT_STEPS=1, the "
+            "default, the first call fits the whole schedule to its own budget): nothing left to train. "
+            "Start a new run without RUN_IN (INIT=<its model.pt> to train on from it), or give a first call "
+            "FIT_STEPS=0 to spread STEPS over calls"
+        )
     record = _read_record(run_in)
     if record:
         (run / RUN_RECORD).write_text(json.dumps(record, indent=2))

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -241,6 +242,7 @@ def evaluate_nll(
         uni = unigram_nll(fit["token"], fit["kind"], tok["token"], tok["kind"], ckpt.config.drawn)
         summary = summarize(tok, uni)
         summary["variant"] = ckpt.config.variant.value
+        summary["drawn_tokens"] = ckpt.config.drawn  # the NLL is over this many classes per agent kind
         if cache_dtypes:
             summary["through_cache"] = {
                 d: cached_nll(ckpt, scenes, windows, getattr(torch, d), seed) for d in cache_dtypes
@@ -260,6 +262,13 @@ def evaluate_nll(
         result["models"][name] = summary
     any_model = next(iter(result["models"].values()))
     result["unigram_nll"] = any_model["unigram_nll"]
+    drawn = {name: m["drawn_tokens"] for name, m in result["models"].items()}
+    if len(set(drawn.values())) > 1:  # finer classes raise an NLL at the same quality: say so
+        result["note"] = (
+            f"the models draw different token counts ({drawn}): an NLL over V classes is not comparable "
+            "with one over fewer (finer tokens split the same probability: about log(V1/V2) nats more)"
+        )
+        warnings.warn(f"nll: {result['note']}", UserWarning, stacklevel=2)
     if plot_dir is not None:
         result["plots"] = plot_density(result, Path(plot_dir))
     return result

@@ -80,15 +80,16 @@ def save_last(
 
 
 def check_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
-    """A new run into a folder that holds one (``last.pt``) would overwrite it: refused unless ``resume``
-    (go on with it) or ``overwrite`` (start again) says what is wanted."""
-    last = out / "last.pt"
-    if resume or overwrite or not last.is_file():
+    """A new run into a folder that holds one (``last.pt`` or ``model.pt``) would overwrite it: refused unless
+    ``resume`` (go on with it) or ``overwrite`` (start again) says what is wanted."""
+    if resume or overwrite:
         return
-    raise FileExistsError(
-        f"train: {out} holds a run ({last}): pass --resume to continue it, --overwrite to start it again, "
-        "or another --out"
-    )
+    held = [f for f in ("last.pt", "model.pt") if (out / f).is_file()]
+    if held:
+        raise FileExistsError(
+            f"train: {out} holds a run ({', '.join(held)}): pass --resume to continue it, --overwrite to "
+            "start it again, or another --out"
+        )
 
 
 def differences(saved: dict[str, Any], requested: dict[str, Any]) -> str:

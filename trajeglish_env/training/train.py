@@ -240,6 +240,13 @@ def train(
         check_init(start_ckpt, model_config, vocabulary)
     check_compatible(model_config, vocabulary, where="train: --vocab")
     train_scenes, val_scenes = _training_scenes(data, val_data, config)
+    if not val_scenes and dd.main:  # no held-out NLL (curves stay empty): say so, never silently
+        print(
+            f"train: warning: no validation scenes (the held-out share {config.val_fraction} of "
+            f"{len(train_scenes)} training scenes' shards or scenes is none); pass --val-data DIR for a "
+            "held-out NLL",
+            file=sys.stderr,
+        )
 
     facts = run_facts(train_scenes, val_scenes, dd.world, start_ckpt)
     torch.manual_seed(config.seed)
