@@ -126,27 +126,23 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
             resume=True,
             progress=False,
         )
+
     # a new run into a folder that holds one is refused (its checkpoint untouched) unless asked to overwrite
+    def new_run(out: str, **kw) -> dict:
+        return train(
+            scenes_dir, tmp_path / out, tiny_config(), vocabulary=grid_vocabulary(), progress=False, **kw
+        )
+
     kept = (tmp_path / "b" / "last.pt").read_bytes()
     with pytest.raises(FileExistsError, match=r"holds a run .*--resume to continue it, --overwrite"):
-        train(
-            scenes_dir, tmp_path / "b", tiny_config(), _quick(), vocabulary=grid_vocabulary(), progress=False
-        )
+        new_run("b", config=_quick())
     assert (tmp_path / "b" / "last.pt").read_bytes() == kept
-    again = train(
-        scenes_dir,
-        tmp_path / "b",
-        tiny_config(),
-        _quick(steps=2),
-        vocabulary=grid_vocabulary(),
-        progress=False,
-        overwrite=True,
-    )
+    again = new_run("b", config=_quick(steps=2), overwrite=True)
     assert again["resumed_from"] == 0 and again["steps"] == 2
     (tmp_path / "c").mkdir()  # a folder with a finished model alone (a copied model.pt) is a run too
     (tmp_path / "c" / "model.pt").write_bytes((tmp_path / "b" / "model.pt").read_bytes())
     with pytest.raises(FileExistsError, match=r"holds a run \(model\.pt\)"):
-        train(scenes_dir, tmp_path / "c", tiny_config(), _quick(), vocabulary=grid_vocabulary())
+        new_run("c", config=_quick())
 
 
 def _free_port() -> int:
