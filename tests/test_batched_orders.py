@@ -159,3 +159,20 @@ def test_sb3_vec_env_reports_the_final_steps_info_at_an_episode_end() -> None:
         assert {"collision", "offroad", "goal", "progress_m", "route_fraction"} <= g.keys()
         assert np.array_equal(g.pop("terminal_observation"), w.pop("terminal_observation"))
         assert g == w
+
+
+def test_actions_for_finished_agents_are_ignored_and_unknown_names_refused() -> None:
+    """PettingZoo's parallel envs ignore actions for agents that have finished (a loop over the last step's
+    observations passes them); a name the episode never had is still a KeyError naming it."""
+    from gymnasium import spaces
+
+    from trajeglish_env.env.batch_api import check_scene_actions
+
+    box = spaces.Box(-1.0, 1.0, (2,), np.float32)
+    zero = np.zeros(2, np.float32)
+    checked = check_scene_actions([["a"]], [{"a": zero, "b": zero}], lambda name: box, [{"a", "b"}])
+    assert len(checked) == 1 and len(checked[0]) == 1  # only the live agent's action is played
+    with pytest.raises(KeyError, match=r"scene 0 has no live agent\(s\) \['c'\]"):
+        check_scene_actions([["a"]], [{"a": zero, "c": zero}], lambda name: box, [{"a", "b"}])
+    with pytest.raises(KeyError, match="no live agent"):
+        check_scene_actions([["a"]], [{"a": zero, "b": zero}], lambda name: box)

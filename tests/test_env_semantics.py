@@ -261,3 +261,14 @@ def test_missing_shipped_model_names_the_alternatives(
         CheckpointError, match=r"missing from this installation\. Trajeglish NPCs need a model.*npc='idm'"
     ):
         raw_env()
+
+
+def test_human_mode_shows_the_reset_and_every_step() -> None:
+    """Gymnasium's human render mode renders at reset and at every step (the window itself is pygame's)."""
+    e = raw_env(small_scenes(), npc="replay", render_mode="human", max_cycles=2)
+    shown: list[int] = []
+    e.render = lambda: shown.append(e.sim.t)  # type: ignore[method-assign]
+    e.reset(seed=0)
+    assert shown == [e.scenario.current_index]
+    e.step(e.action_space(e.agent_selection).sample())
+    assert len(shown) == 2

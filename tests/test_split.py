@@ -162,6 +162,11 @@ def test_sb3_on_the_split_env_equals_one_process_and_trains() -> None:
             for i in np.flatnonzero(got[2]):
                 assert np.array_equal(got[3][i]["terminal_observation"], want[3][i]["terminal_observation"])
         assert split.get_attr("agent") == one.get_attr("agent")
+        assert (
+            split.get_attr("observation_space")
+            == one.get_attr("observation_space")
+            == [one.observation_space] * 4
+        )
         assert split.env_method("agent_index", split.get_attr("agent", 0)[0], indices=0) == one.env_method(
             "agent_index", one.get_attr("agent", 0)[0], indices=0
         )

@@ -347,6 +347,9 @@ def test_sb3_vec_env_equals_dummy_vec_env_and_trains() -> None:
             assert np.array_equal(got[3][i]["terminal_observation"], want[3][i]["terminal_observation"])
             assert got[3][i]["TimeLimit.truncated"] == want[3][i]["TimeLimit.truncated"]
     assert vec.get_attr("agent") == ref.get_attr("agent")
+    for name in ("observation_space", "action_space", "spec"):  # what SB3's own vector envs give
+        assert vec.get_attr(name) == ref.get_attr(name), name
+    assert all(isinstance(g, np.random.Generator) for g in vec.get_attr("np_random"))
     model = PPO("MlpPolicy", vec, n_steps=16, batch_size=24, n_epochs=1, seed=0, device="cpu")
     model.learn(48)
     assert model.num_timesteps >= 48

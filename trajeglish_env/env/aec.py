@@ -97,6 +97,8 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         self.scenario, rng = self._episodes.next(seed, options)
         self.np_random = self._episodes.np_random
         self._start(self.scenario, rng)
+        if self.render_mode == "human":  # Gymnasium's human mode shows the reset state too
+            self.render()
 
     def _start(self, scenario: Scenario, rng: np.random.Generator) -> None:
         self.sim = sim = self.batch.start(0, scenario, rng)

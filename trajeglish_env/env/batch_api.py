@@ -5,7 +5,7 @@ on each env's own per-scene steps."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
 import gymnasium
@@ -33,10 +33,12 @@ def check_scene_actions(
     agents: Sequence[Sequence[str]],
     actions: Sequence[dict[str, Any]],
     action_space: Callable[[str], gymnasium.Space],
+    episode_agents: Sequence[Collection[str]] | None = None,
 ) -> list[list[Any]]:
     """Per scene (its live agents ``agents[i]``), the checked values of ``actions[i]``, in agent order: one
     action per live agent, no unknown agent, each inside its space; the first problem raised, naming the
-    scene and the agent."""
+    scene and the agent. Actions for agents of the episode that have finished (``episode_agents[i]``) are
+    ignored, as PettingZoo's parallel envs ignore them."""
     if len(actions) != len(agents):
         raise ValueError(f"step: expected {len(agents)} action dicts (one per scene), got {len(actions)}")
     out = []
@@ -46,7 +48,7 @@ def check_scene_actions(
             missing = [a for a in names if a not in given]
             if missing:
                 raise KeyError(f"step: scene {i} has no action for agent(s) {missing}")
-            unknown = sorted(set(given) - set(names))
+            unknown = sorted(set(given) - set(names) - set(episode_agents[i] if episode_agents else ()))
             if unknown:
                 raise KeyError(
                     f"step: scene {i} has no live agent(s) {unknown}; its agents are {list(names)}"

@@ -20,13 +20,15 @@ from trajeglish_env.env.config import EnvConfig
 class SceneAwareParallelEnv(aec_to_parallel_wrapper):
     """``aec_to_parallel_wrapper`` that refreshes ``possible_agents`` at every reset (each scene has its
     own agents; the stock wrapper copies them once, at construction) and checks a step's actions (one per
-    live agent, no unknown agent, each inside its space) before any agent acts."""
+    live agent, no unknown agent, each inside its space; a finished agent's is ignored) before any agent
+    acts."""
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         missing = [a for a in self.aec_env.agents if a not in actions]
         if missing:
             raise KeyError(f"step: no action for agent(s) {missing}")
-        unknown = sorted(set(actions) - set(self.aec_env.agents))
+        # actions for agents of the episode that have finished are ignored, as PettingZoo's own wrapper does
+        unknown = sorted(set(actions) - set(self.aec_env.agents) - set(self.aec_env.possible_agents))
         if unknown:
             raise KeyError(f"step: no live agent(s) {unknown}; the agents are {self.aec_env.agents}")
         for agent in self.aec_env.agents:

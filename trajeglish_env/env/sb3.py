@@ -85,8 +85,13 @@ class SB3VecEnv(VecEnv):
         return [self.envs[i] for i in self._get_indices(indices)]
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
-        """An attribute of each (or the given) scene env."""
-        return [getattr(env, attr_name) for env in self._targets(indices)]
+        """An attribute of each (or the given) scene env; ``observation_space`` / ``action_space`` are the
+        scene's spaces, as SB3's own vector envs give them (a scene object offers them PettingZoo-style,
+        as methods of the agent)."""
+        targets = self._targets(indices)
+        if attr_name in ("observation_space", "action_space"):
+            return [getattr(self, attr_name) for _ in targets]
+        return [getattr(env, attr_name) for env in targets]
 
     def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
         """Set an attribute of each (or the given) scene env."""

@@ -340,6 +340,7 @@ class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
         self._observation, self._actions = start
         self.render_mode = render_mode
         self.agents: list[list[str]] = [[] for _ in range(self.num_envs)]
+        self.episode_agents: list[set[str]] = [set() for _ in range(self.num_envs)]  # live or finished
 
     def _reset_scenes(
         self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
@@ -358,12 +359,14 @@ class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
             self.agents[start : start + len(agents)] = [list(a) for a in agents]
             for j, local in enumerate(per_shard[k][0]):
                 found[start + local] = (obs[j], infos[j])
+        for i in indices:
+            self.episode_agents[i] = set(self.agents[i])
         return [found[i][0] for i in indices], [found[i][1] for i in indices]
 
     def step(self, actions: Sequence[dict[str, Any]]) -> tuple[list[dict[str, Any]], ...]:
         """One timestep of every scene that has agents (every action checked here before any worker
         moves); per-scene lists of observations, rewards, terminations, truncations and infos."""
-        check_scene_actions(self.agents, actions, self.action_space)
+        check_scene_actions(self.agents, actions, self.action_space, self.episode_agents)
         args = [(_step, (list(actions[s.start : s.stop]),), {}) for s in self.shards]
         out: tuple[list[dict[str, Any]], ...] = ([], [], [], [], [])
         for k, (results, agents) in enumerate(self.workers.all("apply", args)):

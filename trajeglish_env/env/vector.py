@@ -110,9 +110,16 @@ class EgoScene:
     env): its ego's name, simulation and scenario, ``agent_index`` / ``action_towards``, its frame, and a
     reset of this scene alone."""
 
+    spec = None  # as a Gymnasium env not made by gymnasium.make
+
     def __init__(self, owner: BatchedEgoEnv, index: int):
         self.owner, self.index = owner, index
         self.render_mode = owner.render_mode
+
+    @property
+    def np_random(self) -> np.random.Generator:
+        """The generator of this scene's episode stream (seeded by its resets)."""
+        return self.owner.core.streams[self.index].np_random
 
     @property
     def unwrapped(self) -> EgoScene:
@@ -295,6 +302,7 @@ class BatchedParallelEnv(ParallelBatchAPI):
         self.num_envs = self.core.num_envs
         self.render_mode = render_mode
         self.agents: list[list[str]] = [[] for _ in range(self.num_envs)]
+        self.episode_agents: list[set[str]] = [set() for _ in range(self.num_envs)]  # live or finished
         self._observation = self.core.single_observation_space
         self._actions = (self.core.config.action, self.core.vocab_size)
 
@@ -308,6 +316,7 @@ class BatchedParallelEnv(ParallelBatchAPI):
         for i in indices:
             sim = self.core.sim(i)
             self.agents[i] = [sim.names[a] for a in sim.external_order()]
+            self.episode_agents[i] = set(self.agents[i])
             observations.append(self._observe(i, self.agents[i]))
             infos.append({sim.names[a]: sim.agent_info(a) for a in sim.external_order()})
         return observations, infos
@@ -322,7 +331,8 @@ class BatchedParallelEnv(ParallelBatchAPI):
         """Every scene's actions checked (:func:`check_scene_actions`) before anything moves: the flat
         (scenes, agents, actions) to play."""
         scenes, agents, values = [], [], []
-        for i, checked in enumerate(check_scene_actions(self.agents, actions, self.action_space)):
+        checks = check_scene_actions(self.agents, actions, self.action_space, self.episode_agents)
+        for i, checked in enumerate(checks):
             if not checked:
                 continue
             sim = self.core.sim(i)
