@@ -79,8 +79,11 @@ def test_trajeglish_policy_drives_an_external_agent() -> None:
     a = play_episode(env, policy, seed=0)
     b = play_episode(env, TrajeglishPolicy(tiny()), seed=0)
     assert a.steps >= 1 and a.returns == b.returns
-    other = raw_env([bundle_scene(MERGE)], npc="idm", action="token")  # the default 384-token vocabulary
+    other = raw_env([bundle_scene(MERGE)], npc="idm", action="token")  # the shipped model's vocabulary
     other.reset(seed=0)
+    shipped = raw_env([bundle_scene(MERGE)], action="token")  # as with the shipped model's NPCs: one V
+    assert other.action_space(other.agent_selection) == shipped.action_space(other.agent_selection)
+    assert other.action_space(other.agent_selection).n == 2048
     with pytest.raises(
         ValueError, match="checkpoint's vocabulary .* does not match the env's token vocabulary"
     ):

@@ -94,10 +94,10 @@ class SceneBatch:
             config = config.with_overrides(npc=settings)
         self.config, self.settings = config, settings
         self.vocabulary = self.checkpoint.vocabulary if self.checkpoint is not None else None
-        if config.action == "token" and self.vocabulary is None:  # token actions need a vocabulary
-            from trajeglish_env.tokenizer.vocabulary import load_default_tokenizer
+        if config.action == "token" and self.vocabulary is None:  # token actions need a vocabulary: the
+            from trajeglish_env.checkpoint import load_pretrained  # shipped model's, as with its NPCs, so a
 
-            self.vocabulary = load_default_tokenizer()
+            self.vocabulary = load_pretrained().vocabulary  # token policy moves between NPC kinds
         self.threads: AdaptiveThreads | None = None
         self._fixed_threads: int | None = None  # the count when it does not adapt (None: torch left alone)
         self.rows = self._make_rows(torch_threads)
