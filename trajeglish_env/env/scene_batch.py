@@ -94,10 +94,12 @@ class SceneBatch:
             config = config.with_overrides(npc=settings)
         self.config, self.settings = config, settings
         self.vocabulary = self.checkpoint.vocabulary if self.checkpoint is not None else None
-        if config.action == "token" and self.vocabulary is None:  # token actions need a vocabulary: the
-            from trajeglish_env.checkpoint import load_pretrained  # shipped model's, as with its NPCs, so a
+        # token actions need a vocabulary: without a model, the shipped model's (the one its NPCs give), so a
+        # token policy trained against rule-based NPCs plays against the model's
+        if config.action == "token" and self.vocabulary is None:
+            from trajeglish_env.checkpoint import load_pretrained
 
-            self.vocabulary = load_pretrained().vocabulary  # token policy moves between NPC kinds
+            self.vocabulary = load_pretrained().vocabulary
         self.threads: AdaptiveThreads | None = None
         self._fixed_threads: int | None = None  # the count when it does not adapt (None: torch left alone)
         self.rows = self._make_rows(torch_threads)
