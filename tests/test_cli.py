@@ -130,7 +130,16 @@ def test_rollout_and_nll_commands_with_the_shipped_model(tmp_path, capsys) -> No
         main([*args, "--road-ahead", "-1"])
     assert exited.value.code == 2 and "--road-ahead" in capsys.readouterr().err
     assert main([*args, "--guard", "off", "--no-green-rule"]) == 0  # the model alone
-    assert not _json(capsys)["guard"]
+    alone = _json(capsys)
+    assert (
+        not alone["guard"] and alone["green_rule"] is None and alone["road_ahead"] is None
+    )  # guard settings
+    # a picture shows where the rollout ends, not the logged current step: guard on and off differ there
+    pictures = [tmp_path / "on.png", tmp_path / "off.png"]
+    for picture, guard in zip(pictures, ("on", "off"), strict=True):
+        assert main([*args[:-3], "--out", str(picture), "--guard", guard, "--quiet"]) == 0
+    capsys.readouterr()
+    assert pictures[0].read_bytes() != pictures[1].read_bytes()
     nll_args = ["nll", "--data", str(tmp_path / "d"), "--windows", "4", "--cache-dtype", "bfloat16"]
     assert main([*nll_args, "--compute-dtype", "bfloat16", "--json", "--quiet"]) == 0
     result = _json(capsys)

@@ -116,7 +116,11 @@ def test_a_generated_scene_table_sums_up_and_reaches_the_report() -> None:
             "collisions_by_class": table,
         }
     }
+    clean = {"scores": dict.fromkeys(HEADLINE, 0.0), "red_light_runs_by_kind": {}, "collisions_by_class": {}}
+    methods["log"] = clean  # a method without a collision is named, not left out as if not evaluated
     md = markdown_table({"scenes": 1, "rollouts": 2, "metrics_config": "2025", "methods": methods})
     row = next(line for line in md.splitlines() if line.startswith("| constant_velocity | vehicle |"))
     assert f"{agents['collided']} of {agents['agent_rollouts']}" in row
-    assert "Who collides with whom" in md
+    assert "Who collides with whom (every simulated agent-rollout, pooled over scenes" in md
+    assert "no collision at all: log)" in md
+    assert "min_ade in metres; collision_rate and offroad_rate: WOSAC's" in md  # which agents each counts

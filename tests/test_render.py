@@ -104,3 +104,28 @@ def test_traffic_signals_are_lamps_coloured_by_each_frames_state(straight_scene:
     plain = SceneRenderer(straight_scene, config=RenderConfig(100, 100, title=False))
     assert plain._lamps is None
     plain.close()
+
+
+def test_env_frames_draw_the_agents_a_policy_drives_by_class_and_the_log_grey() -> None:
+    """README: external agents red, NPCs by class, log-replayed agents grey. Agents the log brings in
+    later are the model's once they enter (TrajeglishNPC(drive_entering=True)); with npc="replay" every
+    NPC is the log."""
+    from helpers import bundle_scene, tiny
+
+    from trajeglish_env.env import TrajeglishNPC, raw_env
+    from trajeglish_env.render import REPLAY_COLOR, SDC_COLOR, role_colors
+
+    scene = bundle_scene("highway-intersection-999001")  # four agents enter after the current step
+    cur = scene.current_index
+    entering = scene.valid[:, cur + 1 :].any(1) & ~scene.valid[:, cur]
+    driven = {}
+    for name, npc in (("model", TrajeglishNPC(tiny())), ("idm", "idm"), ("replay", "replay")):
+        env = raw_env([scene], npc=npc, max_cycles=2)
+        env.reset(seed=0)
+        driven[name] = env.sim.policy_driven
+        colors = role_colors(scene, env.sim.external, env.sim.policy_driven)
+        assert (colors[env.sim.external] == SDC_COLOR).all()
+        assert ((colors == REPLAY_COLOR).all(1) == ~(env.sim.policy_driven | env.sim.external)).all()
+    assert entering.sum() == 4 and driven["model"][entering].all()  # the model drives them once they enter
+    assert not driven["idm"][entering].any() and driven["idm"].sum() == scene.valid[:, cur].sum() - 1
+    assert not driven["replay"].any()  # every NPC replays its log: grey

@@ -149,7 +149,9 @@ def cmd_long_rollouts(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
-    from trajeglish_env.render import RenderConfig, save_render
+    import numpy as np
+
+    from trajeglish_env.render import RenderConfig, role_colors, save_render
     from trajeglish_env.sampler import rollout
     from trajeglish_env.sampler.config import SamplingConfig
 
@@ -172,16 +174,25 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
             guard_road_ahead=args.road_ahead,
         ),
     )
+    guard = args.guard == "on"
     out = save_render(
-        scene, args.out, xyh=res.xyh[0], valid=res.valid[0], config=RenderConfig(follow_sdc=args.follow_sdc)
+        scene,
+        args.out,
+        xyh=res.xyh[0],
+        valid=res.valid[0],
+        # the model's agents by class, the sdc among them (full control); the log's grey
+        colors=role_colors(scene, np.zeros(scene.num_agents, bool), res.controlled),
+        config=RenderConfig(follow_sdc=args.follow_sdc),
+        png_step=res.xyh.shape[2] - 1,  # a picture shows where the rollout ends, its last second in trails
+        caption=f"Trajeglish rollout, guard {args.guard}, T = {args.temperature:g}",
     )
     return {
         "scene": scene.scenario_id,
         "agents": scene.num_agents,
         "horizon": horizon,
-        "guard": args.guard == "on",
-        "green_rule": not args.no_green_rule,
-        "road_ahead": args.road_ahead,
+        "guard": guard,
+        "green_rule": (not args.no_green_rule) if guard else None,  # guard settings: None without it
+        "road_ahead": args.road_ahead if guard else None,
         "out": str(out),
     }
 

@@ -37,8 +37,10 @@ def plot_evaluation(raw: dict[str, Any], dt: float, out: Path) -> list[str]:
     for name, r in raw.items():
         axes[0].hist(r["_speed"], bins=60, range=(0, 35), histtype="step", density=True, label=name)
         axes[1].hist(r["_accel"], bins=60, range=(-10, 10), histtype="step", density=True, label=name)
-    axes[0].set_xlabel("speed (m/s)")
-    axes[1].set_xlabel("acceleration (m/s²)")
+    axes[0].set_xlabel("speed (m/s), every simulated agent of every class")
+    axes[1].set_xlabel("acceleration (m/s², those within ±10)")
+    for ax in axes:
+        ax.set_ylabel("density")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     paths.append(_save(fig, out / "kinematics_histograms.png"))

@@ -34,6 +34,12 @@ def markdown_table(result: dict[str, Any]) -> str:
     ]
     for name, r in result["methods"].items():
         lines.append(f"| {name} | " + " | ".join(f"{r['scores'][c]:.4f}" for c in cols) + " |")
+    lines += [
+        "",
+        "min_ade in metres; collision_rate and offroad_rate: WOSAC's, the share of each scene's evaluated "
+        "agents (the sdc and its tracks to predict; every simulated agent where none are named) that collide "
+        "or leave the road in a rollout, averaged over rollouts, then over scenes.",
+    ]
     red = {name: r["red_light_runs_by_kind"] for name, r in result["methods"].items()}
     if any(c["agent_rollouts"] for r in red.values() for c in r.values()):
         kinds = [k.name.lower() for k in AgentKind]
@@ -54,7 +60,8 @@ def markdown_table(result: dict[str, Any]) -> str:
         pc = result["partial_control"]
         lines += [
             "",
-            f"Partial control ({pc['model']} drives the sdc, others replay the log):",
+            f"Partial control ({pc['model']} drives the sdc with the env's default sampling, guard included; "
+            "others replay the log; the collision rate is the share of rollouts in which the sdc collides):",
             "",
             "| sdc placed | ADE (m) | collision rate | sdc moved into another | another moved into the sdc |",
             "|---|---|---|---|---|",
@@ -142,10 +149,16 @@ def _collision_table(methods: dict[str, Any]) -> list[str]:
     ]
     if not rows:
         return []
+    clean = [
+        name
+        for name, r in methods.items()
+        if not any(c["collided"] for c in r.get("collisions_by_class", {}).values())
+    ]
     lines = [
         "",
-        "Who collides with whom (each simulated agent-rollout's first collision, by its class; partner "
-        "classes vehicle / pedestrian / cyclist):",
+        "Who collides with whom (every simulated agent-rollout, pooled over scenes, not only the evaluated "
+        "agents of the headline table; each one's first collision, by its class; partner classes vehicle / "
+        "pedestrian / cyclist" + (f"; no collision at all: {', '.join(clean)}" if clean else "") + "):",
         "",
         "| method | class | collided | partners | into the one ahead (standing) | from behind | crossing | "
         "head-on | overlapping at the start |",

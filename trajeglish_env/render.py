@@ -242,14 +242,17 @@ def save_render(
     config: RenderConfig = RenderConfig(),
     steps: range | None = None,
     fps: int = 10,
+    png_step: int | None = None,
+    caption: str | None = None,
 ) -> Path:
-    """Render ``scenario`` (or a rollout of it) to a PNG picture, or a GIF/MP4 animation over ``steps``."""
+    """Render ``scenario`` (or a rollout of it) to a PNG picture at ``png_step`` (default: the current
+    step), or a GIF/MP4 animation over ``steps``; ``caption``: a line under every frame's title."""
     out = Path(out)
     suffix = out.suffix.lower()
     renderer = SceneRenderer(scenario, xyh=xyh, valid=valid, colors=colors, config=config)
     try:
         if suffix == ".png":
-            img = renderer.frame(scenario.current_index)
+            img = renderer.frame(scenario.current_index if png_step is None else png_step, caption)
             import imageio.v2 as imageio
 
             with atomic_path(out) as tmp:
@@ -257,7 +260,7 @@ def save_render(
             return out
         if suffix not in (".gif", ".mp4"):
             raise ValueError(f"{out}: expected a .png, .gif or .mp4 output path")
-        frames = [renderer.frame(t) for t in (steps or range(renderer.xyh.shape[1]))]
+        frames = [renderer.frame(t, caption) for t in (steps or range(renderer.xyh.shape[1]))]
     finally:
         renderer.close()
     return write_video(frames, out, fps=fps)
@@ -351,7 +354,7 @@ class LiveRenderer:
                 xyh,
                 sim.driver.valid,  # type: ignore[attr-defined]
                 sim.external,  # type: ignore[attr-defined]
-                sim.npc,  # type: ignore[attr-defined]
+                sim.policy_driven,  # type: ignore[attr-defined]
                 size=self.size,
                 radius=self.radius,
             )

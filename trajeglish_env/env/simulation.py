@@ -12,7 +12,7 @@ import numpy as np
 
 from trajeglish_env.batch_geometry import edge_rows
 from trajeglish_env.env.actions import action_towards, bicycle_step, delta_step, token_step
-from trajeglish_env.env.config import EnvConfig, RandomAgents
+from trajeglish_env.env.config import EnvConfig, RandomAgents, TrajeglishNPC
 from trajeglish_env.env.drivers import RowView
 from trajeglish_env.env.lane_routes import extended_routes
 from trajeglish_env.env.observations import make_observer
@@ -160,6 +160,7 @@ class Simulation:
         self.external_index = roles.external_index
         self.external = roles.mask(scenario.num_agents)
         self.npc = scenario.valid[:, cur] & ~self.external
+        self.policy_driven = self._policy_driven()
         self.priority = roles.priority
         self.driver = row
         self.retired = np.zeros(scenario.num_agents, dtype=bool)
@@ -256,6 +257,19 @@ class Simulation:
         )
         self.steps += 1
         return live, replace(outcome, collision=hit, offroad=off)
+
+    def _policy_driven(self) -> np.ndarray:
+        """``[N]`` agents whose motion a policy makes (drawn by class; the others replay the log, drawn
+        grey): no NPC with ``npc="replay"``; with Trajeglish NPCs that drive entering agents, also the agents
+        the log brings in after the current step."""
+        npc = self.config.npc
+        if npc == "replay":
+            return np.zeros_like(self.npc)
+        driven = self.npc.copy()
+        if isinstance(npc, TrajeglishNPC) and npc.drive_entering:
+            cur = self.sc.current_index
+            driven |= self.sc.valid[:, cur + 1 :].any(1) & ~self.sc.valid[:, cur] & ~self.external
+        return driven
 
     def agent_info(
         self, a: int, collision: bool = False, offroad: bool = False, goal: bool = False
