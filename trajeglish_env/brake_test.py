@@ -234,7 +234,9 @@ def _write(result: dict[str, Any], out: Path) -> dict[str, str]:
         tmp.write_text(markdown_table(result))
     names = list(result["npcs"])
     fig, ax = plt.subplots(figsize=(1.6 * len(names) + 2, 3.5))
-    ax.bar(names, [result["npcs"][n]["rear_end_rate"] for n in names], color="tab:red")
+    bars = ax.bar(names, [result["npcs"][n]["rear_end_rate"] for n in names], color="tab:red")
+    counts = [f"{result['npcs'][n]['rear_ends']}/{result['npcs'][n]['episodes']}" for n in names]
+    ax.bar_label(bars, labels=counts, padding=2)  # a 0/40 bar is a label, not an empty slot
     ax.set_ylabel("share of episodes with a rear-end")
     ax.set_ylim(0, 1)
     ax.set_title(f"ego brakes to a stop ({result['episodes']} episodes each)")
