@@ -129,3 +129,26 @@ def test_env_frames_draw_the_agents_a_policy_drives_by_class_and_the_log_grey() 
     assert entering.sum() == 4 and driven["model"][entering].all()  # the model drives them once they enter
     assert not driven["idm"][entering].any() and driven["idm"].sum() == scene.valid[:, cur].sum() - 1
     assert not driven["replay"].any()  # every NPC replays its log: grey
+
+
+def test_a_scene_too_long_to_fit_is_followed_around_the_sdc() -> None:
+    """A straight highway whose agents span hundreds of metres would be a thin strip of few-pixel cars:
+    the default view follows the sdc at FOLLOW_RADIUS instead; a compact scene keeps the fitted view."""
+    from helpers import bundle_scene
+
+    from trajeglish_env.render import FOLLOW_RADIUS, MAX_FITTED_RADIUS
+
+    long = bundle_scene("highway-highway-999000")
+    compact = bundle_scene("highway-roundabout-999000")
+    for scene, follows in ((long, True), (compact, False)):
+        r = SceneRenderer(scene, config=RenderConfig(200, 200, title=False))
+        try:
+            assert (r._fitted_view()[1] > MAX_FITTED_RADIUS) == follows and r._follow == follows
+            r.frame(scene.current_index + 5)
+            half = (r.ax.get_ylim()[1] - r.ax.get_ylim()[0]) / 2
+            assert half == (FOLLOW_RADIUS if follows else r._fitted_view()[1])
+        finally:
+            r.close()
+    asked = SceneRenderer(long, config=RenderConfig(200, 200, view_radius=400.0, title=False))
+    assert not asked._follow  # a radius asked for is kept
+    asked.close()

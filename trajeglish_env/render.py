@@ -50,13 +50,18 @@ _YELLOW = {8, 9, 10, 11, 12}
 _BROKEN = {5, 8, 9}
 
 
+FOLLOW_RADIUS = 50.0  # m: the half-width of a view that follows the sdc
+MAX_FITTED_RADIUS = 150.0  # m: beyond this half-width a view of the whole scene follows the sdc instead
+
+
 @dataclass(frozen=True)
 class RenderConfig:
     """Picture settings: size in pixels, the view (metres around its centre) and motion trails."""
 
     width_px: int = 720
     height_px: int = 720
-    view_radius: float | None = None  # half-width of the view in metres; None: fit the agents
+    view_radius: float | None = None  # half-width of the view in metres; None: fit the agents (or follow
+    # the sdc at FOLLOW_RADIUS when fitting them would need more than MAX_FITTED_RADIUS)
     follow_sdc: bool = False  # centre every frame on the sdc instead of a fixed view
     trail_steps: int = 10
     show_ids: bool = False
@@ -106,6 +111,11 @@ class SceneRenderer:
         if scenario.signal_state is not None and len(scenario.signal_lane_id):
             xy = scenario.signal_xy
             self._lamps = self.ax.scatter(xy[:, 0], xy[:, 1], s=22, zorder=3, edgecolors="k", linewidths=0.4)
+        # a scene wider than MAX_FITTED_RADIUS (a straight highway: cars a few pixels in a thin strip) is
+        # followed around the sdc instead, unless a radius is asked for
+        self._follow = config.follow_sdc or (
+            config.view_radius is None and self._fitted_view()[1] > MAX_FITTED_RADIUS
+        )
         self._set_view(scenario.current_index)
 
     def _draw_map(self) -> None:
@@ -150,18 +160,22 @@ class SceneRenderer:
             p = np.array(stop_pts)
             self.ax.scatter(p[:, 0], p[:, 1], marker="8", s=30, c=[(0.8, 0.1, 0.1)], zorder=3)
 
+    def _fitted_view(self) -> tuple[np.ndarray, float]:
+        """Centre and half-width (m) of the view that holds every agent over the whole scene."""
+        pts = self.xyh[..., :2][self.valid]
+        if len(pts) == 0:
+            pts = self.scenario.map_points if len(self.scenario.map_points) else np.zeros((1, 2))
+        lo, hi = pts.min(0), pts.max(0)
+        return (lo + hi) / 2, max(float((hi - lo).max()) / 2 + 10.0, 20.0)
+
     def _set_view(self, step: int) -> None:
         cfg = self.config
-        if cfg.follow_sdc and self.valid[self.scenario.sdc, step]:
+        if self._follow and self.valid[self.scenario.sdc, step]:
             centre = self.xyh[self.scenario.sdc, step, :2]
-            r = cfg.view_radius or 50.0
+            r = cfg.view_radius or FOLLOW_RADIUS
         else:
-            pts = self.xyh[..., :2][self.valid]
-            if len(pts) == 0:
-                pts = self.scenario.map_points if len(self.scenario.map_points) else np.zeros((1, 2))
-            lo, hi = pts.min(0), pts.max(0)
-            centre = (lo + hi) / 2
-            r = cfg.view_radius or max(float((hi - lo).max()) / 2 + 10.0, 20.0)
+            centre, r = self._fitted_view()
+            r = cfg.view_radius or r
         aspect = cfg.width_px / cfg.height_px
         self.ax.set_xlim(centre[0] - r * aspect, centre[0] + r * aspect)
         self.ax.set_ylim(centre[1] - r, centre[1] + r)
@@ -171,7 +185,7 @@ class SceneRenderer:
         t_max = self.xyh.shape[1]
         if not 0 <= step < t_max:
             raise IndexError(f"render: step {step} out of range for {t_max} steps")
-        if self.config.follow_sdc:
+        if self._follow:
             self._set_view(step)
         live = np.flatnonzero(self.valid[:, step])
         corners = box_corners(self.xyh[live, step], self.scenario.size[live])
