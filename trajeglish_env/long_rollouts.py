@@ -173,6 +173,7 @@ def plot_rates(result: dict[str, Any], path: Path) -> str:
         ax.axvline(result["split_s"], color="grey", linestyle="--", linewidth=1)
         ax.set_title(f"{'off-road' if event == 'offroad' else event} onsets per agent-second")
         ax.set_xlabel("second of rollout")
+        ax.set_ylim(bottom=0.0, top=max(ax.get_ylim()[1], 0.01))  # rates: no negative half when all are 0
     axes[0].legend()
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
