@@ -17,11 +17,11 @@ from trajeglish_env.batch_geometry import (
     pad_stack,
     point_segment_distances,
     road_edge_distances,
+    road_edges,
     selection_d2,
 )
 from trajeglish_env.env import EgoEnv, RewardConfig
 from trajeglish_env.env.batch_outcomes import BatchGeometry
-from trajeglish_env.env.rewards import road_edges
 from trajeglish_env.env.routes import logged_paths, stack_paths
 from trajeglish_env.env.scenes import load_bundle
 from trajeglish_env.geometry import box_corners

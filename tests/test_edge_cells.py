@@ -9,9 +9,8 @@ import pytest
 from helpers import bundle_scene, womd_tfrecord
 
 import trajeglish_env.edge_cells as edge_cells
-from trajeglish_env.batch_geometry import edge_rows, road_edge_distances
+from trajeglish_env.batch_geometry import edge_rows, road_edge_distances, road_edges
 from trajeglish_env.edge_cells import EdgeCells
-from trajeglish_env.env.rewards import road_edges
 from trajeglish_env.metrics.road_edges import RoadEdges
 from trajeglish_env.sources.womd import read_womd
 

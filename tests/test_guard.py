@@ -11,8 +11,7 @@ import pytest
 import torch
 from helpers import bundle_scene, queue_scene, straight_road_scene, tiny
 
-from trajeglish_env.batch_geometry import collision_flags
-from trajeglish_env.env.rewards import road_edges
+from trajeglish_env.batch_geometry import collision_flags, road_edges
 from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.metrics.collision_fault import collisions_by_fault

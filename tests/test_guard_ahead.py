@@ -10,8 +10,8 @@ import torch
 from helpers import bundle_scene, tiny
 from test_guard import excess
 
+from trajeglish_env.batch_geometry import road_edges
 from trajeglish_env.benchmark.workloads import model_checkpoint
-from trajeglish_env.env.rewards import road_edges
 from trajeglish_env.geometry import to_global
 from trajeglish_env.sampler import SamplingConfig, rollout, sampling
 from trajeglish_env.sampler import guard as guard_module

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from helpers import bundle_scene, tiny
 
+from trajeglish_env.batch_geometry import road_edges
 from trajeglish_env.cli import main
-from trajeglish_env.env.rewards import road_edges
 from trajeglish_env.long_rollouts import LongRolloutConfig, event_onsets, long_rollout_rates
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario

@@ -18,9 +18,9 @@ from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.sources.womd import (
     TFRecordFramingError,
     WomdFormatError,
-    convert_womd,
     read_good_records,
 )
+from trajeglish_env.sources.womd_convert import convert_womd
 from trajeglish_env.sources.womd_proto import ScenarioProto
 from trajeglish_env.sources.womd_tfrecord import masked_crc32c
 

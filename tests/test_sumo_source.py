@@ -193,7 +193,7 @@ def test_logged_vehicles_are_on_the_road_side_of_every_edge(
     """Road edges keep the road on their left (the off-road metric's convention), also medians (closed
     islands) and the left curbs of one-way roads, and each scene's map covers every valid agent: logged
     vehicles are on-road in the scenes cut from a run, and 8 m to their right mostly off-road."""
-    from trajeglish_env.env.rewards import road_edges
+    from trajeglish_env.batch_geometry import road_edges
     from trajeglish_env.metrics.road_edges import distance_to_road_edge, signed_distance_to_road_edges
 
     simulated = run if network == "grid" else random_run
@@ -414,7 +414,7 @@ def test_unknown_scene_kind_is_refused() -> None:
 def _lane_points_off_road(scenes: list[Scenario], reach: float = 50.0) -> tuple[int, int]:
     """Lane-centre points within ``reach`` m of an agent at the current step that the off-road rule
     signs beyond a road edge, and all such points, over ``scenes``."""
-    from trajeglish_env.env.rewards import road_edges
+    from trajeglish_env.batch_geometry import road_edges
     from trajeglish_env.metrics.road_edges import signed_distance_to_road_edges
 
     off = total = 0

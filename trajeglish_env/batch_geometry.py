@@ -17,7 +17,7 @@ import numpy as np
 from trajeglish_env.geometry import box_corners, to_local
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.metrics.road_edges import Z_STRETCH, RoadEdges
-from trajeglish_env.scenario import AgentKind
+from trajeglish_env.scenario import ROAD_EDGE_KINDS, AgentKind, Scenario
 
 LANE, LINE, EDGE, OTHER = 0, 1, 2, 3  # categories of the observation's map points
 
@@ -31,6 +31,12 @@ def pad_stack(arrays: Sequence[np.ndarray], fill: float | bool = 0, last: bool =
     for i, a in enumerate(arrays):
         out[(i, ..., slice(0, a.shape[-1])) if last else (i, slice(0, len(a)))] = a
     return out
+
+
+def road_edges(scenario: Scenario) -> RoadEdges | None:
+    """The scene's road edges (None when its map has none: off-road is then never reported)."""
+    lines = [p for p in scenario.polylines(ROAD_EDGE_KINDS) if len(p) >= 2]
+    return RoadEdges.from_polylines(lines) if lines else None
 
 
 class PaddedRows:

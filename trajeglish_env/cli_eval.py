@@ -90,7 +90,7 @@ def cmd_brake_test(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.sampler.config import SamplingConfig
 
     if args.data:
-        from trajeglish_env.dataset import SceneStore
+        from trajeglish_env.training.dataset import SceneStore
 
         scenes = list(SceneStore(args.data).scenes)
     else:

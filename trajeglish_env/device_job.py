@@ -176,16 +176,18 @@ def saved(run_in: Path) -> dict[str, str]:
 def resume(run_in: Path, run: Path) -> dict[str, str]:
     """Rebuild ``run/last.pt`` from ``run_in``; return the run's saved settings and its step."""
     from trajeglish_env.checkpoint import CheckpointError, load_checkpoint
+    from trajeglish_env.scenario_io import atomic_path
 
     values = saved(run_in)
     run.mkdir(parents=True, exist_ok=True)
     parts = sorted(run_in.glob("last.pt.[0-9][0-9][0-9]"))
     if (run_in / "last.pt").is_file():
-        shutil.copyfile(run_in / "last.pt", run / "last.pt")
+        with atomic_path(run / "last.pt") as tmp:
+            shutil.copyfile(run_in / "last.pt", tmp)
     elif parts:
         if [p.name for p in parts] != [f"last.pt.{i:03d}" for i in range(len(parts))]:
             raise JobError(f"RUN_IN={run_in}: parts {[p.name for p in parts]} are not a complete series")
-        with open(run / "last.pt", "wb") as dst:
+        with atomic_path(run / "last.pt") as tmp, open(tmp, "wb") as dst:
             for part in parts:
                 with open(part, "rb") as src:
                     shutil.copyfileobj(src, dst)
@@ -206,9 +208,17 @@ def resume(run_in: Path, run: Path) -> dict[str, str]:
         )
     record = _read_record(run_in)
     if record:
-        (run / RUN_RECORD).write_text(json.dumps(record, indent=2))
+        _write_json(run / RUN_RECORD, record)
     _say(f"resuming {run_in} at step {step} ({values['CALL']} earlier calls)")
     return {**values, "RESUME_STEP": str(step)}
+
+
+def _write_json(path: Path, value: dict[str, Any]) -> None:
+    """Write ``value`` to ``path`` atomically (a killed call leaves the previous file whole)."""
+    from trajeglish_env.scenario_io import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(value, indent=2))
 
 
 def _read_record(folder: Path) -> dict[str, Any]:
@@ -272,7 +282,7 @@ def pack(run: Path, out: Path, facts: dict[str, Any], log: Path | None) -> dict[
     record.setdefault("calls", []).append(facts)
     summary.update(params=record["params"], calls=record["calls"], curve=_curve(run))
     run.mkdir(parents=True, exist_ok=True)  # train may have failed before making it
-    (run / RUN_RECORD).write_text(json.dumps(record, indent=2))
+    _write_json(run / RUN_RECORD, record)
 
     # what comes back, most needed first; last.pt (optimizer state too) travels in parts
     out.mkdir(parents=True, exist_ok=True)
@@ -303,7 +313,7 @@ def pack(run: Path, out: Path, facts: dict[str, Any], log: Path | None) -> dict[
     }
     if left:
         summary["left_behind"] = left
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    _write_json(out / "summary.json", summary)
     if any(name.startswith("resume/") for name in left) or "model.pt" in left:
         raise JobError(
             f"{left} did not fit in what the device tool brings back ({MAX_FILES} files of "

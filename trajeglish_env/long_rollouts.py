@@ -18,14 +18,14 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from trajeglish_env.batch_geometry import collision_flags
+from trajeglish_env.batch_geometry import collision_flags, road_edges
 from trajeglish_env.checkpoint import Checkpoint
-from trajeglish_env.env.rewards import road_edges
 from trajeglish_env.geometry import box_corners
 from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road_edges
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.rollouts import rollout
 from trajeglish_env.scenario import AgentKind, Scenario
+from trajeglish_env.scenario_io import atomic_path
 
 EVENTS = ("collision", "offroad")
 
@@ -176,7 +176,7 @@ def plot_rates(result: dict[str, Any], path: Path) -> str:
         ax.set_ylim(bottom=0.0, top=max(ax.get_ylim()[1], 0.01))  # rates: no negative half when all are 0
     axes[0].legend()
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
     return str(path)

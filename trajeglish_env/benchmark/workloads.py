@@ -107,13 +107,6 @@ def benchmark_scenes(agents: int = 24) -> list[Scenario]:
     return [nearest_agents(s, agents) for s in big]
 
 
-def benchmark_scene(agents: int = 24) -> Scenario:
-    """The sdc and its ``agents - 1`` nearest present agents from the busiest bundled scene."""
-    bundle = load_bundle()
-    scenes = [bundle.get(i) for i in range(len(bundle))]
-    return nearest_agents(max(scenes, key=lambda s: int(s.valid[:, s.current_index].sum())), agents)
-
-
 def model_checkpoint() -> tuple[Any, str]:
     """The shipped model, or the ``small`` preset with random weights when it is not installed."""
     import torch

@@ -12,7 +12,7 @@ from trajeglish_env.batch_geometry import collision_flags
 from trajeglish_env.env.config import RewardConfig
 from trajeglish_env.geometry import box_corners
 from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road_edges
-from trajeglish_env.scenario import ROAD_EDGE_KINDS, AgentKind, Scenario
+from trajeglish_env.scenario import AgentKind
 
 
 @dataclass(frozen=True)
@@ -26,12 +26,6 @@ class StepOutcome:
     goal: np.ndarray
     progress: np.ndarray
     discomfort: np.ndarray
-
-
-def road_edges(scenario: Scenario) -> RoadEdges | None:
-    """The scene's road edges (None when its map has none: off-road is then never reported)."""
-    lines = [p for p in scenario.polylines(ROAD_EDGE_KINDS) if len(p) >= 2]
-    return RoadEdges.from_polylines(lines) if lines else None
 
 
 def collisions(xyh: np.ndarray, valid: np.ndarray, size: np.ndarray, agents: np.ndarray) -> np.ndarray:

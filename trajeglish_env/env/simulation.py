@@ -10,13 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from trajeglish_env.batch_geometry import edge_rows
+from trajeglish_env.batch_geometry import edge_rows, road_edges
 from trajeglish_env.env.actions import action_towards, bicycle_step, delta_step, token_step
 from trajeglish_env.env.config import EnvConfig, RandomAgents, TrajeglishNPC
 from trajeglish_env.env.drivers import RowView
 from trajeglish_env.env.lane_routes import extended_routes
 from trajeglish_env.env.observations import make_observer
-from trajeglish_env.env.rewards import StepOutcome, road_edges, step_reward
+from trajeglish_env.env.rewards import StepOutcome, step_reward
 from trajeglish_env.env.routes import logged_paths
 from trajeglish_env.env.scene_state import Kinematics, SceneState
 from trajeglish_env.env.world import WorldView

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CELL_SIZES", "CellLists", "build_cell_lists", "point_segment_distance"]
+__all__ = ["CELL_SIZES", "CellLists", "build_cell_lists"]
 
 CELL_SIZES = (32.0, 4.0, 1.0)  # metres, coarse to fine; each divides the previous one
 _EPS = 0.01  # metres of slack covering float32 rounding of the queries
@@ -49,15 +49,6 @@ def _squared_distance(
         t = np.clip(np.where(length2 > 0, (qx * dx + qy * dy) / length2, 0.0), 0.0, 1.0)
     rx, ry = qx - t * dx, qy - t * dy
     return rx * rx + ry * ry
-
-
-def point_segment_distance(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """2-D distance from ``points [..., 2]`` to segments ``start``/``end [..., 2]`` (broadcasting)."""
-    return np.sqrt(
-        _squared_distance(
-            points[..., 0], points[..., 1], start[..., 0], start[..., 1], end[..., 0], end[..., 1]
-        )
-    )
 
 
 def _cell_ids(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

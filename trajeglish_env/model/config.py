@@ -132,11 +132,6 @@ class ModelConfig:
         """Tokens per class the model draws (its logits' width): ``drawn_size``, or the whole vocabulary."""
         return self.drawn_size or self.vocab_size
 
-    @property
-    def seq_len(self) -> int:
-        """Length of the flattened token sequence (time-major, agents within a timestep)."""
-        return self.steps * self.max_agents
-
     def with_variant(self, variant: Variant | str) -> ModelConfig:
         return replace(self, variant=Variant(variant))
 

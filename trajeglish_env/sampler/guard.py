@@ -80,10 +80,6 @@ class GuardStats:
     edge_fallback: int = 0
     plain_fallback: int = 0
 
-    def as_dict(self) -> dict[str, int]:
-        """The counters by name."""
-        return dict(self.__dict__)
-
 
 @dataclass
 class SamplingGuard:

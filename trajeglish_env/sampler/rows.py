@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from trajeglish_env.batch_geometry import edge_rows, road_edges
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
@@ -268,9 +269,6 @@ class RowStates:
         """The scene's road-edge segments (computed once per scene object, like the map chunks)."""
         hit = self._edge_cache.get(id(sc))
         if hit is None or hit[0] is not sc:
-            from trajeglish_env.batch_geometry import edge_rows
-            from trajeglish_env.env.rewards import road_edges
-
             if len(self._edge_cache) > 4 * self.B + 64:
                 self._edge_cache.clear()
             hit = (sc, edge_rows(road_edges(sc)))

@@ -15,7 +15,6 @@ import multiprocessing as mp
 import os
 import sys
 import time
-from collections.abc import Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -25,7 +24,7 @@ from tqdm import tqdm
 
 from trajeglish_env.distributed import Ranks, barrier, gather, my_share
 from trajeglish_env.scenario import Scenario
-from trajeglish_env.scenario_io import SUFFIX, atomic_path, load_scenarios, save_scenarios, scenario_ids
+from trajeglish_env.scenario_io import SUFFIX, atomic_path, save_scenarios, scenario_ids
 
 MANIFEST = "manifest.json"
 
@@ -212,7 +211,3 @@ def scene_seed(seed: int, shard_index: int, slot: int) -> int:
     import numpy as np
 
     return int(np.random.SeedSequence([seed, shard_index, slot]).generate_state(1)[0])
-
-
-def count_scenes(paths: Sequence[Path]) -> int:
-    return sum(len(load_scenarios(p)) for p in paths)

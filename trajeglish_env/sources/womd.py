@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 from google.protobuf.message import DecodeError, Message
 
-from trajeglish_env.distributed import Ranks
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario, ScenarioError, SignalState
 from trajeglish_env.scenario_io import SUFFIX
 from trajeglish_env.sources.womd_proto import ScenarioProto
@@ -36,7 +35,6 @@ __all__ = [
     "OBJECT_TYPE_TO_KIND",
     "TFRecordFramingError",
     "WomdFormatError",
-    "convert_womd",
     "good_records",
     "output_name",
     "parse_scenario",
@@ -97,20 +95,6 @@ def output_name(path: str | os.PathLike[str]) -> str:
     """
     name = Path(path).name
     return name.replace(".tfrecord", "", 1) + SUFFIX
-
-
-def convert_womd(
-    files: Sequence[str | os.PathLike[str]],
-    out: str | os.PathLike[str],
-    progress: bool = True,
-    workers: int = 1,
-    ranks: Ranks | None = None,
-) -> dict:
-    """Convert WOMD TFRecord files to scenario shards (and their raw log details) in ``out``; see
-    :func:`trajeglish_env.sources.womd_convert.convert_womd`, where the conversion lives."""
-    from trajeglish_env.sources.womd_convert import convert_womd as convert
-
-    return convert(files, out, progress, workers, ranks)
 
 
 def good_records(path: str | os.PathLike[str]) -> tuple[list[tuple[int, bytes]], TFRecordFramingError | None]:

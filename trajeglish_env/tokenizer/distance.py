@@ -53,9 +53,3 @@ def mean_square_corner_distance(a: np.ndarray, b: np.ndarray, r2: np.ndarray | f
     """Mean *squared* corner distance ``|u|^2 + r2 sin^2(dh/2)`` (``r2 = l^2 + w^2``), broadcasting."""
     u2 = (b[..., 0] - a[..., 0]) ** 2 + (b[..., 1] - a[..., 1]) ** 2
     return u2 + np.asarray(r2) * np.sin(0.5 * (b[..., 2] - a[..., 2])) ** 2
-
-
-def size_r2(size: np.ndarray) -> np.ndarray:
-    """``l^2 + w^2`` for sizes ``[...,2]`` (the only way the box size enters the mean squared distance)."""
-    size = np.asarray(size, dtype=np.float64)
-    return size[..., 0] ** 2 + size[..., 1] ** 2

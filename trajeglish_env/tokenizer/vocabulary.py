@@ -28,7 +28,6 @@ from trajeglish_env.tokenizer.nearest import SearchTable
 FORMAT_NAME = "trajeglish_env.tokenizer"
 FORMAT_VERSION = 1
 KIND_NAMES = tuple(k.name.lower() for k in AgentKind)
-DEFAULT_ASSET = "tokenizer_v384.npz"
 
 
 class VocabularyError(ValueError):
