@@ -4,7 +4,7 @@ A :class:`Policy` has ``reset(env, agent)`` and ``act(env, agent, observation)``
 plays an AEC episode with a policy per agent and :func:`evaluate` summarises several.
 """
 
-from policies.base import ConstantVelocityPolicy, Policy, RandomPolicy, ReplayPolicy
+from policies.base import ConstantVelocityPolicy, FunctionPolicy, Policy, RandomPolicy, ReplayPolicy
 from policies.idm import IDMPolicy
 from policies.learned import SB3Policy, TrajeglishPolicy
 from policies.runner import EpisodeResult, evaluate, play_episode, policy_for, summarize
@@ -12,6 +12,7 @@ from policies.runner import EpisodeResult, evaluate, play_episode, policy_for, s
 __all__ = [
     "ConstantVelocityPolicy",
     "EpisodeResult",
+    "FunctionPolicy",
     "IDMPolicy",
     "Policy",
     "RandomPolicy",

@@ -64,6 +64,23 @@ class RandomPolicy:
         return self._spaces[agent].sample()
 
 
+class FunctionPolicy:
+    """A function ``observation -> action`` as a policy (stateless: the same function for every agent)."""
+
+    def __init__(self, function: Any):
+        if not callable(function):
+            raise TypeError(f"FunctionPolicy: expected a function observation -> action, got {function!r}")
+        self.function = function
+
+    def reset(self, env: Any, agent: str) -> None:
+        """Nothing to prepare: the function keeps no state of ours."""
+        return None
+
+    def act(self, env: Any, agent: str, observation: Any) -> Any:
+        """The function's action for ``observation``."""
+        return self.function(observation)
+
+
 class ConstantVelocityPolicy:
     """Keeps the agent's velocity and heading (the action that best does, for any action type)."""
 

@@ -15,8 +15,8 @@ class IDMPolicy:
         self.controller = RuleBasedController("idm")
 
     def reset(self, env: Any, agent: str) -> None:
-        """Prepare for a new episode of ``agent``."""
-        return None
+        """Prepare for a new episode of ``agent`` (the IDM state of the last one is dropped)."""
+        self.controller.reset()
 
     def act(self, env: Any, agent: str, observation: Any) -> Any:
         """The action of ``agent`` at its turn."""

@@ -55,10 +55,13 @@ class TrajeglishPolicy:
         self.ckpt = load_npc_checkpoint(checkpoint)
         self.sampling = sampling or SamplingConfig()  # the env's NPC defaults; its seed starts the calls
         self._calls = 0
+        self._episode_seed = 0
 
     def reset(self, env: Any, agent: str) -> None:
-        """Prepare for a new episode of ``agent``."""
+        """Prepare for a new episode of ``agent``: its draws follow the episode's seed (so the same env seed
+        and scene give the same episode, whatever this policy played before)."""
         raw = env.unwrapped
+        self._calls, self._episode_seed = 0, int(getattr(raw.sim, "seed", 0))
         vocab = getattr(raw, "vocabulary", None)
         if raw.config.action == "token" and vocab is not None and not vocab.equals(self.ckpt.vocabulary):
             raise ValueError(
@@ -84,7 +87,8 @@ class TrajeglishPolicy:
         controlled[i] = True
         priority = np.where(view.moved, -2.0, 0.0)
         priority[i] = -1.0
-        config = dataclasses.replace(self.sampling, seed=self.sampling.seed + self._calls)
+        seed = np.random.SeedSequence([self.sampling.seed, self._episode_seed, self._calls]).generate_state(1)
+        config = dataclasses.replace(self.sampling, seed=int(seed[0] >> 1))
         self._calls += 1
         engine = RolloutEngine(self.ckpt, scene, 1, 1, controlled, priority=priority, config=config)
         engine.step()

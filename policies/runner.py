@@ -18,7 +18,8 @@ PolicyMap = Mapping[str, Policy] | Policy | Callable[[str], Policy]
 
 @dataclass(frozen=True)
 class EpisodeResult:
-    """One episode: per external agent its return, collision, off-road, goal and progress (m, fraction)."""
+    """One episode: per external agent its return, whether it collided / went off-road at any step of the
+    episode, whether it reached its goal, and its progress (m, fraction)."""
 
     scenario_id: str
     steps: int
@@ -31,17 +32,47 @@ class EpisodeResult:
     video: Path | None = field(default=None)
 
 
+POLICY_FORMS = (
+    "a Policy object (with reset(env, agent) and act(env, agent, observation)), a mapping agent -> Policy, "
+    "or a factory agent -> Policy"
+)
+
+
+def check_policy(policy: Any, agent: str, source: str) -> Policy:
+    """``policy`` if it is a Policy *object*; else a TypeError saying what it is and what was expected."""
+    if isinstance(policy, type):
+        raise TypeError(
+            f"{source} for agent {agent!r} is the class {policy.__name__}, not an object of it: "
+            f"pass {policy.__name__}()"
+        )
+    missing = [m for m in ("reset", "act") if not callable(getattr(policy, m, None))]
+    if missing:
+        raise TypeError(
+            f"{source} for agent {agent!r} ({type(policy).__name__}) has no {' and no '.join(missing)} "
+            f"method; expected {POLICY_FORMS} (wrap a function observation -> action as FunctionPolicy(fn))"
+        )
+    return policy
+
+
 def policy_for(policies: PolicyMap, agent: str) -> Policy:
     """The policy of ``agent``: a mapping entry, the single policy, or the factory's result."""
     if isinstance(policies, Mapping):
         if agent not in policies:
             raise KeyError(f"no policy for agent {agent!r}; policies are given for {sorted(policies)}")
-        return policies[agent]
-    if isinstance(policies, Policy):
+        return check_policy(policies[agent], agent, "the mapping's policy")
+    if isinstance(policies, Policy) and not isinstance(policies, type):
         return policies
-    if callable(policies):
-        return policies(agent)
-    raise TypeError(f"policies: expected a mapping, a Policy or a factory, got {type(policies).__name__}")
+    if callable(policies) and not isinstance(policies, type):
+        made = policies(agent)
+        if isinstance(made, np.ndarray) or np.isscalar(made) or made is None:
+            raise TypeError(
+                f"policies: {getattr(policies, '__name__', type(policies).__name__)} was called with the "
+                f"agent name {agent!r} and returned {type(made).__name__}, not a Policy: a function "
+                f"observation -> action is not a policy; expected {POLICY_FORMS}, e.g. "
+                "FunctionPolicy(my_function)"
+            )
+        return check_policy(made, agent, "the factory's policy")
+    return check_policy(policies, agent, "policies")
 
 
 def play_episode(
@@ -75,8 +106,8 @@ def play_episode(
         scenario_id=raw.scenario.scenario_id,
         steps=raw.sim.steps,
         returns=returns,
-        collision={a: bool(i.get("collision", False)) for a, i in infos.items()},
-        offroad={a: bool(i.get("offroad", False)) for a, i in infos.items()},
+        collision={a: bool(i.get("collision_steps", 0) > 0 or i.get("collision")) for a, i in infos.items()},
+        offroad={a: bool(i.get("offroad_steps", 0) > 0 or i.get("offroad")) for a, i in infos.items()},
         goal={a: bool(i.get("goal", False)) for a, i in infos.items()},
         progress_m={a: float(i.get("progress_m", 0.0)) for a, i in infos.items()},
         route_fraction={a: float(i.get("route_fraction", 0.0)) for a, i in infos.items()},

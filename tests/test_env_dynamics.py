@@ -254,3 +254,26 @@ def test_bundle_scenes_are_held_out_and_small() -> None:
     assert len(seeds) == 16 and min(seeds) >= BUNDLE_SEED
     assert sum(s.startswith("sumo-") for s in ids) == 4
     assert bundle_scene(ids[0]).num_agents >= 2
+
+
+def test_continuous_actions_keep_each_class_within_the_speeds_its_tokens_follow() -> None:
+    """A pedestrian or cyclist under full throttle tops out at its class's motion envelope (4 / 15 m/s),
+    a vehicle at the vehicle limit (a pedestrian reached 17 m/s and the NPCs read it 0.6 m off)."""
+    import trajeglish_env
+
+    bundle = trajeglish_env.env().unwrapped.scenes
+    scene = next(s for i in range(len(bundle)) if ((s := bundle.get(i)).kind == AgentKind.PEDESTRIAN).any())
+    cur = scene.current_index
+    walker = int(np.flatnonzero((scene.kind == AgentKind.PEDESTRIAN) & scene.valid[:, cur])[0])
+    env = raw_env([scene], npc="replay", external=(int(scene.track_id[walker]),), max_cycles=60)
+    env.reset(seed=0)
+    agent = env.agent_selection
+    for _ in range(60):
+        if env.terminations[agent] or env.truncations[agent]:
+            break
+        env.step(np.array([1.0, 0.0], np.float32))
+    assert env.unwrapped.sim.kin.speed[walker] == pytest.approx(4.0)
+    full = np.array([1.0, 0.0])
+    _, free = bicycle_step(np.zeros(3), np.float64(3.95), full, np.float64(4.5), LIMITS, 0.1)
+    _, capped = bicycle_step(np.zeros(3), np.float64(3.95), full, np.float64(4.5), LIMITS, 0.1, 4.0)
+    assert capped == 4.0 and free > 4.3

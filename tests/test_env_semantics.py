@@ -229,8 +229,12 @@ def test_bad_inputs_are_refused_with_clear_errors(tmp_path: object) -> None:
     n = tok.action_space(tok.agent_selection).n
     with pytest.raises(ValueError, match=f"action {n} is outside the action space Discrete"):
         tok.step(n)
-    with pytest.raises(ValueError, match="action 1.5 is outside"):
+    with pytest.raises(ValueError, match=r"action 1.5 \(float\) is not an integer scalar; expected an int"):
         tok.step(1.5)
+    with pytest.raises(ValueError, match=r"array\(\[3\]\) \(ndarray of shape \(1,\)\) is not an integer"):
+        tok.step(np.array([3]))
+    with pytest.raises(ValueError, match="is complex; expected real numbers"):
+        e.step(np.array([0.5j, 0.0]))
     gone = scene.valid.copy()
     gone[scene.sdc, scene.current_index] = False
     no_sdc = dataclasses.replace(scene, valid=gone)
@@ -272,3 +276,14 @@ def test_human_mode_shows_the_reset_and_every_step() -> None:
     assert shown == [e.scenario.current_index]
     e.step(e.action_space(e.agent_selection).sample())
     assert len(shown) == 2
+
+
+def test_the_drift_warning_names_the_agent_as_the_env_does() -> None:
+    """An external agent driven faster than the vocabulary follows is named ``vehicle_<track>`` with its
+    scene (the warning said "external agent 2 (track 7) of row 0")."""
+    env = raw_env([bundle_scene(MERGE)], npc=TrajeglishNPC(tiny()), action="delta", max_cycles=3)
+    env.reset(seed=0)
+    agent = env.agent_selection
+    with pytest.warns(UserWarning, match=rf"external agent {agent} of scene 'highway-merge-999000' \(batch"):
+        env.step(np.array([5.0, 0.0, 0.0], np.float32))
+        env.step(np.array([5.0, 0.0, 0.0], np.float32))

@@ -105,3 +105,57 @@ def test_runner_maps_agents_and_summarises() -> None:
     assert summary["mean_progress_m"] == pytest.approx(np.mean(list(result.progress_m.values())))
     several = evaluate(raw_env(small_scenes(), npc="idm", max_cycles=5), IDMPolicy(), 3, scenes=[0, 1, 2])
     assert several["episodes"] == 3 and several["mean_steps"] == 5
+
+
+class _RamAhead:
+    """vehicle_7 stands; every other external agent drives 4 m a step along y = 0 (into it)."""
+
+    def reset(self, env, agent) -> None:
+        return None
+
+    def act(self, env, agent, obs):
+        raw = env.unwrapped
+        if agent == "vehicle_7":
+            return np.zeros(3, np.float32)
+        x = raw.sim.driver.xyh[raw.agent_index(agent), raw.sim.t]
+        return raw.action_towards(agent, np.array([x[0] + 4.0, 0.0, 0.0]))
+
+
+def test_an_episode_counts_a_collision_at_any_step_not_only_the_last() -> None:
+    """With collisions not ending the episode, the agents that ran into each other mid-episode and drove
+    apart are still counted (the flags of the last step alone said 0)."""
+    from trajeglish_env.env import RewardConfig
+
+    reward = RewardConfig(terminate_on_collision=False, terminate_on_offroad=False)
+    env = raw_env(npc="replay", action="delta", external=(5, 7), max_cycles=60, reward=reward)
+    result = play_episode(env, _RamAhead(), seed=0, options={"scene": 0})
+    assert result.collision == {"vehicle_5": True, "vehicle_7": True}
+    assert summarize([result])["collision_rate"] == 1.0
+
+
+def test_a_policy_object_played_again_plays_the_same_episode() -> None:
+    """``reset`` starts each episode afresh: an IDM or Trajeglish policy reused on the same seed and scene
+    gives what a new one gives (before, the IDM kept its path state and the model its draw counter)."""
+    env = raw_env(npc="idm")
+    idm = IDMPolicy()
+    runs = [play_episode(env, p, seed=0, options={"scene": 15}) for p in (idm, idm, IDMPolicy())]
+    assert runs[0] == runs[1] == runs[2]
+    env = raw_env([bundle_scene(MERGE)], npc=TrajeglishNPC(tiny()), action="token", max_cycles=4)
+    model = TrajeglishPolicy(tiny())
+    runs = [play_episode(env, p, seed=s) for p, s in ((model, 0), (model, 0), (TrajeglishPolicy(tiny()), 0))]
+    assert runs[0] == runs[1] == runs[2]
+    assert play_episode(env, model, seed=1).progress_m != runs[0].progress_m  # the episode seed drives it
+
+
+def test_policy_mistakes_are_named() -> None:
+    from policies import FunctionPolicy
+
+    env = raw_env([bundle_scene(HIGHWAY)], npc="idm", max_cycles=3)
+    with pytest.raises(TypeError, match="is the class IDMPolicy, not an object of it: pass IDMPolicy()"):
+        play_episode(env, IDMPolicy, seed=0)
+    with pytest.raises(TypeError, match="a function observation -> action is not a policy.*FunctionPolicy"):
+        play_episode(env, lambda obs: np.zeros(2, np.float32), seed=0)
+    with pytest.raises(TypeError, match=r"\(object\) has no reset and no act method"):
+        play_episode(env, object(), seed=0)
+    result = play_episode(env, FunctionPolicy(lambda obs: np.zeros(2, np.float32)), seed=0)
+    assert result.steps == 3

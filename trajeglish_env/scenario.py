@@ -23,6 +23,11 @@ class AgentKind(IntEnum):
     CYCLIST = 2
 
 
+def agent_name(kind: int, track_id: int) -> str:
+    """PettingZoo-style agent name, e.g. ``vehicle_2406`` (the env's names; warnings use them too)."""
+    return f"{AgentKind(int(kind)).name.lower()}_{int(track_id)}"
+
+
 class MapKind(IntEnum):
     """Type of one map polyline; the values follow WOMD's map feature types so conversion is exact."""
 

@@ -17,6 +17,10 @@ from gymnasium import spaces
 
 from trajeglish_env.env.config import VehicleLimits
 from trajeglish_env.geometry import to_global, to_local, wrap_angle
+from trajeglish_env.scenario import AgentKind
+from trajeglish_env.tokenizer.coverage import DEFAULT_ENVELOPES
+
+NON_VEHICLES = (AgentKind.PEDESTRIAN, AgentKind.CYCLIST)  # in kind order after VEHICLE = 0
 
 DELTA_LOW = np.array([-1.0, -1.0, -0.6], dtype=np.float32)  # m, m, rad per 0.1 s step
 DELTA_HIGH = np.array([5.0, 1.0, 0.6], dtype=np.float32)
@@ -47,11 +51,19 @@ def check_action(space: spaces.Space, action: object, agent: str) -> np.ndarray 
         ok = isinstance(action, (int, np.integer)) or (
             isinstance(action, np.ndarray) and action.shape == () and np.issubdtype(action.dtype, np.integer)
         )
-        value = int(action) if ok else None  # type: ignore[arg-type]
-        if value is None or not 0 <= value < int(space.n):
-            raise ValueError(f"agent {agent}: action {action} is outside the action space {space}")
+        if not ok:
+            shape = f" of shape {np.shape(action)}" if isinstance(action, np.ndarray) else ""
+            raise ValueError(
+                f"agent {agent}: action {action!r} ({type(action).__name__}{shape}) is not an integer "
+                f"scalar; expected an int in [0, {int(space.n)}) ({space})"
+            )
+        value = int(action)  # type: ignore[arg-type]
+        if not 0 <= value < int(space.n):
+            raise ValueError(f"agent {agent}: action {value} is outside the action space {space}")
         return value
     assert isinstance(space, spaces.Box)
+    if np.iscomplexobj(action):
+        raise ValueError(f"agent {agent}: action {action!r} is complex; expected real numbers in {space}")
     try:
         arr = np.asarray(action, dtype=np.float64)
     except (TypeError, ValueError):
@@ -70,6 +82,14 @@ def check_action(space: spaces.Space, action: object, agent: str) -> np.ndarray 
     return np.clip(arr, low, high)
 
 
+def class_speed_cap(kind: np.ndarray | int, limits: VehicleLimits) -> np.ndarray:
+    """The top speed (m/s) of continuous actions per agent class: the vehicle limits' for vehicles, and for
+    pedestrians and cyclists their motion envelope's (4 and 15 m/s), so that every speed a continuous
+    action reaches is one the motion vocabulary follows (the NPCs read the agent where it is)."""
+    caps = np.array([limits.max_speed] + [DEFAULT_ENVELOPES[k].max_speed for k in NON_VEHICLES])
+    return np.minimum(caps[np.asarray(kind, dtype=np.int64)], limits.max_speed)
+
+
 def bicycle_step(
     xyh: np.ndarray,
     speed: np.ndarray,
@@ -77,13 +97,15 @@ def bicycle_step(
     length: np.ndarray,
     limits: VehicleLimits,
     dt: float,
+    max_speed: np.ndarray | float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Next states ``[...,3]`` and speeds of a kinematic bicycle about the box centre (slip angle
     ``beta = atan(tan(steer) / 2)``, rear and front axles ``wheelbase / 2`` from the centre; the steering
-    range shrinks with speed, see VehicleLimits)."""
+    range shrinks with speed, see VehicleLimits; ``max_speed``: a lower top speed, e.g. per class)."""
     a = np.where(action[..., 0] >= 0, action[..., 0] * limits.max_accel, action[..., 0] * limits.max_brake)
     steer = action[..., 1] * limits.steer_limit(speed, length)
-    v_next = np.clip(speed + a * dt, 0.0, limits.max_speed)
+    top = limits.max_speed if max_speed is None else np.minimum(max_speed, limits.max_speed)
+    v_next = np.clip(speed + a * dt, 0.0, top)
     v_mean = (speed + v_next) / 2
     beta = np.arctan(np.tan(steer) / 2)
     half_base = limits.wheelbase_ratio * length / 2
@@ -95,13 +117,17 @@ def bicycle_step(
 
 
 def delta_step(xyh: np.ndarray, action: np.ndarray) -> np.ndarray:
-    """Next state from a local displacement ``(dx, dy, dh)``."""
+    """Next states ``[...,3]`` from local displacements ``(dx, dy, dh)`` (broadcasting)."""
     return to_global(xyh, np.asarray(action, dtype=np.float64))
 
 
-def token_step(xyh: np.ndarray, templates: np.ndarray, token: int) -> np.ndarray:
-    """Next state from template ``token`` of the agent's class (``templates [V,3]``)."""
-    return to_global(xyh, templates[int(token)])
+def token_step(xyh: np.ndarray, templates: np.ndarray, token: np.ndarray | int) -> np.ndarray:
+    """Next states from templates ``token`` of the agents' classes (``templates [V,3]``, or ``[n,V,3]``
+    with ``xyh [n,3]`` and ``token [n]``: one table per agent)."""
+    if templates.ndim == 2:
+        return to_global(xyh, templates[np.asarray(token, dtype=np.int64)])
+    rows = np.arange(len(templates))
+    return to_global(xyh, templates[rows, np.asarray(token, dtype=np.int64)])
 
 
 def action_towards(
@@ -113,9 +139,11 @@ def action_towards(
     limits: VehicleLimits,
     dt: float,
     templates: np.ndarray | None = None,
+    max_speed: float | None = None,
 ) -> np.ndarray | int:
     """The action whose next state is nearest to ``target [3]`` from state ``xyh [3]`` at ``speed``
-    (clipped to the action space; ``templates [V,3]`` of the agent's class for ``token``)."""
+    (clipped to the action space; ``templates [V,3]`` of the agent's class for ``token``; ``max_speed``:
+    the agent's top speed under continuous actions, :func:`class_speed_cap`)."""
     local = to_local(np.asarray(xyh, dtype=np.float64), np.asarray(target, dtype=np.float64))
     if action_type == "delta":
         return np.clip(local, DELTA_LOW, DELTA_HIGH).astype(np.float32)
@@ -127,13 +155,14 @@ def action_towards(
     # the displacement ahead -- a lateral offset is the steering's to correct: counted in the speed, it
     # would speed up a car that should stop -- then the steering (searched on a grid) whose next state is
     # nearest in position and heading
-    v_target = float(np.clip(2 * local[0] / dt - speed, 0.0, limits.max_speed))
+    top = limits.max_speed if max_speed is None else min(max_speed, limits.max_speed)
+    v_target = float(np.clip(2 * local[0] / dt - speed, 0.0, top))
     a = (v_target - speed) / dt
     a_cmd = float(np.clip(a / limits.max_accel if a >= 0 else a / limits.max_brake, -1.0, 1.0))
     steering = np.linspace(-1.0, 1.0, STEERING_CANDIDATES)
     actions = np.stack([np.full_like(steering, a_cmd), steering], -1)
     origin = np.zeros(3)
-    nxt, _ = bicycle_step(origin, np.float64(speed), actions, np.float64(length), limits, dt)
+    nxt, _ = bicycle_step(origin, np.float64(speed), actions, np.float64(length), limits, dt, top)
     gap = ((nxt[:, :2] - local[:2]) ** 2).sum(-1) + (wrap_angle(nxt[:, 2] - local[2]) * length / 2) ** 2
     return np.array([a_cmd, steering[np.argmin(gap)]], dtype=np.float32)
 

@@ -69,14 +69,22 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         self._action_spaces: dict[str, spaces.Space] = {}
         self._episodes = EpisodeStream(self.scenes)
         self.np_random = self._episodes.np_random
-        first = self.scenes.get(0)
-        names = agent_names(first)
-        self.possible_agents = [
-            names[i] for i in select_external(first, self.config.external, np.random.default_rng(0))
-        ]
+        self.possible_agents = self._first_scene_agents()
         self.agents = []
         self.sim: Simulation | None = None
         self._renderer: Any = None  # a LiveRenderer, made on the first render (imports matplotlib)
+
+    def _first_scene_agents(self) -> list[str]:
+        """``possible_agents`` before the first reset: the first scene's external agents, or none when the
+        external spec does not fit that scene (track ids of another scene: checked at reset, against the
+        scene the episode plays)."""
+        first = self.scenes.get(0)
+        try:
+            external = select_external(first, self.config.external, np.random.default_rng(0))
+        except ValueError:
+            return []
+        names = agent_names(first)
+        return [names[i] for i in external]
 
     # ------------------------------------------------------------------ spaces
     def observation_space(self, agent: str) -> spaces.Space:

@@ -132,7 +132,8 @@ class EnvConfig:
     """Everything that defines an environment besides its scenes.
 
     external: ``"sdc"`` (default), ``"all"``, a tuple of track ids, or :class:`RandomAgents`; the other
-      agents present at the current step are NPCs (agents that appear later follow the log).
+      agents present at the current step are NPCs (agents that appear later enter where the log has them;
+      Trajeglish NPCs then drive them, ``TrajeglishNPC.drive_entering``, rule-based NPCs replay them).
     order: intra-timestep position of the external agents: ``"first"`` (before every NPC: NPCs react to
       them within the step), ``"last"`` (after the NPCs of their model context), ``"random"`` (a random
       order of all agents per episode), or a tuple of agent names acting first, in that order.

@@ -19,15 +19,21 @@ class RuleBasedController:
         self.name = name
         self._scenario: Any = None
         self._policy: Any = None
+        self._sim: Any = None
+
+    def reset(self) -> None:
+        """Forget the last episode: the next :meth:`action` starts from the new episode's state (a scene
+        played again is the same object, so the scene alone cannot tell episodes apart)."""
+        self._scenario = self._policy = self._sim = None
 
     def action(self, env: Any, agent: str) -> Any:
         """The action of external ``agent`` (``env``: the AEC env, wrapped or not) at its turn."""
         raw = env.unwrapped
         sim = raw.sim
-        if self._scenario is not raw.scenario:
+        if self._scenario is not raw.scenario or self._sim is not sim:
             self._policy = make_npc_policy(self.name)
             self._policy.reset(raw.scenario, sim.external.copy(), raw.scenario.current_index, 0)
-            self._scenario = raw.scenario
+            self._scenario, self._sim = raw.scenario, sim
             if isinstance(self._policy, IDMNPC):
                 self._follow_long_routes(self._policy, sim)
         i = raw.agent_index(agent)

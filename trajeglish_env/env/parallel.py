@@ -24,6 +24,9 @@ class SceneAwareParallelEnv(aec_to_parallel_wrapper):
     acts."""
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        """Every live agent's action at once (see the module docstring); refused before ``reset``, for a
+        missing or unknown agent, or for an action outside its space, before anything moves."""
+        self.aec_env.unwrapped._sim()  # "call reset() before using the environment"
         missing = [a for a in self.aec_env.agents if a not in actions]
         if missing:
             raise KeyError(f"step: no action for agent(s) {missing}")

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from trajeglish_env.batch_geometry import edge_rows, road_edges
-from trajeglish_env.env.actions import action_towards, bicycle_step, delta_step, token_step
+from trajeglish_env.env.actions import action_towards, bicycle_step, class_speed_cap, delta_step, token_step
 from trajeglish_env.env.config import EnvConfig, RandomAgents, TrajeglishNPC
 from trajeglish_env.env.drivers import RowView
 from trajeglish_env.env.lane_routes import extended_routes
@@ -21,13 +21,8 @@ from trajeglish_env.env.routes import logged_paths
 from trajeglish_env.env.scene_state import Kinematics, SceneState
 from trajeglish_env.env.world import WorldView
 from trajeglish_env.geometry import wrap_angle
-from trajeglish_env.scenario import AgentKind, Scenario
+from trajeglish_env.scenario import Scenario, agent_name
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
-
-
-def agent_name(kind: int, track_id: int) -> str:
-    """PettingZoo-style agent name, e.g. ``vehicle_2406``."""
-    return f"{AgentKind(int(kind)).name.lower()}_{int(track_id)}"
 
 
 def agent_names(scenario: Scenario) -> list[str]:
@@ -162,6 +157,7 @@ class Simulation:
         self.npc = scenario.valid[:, cur] & ~self.external
         self.policy_driven = self._policy_driven()
         self.priority = roles.priority
+        self.seed = roles.seed  # the episode's draw seed (from the env's seed): policies may derive theirs
         self.driver = row
         self.retired = np.zeros(scenario.num_agents, dtype=bool)
         ext = self.external_index
@@ -217,18 +213,6 @@ class Simulation:
     def external_order(self) -> list[int]:
         """Live external agents still to act this step, in order."""
         return [int(a) for a in self.driver.external_order() if not self.retired[a]]
-
-    def next_state(self, agent: int, action: np.ndarray | int) -> tuple[np.ndarray, np.float64]:
-        """Next state and speed of external ``agent`` under a ``delta`` or ``token`` action."""
-        now = self.driver.xyh[agent, self.t]
-        if self.config.action == "delta":
-            nxt = delta_step(now, np.asarray(action))
-        else:
-            assert self.vocabulary is not None
-            nxt = token_step(now, self.vocabulary.templates[self.sc.kind[agent]], int(action))  # type: ignore[arg-type]
-        d = nxt[:2] - now[:2]
-        forward = np.cos(now[2]) * d[0] + np.sin(now[2]) * d[1]
-        return nxt, np.float64(np.hypot(*d) / self.dt * (1.0 if forward >= 0 else -1.0))
 
     def finish_step(
         self, computed: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
@@ -337,6 +321,7 @@ class Simulation:
             self.config.limits,
             self.dt,
             templates,
+            float(class_speed_cap(self.sc.kind[agent], self.config.limits)),
         )
 
     def view(self) -> WorldView:
@@ -350,23 +335,33 @@ def apply_actions(
     sims: Sequence[Simulation], agents: Sequence[int], actions: Sequence[np.ndarray | int]
 ) -> np.ndarray:
     """Next states ``[n,3]`` of external agent ``agents[i]`` of ``sims[i]`` under its (validated) action
-    ``actions[i]``, all at once (continuous actions sharing vehicle limits go through one bicycle step);
-    the agents' kinematics are updated."""
+    ``actions[i]``, each action type in one vectorized step (continuous actions: one bicycle step per
+    vehicle-limits object, at each class's top speed); the agents' kinematics are updated."""
     n = len(sims)
     now = np.stack([s.driver.xyh[a, s.t] for s, a in zip(sims, agents, strict=True)])
     speed = np.array([s.kin.speed[a] for s, a in zip(sims, agents, strict=True)], dtype=np.float64)
     dt = np.array([s.dt for s in sims])
+    kind = np.array([s.sc.kind[a] for s, a in zip(sims, agents, strict=True)], dtype=np.int64)
     nxt, v_next = np.zeros((n, 3)), np.zeros(n)
     groups: dict[object, list[int]] = {}
     for i, s in enumerate(sims):
-        if s.config.action == "continuous":
-            groups.setdefault(s.config.limits, []).append(i)
-        else:
-            nxt[i], v_next[i] = s.next_state(agents[i], actions[i])
-    for limits, rows in groups.items():
-        length = np.array([sims[i].sc.size[agents[i], 0] for i in rows])
+        key = s.config.limits if s.config.action == "continuous" else s.config.action
+        groups.setdefault(key, []).append(i)
+    for key, rows in groups.items():
         moved = np.stack([np.asarray(actions[i]) for i in rows])
-        nxt[rows], v_next[rows] = bicycle_step(now[rows], speed[rows], moved, length, limits, dt[rows])  # type: ignore[arg-type]
+        if key == "delta":
+            nxt[rows] = delta_step(now[rows], moved)
+        elif key == "token":
+            tables = np.stack([sims[i].vocabulary.templates[kind[i]] for i in rows])  # type: ignore[union-attr]
+            nxt[rows] = token_step(now[rows], tables, moved)
+        else:
+            length = np.array([sims[i].sc.size[agents[i], 0] for i in rows])
+            cap = class_speed_cap(kind[rows], key)  # type: ignore[arg-type]
+            nxt[rows], v_next[rows] = bicycle_step(now[rows], speed[rows], moved, length, key, dt[rows], cap)  # type: ignore[arg-type]
+            continue
+        d = nxt[rows, :2] - now[rows, :2]
+        forward = np.cos(now[rows, 2]) * d[:, 0] + np.sin(now[rows, 2]) * d[:, 1]
+        v_next[rows] = np.hypot(d[:, 0], d[:, 1]) / dt[rows] * np.where(forward >= 0, 1.0, -1.0)
     yaw = wrap_angle(nxt[:, 2] - now[:, 2]) / dt
     accel = (v_next - speed) / dt
     for i, (s, a) in enumerate(zip(sims, agents, strict=True)):

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from trajeglish_env.batch_geometry import edge_rows, road_edges
-from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario import Scenario, agent_name
 from trajeglish_env.tokenizer.tokenize import tokenize
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
@@ -362,10 +362,12 @@ class RowStates:
                 continue
             self._drift_warned.add((b, a))
             sc = self.scenes[b]
-            track = sc.track_id[a] if sc is not None and a < sc.num_agents else "?"
+            known = sc is not None and a < sc.num_agents
+            name = agent_name(sc.kind[a], sc.track_id[a]) if known else f"agent index {a}"
+            where = f"scene {sc.scenario_id!r}" if known else "its scene"
             warnings.warn(
-                f"external agent {a} (track {track}) of row {b}: its tokenized state is {e:.2f} m from its "
-                f"true state at step {step + 1} (> {self.drift_tolerance} m); it moves beyond what the "
+                f"external agent {name} of {where} (batch row {b}): its tokenized state is {e:.2f} m from "
+                f"its true state at step {step + 1} (> {self.drift_tolerance} m); it moves beyond what the "
                 "motion vocabulary can follow (faster than its templates?); the NPCs see it where it is not",
                 stacklevel=2,
             )
