@@ -350,14 +350,22 @@ def test_the_2024_config_weighs_road_edges_more_and_ignores_red_lights():
 def test_bad_rollouts_are_rejected_clearly():
     scene = _busy_scene()
     good = np.repeat(_log_future(scene)[None], 2, 0)
+    with pytest.raises(ValueError, match=r"the rollouts hold 40 future steps; WOSAC scores 80"):
+        score_rollouts(scene, good[:, :, :40], scene.track_id)
     with pytest.raises(
         ValueError, match=r"rollouts_xyh must be \[R, 8 simulated agents, 80 future steps, 3\]"
     ):
-        score_rollouts(scene, good[:, :, :40], scene.track_id)
-    with pytest.raises(ValueError, match=r"unknown object id\(s\) \[999\]"):
+        score_rollouts(scene, good[:, :7], scene.track_id)
+    last = int(scene.track_id[-1])
+    with pytest.raises(
+        ValueError,
+        match=rf"its 8 simulated agents .* hold 8: missing object id\(s\) \[{last}\], not simulated \[999",
+    ):
         score_rollouts(scene, good, np.append(scene.track_id[:-1], 999))
-    with pytest.raises(ValueError, match="once each"):
-        score_rollouts(scene, good, np.append(scene.track_id[:-1], scene.track_id[0]))
+    with pytest.raises(ValueError, match=rf"missing object id\(s\) \[{last}\], not simulated \[\]"):
+        score_rollouts(scene, good[:, :7], scene.track_id[:-1])
+    with pytest.raises(ValueError, match=r"appear more than once"):
+        score_rollouts(scene, good, np.append(scene.track_id, scene.track_id[0]))
     bad = good.copy()
     bad[1, 3, 5, 0] = np.nan
     with pytest.raises(ValueError, match="rollout 1, object 13: non-finite"):

@@ -226,3 +226,38 @@ def test_reset_accepts_int_like_indices_and_scenario_ids(straight_scene) -> None
     assert scene_index(None, scene_set(scenes)) is None
     unknown = UnknownSceneError("x: no scene with scenario_id 'y'")
     assert isinstance(unknown, KeyError) and isinstance(unknown, ValueError) and str(unknown).startswith("x:")
+
+
+def test_a_womd_tfrecord_where_scenes_are_expected_says_to_convert_it(tmp_path) -> None:
+    """A raw WOMD file (or a folder of them) given as scenes says to run convert-womd (it said "pickled
+    data ... load it unsafely", or only "no scenario files")."""
+    from helpers import womd_tfrecord
+
+    from trajeglish_env.training.dataset import SceneStore
+
+    folder = tmp_path / "raw"
+    folder.mkdir()
+    record = folder / "validation.tfrecord-00000-of-00001"
+    record.write_bytes(womd_tfrecord().read_bytes())
+    with pytest.raises(ScenarioError, match="a WOMD TFRecord file, not a scenario file .* convert-womd"):
+        trajeglish_env.env(scenes=str(record))
+    with pytest.raises(ValueError, match="there are WOMD TFRecord files, e.g. .*validation.tfrecord-00000"):
+        trajeglish_env.env(scenes=str(folder))
+    with pytest.raises(FileNotFoundError, match="convert them first, `trajeglish convert-womd FILES"):
+        SceneStore(folder)
+
+
+def test_reset_by_scenario_id_reads_the_ids_once_without_loading_scenes(tmp_path, monkeypatch) -> None:
+    """Many shards: a reset by id read every shard in full until it found the id, at every reset."""
+    import trajeglish_env.env.scenes as scenes_module
+
+    for k in range(3):
+        scene = dataclasses.replace(straight_road_scene(), scenario_id=f"scene-{k}")
+        save_scenarios(tmp_path / f"s{k}.scn.npz", [scene])
+    files = scenes_module.SceneFiles(tmp_path)
+    loaded = []
+    real = scenes_module.load_scenarios
+    monkeypatch.setattr(scenes_module, "load_scenarios", lambda p: loaded.append(p) or real(p))
+    assert [files.index_of(f"scene-{k}") for k in (2, 0, 2)] == [2, 0, 2] and loaded == []
+    with pytest.raises(UnknownSceneError, match="no scene with scenario_id 'nope'"):
+        files.index_of("nope")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 from pathlib import Path
 
 import numpy as np
@@ -213,3 +214,24 @@ def test_convert_reports_corrupt_input_and_converts_the_rest(tmp_path: Path):
     assert "broken.tfrecord: record 0" in failure["error"] and "truncated" in failure["error"]
     names = ["motion_data_one_scenario.details.npz", "motion_data_one_scenario.scn.npz"]
     assert sorted(p.name for p in out.iterdir()) == names
+
+
+# ------------------------------------------------------------------------------------------ audit fixes
+def test_real_sample_gzip_and_a_corrupt_middle_record(tmp_path: Path, record: bytes, scene):
+    raw = womd_tfrecord().read_bytes()
+    zipped = tmp_path / "sample.tfrecord.gz"
+    zipped.write_bytes(gzip.compress(raw, compresslevel=1))
+    (read,) = list(read_womd(zipped))
+    assert read.equals(scene), f"{zipped}: the gzip-compressed sample must read as the plain one"
+    flipped = bytearray(raw)
+    flipped[500_000] ^= 0x01
+    three = tmp_path / "three.tfrecord"
+    three.write_bytes(raw + bytes(flipped) + raw)
+    report = convert_womd([three], tmp_path / "out", progress=False)
+    assert report["scenes"] == 2 and report["bad_tails"] == [], f"{three}: expected records 0 and 2, {report}"
+    assert [(b["record"], b["byte_offset"]) for b in report["bad_records"]] == [(1, len(raw))]
+
+
+def test_ragged_real_track_names_its_id(record: bytes):
+    with pytest.raises(WomdFormatError, match=r"track 2406 \(index 82\) has 90 states; the others have 91"):
+        parse_scenario(_modified(record, lambda p: p.tracks[82].states.pop()), origin="here")

@@ -4,6 +4,7 @@ give the one-process files bit for bit."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import socket
@@ -217,9 +218,9 @@ def test_bad_inputs_fail_with_one_line(root: Path, tmp_path: Path, capsys) -> No
     assert main(["convert-womd", *inputs, "--out", shards, "--quiet"]) == 0
     export = ["export-submission", "--data", shards, "--ckpt", str(root / "tiny.pt"), "--quiet"]
     assert main([*export, "--out", sub, *METADATA, "--rollouts", "1", "--steps", "1"]) == 0  # quick
-    assert (
-        "--steps 1: WOSAC and score-submission need 80 steps" in capsys.readouterr().err
-    )  # said, not silent
+    said = capsys.readouterr().err  # allowed for a quick try, but said, not silent
+    assert "--steps 1: WOSAC and score-submission need 80 steps" in said
+    assert "--rollouts 1: WOSAC takes exactly 32 joint rollouts per scenario" in said
     cases = {
         "missing or invalid: account_name (--account-name)": [*export, "--out", str(tmp_path / "a")],
         "num_model_parameters '1.5M' must be": [
@@ -235,7 +236,7 @@ def test_bad_inputs_fail_with_one_line(root: Path, tmp_path: Path, capsys) -> No
             "--out",
             sub,
             *METADATA,
-            "--rollouts",
+            "--seed",
             "3",
         ],
         "no such scenario file or directory": [
@@ -296,3 +297,47 @@ def test_conversion_in_worker_processes_writes_the_same_shards(root: Path, tmp_p
         else:
             (a,), (b,) = load_log_details(shard), load_log_details(tmp_path / "two" / shard.name)
             assert np.array_equal(a.xyz, b.xyz) and np.array_equal(a.map_z, b.map_z)
+
+
+def test_score_submission_refuses_what_would_give_wrong_scores(tmp_path: Path, capsys) -> None:
+    """A WOMD shard without its raw log details (minADE off by metres, silently, before), a scenario in the
+    data twice, and an --out that is a directory are refused in one line before any scoring."""
+    from helpers import womd_tfrecord
+
+    shards = tmp_path / "shards"
+    assert main(["convert-womd", str(womd_tfrecord()), "--out", str(shards), "--quiet"]) == 0
+    (shard,) = shards.glob("*.scn.npz")
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (bare / shard.name).write_bytes(shard.read_bytes())
+    score = ["score-submission", str(womd_submission()), "--quiet"]
+    cases = {
+        f"{bare / shard.name}: scene '637f20cafde22ff8' comes from WOMD but": ["--data", str(bare)],
+        "is in both": ["--data", str(shards), str(bare)],
+        "is a directory; give the JSON file to write": ["--data", str(shards), "--out", str(tmp_path)],
+    }
+    for message, args in cases.items():
+        assert main([*score, *args]) == 2, args
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], (message, err)
+
+
+def test_a_validation_scene_is_simulated_exactly_as_its_test_form_twin() -> None:
+    """The export samples from the history alone; agents that only the future holds are left out, so the
+    rollouts are those of the scene's test-form twin, bit for bit (before, their empty rows shifted the
+    agents' random draws: 5 m apart after 20 steps)."""
+    from helpers import tiny, womd_tfrecord
+
+    from trajeglish_env.metrics import read_womd_details
+    from trajeglish_env.sources.womd import read_womd
+
+    scene, details = next(read_womd(womd_tfrecord())), next(read_womd_details(womd_tfrecord()))
+    seen = np.flatnonzero(scene.valid[:, : scene.current_index + 1].any(axis=1))
+    assert len(seen) < scene.num_agents  # the shared scene holds future-only agents
+    per_track = ("track_id", "xyz", "heading", "box", "object_type")
+    twin_details = dataclasses.replace(details, **{f: getattr(details, f)[seen] for f in per_track})
+    config = ExportConfig(rollouts=1, steps=6, processes=1)
+    validation = sample_scenario(tiny(), scene, details, config)
+    test_form = sample_scenario(tiny(), scene.with_agents(seen), twin_details, config)
+    np.testing.assert_array_equal(test_form.xyz, validation.xyz)
+    np.testing.assert_array_equal(test_form.object_id, validation.object_id)

@@ -27,6 +27,7 @@ def cmd_export_submission(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.checkpoint import load_checkpoint, load_pretrained
     from trajeglish_env.distributed import init_ranks, rank_device
     from trajeglish_env.metrics.submission_metadata import SubmissionMetadata, format_parameter_count
+    from trajeglish_env.metrics.submission_scores import WOSAC_ROLLOUTS
     from trajeglish_env.sampler.config import SamplingConfig
     from trajeglish_env.sampler.rollouts import auto_processes
     from trajeglish_env.submission_export import WOSAC_STEPS, ExportConfig, export_submission
@@ -59,6 +60,12 @@ def cmd_export_submission(args: argparse.Namespace) -> dict[str, Any]:
         print(
             f"export-submission: warning: --steps {args.steps}: WOSAC and score-submission need "
             f"{WOSAC_STEPS} steps after the current one; this submission cannot be scored",
+            file=sys.stderr,
+        )
+    if args.rollouts != WOSAC_ROLLOUTS and ranks.main:
+        print(
+            f"export-submission: warning: --rollouts {args.rollouts}: WOSAC takes exactly {WOSAC_ROLLOUTS} "
+            "joint rollouts per scenario; the leaderboard would reject this submission",
             file=sys.stderr,
         )
     result = export_submission(

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -156,6 +157,17 @@ def model_method(ckpt: Checkpoint, sampling: SamplingConfig, processes: int = 1)
     return run
 
 
+def check_unique_ids(scenes: Sequence[Scenario], data: object) -> None:
+    """Refuse scenes that share a scenario id (the same shard passed twice?): they would count twice."""
+    counts = Counter(s.scenario_id for s in scenes)
+    twice = sorted(sid for sid, n in counts.items() if n > 1)
+    if twice:
+        raise ValueError(
+            f"{data}: scenario id(s) {twice[:5]} appear more than once among the scenes to evaluate (the "
+            "same shard passed twice, or converted twice?): each would be counted twice"
+        )
+
+
 def submission_method(path: str | os.PathLike[str], scenario_ids: Sequence[str]) -> Method:
     """The rollouts (and z) a submission file holds for the given scenarios, as a method."""
     wanted = set(scenario_ids)
@@ -174,7 +186,12 @@ def submission_method(path: str | os.PathLike[str], scenario_ids: Sequence[str])
             or len(ids) != len(item.object_id)
             or not np.array_equal(item.object_id[order], ids)
         ):
-            raise ValueError(f"{path}: scenario {scene.scenario_id!r} does not hold exactly its sim agents")
+            missing, extra = np.setdiff1d(ids, item.object_id), np.setdiff1d(item.object_id, ids)
+            raise ValueError(
+                f"{path}: scenario {scene.scenario_id!r} must hold exactly its {len(ids)} simulated agents "
+                f"(those valid at the current step), it holds {len(item.object_id)}: missing object id(s) "
+                f"{missing.tolist()[:10]}, not simulated {extra.tolist()[:10]}"
+            )
         return item.xyh[:, order].astype(np.float64), item.z[:, order].astype(np.float64)
 
     return run
@@ -397,8 +414,19 @@ def evaluate(
     scenes = [every[k] for k in chosen]
     if not scenes:
         raise ValueError(f"{data}: no scenes to evaluate")
+    check_unique_ids(scenes, data)
     all_details = details_for_files(store.files)
-    details = [all_details[k] for k in chosen] if len(all_details) == len(every) else None
+    details = [all_details[k] for k in chosen]
+    womd_without = [
+        s.scenario_id for s, d in zip(scenes, details, strict=True) if d is None and s.source == "womd"
+    ]
+    if womd_without and ranks.main:  # scored all the same (planar), never silently
+        print(
+            f"evaluate: warning: {len(womd_without)} WOMD scene(s) ({', '.join(womd_without[:3])}) have no "
+            "raw log details beside their shard (NAME.details.npz): they are scored with planar "
+            "values, not as the official scorer does; convert them again with `trajeglish convert-womd`",
+            file=sys.stderr,
+        )
     methods: dict[str, Method] = {"log": log_method, "constant_velocity": constant_velocity_method}
     if submission is not None:
         methods["submission"] = submission_method(submission, [s.scenario_id for s in scenes])
@@ -433,7 +461,7 @@ def evaluate(
         "scenes": len(scenes),
         "rollouts": config.rollouts,
         "metrics_config": config.metrics,
-        "log_details": details is not None,
+        "log_details": all(d is not None for d in details),
         "processes": ranks.world,
         "rollout_processes": config.rollout_processes,
         "guards": list(config.guards),

@@ -127,10 +127,7 @@ def _read_shard(path: Path, header_only: bool) -> tuple[int, dict[str, np.ndarra
     except ScenarioError:
         raise
     except _UNREADABLE as exc:
-        reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
-        raise ScenarioError(
-            f"{path}: not a readable scenario file (truncated or corrupt?): {reason}"
-        ) from exc
+        raise _unreadable(path, exc) from exc
     return count, items
 
 
@@ -145,10 +142,7 @@ def _scene_strings(path: str | os.PathLike[str], name: str) -> list[str]:
     except ScenarioError:
         raise
     except _UNREADABLE as exc:
-        reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
-        raise ScenarioError(
-            f"{path}: not a readable scenario file (truncated or corrupt?): {reason}"
-        ) from exc
+        raise _unreadable(path, exc) from exc
 
 
 def scenario_ids(path: str | os.PathLike[str]) -> list[str]:
@@ -197,6 +191,44 @@ def list_scenario_files(directory: str | os.PathLike[str]) -> list[Path]:
     if not directory.is_dir():
         raise FileNotFoundError(f"{directory}: no such scenario file or directory")
     return sorted(p for p in directory.rglob(f"*{SUFFIX}") if not p.name.startswith("."))
+
+
+def scenario_files(paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]) -> list[Path]:
+    """Every scenario file under the given files/directories (sorted per path); a FileNotFoundError when
+    there is none, which says to convert first when WOMD TFRecords are there instead."""
+    paths = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    files = [f for p in paths for f in list_scenario_files(p)]
+    if not files:
+        raise FileNotFoundError(no_scenario_files_message(paths))
+    return files
+
+
+def no_scenario_files_message(paths: Sequence[str | os.PathLike[str]]) -> str:
+    """ "No scenario files under ...", with the convert-womd hint when TFRecord files are there."""
+    records = [f for p in map(Path, paths) if p.is_dir() for f in p.rglob("*tfrecord*") if f.is_file()]
+    hint = (
+        f" (there are WOMD TFRecord files, e.g. {records[0]}: convert them first, `trajeglish convert-womd "
+        "FILES --out DIR`, and pass DIR)"
+        if records
+        else ""
+    )
+    return f"no scenario files (*.scn.npz) under {[str(p) for p in paths]}{hint}"
+
+
+def _looks_like_tfrecord(path: Path) -> bool:
+    """A WOMD TFRecord given where a scenario file is expected (by its name; scenario files are zips)."""
+    return "tfrecord" in path.name.lower()
+
+
+def _unreadable(path: Path, exc: BaseException) -> ScenarioError:
+    """The error for a file NumPy cannot read as a scenario archive."""
+    if _looks_like_tfrecord(path):
+        return ScenarioError(
+            f"{path}: a WOMD TFRecord file, not a scenario file (*.scn.npz): convert it first, `trajeglish "
+            "convert-womd FILE --out DIR`, and pass DIR"
+        )
+    reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
+    return ScenarioError(f"{path}: not a readable scenario file (truncated or corrupt?): {reason}")
 
 
 def _missing_file(path: Path) -> str:

@@ -41,7 +41,12 @@ from trajeglish_env.metrics.submission import SubmissionMetadata, SubmittedRollo
 from trajeglish_env.sampler import rollout
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.scenario import Scenario
-from trajeglish_env.scenario_io import atomic_path, list_scenario_files, load_scenarios, scenario_ids
+from trajeglish_env.scenario_io import (
+    atomic_path,
+    load_scenarios,
+    scenario_files,
+    scenario_ids,
+)
 
 __all__ = [
     "ExportConfig",
@@ -95,12 +100,17 @@ def sim_agents(scene: Scenario) -> np.ndarray:
 
 
 def history_only(scene: Scenario) -> Scenario:
-    """The scene up to its current step (what a test-set scene holds): no future states or signals."""
+    """The scene up to its current step (what a test-set scene holds): no future states or signals, and
+    no agent that only the future holds (rows without a state would shift the agents' random draws, so a
+    validation scene would not be simulated exactly as its test-form twin)."""
     keep = scene.current_index + 1
     signals = None if scene.signal_state is None else scene.signal_state[:keep].copy()
-    return replace(
+    cut = replace(
         scene, xyh=scene.xyh[:, :keep].copy(), valid=scene.valid[:, :keep].copy(), signal_state=signals
     )
+    seen = cut.valid.any(axis=1)
+    seen[scene.sdc] = True
+    return cut if seen.all() else cut.with_agents(np.flatnonzero(seen))
 
 
 def sample_scenario(
@@ -111,10 +121,9 @@ def sample_scenario(
     if len(sim) == 0:
         raise ValueError(f"scenario {scene.scenario_id!r}: no agent is valid at the current step")
     sampling = replace(config.sampling, seed=scenario_seed(config.seed, scene.scenario_id))
-    result = rollout(
-        ckpt, history_only(scene), config.rollouts, config.steps, config=sampling, processes=config.processes
-    )
-    future = result.xyh[:, sim, scene.current_index + 1 :]
+    past = history_only(scene)
+    result = rollout(ckpt, past, config.rollouts, config.steps, config=sampling, processes=config.processes)
+    future = result.xyh[:, sim_agents(past), scene.current_index + 1 :]  # the same agents, in the same order
     z = np.zeros(len(sim)) if details is None else details.xyz[sim, scene.current_index, 2]
     xyz = np.concatenate(
         [future[..., :2], np.broadcast_to(z[None, :, None, None], (*future.shape[:3], 1))], -1
@@ -129,9 +138,7 @@ def sample_scenario(
 
 def _input_files(data: str | Path | Sequence[str | Path]) -> list[Path]:
     paths = [data] if isinstance(data, (str, Path)) else list(data)
-    files = [f for p in paths for f in list_scenario_files(p)]
-    if not files:
-        raise FileNotFoundError(f"no scenario files (*.scn.npz) under {[str(p) for p in paths]}")
+    files = scenario_files(paths)
     return files
 
 

@@ -16,7 +16,14 @@ from typing import Protocol
 import numpy as np
 
 from trajeglish_env.scenario import Scenario, ScenarioError
-from trajeglish_env.scenario_io import count_scenarios, list_scenario_files, load_scenarios, save_scenarios
+from trajeglish_env.scenario_io import (
+    count_scenarios,
+    list_scenario_files,
+    load_scenarios,
+    no_scenario_files_message,
+    save_scenarios,
+    scenario_ids,
+)
 
 BUNDLE_ASSET = "scenes_bundle.scn.npz"
 BUNDLE_SEED = 999_000  # highway scenes of the bundle use seeds 999_000+ (training data uses small seeds)
@@ -111,7 +118,7 @@ class SceneFiles:
     def __init__(self, path: str | os.PathLike[str]):
         self.files = list_scenario_files(path)
         if not self.files:
-            raise ValueError(f"{path}: no scenario files (*.scn.npz) found")
+            raise ValueError(no_scenario_files_message([path]))
         self.where = str(path)
         self._counts = np.array([count_scenarios(f) for f in self.files], dtype=np.int64)
         self._starts = np.concatenate([[0], np.cumsum(self._counts)])
@@ -120,6 +127,7 @@ class SceneFiles:
                 f"{path}: the scenario files hold no scenes ({len(self.files)} empty shard(s))"
             )
         self._cache: tuple[int, list[Scenario]] | None = None
+        self._ids: dict[str, int] | None = None  # scenario id -> index, read on the first reset by id
 
     def __len__(self) -> int:
         return int(self._starts[-1])
@@ -133,11 +141,16 @@ class SceneFiles:
         return self._cache[1][index - int(self._starts[shard])]
 
     def index_of(self, name: str) -> int:
-        for shard, path in enumerate(self.files):
-            for i, sc in enumerate(load_scenarios(path)):
-                if sc.scenario_id == name:
-                    return int(self._starts[shard]) + i
-        raise UnknownSceneError(f"{self.where}: no scene with scenario_id {name!r}")
+        """The index of the scene with this id: the ids are read once (headers only, no scene loaded);
+        an id held twice resolves to its first scene."""
+        if self._ids is None:
+            self._ids = {}
+            for shard, path in enumerate(self.files):
+                for i, sid in enumerate(scenario_ids(path)):
+                    self._ids.setdefault(sid, int(self._starts[shard]) + i)
+        if name not in self._ids:
+            raise UnknownSceneError(f"{self.where}: no scene with scenario_id {name!r}")
+        return self._ids[name]
 
 
 class GeneratedScenes:

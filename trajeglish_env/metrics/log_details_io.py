@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from trajeglish_env.metrics.log_details import LogDetails
-from trajeglish_env.scenario_io import SUFFIX, atomic_path
+from trajeglish_env.scenario_io import SUFFIX, atomic_path, scenario_ids
 
 __all__ = ["DETAILS_SUFFIX", "details_for_files", "details_path", "load_log_details", "save_log_details"]
 
@@ -69,8 +69,10 @@ def load_log_details(path: str | os.PathLike[str]) -> list[LogDetails]:
 
 
 def details_for_files(files: Sequence[str | os.PathLike[str]]) -> list[LogDetails | None]:
-    """Details of every scene of the given shards in order; empty unless every shard has its file."""
-    sidecars = [details_path(f) for f in files]
-    if not sidecars or not all(p.is_file() for p in sidecars):
-        return []
-    return [item for p in sidecars for item in load_log_details(p)]
+    """Details of every scene of the given shards in order: None for the scenes of a shard without its
+    details file (each shard on its own: one shard without them leaves the others' details in use)."""
+    out: list[LogDetails | None] = []
+    for f in files:
+        sidecar = details_path(f)
+        out += list(load_log_details(sidecar)) if sidecar.is_file() else [None] * len(scenario_ids(f))
+    return out

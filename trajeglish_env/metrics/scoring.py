@@ -129,23 +129,29 @@ def _validated_rollouts(
     scene: MetricScene, rollouts_xyh: np.ndarray, agent_ids: np.ndarray, rollouts_z: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rollouts reordered to the scene's simulated agents: ``xyz [R, N, T_f, 3]`` and ``heading``."""
-    where = f"score_rollouts (scenario {scene.scenario_id!r})"
+    where = f"scenario {scene.scenario_id!r}"
     xyh = np.asarray(rollouts_xyh)
     n, t_f = scene.num_simulated, scene.num_future
+    ids = np.asarray(agent_ids).astype(np.int64).reshape(-1)
+    missing, unknown = np.setdiff1d(scene.track_id, ids), np.setdiff1d(ids, scene.track_id)
+    if len(missing) or len(unknown):
+        raise ValueError(
+            f"{where}: the rollouts must hold exactly its {n} simulated agents (those valid at the current "
+            f"step), they hold {len(ids)}: missing object id(s) {missing.tolist()[:10]}, not simulated "
+            f"{unknown.tolist()[:10]}"
+        )
+    uniq, counts = np.unique(ids, return_counts=True)
+    if (counts > 1).any():
+        twice = uniq[counts > 1]
+        raise ValueError(f"{where}: object id(s) {twice.tolist()[:10]} appear more than once in the rollouts")
+    if xyh.ndim == 4 and xyh.shape[2] != t_f:
+        raise ValueError(
+            f"{where}: the rollouts hold {xyh.shape[2]} future steps; WOSAC scores {t_f} (the log's steps "
+            "after the current one)"
+        )
     if xyh.ndim != 4 or xyh.shape[1:] != (n, t_f, 3) or xyh.shape[0] < 1:
         raise ValueError(
             f"{where}: rollouts_xyh must be [R, {n} simulated agents, {t_f} future steps, 3], got {xyh.shape}"
-        )
-    ids = np.asarray(agent_ids).astype(np.int64).reshape(-1)
-    if len(ids) != n or len(np.unique(ids)) != n:
-        raise ValueError(
-            f"{where}: agent_ids must list the {n} simulated agents once each, got {len(ids)} ids"
-        )
-    unknown = np.setdiff1d(ids, scene.track_id)
-    if len(unknown):
-        raise ValueError(
-            f"{where}: unknown object id(s) {unknown.tolist()[:10]}: not agents valid at the current step "
-            f"(simulated agents: {np.sort(scene.track_id).tolist()[:20]}...)"
         )
     order = np.argsort(ids)[np.searchsorted(np.sort(ids), scene.track_id)]  # row of each scene agent
     xyh = xyh[:, order].astype(np.float32)

@@ -36,11 +36,13 @@ __all__ = [
     "TFRecordFramingError",
     "WomdFormatError",
     "good_records",
+    "no_records_error",
     "output_name",
     "parse_scenario",
     "read_good_records",
     "read_tfrecord",
     "read_womd",
+    "read_womd_at",
 ]
 
 # WOMD Track.ObjectType -> AgentKind. TYPE_OTHER (4) and TYPE_UNSET (0) are rare; they are moving road
@@ -82,9 +84,32 @@ def parse_scenario(data: bytes, *, origin: str = "") -> Scenario:
 
 
 def read_womd(path: str | os.PathLike[str]) -> Iterator[Scenario]:
-    """Yield every scene of a WOMD TFRecord file, in file order."""
+    """Yield every scene of a WOMD TFRecord file, in file order; a file without records is an error."""
+    empty = True
     for index, data in read_tfrecord(path):
+        empty = False
         yield parse_scenario(data, origin=f"{path}: record {index}")
+    if empty:
+        raise no_records_error(path)
+
+
+def read_womd_at(path: str | os.PathLike[str], index: int) -> Scenario:
+    """The ``index``-th scene (0-based, in file order) of a WOMD TFRecord file; only that record is parsed.
+    An index past the file's records is a :class:`WomdFormatError` naming the file and its record count."""
+    if index < 0:
+        raise WomdFormatError(f"{path}: scenario index {index} is negative")
+    count = 0
+    for count, (number, data) in enumerate(read_tfrecord(path), start=1):
+        if count - 1 == index:
+            return parse_scenario(data, origin=f"{path}: record {number}")
+    if count == 0:
+        raise no_records_error(path)
+    raise WomdFormatError(f"{path} holds {count} scenario(s); index {index} is out of range")
+
+
+def no_records_error(path: str | os.PathLike[str]) -> WomdFormatError:
+    """The error of a TFRecord file that holds no record."""
+    return WomdFormatError(f"{path}: no records (empty file: it holds no scenario)")
 
 
 def output_name(path: str | os.PathLike[str]) -> str:
@@ -97,26 +122,36 @@ def output_name(path: str | os.PathLike[str]) -> str:
     return name.replace(".tfrecord", "", 1) + SUFFIX
 
 
-def good_records(path: str | os.PathLike[str]) -> tuple[list[tuple[int, bytes]], TFRecordFramingError | None]:
+def good_records(
+    path: str | os.PathLike[str], bad_records: list[TFRecordFramingError] | None = None
+) -> tuple[list[tuple[int, bytes]], TFRecordFramingError | None]:
     """The good records ``(index, bytes)`` of a TFRecord file and the framing error of its bad tail (None
-    if the file is intact). A file whose first record is already bad is an error."""
+    if the file is intact). A file whose first record is already bad is an error. With a ``bad_records``
+    list, a corrupt record whose framing is intact (data checksum wrong) is skipped and appended to it
+    instead of ending the file (see :func:`read_tfrecord`); a file of nothing but such records is an error."""
     records: list[tuple[int, bytes]] = []
+    skipped = [] if bad_records is None else bad_records
     try:
-        for index, data in read_tfrecord(path):
+        for index, data in read_tfrecord(path, bad_records=bad_records):
             records.append((index, data))
     except TFRecordFramingError as exc:
         if not records:
             raise
         return records, exc
+    if not records and skipped:
+        raise skipped[0]
     return records, None
 
 
-def read_good_records(path: str | os.PathLike[str]) -> tuple[list[Scenario], TFRecordFramingError | None]:
+def read_good_records(
+    path: str | os.PathLike[str], bad_records: list[TFRecordFramingError] | None = None
+) -> tuple[list[Scenario], TFRecordFramingError | None]:
     """The scenes of a TFRecord file's good records, and the framing error of its bad tail (None if the
-    file is intact). A file whose first record is already bad, or that holds no record, is an error."""
-    records, tail = good_records(path)
+    file is intact). A file whose first record is already bad, or that holds no record, is an error.
+    ``bad_records``: as in :func:`good_records`."""
+    records, tail = good_records(path, bad_records)
     if not records:
-        raise WomdFormatError(f"{path}: no records (empty file)")
+        raise no_records_error(path)
     return [parse_scenario(data, origin=f"{path}: record {index}") for index, data in records], tail
 
 
@@ -127,12 +162,7 @@ def _convert(proto: Message, where: str) -> Scenario:
     n = len(tracks)
     if n == 0:
         raise WomdFormatError(f"{where}scenario {proto.scenario_id!r} has no tracks")
-    steps = {len(track.states) for track in tracks}
-    if len(steps) != 1 or 0 in steps:
-        raise WomdFormatError(
-            f"{where}tracks must all have the same, non-zero number of states; got {sorted(steps)}"
-        )
-    t = steps.pop()
+    t = _steps(tracks, where)
     sdc = int(proto.sdc_track_index)
     if not 0 <= sdc < n:
         raise WomdFormatError(f"{where}sdc_track_index {sdc} out of range for {n} tracks")
@@ -190,6 +220,22 @@ def _convert(proto: Message, where: str) -> Scenario:
         signal_xy=signal_xy,
         signal_state=signal_state,
     ).validate()
+
+
+def _steps(tracks: Sequence[Message], where: str) -> int:
+    """The number of states every track has; a ragged or empty track is an error naming the odd tracks."""
+    counts = np.array([len(track.states) for track in tracks], dtype=np.int64)
+    values, seen = np.unique(counts, return_counts=True)
+    common = int(values[np.lexsort((values, seen))[-1]])  # the most frequent count (the larger on a tie)
+    if len(values) == 1 and common > 0:
+        return common
+    odd = np.flatnonzero(counts != common) if common > 0 else np.flatnonzero(counts == 0)
+    named = ", ".join(f"track {tracks[i].id} (index {i}) has {counts[i]} states" for i in odd[:5])
+    more = f" and {len(odd) - 5} more" if len(odd) > 5 else ""
+    others = f"the others have {common}" if common > 0 else "a track needs at least one state"
+    raise WomdFormatError(
+        f"{where}tracks must all have the same, non-zero number of states: {named}{more}; {others}"
+    )
 
 
 def _agent_size(

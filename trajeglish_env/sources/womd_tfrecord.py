@@ -2,17 +2,21 @@
 
 A TFRecord file is a sequence of records, each framed as
 ``uint64 length (LE) | uint32 masked crc32c(length bytes) | data | uint32 masked crc32c(data)``.
-Both checksums are verified. CRC-32C is computed in NumPy: the data is cut into equal chunks whose
+Both checksums are verified; a gzip-compressed file (TensorFlow's ``GZIP`` option) is read through
+:mod:`gzip`. CRC-32C is computed in NumPy: the data is cut into equal chunks whose
 CRCs advance together one byte column at a time, then the chunk CRCs are folded with a precomputed
 "append L zero bytes" linear map (CRCs are linear over GF(2)). A 1 MB record takes a few milliseconds.
 """
 
 from __future__ import annotations
 
+import gzip
 import os
+import zlib
 from collections.abc import Iterator
 from functools import lru_cache
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -21,6 +25,9 @@ _MASK_DELTA = 0xA282EAD8  # TFRecord's checksum masking constant
 _HEADER_BYTES = 12  # uint64 length + uint32 masked crc of the length
 _FOOTER_BYTES = 4  # uint32 masked crc of the data
 _SCALAR_LIMIT = 2048  # below this many bytes the plain table loop is faster than the vectorised one
+_GZIP_MAGIC = b"\x1f\x8b"  # a TFRecord written with TensorFlow's GZIP compression option
+_GZIP_PIECE = 1 << 24  # bytes decompressed per read of a gzip-compressed record
+_GZIP_NOTE = " (gzip-compressed file: offsets are in the decompressed data)"
 
 
 class WomdFormatError(ValueError):
@@ -106,49 +113,103 @@ def _framing_error(path: Path, index: int, offset: int, problem: str) -> TFRecor
 
 
 def read_tfrecord(
-    path: str | os.PathLike[str], *, check_data_crc: bool = True
+    path: str | os.PathLike[str],
+    *,
+    check_data_crc: bool = True,
+    bad_records: list[TFRecordFramingError] | None = None,
 ) -> Iterator[tuple[int, bytes]]:
     """Yield ``(record_index, data)`` for each record of a TFRecord file, verifying both checksums.
 
     Raises :class:`TFRecordFramingError` (a :class:`WomdFormatError`) naming the file, the record and its
     byte offset on a truncated or corrupt record, after yielding the good records before it.
-    ``check_data_crc=False`` skips the data checksum (the length checksum is always verified).
+    ``check_data_crc=False`` skips the data checksum (the length checksum is always verified). With a
+    ``bad_records`` list, a record whose data checksum fails while its framing is intact (length checksum
+    right, the whole record present) is appended to it as an error and skipped, and reading goes on; the
+    indices of the later records still count it. A gzip-compressed file (TensorFlow's ``GZIP`` option,
+    first bytes ``1f 8b``) is decompressed on the fly; its byte offsets are those of the decompressed data.
     """
     path = Path(path)
     with open(path, "rb") as fh:
-        size = os.fstat(fh.fileno()).st_size
-        index = 0
-        while True:
-            start = fh.tell()
-            header = fh.read(_HEADER_BYTES)
-            if not header:
-                return
-            if len(header) < _HEADER_BYTES:
-                raise _framing_error(
-                    path, index, start, f"truncated header: {len(header)} of {_HEADER_BYTES} bytes"
-                )
-            length = int.from_bytes(header[:8], "little")
-            if masked_crc32c(header[:8]) != int.from_bytes(header[8:12], "little"):
-                raise _framing_error(
-                    path, index, start, "length checksum mismatch (corrupt file or not a TFRecord file)"
-                )
-            left = size - start - _HEADER_BYTES
-            if length + _FOOTER_BYTES > left:
-                raise _framing_error(
-                    path,
-                    index,
-                    start,
-                    f"truncated: the record needs {length + _FOOTER_BYTES} bytes but only {left} are left",
-                )
-            data = fh.read(length)
-            footer = fh.read(_FOOTER_BYTES)
-            if len(data) != length or len(footer) != _FOOTER_BYTES:
-                raise _framing_error(
-                    path, index, start, "truncated while reading (file changed during the read?)"
-                )
-            if check_data_crc and masked_crc32c(data) != int.from_bytes(footer, "little"):
-                raise _framing_error(
-                    path, index, start, f"data checksum mismatch over {length} bytes (corrupt record)"
-                )
+        head = fh.read(_HEADER_BYTES)
+        plain = len(head) == _HEADER_BYTES and masked_crc32c(head[:8]) == int.from_bytes(head[8:], "little")
+        if head[:2] == _GZIP_MAGIC and not plain:  # a record length may start with 1f 8b: its CRC decides
+            fh.seek(0)
+            with gzip.GzipFile(fileobj=fh, mode="rb") as stream:
+                yield from _records(path, stream, None, check_data_crc, bad_records)
+            return
+        fh.seek(0)
+        yield from _records(path, fh, os.fstat(fh.fileno()).st_size, check_data_crc, bad_records)
+
+
+def _read(path: Path, fh: BinaryIO, n: int, index: int, start: int, compressed: bool) -> bytes:
+    """Up to ``n`` bytes of ``fh`` (fewer at its end); a broken gzip stream is a framing error."""
+    if not compressed:
+        return fh.read(n)
+    parts = []
+    try:
+        while n > 0:  # in pieces: a huge length must not allocate before the data is there
+            part = fh.read(min(n, _GZIP_PIECE))
+            if not part:
+                break
+            parts.append(part)
+            n -= len(part)
+    except (EOFError, OSError, zlib.error) as exc:  # truncated download (EOFError), bad deflate data or CRC
+        raise _framing_error(
+            path, index, start, f"truncated or corrupt gzip stream: {exc}{_GZIP_NOTE}"
+        ) from exc
+    return b"".join(parts)
+
+
+def _records(
+    path: Path,
+    fh: BinaryIO,
+    size: int | None,
+    check_data_crc: bool,
+    bad_records: list[TFRecordFramingError] | None,
+) -> Iterator[tuple[int, bytes]]:
+    """The records of an open (plain, ``size`` bytes, or decompressed, ``size`` None) TFRecord stream."""
+    compressed = size is None
+    note = _GZIP_NOTE if compressed else ""
+    index = start = 0
+    while True:
+        header = _read(path, fh, _HEADER_BYTES, index, start, compressed)
+        if not header:
+            return
+        if len(header) < _HEADER_BYTES:
+            raise _framing_error(
+                path, index, start, f"truncated header: {len(header)} of {_HEADER_BYTES} bytes{note}"
+            )
+        length = int.from_bytes(header[:8], "little")
+        if masked_crc32c(header[:8]) != int.from_bytes(header[8:12], "little"):
+            raise _framing_error(
+                path, index, start, f"length checksum mismatch (corrupt file or not a TFRecord file){note}"
+            )
+        left = None if size is None else size - start - _HEADER_BYTES
+        if left is not None and length + _FOOTER_BYTES > left:
+            raise _framing_error(
+                path,
+                index,
+                start,
+                f"truncated: the record needs {length + _FOOTER_BYTES} bytes but only {left} are left",
+            )
+        data = _read(path, fh, length, index, start, compressed)
+        footer = _read(path, fh, _FOOTER_BYTES, index, start, compressed)
+        if len(data) != length or len(footer) != _FOOTER_BYTES:
+            got = len(data) + len(footer)
+            problem = (
+                f"truncated: the record needs {length + _FOOTER_BYTES} bytes but only {got} are left{note}"
+                if compressed
+                else "truncated while reading (file changed during the read?)"
+            )
+            raise _framing_error(path, index, start, problem)
+        if check_data_crc and masked_crc32c(data) != int.from_bytes(footer, "little"):
+            error = _framing_error(
+                path, index, start, f"data checksum mismatch over {length} bytes (corrupt record){note}"
+            )
+            if bad_records is None:
+                raise error
+            bad_records.append(error)  # the framing is intact: the next record starts right after it
+        else:
             yield index, data
-            index += 1
+        index += 1
+        start += _HEADER_BYTES + length + _FOOTER_BYTES

@@ -10,7 +10,7 @@ import numpy as np
 
 from trajeglish_env.geometry import to_local
 from trajeglish_env.scenario import AgentKind, Scenario
-from trajeglish_env.scenario_io import list_scenario_files, load_scenarios
+from trajeglish_env.scenario_io import load_scenarios, scenario_files
 
 
 @dataclass(frozen=True)
@@ -97,9 +97,7 @@ class TrajectorySet:
 
 def load_trajectories(data: str | os.PathLike[str], max_scenes: int | None = None) -> TrajectorySet:
     """The scenes of a scenario file or directory (sorted files; first ``max_scenes``) as a TrajectorySet."""
-    files = list_scenario_files(data)
-    if not files:
-        raise FileNotFoundError(f"{data}: no scenario files (*.scn.npz) found")
+    files = scenario_files(data)
     scenes: list[Scenario] = []
     for path in files:
         scenes.extend(load_scenarios(path))

@@ -30,7 +30,7 @@ from trajeglish_env.model.map_chunks import (
     signal_classes,
 )
 from trajeglish_env.scenario import Scenario
-from trajeglish_env.scenario_io import list_scenario_files, load_scenarios
+from trajeglish_env.scenario_io import load_scenarios, scenario_files
 
 
 @dataclass(frozen=True)
@@ -59,9 +59,7 @@ class SceneStore:
     def __init__(self, paths: str | os.PathLike[str] | Sequence[str | os.PathLike[str]]):
         if isinstance(paths, (str, os.PathLike)):
             paths = [paths]
-        self.files: list[Path] = [f for p in paths for f in list_scenario_files(p)]
-        if not self.files:
-            raise FileNotFoundError(f"no scenario files (*.scn.npz) under {[str(p) for p in paths]}")
+        self.files: list[Path] = scenario_files(paths)
         self._scenes: list[Scenario] | None = None
 
     @property

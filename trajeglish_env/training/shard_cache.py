@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from trajeglish_env.scenario import Scenario
-from trajeglish_env.scenario_io import list_scenario_files, load_scenarios, scene_sources
+from trajeglish_env.scenario_io import load_scenarios, scenario_files, scene_sources
 
 __all__ = ["ShardBlockOrder", "ShardedScenes", "split_shards"]
 
@@ -42,9 +42,7 @@ class ShardedScenes(Sequence[Scenario]):
     @classmethod
     def from_paths(cls, paths: Sequence[str | os.PathLike[str]], cache_shards: int) -> ShardedScenes:
         """The scenes of every shard under the given files/directories."""
-        files = [f for p in paths for f in list_scenario_files(p)]
-        if not files:
-            raise FileNotFoundError(f"no scenario files (*.scn.npz) under {[str(p) for p in paths]}")
+        files = scenario_files(paths)
         return cls(files, cache_shards)
 
     def __len__(self) -> int:
