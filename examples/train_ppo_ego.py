@@ -9,6 +9,9 @@ NPCs of its scenes are decoded together, the scenes split over ``--processes`` f
 one per free core); ``--workers N`` uses N SubprocVecEnv workers
 of unbatched ``EgoEnv`` instead. Scenes: the bundled held-out scenes (training episodes draw a scene per
 reset; evaluation plays every scene with fixed seeds, all evaluation episodes of an ego in one batch).
+Training shows a progress bar (timesteps, recent mean episode return). A PPO rollout is 8,192 steps over
+all envs (the whole run when ``--timesteps`` is smaller), and PPO trains whole rollouts, so the run may
+take a few more steps than asked: ``comparison.json`` reports the steps taken (``timesteps``) and asked.
 Outputs in ``--out``: ``ppo_ego.zip``, ``learning_curve.csv`` / ``.png`` (episode return vs timesteps,
 from the Monitor logs) and ``comparison.json``.
 """
@@ -60,6 +63,28 @@ def evaluate_ego(venv: BatchedEgoEnv, choose: Any, seed: int) -> dict[str, float
         "goal_rate": float(np.mean([f["goal"] for f in final])),
         "mean_route_fraction": float(np.mean([f["route_fraction"] for f in final])),
     }
+
+
+def ProgressBar(total: int) -> Any:  # noqa: N802 (a callback class made where SB3 is imported)
+    """An SB3 callback showing the timesteps done and the recent mean episode return (tqdm, on stderr)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from tqdm import tqdm
+
+    class _Bar(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.bar = tqdm(total=total, unit="step", desc="PPO")
+
+        def _on_step(self) -> bool:
+            self.bar.update(self.model.num_timesteps - self.bar.n)
+            episodes = self.model.ep_info_buffer
+            if episodes and self.n_calls % 64 == 0:
+                self.bar.set_postfix(mean_return=f"{np.mean([e['r'] for e in episodes]):.3f}")
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return _Bar()
 
 
 def learning_curve(monitor_dir: Path, out: Path, title: str) -> list[tuple[int, float]]:
@@ -118,7 +143,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--eval-episodes", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="out/ppo_ego")
-    parser.add_argument("--smoke", action="store_true", help="a few hundred steps, one env, 2 eval episodes")
+    parser.add_argument("--smoke", action="store_true", help="a few hundred steps, 2 envs, 2 eval episodes")
     args = parser.parse_args(argv)
     if args.smoke:
         args.timesteps, args.envs, args.eval_episodes, args.max_cycles = 256, 2, 2, args.max_cycles or 12
@@ -151,7 +176,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         batched = SB3VecEnv(args.envs, processes=args.processes, **env_kwargs)
         vec = VecMonitor(batched, filename=str(monitor_dir / "batched"))
         vec.seed(args.seed)
-    n_steps = 64 if args.smoke else max(64, 8192 // max(args.workers, args.envs, 1))
+    # one PPO rollout: 8,192 steps over all envs (or the whole run when it is shorter)
+    n_envs = vec.num_envs
+    n_steps = 64 if args.smoke else max(16, min(8192, args.timesteps) // n_envs)
     model = PPO(
         "MlpPolicy",
         vec,
@@ -164,7 +191,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         device="cpu",
         verbose=0,
     )
-    model.learn(total_timesteps=args.timesteps)
+    model.learn(total_timesteps=args.timesteps, callback=ProgressBar(args.timesteps))
     vec.close()
     model.save(out / "ppo_ego.zip")
     curve = learning_curve(monitor_dir, out, f"PPO ego in Ego-v0, {args.npc} NPCs")
@@ -179,7 +206,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     seed = 10_000  # evaluation seeds differ from the training ones
     comparison = {name: evaluate_ego(venv, choose, seed) for name, choose in egos.items()}
     result = {
-        "timesteps": args.timesteps,
+        "timesteps": int(model.num_timesteps),  # whole rollouts: at least the requested count
+        "timesteps_requested": args.timesteps,
         "npc": args.npc,
         "scenes": len(load_bundle()),
         "eval_episodes": args.eval_episodes,

@@ -287,3 +287,40 @@ def test_the_drift_warning_names_the_agent_as_the_env_does() -> None:
     with pytest.warns(UserWarning, match=rf"external agent {agent} of scene 'highway-merge-999000' \(batch"):
         env.step(np.array([5.0, 0.0, 0.0], np.float32))
         env.step(np.array([5.0, 0.0, 0.0], np.float32))
+
+
+def test_the_goal_reward_is_paid_once_when_the_episode_goes_on() -> None:
+    """With ``terminate_on_goal=False`` an agent that reached its goal and stays there collected the bonus
+    at every step (a return of 65 for one route); it is paid once, while ``info["goal"]`` still says
+    where the agent is."""
+    from policies import ReplayPolicy, play_episode
+    from trajeglish_env.env import RewardConfig
+
+    results = [
+        play_episode(
+            raw_env(npc="idm", action="delta", reward=RewardConfig(goal=bonus, terminate_on_goal=False)),
+            ReplayPolicy(),
+            seed=0,
+            options={"scene": 18},
+        )
+        for bonus in (0.0, 1.0)
+    ]
+    (agent,) = results[1].returns
+    assert results[1].goal[agent] and results[1].steps == 80  # the goal is reached early, the episode goes on
+    assert results[1].returns[agent] - results[0].returns[agent] == pytest.approx(1.0)  # one bonus
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("comfort_accel", 0.0, "comfort_accel must be > 0"),
+        ("progress", float("nan"), "progress must be a finite number"),
+        ("goal_tolerance", -1.0, "goal_tolerance must be >= 0 m"),
+        ("terminate_on_goal", 1, "terminate_on_goal must be a bool"),
+    ],
+)
+def test_reward_config_refuses_values_that_would_poison_the_rewards(field, value, message) -> None:
+    from trajeglish_env.env import RewardConfig
+
+    with pytest.raises(ValueError, match=message):
+        RewardConfig(**{field: value})

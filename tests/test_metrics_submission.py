@@ -203,3 +203,20 @@ def test_archives_and_directories_of_shards_read_back(tmp_path: Path):
     (tmp_path / "dup.binproto-00002-of-00002").write_bytes(encode_submission([_rollouts("a")]))
     with pytest.raises(SubmissionFormatError, match="scenario 'a' appears twice"):
         read_submission(tmp_path)
+
+
+def test_an_archive_is_read_by_its_contents_whatever_its_name(tmp_path: Path):
+    """A .tar.gz saved without its extension, or a plain .tar, reads as the archive it is (it was parsed as
+    one protobuf shard: "Wire format was corrupt")."""
+    import shutil
+    import tarfile
+
+    from helpers import womd_submission
+
+    want = [r.scenario_id for r in read_submission(womd_submission())]
+    for name, mode in (("sub.tar", "w"), ("packed", "w:gz")):
+        with tarfile.open(tmp_path / name, mode) as tar:
+            tar.add(womd_submission(), arcname="submission.binproto-00000-of-00001")
+        assert [r.scenario_id for r in read_submission(tmp_path / name)] == want
+    shutil.copy(womd_submission(), tmp_path / "plain")
+    assert [r.scenario_id for r in read_submission(tmp_path / "plain")] == want  # a shard stays a shard

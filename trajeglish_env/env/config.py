@@ -3,6 +3,7 @@ and observation types, rewards, vehicle limits, episode length and rendering (fr
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
@@ -109,8 +110,10 @@ class RewardConfig:
     collision / offroad: added once, when it happens (off-road: a vehicle's box corner more than
     ``offroad_margin`` m beyond a road edge; logged roundabout turns cut up to ~1 m); comfort:
     ``comfort`` x (longitudinal and lateral acceleration beyond ``comfort_accel`` m/s^2, in units of
-    ``comfort_accel``); goal: added when the end of the route (within ``goal_tolerance`` m) is
-    reached. Routes shorter than ``min_route_length`` m (agents parked in the log) have no goal.
+    ``comfort_accel``); goal: added once, when the end of the route (within ``goal_tolerance`` m) is
+    first reached (``info["goal"]`` says whether the agent is there this step). Routes shorter than
+    ``min_route_length`` m (agents parked in the log) have no goal. Bad values (a non-finite weight, a
+    non-positive ``comfort_accel``, a negative margin or tolerance) are refused, naming the field.
     """
 
     progress: float = 1.0
@@ -125,6 +128,22 @@ class RewardConfig:
     terminate_on_collision: bool = True
     terminate_on_offroad: bool = True
     terminate_on_goal: bool = True
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name.startswith("terminate_on_"):
+                if not isinstance(value, bool):
+                    raise ValueError(f"RewardConfig.{f.name} must be a bool, got {value!r}")
+            elif isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"RewardConfig.{f.name} must be a finite number, got {value!r}")
+        if self.comfort_accel <= 0:
+            raise ValueError(
+                f"RewardConfig.comfort_accel must be > 0 (rewards divide by it), got {self.comfort_accel}"
+            )
+        for name in ("offroad_margin", "goal_tolerance", "min_route_length"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"RewardConfig.{name} must be >= 0 m, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)

@@ -181,6 +181,7 @@ class Simulation:
         self.offroad_steps = np.zeros(len(ext), dtype=np.int64)
         self.last_collision = np.zeros(len(ext), dtype=bool)
         self.last_offroad = np.zeros(len(ext), dtype=bool)
+        self.goal_paid = np.zeros(len(ext), dtype=bool)  # the goal reward is paid once per episode
         self.has_goal = self.routes.length >= config.reward.min_route_length
         self.observer = make_observer(config.observation, scenario, config.obs)
         self.edges = road_edges(scenario)
@@ -229,18 +230,21 @@ class Simulation:
         self.collision_steps[rows] += hit
         self.offroad_steps[rows] += off
         self.last_collision[rows], self.last_offroad[rows] = hit, off
+        # the goal too is paid once, when first reached (an agent that drives on may park there)
+        new_goal = goal & ~self.goal_paid[rows]
+        self.goal_paid[rows] |= goal
         outcome = step_reward(
             self.config.reward,
             gained,
             self.routes.length[rows],
             new_hit,
             new_off,
-            goal,
+            new_goal,
             self.kin.accel[live],
             self.kin.lateral[live],
         )
         self.steps += 1
-        return live, replace(outcome, collision=hit, offroad=off)
+        return live, replace(outcome, collision=hit, offroad=off, goal=goal)
 
     def _policy_driven(self) -> np.ndarray:
         """``[N]`` agents whose motion a policy makes (drawn by class; the others replay the log, drawn

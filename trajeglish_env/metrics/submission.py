@@ -145,8 +145,14 @@ def _check_unique(ids: list[str], where: str) -> None:
 
 
 def is_archive(path: str | os.PathLike[str]) -> bool:
-    """Whether a path names a packed submission (``.tar.gz`` / ``.tgz``)."""
-    return str(path).endswith((".tar.gz", ".tgz"))
+    """Whether a path is a packed submission: named ``.tar.gz`` / ``.tgz``, or a tar archive by its
+    contents (compressed or not, whatever its name)."""
+    if str(path).endswith((".tar.gz", ".tgz")):
+        return True
+    try:
+        return Path(path).is_file() and tarfile.is_tarfile(path)
+    except OSError:
+        return False
 
 
 def _shards(path: Path) -> Iterator[tuple[str, bytes]]:
@@ -155,7 +161,7 @@ def _shards(path: Path) -> Iterator[tuple[str, bytes]]:
         if not is_archive(path):
             yield str(path), path.read_bytes()
             return
-        with tarfile.open(path, "r:gz") as tar:
+        with tarfile.open(path, "r:*") as tar:
             for member in tar:
                 if member.isfile():
                     handle = tar.extractfile(member)
