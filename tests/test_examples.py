@@ -68,7 +68,7 @@ def test_cli_demo_with_a_checkpoint(
     tmp_path: Path, tiny_model: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     code = cli_main(
-        ["demo", "--checkpoint", str(tiny_model), "--steps", "5", "--out", str(tmp_path), "--json", "--quiet"]
+        ["demo", "--ckpt", str(tiny_model), "--steps", "5", "--out", str(tmp_path), "--json", "--quiet"]
     )
     result = json.loads(capsys.readouterr().out)
     assert code == 0 and result["steps"] == 5 and result["npcs"] >= 1

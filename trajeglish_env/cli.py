@@ -424,7 +424,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="episode length (default: the rest of the log; longer episodes go on past the log's end)",
     )
-    p.add_argument("--checkpoint", help="model for the NPCs (default: the shipped pretrained model)")
+    p.add_argument(
+        "--ckpt",
+        "--checkpoint",
+        dest="checkpoint",
+        help="model for the NPCs (default: the shipped pretrained model); --checkpoint is the old spelling",
+    )
     p.add_argument("--ego", choices=("idm", "replay", "constant_velocity"), default="idm")
     p.add_argument("--order", choices=("first", "last", "random"), default="first")
     p.add_argument("--format", choices=("gif", "mp4"), default="gif")

@@ -69,9 +69,11 @@ class EgoVectorEnv(VectorEnv):
     def reset_each(
         self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
     ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
+        """Reset scene i with ``seeds[i]`` / ``options[i]``: per-scene observations and infos."""
         raise NotImplementedError
 
     def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
+        """Step every scene with its action: per scene (obs, reward, terminated, truncated, info, final)."""
         raise NotImplementedError
 
     def reset(

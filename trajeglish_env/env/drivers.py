@@ -27,17 +27,22 @@ class RowView(Protocol):
     ``t`` being played, who has ``moved`` in it, and the external agents still to act, in order."""
 
     @property
-    def xyh(self) -> np.ndarray: ...
+    def xyh(self) -> np.ndarray:
+        """Exact states ``[N,T,3]`` of the row's agents."""
 
     @property
-    def valid(self) -> np.ndarray: ...
+    def valid(self) -> np.ndarray:
+        """``[N,T]``: where the states exist."""
 
     @property
-    def t(self) -> int: ...
+    def t(self) -> int:
+        """The step being played."""
 
-    def moved(self) -> np.ndarray: ...
+    def moved(self) -> np.ndarray:
+        """``[N]``: the agents that have moved in this step so far."""
 
-    def external_order(self) -> np.ndarray: ...
+    def external_order(self) -> np.ndarray:
+        """The external agents still to act in this step, in acting order."""
 
 
 class NPCRows(Protocol):
@@ -51,15 +56,17 @@ class NPCRows(Protocol):
         horizon: int,
         priority: np.ndarray,
         seed: int,
-    ) -> RowView: ...
+    ) -> RowView:
+        """(Re)start ``row`` on ``scenario`` for an episode; returns the row's view."""
 
-    def stop(self, row: int) -> None: ...
+    def stop(self, row: int) -> None:
+        """Take ``row`` out of the simulation."""
 
-    def advance(self) -> Waiting | None: ...
+    def advance(self) -> Waiting | None:
+        """Let NPCs act up to the next external agents (which rows wait on whom), or None at a step's end."""
 
-    def supply(
-        self, rows: np.ndarray, agents: np.ndarray, next_xyh: np.ndarray, valid: np.ndarray
-    ) -> None: ...
+    def supply(self, rows: np.ndarray, agents: np.ndarray, next_xyh: np.ndarray, valid: np.ndarray) -> None:
+        """The external agents' next states, for the rows waiting on them."""
 
 
 def first_agent(priority: np.ndarray, active: np.ndarray) -> int:

@@ -37,9 +37,11 @@ from trajeglish_env.scenario import Scenario
 class NPCPolicy(Protocol):
     """Drives the NPCs of an episode (see the module docstring)."""
 
-    def reset(self, scenario: Scenario, npc: np.ndarray, current_index: int, seed: int) -> None: ...
+    def reset(self, scenario: Scenario, npc: np.ndarray, current_index: int, seed: int) -> None:
+        """Start an episode: ``npc`` marks the agents this policy drives from ``current_index``."""
 
-    def act(self, view: WorldView, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+    def act(self, view: WorldView, agents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Next states ``[k,3]`` of ``agents`` given the world now, and whether each could act."""
 
 
 def log_steps(scenario: Scenario, current_index: int) -> int:

@@ -35,9 +35,11 @@ class SceneSet(Protocol):
 
     def __len__(self) -> int: ...
 
-    def get(self, index: int) -> Scenario: ...
+    def get(self, index: int) -> Scenario:
+        """The scene at ``index``."""
 
-    def index_of(self, name: str) -> int: ...
+    def index_of(self, name: str) -> int:
+        """The index of the scene whose ``scenario_id`` is ``name`` (UnknownSceneError if none)."""
 
 
 class UnknownSceneError(KeyError, ValueError):
@@ -69,9 +71,11 @@ class SceneList:
         return len(self.scenes)
 
     def get(self, index: int) -> Scenario:
+        """The scene at ``index``."""
         return self.scenes[index]
 
     def index_of(self, name: str) -> int:
+        """The index of the scene whose ``scenario_id`` is ``name`` (UnknownSceneError if none)."""
         for i, sc in enumerate(self.scenes):
             if sc.scenario_id == name:
                 return i
@@ -92,6 +96,7 @@ class CheckedScenes:
         return len(self.scenes)
 
     def get(self, index: int) -> Scenario:
+        """The scene at ``index``."""
         sc = self.scenes.get(index)
         if sc not in self._checked:
             if not isinstance(sc, Scenario):
@@ -101,6 +106,7 @@ class CheckedScenes:
         return sc
 
     def index_of(self, name: str) -> int:
+        """The index of the scene whose ``scenario_id`` is ``name`` (UnknownSceneError if none)."""
         return self.scenes.index_of(name)
 
 
@@ -133,6 +139,7 @@ class SceneFiles:
         return int(self._starts[-1])
 
     def get(self, index: int) -> Scenario:
+        """The scene at ``index``."""
         if not 0 <= index < len(self):
             raise IndexError(f"{self.where}: scene {index} out of range for {len(self)} scenes")
         shard = int(np.searchsorted(self._starts, index, side="right") - 1)
@@ -171,10 +178,12 @@ class GeneratedScenes:
         return self.size
 
     def get(self, index: int) -> Scenario:
+        """The scene at ``index``."""
         return _generated(self.kinds[index % len(self.kinds)], int(index))
 
     def index_of(self, name: str) -> int:
         # "highway-<kind>-<seed>" as written by the generator
+        """The index of the scene whose ``scenario_id`` is ``name`` (UnknownSceneError if none)."""
         prefix, _, seed = name.rpartition("-")
         if not seed.isdigit() or not prefix.startswith(f"{GENERATOR_PREFIX}-"):
             raise UnknownSceneError(f"generated scenes: expected an id 'highway-<kind>-<seed>', got {name!r}")

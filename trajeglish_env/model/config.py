@@ -16,6 +16,7 @@ class Variant(str, Enum):
 
     @property
     def uses_map(self) -> bool:
+        """Whether the variant encodes the map."""
         return self is not Variant.NO_MAP
 
 
@@ -133,6 +134,7 @@ class ModelConfig:
         return self.drawn_size or self.vocab_size
 
     def with_variant(self, variant: Variant | str) -> ModelConfig:
+        """This config with another ablation variant."""
         return replace(self, variant=Variant(variant))
 
 

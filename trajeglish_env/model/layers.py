@@ -93,6 +93,7 @@ class Linear(nn.Linear):
     _compute_copy: tuple[tuple[torch.dtype, int, int], torch.Tensor] | None = None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x W^T + b`` (batch-invariant; in the compute dtype at inference)."""
         compute = _COMPUTE_STACK.dtypes
         if compute and not torch.is_grad_enabled():
             y = bucketed_linear(x, self._weight_in(compute[-1]))
@@ -122,10 +123,12 @@ class Attention(nn.Module):
         self.dropout = dropout
 
     def split(self, x: torch.Tensor) -> torch.Tensor:
+        """``[B,N,C]`` -> ``[B,H,N,C/H]``: the heads as a batch axis."""
         b, n, c = x.shape
         return x.view(b, n, self.num_heads, c // self.num_heads).transpose(1, 2)  # [B,H,N,Dh]
 
     def keys_values(self, context: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keys and values of ``context``, split into heads (cached by the decoder)."""
         k, v = self.kv(context).chunk(2, dim=-1)
         return self.split(k), self.split(v)
 
@@ -188,11 +191,14 @@ class Attention(nn.Module):
     def forward(
         self, x: torch.Tensor, context: torch.Tensor, mask: torch.Tensor | None = None
     ) -> torch.Tensor:
+        """Attend from ``x`` to ``context`` (``mask``: True where attention is allowed)."""
         k, v = self.keys_values(context)
         return self.attend(x, k, v, mask)
 
 
 class FeedForward(nn.Sequential):
+    """The block's MLP: widen by ``mult``, GELU, project back, dropout."""
+
     def __init__(self, d_model: int, mult: int, dropout: float):
         super().__init__(
             Linear(d_model, mult * d_model),
@@ -216,6 +222,7 @@ class EncoderBlock(nn.Module):
     def forward(
         self, x: torch.Tensor, context: torch.Tensor | None = None, mask: torch.Tensor | None = None
     ) -> torch.Tensor:
+        """The block on ``x`` (with ``context`` for cross-attention)."""
         h = self.norm_x(x)
         if (context is None) != (self.norm_ctx is None):
             raise ValueError("EncoderBlock: pass a context exactly when the block was built with cross=True")
