@@ -277,12 +277,13 @@ def ego_actions(steps: int, n: int) -> list[np.ndarray]:
     return [rng.uniform(-1, 1, (n, 2)).astype(np.float32) for _ in range(steps)]
 
 
-@pytest.mark.parametrize("npc", ["tiny", "idm"])
+@pytest.mark.parametrize("npc", ["tiny", "idm", "idm-bev"])
 def test_batched_ego_env_equals_separate_envs_with_autoreset(npc: str) -> None:
     # float32: under "auto" a single env multiplies in float32 and a batch in bfloat16 (same distribution,
-    # other draws) on CPUs with native bfloat16; the env logic is what is compared here
+    # other draws) on CPUs with native bfloat16; the env logic is what is compared here (bev: the rasters of
+    # all scenes come from one geometry pass)
     spec = TrajeglishNPC(tiny(), SamplingConfig(compute_dtype="float32")) if npc == "tiny" else "idm"
-    kw = {"npc": spec, "max_cycles": 7}
+    kw = {"npc": spec, "max_cycles": 7, "observation": "bev" if npc.endswith("bev") else "vector"}
     venv = BatchedEgoEnv(3, **kw)
     obs, info = venv.reset(seed=5)
     assert obs.shape == (3, *venv.single_observation_space.shape) and venv.observation_space.contains(obs)

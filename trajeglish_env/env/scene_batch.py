@@ -249,26 +249,36 @@ class SceneBatch:
     # ------------------------------------------------------------------ observations
     def observe(self, scenes: Sequence[int], agents: Sequence[int]) -> list[np.ndarray]:
         """Observations of external agent ``agents[i]`` of scene ``scenes[i]`` now (a scene may appear
-        several times); ``vector`` observations of all of them in one pass."""
+        several times); the geometry of all of them in one pass (``bev``: only the rasters per agent)."""
         if not len(scenes):
             return []
         states = [self.sim(s).state for s in scenes]
         if self.config.observation == "vector":
             return list(self.geometry.observations(states, agents))
-        return [self._bev(self.sim(s), int(a)) for s, a in zip(scenes, agents, strict=True)]
+        return self._bev(list(scenes), np.asarray(agents, dtype=np.int64))
 
-    def _bev(self, sim: Simulation, agent: int) -> np.ndarray:
-        """One ``bev`` raster (drawn per agent)."""
-        pictures = self.geometry.pictures([sim.state])
-        ego = self.geometry.ego_features([sim.state], np.zeros(1, np.int64), np.array([agent]), pictures)
-        state = EgoState(
-            agent=agent,
-            speed=float(ego.speed[0]),
-            accel=float(ego.accel[0]),
-            yaw_rate=float(ego.yaw_rate[0]),
-            route_fraction=float(ego.route_fraction[0]),
-            lateral=float(ego.lateral[0]),
-            heading_error=float(ego.heading_error[0]),
-            route_ahead=ego.route_ahead[0],
-        )
-        return sim.observer.observe(state, pictures, 0)  # type: ignore[union-attr]
+    def _bev(self, scenes: list[int], agents: np.ndarray) -> list[np.ndarray]:
+        """``bev`` rasters: the scenes' pictures and the observers' own features computed once for all
+        of them, then each agent's raster drawn."""
+        position: dict[int, int] = {}
+        for s in scenes:
+            position.setdefault(s, len(position))
+        sims = [self.sim(s) for s in position]
+        states = [sim.state for sim in sims]
+        pictures = self.geometry.pictures(states)
+        index = np.array([position[s] for s in scenes], dtype=np.int64)
+        ego = self.geometry.ego_features(states, index, agents, pictures)
+        out = []
+        for k, (b, agent) in enumerate(zip(index.tolist(), agents.tolist(), strict=True)):
+            state = EgoState(
+                agent=agent,
+                speed=float(ego.speed[k]),
+                accel=float(ego.accel[k]),
+                yaw_rate=float(ego.yaw_rate[k]),
+                route_fraction=float(ego.route_fraction[k]),
+                lateral=float(ego.lateral[k]),
+                heading_error=float(ego.heading_error[k]),
+                route_ahead=ego.route_ahead[k],
+            )
+            out.append(sims[b].observer.observe(state, pictures, b))  # type: ignore[union-attr]
+        return out
