@@ -138,15 +138,17 @@ class OrderedDriver:
             raise RuntimeError(f"episode horizon reached (step {self._t} of {self.T - 1})")
         order = self.order
         while self.cursor < len(order):
+            pending = np.flatnonzero(~self.known[order[self.cursor :]])
+            if not len(pending):  # everyone left has moved
+                self.cursor = len(order)
+                break
+            self.cursor += int(pending[0])
             a = int(order[self.cursor])
-            if self.known[a]:
-                self.cursor += 1
-                continue
             if self.external[a]:
                 return a
-            end = self.cursor
-            while end < len(order) and self.npc[order[end]] and not self.known[order[end]]:
-                end += 1
+            tail = order[self.cursor :]  # the group: consecutive NPCs still to move
+            stops = np.flatnonzero(~self.npc[tail] | self.known[tail])
+            end = self.cursor + (int(stops[0]) if len(stops) else len(tail))
             group = order[self.cursor : end]
             view = WorldView(
                 self.scenario, self.xyh, self.valid, self._t, self.moved(), self.external, self.npc

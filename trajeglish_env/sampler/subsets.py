@@ -94,9 +94,8 @@ def plan_subsets(
         fresh = members[acted_rank[members] < 0]
         dist = np.linalg.norm(positions[fresh] - positions[centre], axis=-1)
         fresh = fresh[np.lexsort((dist, prio[fresh]))]
-        for a in fresh:
-            acted_rank[a] = len(order)
-            order.append(int(a))
+        acted_rank[fresh] = len(order) + np.arange(len(fresh))
+        order.extend(fresh.tolist())
         row = np.full(size, -1, dtype=np.int64)
         body = np.concatenate([acted, fresh])
         row[size - len(body) :] = body

@@ -6,6 +6,7 @@ with the known tokens of its first steps (see the engine's module docstring).
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -111,7 +112,12 @@ class WindowedRows(RowStates):
         """``rows`` reduced to one per group of identical ones (same scene, step and everything its windows
         are built from), and ``[k,2]`` (row, index of its group's row) of the others."""
         cheap = [(id(self.scenes[b]), id(self.chunks[b]), int(self.now[b]), int(self.first[b])) for b in rows]
-        shared = {k for k in cheap if cheap.count(k) > 1} if len(set(cheap)) < len(cheap) else set()
+        # rows of one scene share a history only where none has drawn yet: at the scene's current step
+        shared = {
+            k
+            for k, n in Counter(cheap).items()
+            if n > 1 and k[2] == self.scenes[rows[cheap.index(k)]].current_index  # type: ignore[union-attr]
+        }
         seen: dict[tuple[object, ...], int] = {}
         kept: list[int] = []
         copies: list[tuple[int, int]] = []
