@@ -314,3 +314,18 @@ def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
         facts = run_records.RunFacts(train_scenes=0, val_scenes=0, sources=(), processes=1, init=None)
         run_records.save_last(tmp_path / "c.pt", model, grid_vocabulary(), optimizer, _quick(), 7, [], facts)
     assert not (tmp_path / "c.pt").exists()
+
+
+def test_trainer_state_is_typed_and_a_model_file_has_none(tmp_path) -> None:
+    """``last.pt``'s training state reads back as a TrainerState; a model.pt (no state) is refused by name."""
+    from helpers import tiny
+
+    from trajeglish_env.checkpoint import CheckpointError, TrainerState, load_checkpoint, save_checkpoint
+
+    ckpt = tiny()
+    state = TrainerState(7, ({"step": 7, "loss": 1.5},), {"steps": 10})
+    save_checkpoint(tmp_path / "last.pt", ckpt.model, ckpt.vocabulary, trainer=state.to_dict())
+    assert TrainerState.of(load_checkpoint(tmp_path / "last.pt")) == state
+    save_checkpoint(tmp_path / "model.pt", ckpt.model, ckpt.vocabulary)
+    with pytest.raises(CheckpointError, match=r"model.pt: holds no training state to resume from"):
+        TrainerState.of(load_checkpoint(tmp_path / "model.pt"))

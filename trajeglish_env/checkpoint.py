@@ -40,6 +40,33 @@ class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
     FileNotFoundError, so either ``except`` catches it."""
 
 
+@dataclass(frozen=True)
+class TrainerState:
+    """What a run's ``last.pt`` records to resume from: the step reached, its metrics history and its
+    ``TrainConfig`` (as a dict: older runs lack newer fields)."""
+
+    step: int
+    history: tuple[dict[str, Any], ...] = ()
+    train_config: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def of(cls, ckpt: Checkpoint) -> TrainerState:
+        """The checkpoint's training state; a CheckpointError when it holds none (a ``model.pt``)."""
+        raw = ckpt.trainer
+        step = raw.get("step") if isinstance(raw, dict) else None
+        if not isinstance(step, int) or step < 0:
+            raise CheckpointError(
+                f"{ckpt.path}: holds no training state to resume from (no 'trainer' step; a model.pt, "
+                "not a run's last.pt?)"
+            )
+        assert isinstance(raw, dict)
+        return cls(step, tuple(raw.get("history") or ()), dict(raw.get("train_config") or {}))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The form a checkpoint file stores."""
+        return {"step": self.step, "history": list(self.history), "train_config": self.train_config}
+
+
 @dataclass
 class Checkpoint:
     """A loaded checkpoint: the model (eval mode), its vocabulary and what training recorded."""

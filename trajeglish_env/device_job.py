@@ -175,7 +175,7 @@ def saved(run_in: Path) -> dict[str, str]:
 
 def resume(run_in: Path, run: Path) -> dict[str, str]:
     """Rebuild ``run/last.pt`` from ``run_in``; return the run's saved settings and its step."""
-    from trajeglish_env.checkpoint import CheckpointError, load_checkpoint
+    from trajeglish_env.checkpoint import CheckpointError, TrainerState, load_checkpoint
     from trajeglish_env.scenario_io import atomic_path
 
     values = saved(run_in)
@@ -197,8 +197,11 @@ def resume(run_in: Path, run: Path) -> dict[str, str]:
         ckpt = load_checkpoint(run / "last.pt")
     except CheckpointError as error:
         raise JobError(f"RUN_IN={run_in}: the rebuilt last.pt does not load: {error}") from error
-    step = int((ckpt.trainer or {}).get("step", 0))
-    total = int(((ckpt.trainer or {}).get("train_config") or {}).get("steps", 0))
+    try:
+        state = TrainerState.of(ckpt)
+    except CheckpointError as error:
+        raise JobError(f"RUN_IN={run_in}: the rebuilt last.pt is no run to resume: {error}") from error
+    step, total = state.step, int(state.train_config.get("steps", 0))
     if total and step >= total:  # a whole call spent on generation and no step: say so before anything
         raise JobError(
             f"RUN_IN={run_in}: the run finished its schedule (step {step} of {total}; with FIT_STEPS=1, the "

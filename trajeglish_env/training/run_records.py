@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from trajeglish_env.checkpoint import Checkpoint, CheckpointError, save_checkpoint
+from trajeglish_env.checkpoint import Checkpoint, CheckpointError, TrainerState, save_checkpoint
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.scenario import Scenario
@@ -74,7 +74,7 @@ def save_last(
     bad = [name for name, p in model.named_parameters() if not torch.isfinite(p).all()]
     if bad:
         raise RuntimeError(f"train: weights {bad[:3]} are not finite at step {step}; {path} not overwritten")
-    trainer = {"train_config": dataclasses.asdict(config), "step": step, "history": history}
+    trainer = TrainerState(step, tuple(history), dataclasses.asdict(config)).to_dict()
     info = training_info(config, step, history, facts)
     save_checkpoint(path, model, vocabulary, training=info, optimizer=optimizer.state_dict(), trainer=trainer)
 
@@ -106,7 +106,7 @@ def resumed_config(
     last: Path,
     saved_model: ModelConfig,
     model: ModelConfig,
-    trainer: dict[str, Any],
+    trainer: TrainerState,
     config: TrainConfig,
     fit_steps: bool,
 ) -> TrainConfig:
@@ -117,7 +117,7 @@ def resumed_config(
             f"{last}: its model config differs from the requested one ("
             f"{differences(dataclasses.asdict(saved_model), dataclasses.asdict(model))})"
         )
-    saved = {**dataclasses.asdict(type(config)()), **trainer.get("train_config", {})}  # older runs
+    saved = {**dataclasses.asdict(type(config)()), **trainer.train_config}  # older runs lack new fields
     # loader processes do not change the batches (items are pure functions of seed and index), so a run
     # may go on on a machine with another number of cores
     saved["num_workers"] = config.num_workers

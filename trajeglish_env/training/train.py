@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from trajeglish_env.checkpoint import (
     Checkpoint,
+    TrainerState,
     check_compatible,
     check_init,
     load_checkpoint,
@@ -256,12 +257,11 @@ def train(
     last = out / "last.pt"
     if resume and last.is_file():
         ckpt = load_checkpoint(last, map_location=device)
-        trainer = ckpt.trainer or {}
+        trainer = TrainerState.of(ckpt)
         config = resumed_config(last, ckpt.config, model_config, trainer, config, fit_steps)
         model.load_state_dict(ckpt.model.state_dict())
         optimizer.load_state_dict(ckpt.optimizer or {})
-        start_step = int(trainer["step"])
-        history = list(trainer.get("history", []))
+        start_step, history = trainer.step, list(trainer.history)
     else:
         if resume and dd.main:
             print(f"train: no {last} to resume from; starting from scratch", file=sys.stderr)
