@@ -9,9 +9,10 @@ NPCs of its scenes are decoded together, the scenes split over ``--processes`` f
 one per free core); ``--workers N`` uses N SubprocVecEnv workers
 of unbatched ``EgoEnv`` instead. Scenes: the bundled held-out scenes (training episodes draw a scene per
 reset; evaluation plays every scene with fixed seeds, all evaluation episodes of an ego in one batch).
-Training shows a progress bar (timesteps, recent mean episode return). A PPO rollout is 8,192 steps over
-all envs (the whole run when ``--timesteps`` is smaller), and PPO trains whole rollouts, so the run may
-take a few more steps than asked: ``comparison.json`` reports the steps taken (``timesteps``) and asked.
+Training shows a progress bar (timesteps, recent mean episode return). A PPO rollout is ``--n-steps``
+(512) steps per env (fewer when ``--timesteps`` is smaller than one rollout), and PPO trains whole
+rollouts, so the run may take a few more steps than asked: ``comparison.json`` reports the steps taken
+(``timesteps``) and asked.
 Outputs in ``--out``: ``ppo_ego.zip``, ``learning_curve.csv`` / ``.png`` (episode return vs timesteps,
 from the Monitor logs) and ``comparison.json``.
 """
@@ -140,6 +141,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     parser.add_argument("--checkpoint", help="Trajeglish model for the NPCs (default: the shipped one)")
     parser.add_argument("--max-cycles", type=int, default=None, help="episode length cap")
+    parser.add_argument("--n-steps", type=int, default=512, help="PPO rollout steps per env")
     parser.add_argument("--eval-episodes", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="out/ppo_ego")
@@ -176,9 +178,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         batched = SB3VecEnv(args.envs, processes=args.processes, **env_kwargs)
         vec = VecMonitor(batched, filename=str(monitor_dir / "batched"))
         vec.seed(args.seed)
-    # one PPO rollout: 8,192 steps over all envs (or the whole run when it is shorter)
-    n_envs = vec.num_envs
-    n_steps = 64 if args.smoke else max(16, min(8192, args.timesteps) // n_envs)
+    # steps per env and PPO rollout: --n-steps (512: 8,192 over the 16 batched scenes), fewer when the
+    # whole run is shorter than one rollout
+    n_steps = 64 if args.smoke else max(16, min(args.n_steps, args.timesteps // vec.num_envs))
     model = PPO(
         "MlpPolicy",
         vec,

@@ -13,6 +13,7 @@ A policy is asked for one agent's action at that agent's turn in the AEC loop::
 from __future__ import annotations
 
 import copy
+import zlib
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -52,9 +53,12 @@ class RandomPolicy:
         self._spaces: dict[str, Any] = {}
 
     def reset(self, env: Any, agent: str) -> None:
-        """Prepare for a new episode of ``agent``."""
+        """Prepare for a new episode of ``agent``: its draws follow this policy's seed, the agent's name and
+        the episode's seed (the same episode whatever the object played before)."""
         space = copy.deepcopy(env.action_space(agent))
-        space.seed(self.seed + len(self._spaces))
+        episode = int(getattr(env.unwrapped.sim, "seed", 0))
+        seq = np.random.SeedSequence([self.seed, zlib.crc32(agent.encode()), episode])
+        space.seed(int(seq.generate_state(1)[0]))
         self._spaces[agent] = space
 
     def act(self, env: Any, agent: str, observation: Any) -> Any:

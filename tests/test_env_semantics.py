@@ -324,3 +324,23 @@ def test_reward_config_refuses_values_that_would_poison_the_rewards(field, value
 
     with pytest.raises(ValueError, match=message):
         RewardConfig(**{field: value})
+
+
+def test_random_agents_can_keep_the_sdc_and_take_what_a_small_scene_has() -> None:
+    """Your ego plus k - 1 others over any scene set (track ids are per scene; RandomAgents(k) could leave
+    the sdc out or fail on a scene with fewer agents)."""
+    import trajeglish_env
+    from trajeglish_env.env import RandomAgents
+
+    env = trajeglish_env.parallel_env(
+        npc="constant_velocity", external=RandomAgents(8, with_sdc=True, at_most=True)
+    )
+    for seed in range(12):
+        env.reset(seed=seed)
+        raw = env.unwrapped
+        sc = raw.scenario
+        present = int(sc.valid[:, sc.current_index].sum())
+        assert len(env.agents) == min(8, present)
+        assert raw.sim.names[sc.sdc] in env.agents
+    with pytest.raises(ValueError, match=r"RandomAgents\(k=40\) but only .* at_most=True"):
+        trajeglish_env.parallel_env(npc="constant_velocity", external=RandomAgents(40)).reset(seed=0)

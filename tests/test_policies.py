@@ -159,3 +159,17 @@ def test_policy_mistakes_are_named() -> None:
         play_episode(env, object(), seed=0)
     result = play_episode(env, FunctionPolicy(lambda obs: np.zeros(2, np.float32)), seed=0)
     assert result.steps == 3
+
+
+def test_a_random_policy_played_again_plays_the_same_episode() -> None:
+    """Its draws were seeded by how many agents the object had seen: the same seed and scene gave another
+    episode the second time."""
+    env = raw_env(npc="constant_velocity", max_cycles=10)
+    policy = RandomPolicy(seed=0)
+    runs = [play_episode(env, policy, seed=0, options={"scene": 0}) for _ in range(2)]
+    play_episode(env, policy, seed=0, options={"scene": 1})
+    runs.append(play_episode(env, policy, seed=0, options={"scene": 0}))
+    assert (
+        runs[0] == runs[1] == runs[2] == play_episode(env, RandomPolicy(seed=0), seed=0, options={"scene": 0})
+    )
+    assert play_episode(env, RandomPolicy(seed=1), seed=0, options={"scene": 0}).returns != runs[0].returns

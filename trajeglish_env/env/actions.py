@@ -10,7 +10,9 @@ that best reaches a given state).
 
 from __future__ import annotations
 
+import functools
 import zlib
+from dataclasses import replace
 
 import numpy as np
 from gymnasium import spaces
@@ -82,12 +84,22 @@ def check_action(space: spaces.Space, action: object, agent: str) -> np.ndarray 
     return np.clip(arr, low, high)
 
 
-def class_speed_cap(kind: np.ndarray | int, limits: VehicleLimits) -> np.ndarray:
-    """The top speed (m/s) of continuous actions per agent class: the vehicle limits' for vehicles, and for
-    pedestrians and cyclists their motion envelope's (4 and 15 m/s), so that every speed a continuous
-    action reaches is one the motion vocabulary follows (the NPCs read the agent where it is)."""
-    caps = np.array([limits.max_speed] + [DEFAULT_ENVELOPES[k].max_speed for k in NON_VEHICLES])
-    return np.minimum(caps[np.asarray(kind, dtype=np.int64)], limits.max_speed)
+@functools.lru_cache(maxsize=64)
+def class_limits(kind: int, limits: VehicleLimits) -> VehicleLimits:
+    """The continuous action's limits for an agent class: the vehicle limits for vehicles; for pedestrians
+    and cyclists those within their motion envelope too (top speed 4 / 15 m/s, lateral acceleration 6 / 5
+    m/s^2, its acceleration and braking), so that every motion a continuous action makes is one the motion
+    vocabulary follows (the NPCs read the agent where it is)."""
+    if int(kind) == AgentKind.VEHICLE:
+        return limits
+    env = DEFAULT_ENVELOPES[AgentKind(int(kind))]
+    return replace(
+        limits,
+        max_speed=min(limits.max_speed, env.max_speed),
+        max_lateral_accel=min(limits.max_lateral_accel, env.max_lateral_accel),
+        max_accel=min(limits.max_accel, env.max_accel),
+        max_brake=min(limits.max_brake, env.max_brake),
+    )
 
 
 def bicycle_step(
@@ -97,15 +109,13 @@ def bicycle_step(
     length: np.ndarray,
     limits: VehicleLimits,
     dt: float,
-    max_speed: np.ndarray | float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Next states ``[...,3]`` and speeds of a kinematic bicycle about the box centre (slip angle
     ``beta = atan(tan(steer) / 2)``, rear and front axles ``wheelbase / 2`` from the centre; the steering
-    range shrinks with speed, see VehicleLimits; ``max_speed``: a lower top speed, e.g. per class)."""
+    range shrinks with speed, see VehicleLimits; per class: :func:`class_limits`)."""
     a = np.where(action[..., 0] >= 0, action[..., 0] * limits.max_accel, action[..., 0] * limits.max_brake)
     steer = action[..., 1] * limits.steer_limit(speed, length)
-    top = limits.max_speed if max_speed is None else np.minimum(max_speed, limits.max_speed)
-    v_next = np.clip(speed + a * dt, 0.0, top)
+    v_next = np.clip(speed + a * dt, 0.0, limits.max_speed)
     v_mean = (speed + v_next) / 2
     beta = np.arctan(np.tan(steer) / 2)
     half_base = limits.wheelbase_ratio * length / 2
@@ -139,11 +149,10 @@ def action_towards(
     limits: VehicleLimits,
     dt: float,
     templates: np.ndarray | None = None,
-    max_speed: float | None = None,
 ) -> np.ndarray | int:
     """The action whose next state is nearest to ``target [3]`` from state ``xyh [3]`` at ``speed``
-    (clipped to the action space; ``templates [V,3]`` of the agent's class for ``token``; ``max_speed``:
-    the agent's top speed under continuous actions, :func:`class_speed_cap`)."""
+    (clipped to the action space; ``templates [V,3]`` of the agent's class for ``token``; ``limits``: the
+    agent's class's, :func:`class_limits`)."""
     local = to_local(np.asarray(xyh, dtype=np.float64), np.asarray(target, dtype=np.float64))
     if action_type == "delta":
         return np.clip(local, DELTA_LOW, DELTA_HIGH).astype(np.float32)
@@ -155,14 +164,13 @@ def action_towards(
     # the displacement ahead -- a lateral offset is the steering's to correct: counted in the speed, it
     # would speed up a car that should stop -- then the steering (searched on a grid) whose next state is
     # nearest in position and heading
-    top = limits.max_speed if max_speed is None else min(max_speed, limits.max_speed)
-    v_target = float(np.clip(2 * local[0] / dt - speed, 0.0, top))
+    v_target = float(np.clip(2 * local[0] / dt - speed, 0.0, limits.max_speed))
     a = (v_target - speed) / dt
     a_cmd = float(np.clip(a / limits.max_accel if a >= 0 else a / limits.max_brake, -1.0, 1.0))
     steering = np.linspace(-1.0, 1.0, STEERING_CANDIDATES)
     actions = np.stack([np.full_like(steering, a_cmd), steering], -1)
     origin = np.zeros(3)
-    nxt, _ = bicycle_step(origin, np.float64(speed), actions, np.float64(length), limits, dt, top)
+    nxt, _ = bicycle_step(origin, np.float64(speed), actions, np.float64(length), limits, dt)
     gap = ((nxt[:, :2] - local[:2]) ** 2).sum(-1) + (wrap_angle(nxt[:, 2] - local[2]) * length / 2) ** 2
     return np.array([a_cmd, steering[np.argmin(gap)]], dtype=np.float32)
 

@@ -22,13 +22,21 @@ NPC_NAMES = ("trajeglish", "replay", "constant_velocity", "idm")
 
 @dataclass(frozen=True)
 class RandomAgents:
-    """``k`` external agents drawn at every reset among the agents present at the current step."""
+    """``k`` external agents drawn at every reset among the agents present at the current step.
+
+    ``with_sdc``: the sdc is always one of them (your ego plus ``k - 1`` others drawn); ``at_most``: a
+    scene with fewer than ``k`` agents present gives all of them (else it is an error at reset)."""
 
     k: int
+    with_sdc: bool = False
+    at_most: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.k, int) or self.k < 1:
             raise ValueError(f"RandomAgents.k must be a positive integer, got {self.k!r}")
+        for name in ("with_sdc", "at_most"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"RandomAgents.{name} must be a bool, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)

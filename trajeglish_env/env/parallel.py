@@ -7,6 +7,7 @@ applied in the intra-timestep order, NPCs acting in between exactly as in the AE
 
 from __future__ import annotations
 
+from collections import defaultdict
 from typing import Any
 
 from pettingzoo import ParallelEnv
@@ -25,18 +26,39 @@ class SceneAwareParallelEnv(aec_to_parallel_wrapper):
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Every live agent's action at once (see the module docstring); refused before ``reset``, for a
-        missing or unknown agent, or for an action outside its space, before anything moves."""
-        self.aec_env.unwrapped._sim()  # "call reset() before using the environment"
-        missing = [a for a in self.aec_env.agents if a not in actions]
+        missing or unknown agent, or for an action outside its space, before anything moves. The stock
+        wrapper's loop, less its ``last()`` per agent (an observation built and dropped), with the step's
+        observations built in one pass."""
+        aec = self.aec_env
+        raw = aec.unwrapped
+        raw._sim()  # "call reset() before using the environment"
+        if not isinstance(actions, dict):
+            raise TypeError(
+                f"step: expected a dict agent name -> action, got {type(actions).__name__}; the agents are "
+                f"{aec.agents}"
+            )
+        missing = [a for a in aec.agents if a not in actions]
         if missing:
             raise KeyError(f"step: no action for agent(s) {missing}")
         # actions for agents of the episode that have finished are ignored, as PettingZoo's own wrapper does
-        unknown = sorted(set(actions) - set(self.aec_env.agents) - set(self.aec_env.possible_agents))
+        unknown = sorted(set(actions) - set(aec.agents) - set(aec.possible_agents))
         if unknown:
-            raise KeyError(f"step: no live agent(s) {unknown}; the agents are {self.aec_env.agents}")
-        for agent in self.aec_env.agents:
-            check_action(self.aec_env.action_space(agent), actions[agent], agent)
-        return super().step(actions)
+            raise KeyError(f"step: no live agent(s) {unknown}; the agents are {aec.agents}")
+        for agent in aec.agents:
+            check_action(aec.action_space(agent), actions[agent], agent)
+        rewards: dict[str, float] = defaultdict(float)
+        for agent in aec.agents:
+            if agent != aec.agent_selection:  # the AEC env finishes agents only at a step's end
+                raise AssertionError(f"expected agent {agent} to act, got {aec.agent_selection}")
+            aec.step(actions[agent])
+            for other in aec.agents:
+                rewards[other] += aec.rewards[other]
+        terminations, truncations, infos = dict(aec.terminations), dict(aec.truncations), dict(aec.infos)
+        observations = raw.observe_all(aec.agents)
+        while aec.agents and (aec.terminations[aec.agent_selection] or aec.truncations[aec.agent_selection]):
+            aec.step(None)
+        self.agents = aec.agents
+        return observations, rewards, terminations, truncations, infos
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         out = super().reset(seed=seed, options=options)

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from trajeglish_env.batch_geometry import edge_rows, road_edges
-from trajeglish_env.env.actions import action_towards, bicycle_step, class_speed_cap, delta_step, token_step
+from trajeglish_env.env.actions import action_towards, bicycle_step, class_limits, delta_step, token_step
 from trajeglish_env.env.config import EnvConfig, RandomAgents, TrajeglishNPC
 from trajeglish_env.env.drivers import RowView
 from trajeglish_env.env.lane_routes import extended_routes
@@ -47,11 +47,17 @@ def select_external(scenario: Scenario, spec: object, rng: np.random.Generator) 
         return np.flatnonzero(present)
     if isinstance(spec, RandomAgents):
         pool = np.flatnonzero(present)
-        if spec.k > len(pool):
+        if spec.k > len(pool) and not spec.at_most:
             raise ValueError(
-                f"scenario {sid!r}: RandomAgents(k={spec.k}) but only {len(pool)} agents are present"
+                f"scenario {sid!r}: RandomAgents(k={spec.k}) but only {len(pool)} agents are present "
+                "(RandomAgents(k, at_most=True) takes them all in such scenes)"
             )
-        return rng.choice(pool, size=spec.k, replace=False).astype(np.int64)
+        if not spec.with_sdc:
+            return rng.choice(pool, size=min(spec.k, len(pool)), replace=False).astype(np.int64)
+        sdc = select_external(scenario, "sdc", rng)  # present, or the error saying it is not
+        others = pool[pool != scenario.sdc]
+        drawn = rng.choice(others, size=min(spec.k - 1, len(others)), replace=False)
+        return np.concatenate([sdc, drawn]).astype(np.int64)
     ids = list(spec)  # type: ignore[call-overload]
     known = {int(t): i for i, t in enumerate(scenario.track_id)}
     unknown = [t for t in ids if t not in known]
@@ -322,10 +328,9 @@ class Simulation:
             float(self.kin.speed[agent]),
             target,
             float(self.sc.size[agent, 0]),
-            self.config.limits,
+            class_limits(int(self.sc.kind[agent]), self.config.limits),
             self.dt,
             templates,
-            float(class_speed_cap(self.sc.kind[agent], self.config.limits)),
         )
 
     def view(self) -> WorldView:
@@ -349,7 +354,11 @@ def apply_actions(
     nxt, v_next = np.zeros((n, 3)), np.zeros(n)
     groups: dict[object, list[int]] = {}
     for i, s in enumerate(sims):
-        key = s.config.limits if s.config.action == "continuous" else s.config.action
+        key = (
+            class_limits(int(kind[i]), s.config.limits)
+            if s.config.action == "continuous"
+            else s.config.action
+        )
         groups.setdefault(key, []).append(i)
     for key, rows in groups.items():
         moved = np.stack([np.asarray(actions[i]) for i in rows])
@@ -360,8 +369,7 @@ def apply_actions(
             nxt[rows] = token_step(now[rows], tables, moved)
         else:
             length = np.array([sims[i].sc.size[agents[i], 0] for i in rows])
-            cap = class_speed_cap(kind[rows], key)  # type: ignore[arg-type]
-            nxt[rows], v_next[rows] = bicycle_step(now[rows], speed[rows], moved, length, key, dt[rows], cap)  # type: ignore[arg-type]
+            nxt[rows], v_next[rows] = bicycle_step(now[rows], speed[rows], moved, length, key, dt[rows])  # type: ignore[arg-type]
             continue
         d = nxt[rows, :2] - now[rows, :2]
         forward = np.cos(now[rows, 2]) * d[:, 0] + np.sin(now[rows, 2]) * d[:, 1]
