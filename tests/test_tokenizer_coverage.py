@@ -235,7 +235,8 @@ def test_env_warns_once_when_an_external_agent_outruns_the_shipped_vocabulary() 
     engine = RolloutEngine(ckpt, scene, 1, 6, active & ~external, external, config=SamplingConfig(seed=1))
     ego = scene.xyh[scene.sdc, engine.t].copy()
     with pytest.warns(
-        UserWarning, match=rf"external agent {scene.sdc} \(track .*\d+\.\d\d m from its true"
+        UserWarning,
+        match=rf"external agent vehicle_{scene.track_id[scene.sdc]} of scene .*\d+\.\d\d m from its true",
     ) as rec:
         for _ in range(5):
             while (agent := engine.advance()) is not None:
