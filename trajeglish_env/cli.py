@@ -16,6 +16,7 @@ from typing import Any
 
 from trajeglish_env.cli_args import (
     EXIT_BAD_INPUT,
+    EXIT_INTERRUPTED,
     NON_NEGATIVE,
     POSITIVE,
     USER_ERRORS,
@@ -25,6 +26,7 @@ from trajeglish_env.cli_args import (
     add_map_args,
     at_least_one,
     below_one,
+    interrupt_on_sigterm,
     one_line,
     output_dir,
     positive_float,
@@ -455,7 +457,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(json.dumps({"error": exc.message, "type": "UsageError"}))
         raise
     try:
-        result = args.handler(args)
+        with interrupt_on_sigterm():
+            result = args.handler(args)
+    except KeyboardInterrupt:  # Ctrl-C, or SIGTERM: worker pools and temporary folders are torn down
+        if os.environ.get("TRAJEGLISH_TRACEBACK", "") not in ("", "0"):
+            raise
+        print(
+            f"{args.command_name}: interrupted; the files already written are whole (atomic writes), and "
+            "generate, convert-womd, train --resume, export-submission and scorecard go on from them",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
     except USER_ERRORS as exc:
         if os.environ.get("TRAJEGLISH_TRACEBACK", "") not in ("", "0"):
             raise

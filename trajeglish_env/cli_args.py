@@ -4,9 +4,12 @@ exit code 2 (argparse types for counts, rates and probabilities; output director
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import signal
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -242,3 +245,24 @@ def with_map_args(config: Any, args: argparse.Namespace) -> Any:
     if args.map_stride is not None:
         config = dataclasses.replace(config, map_stride=args.map_stride)
     return config
+
+
+EXIT_INTERRUPTED = 130  # the shell's code for a process ended by Ctrl-C
+
+
+@contextlib.contextmanager
+def interrupt_on_sigterm() -> Iterator[None]:
+    """SIGTERM (``kill``, a job scheduler) stops a command as Ctrl-C does, so that its cleanup runs (in
+    the main thread only; elsewhere signals cannot be handled)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -17,8 +17,6 @@ the caller's pipe closes or the caller dies.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import multiprocessing
 import os
 import pickle
@@ -36,6 +34,7 @@ import numpy as np
 from trajeglish_env.cores import can_fork, others_busy_cores, threads_for, usable_cores
 from trajeglish_env.env.config import EnvConfig
 from trajeglish_env.env.scene_batch import load_npc_checkpoint, trajeglish_settings
+from trajeglish_env.worker_pool import die_with_parent
 
 __all__ = [
     "MIN_SCENES_PER_PROCESS",
@@ -167,22 +166,6 @@ def _run(env: Any, command: str, args: tuple[Any, ...]) -> Any:
     raise ValueError(f"unknown worker command {command!r}")
 
 
-def _die_with_parent(parent: int | None) -> None:
-    """Linux: this process gets SIGTERM when the process that forked it dies (even by SIGKILL). The kernel
-    ties the signal to the forking *thread*, so ``parent`` is None (no signal: the closed pipe ends the
-    worker) when the caller forked from another thread than its main one; a caller already gone ends the
-    worker at once."""
-    if parent is None:
-        return
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError, TypeError):
-        return
-    if os.getppid() != parent:  # the caller died before the signal was armed
-        os._exit(1)
-
-
 def _serve(
     conn: Any,
     build: Callable[[], Any],
@@ -192,13 +175,14 @@ def _serve(
 ) -> None:
     """A shard's loop in its worker: build the env, answer with ``describe(env)``, then run commands until
     ``close`` (an error is sent back and the worker goes on). ``inherited``: the caller's ends of the
-    pipes, closed here so that the worker sees the caller go; ``parent``: see :func:`_die_with_parent`."""
+    pipes, closed here so that the worker sees the caller go; ``parent``: see
+    :func:`~trajeglish_env.worker_pool.die_with_parent`."""
     import torch
 
     for other in inherited:
         other.close()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _die_with_parent(parent)
+    die_with_parent(parent)
     torch.set_num_threads(1)
     try:
         env = build()

@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import importlib
 import json
-import multiprocessing as mp
 import os
 import sys
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, wait
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Protocol
@@ -25,6 +24,7 @@ from tqdm import tqdm
 from trajeglish_env.distributed import Ranks, barrier, gather, my_share
 from trajeglish_env.scenario import Scenario
 from trajeglish_env.scenario_io import SUFFIX, atomic_path, save_scenarios, scenario_ids
+from trajeglish_env.worker_pool import worker_pool
 
 MANIFEST = "manifest.json"
 
@@ -179,7 +179,7 @@ def generate(
             generated += _write_shard(config, i, str(out))[1]
             bar.update(config.shard_count(i))
     else:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        with worker_pool(workers) as pool:  # Ctrl-C / SIGTERM: queued shards cancelled, workers ended
             pending = {pool.submit(_write_shard, config, i, str(out)) for i in todo}
             while pending:
                 finished, pending = wait(pending, return_when=FIRST_COMPLETED)

@@ -15,13 +15,11 @@ from __future__ import annotations
 
 import io
 import json
-import multiprocessing
 import os
 import sys
 import time
 import zipfile
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +32,7 @@ from trajeglish_env.metrics.womd_details import parse_womd_details
 from trajeglish_env.scenario_io import atomic_path, load_scenarios, save_scenarios
 from trajeglish_env.sources.womd import good_records, no_records_error, output_name, parse_scenario
 from trajeglish_env.sources.womd_tfrecord import TFRecordFramingError, WomdFormatError
+from trajeglish_env.worker_pool import worker_pool
 
 __all__ = ["check_inputs", "convert_file", "convert_womd", "unique_inputs"]
 
@@ -181,8 +180,7 @@ def _results(jobs: list[tuple[str, str]], workers: int) -> Iterator[dict[str, An
     if workers <= 1 or len(jobs) <= 1:
         yield from (convert_file(*job) for job in jobs)
         return
-    context = multiprocessing.get_context("spawn")  # no fork of a process that may hold torch threads
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=context) as pool:
+    with worker_pool(min(workers, len(jobs))) as pool:  # spawned; Ctrl-C / SIGTERM end the workers at once
         yield from pool.map(convert_file, *zip(*jobs, strict=True))
 
 
