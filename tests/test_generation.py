@@ -35,11 +35,17 @@ def test_output_is_independent_of_workers_and_resumes_after_damage(tmp_path) -> 
     assert all(x.equals(y) for x, y in zip(a, b, strict=True))
     assert len({s.scenario_id for s in a}) == 5
 
-    # damage: one shard deleted, one truncated -> only those two are regenerated, identically
+    # damage: one shard deleted, one truncated, one with bytes flipped inside a member (its header still
+    # reads) -> only those are regenerated, identically
     files[0].unlink()
     files[2].write_bytes(files[2].read_bytes()[:100])
+    flipped = bytearray(files[1].read_bytes())
+    flipped[len(flipped) // 2 : len(flipped) // 2 + 32] = bytes(
+        255 - b for b in flipped[len(flipped) // 2 :][:32]
+    )
+    files[1].write_bytes(bytes(flipped))
     again = generate(config, tmp_path / "one", workers=1, progress=False)
-    assert again["generated"] == 3 and again["resumed_from"] == 2
+    assert again["generated"] == 5 and again["resumed_from"] == 0
     assert all(x.equals(y) for x, y in zip(_scenes(tmp_path / "one"), b, strict=True))
     nothing = generate(config, tmp_path / "one", workers=1, progress=False)
     assert nothing["generated"] == 0 and nothing["resumed_from"] == 5
@@ -81,6 +87,14 @@ def test_mismatched_resume_and_bad_kinds_are_refused(tmp_path) -> None:
         generate(GenerationConfig("highway", 1, kinds=("parking",)), tmp_path / "x", progress=False)
     with pytest.raises(ValueError, match="unknown scene source 'carla'"):
         generate(GenerationConfig("carla", 1), tmp_path / "y", progress=False)
+    for text, message in (
+        ("", "not a readable manifest"),
+        ("[1, 2]", "not a scene folder's manifest"),
+        (json.dumps({**doc, "version": 7}), "manifest version 7, this build reads 1"),
+    ):
+        manifest.write_text(text)
+        with pytest.raises(ValueError, match=f"manifest.json: {message}"):
+            generate(GenerationConfig("highway", 1, seed=0, kinds=("two-way",)), tmp_path, progress=False)
 
 
 def test_cli_generate_json(tmp_path, capsys) -> None:

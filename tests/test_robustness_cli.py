@@ -158,3 +158,25 @@ def test_a_bare_array_as_a_tokenizer_file_is_a_clear_error(tmp_path: Path) -> No
     np.save(tmp_path / "v.npy", np.zeros(3))
     with pytest.raises(VocabularyError, match="v.npy: not a readable tokenizer file .*single array"):
         MotionVocabulary.load(tmp_path / "v.npy")
+
+
+def test_files_of_the_wrong_kind_are_named_with_what_was_expected(tmp_path: Path, capsys) -> None:
+    """A checkpoint given as a vocabulary, a vocabulary with a text version, a binary metrics.csv, and a
+    scorecard part that is JSON but no object (tracebacks or unnamed errors before)."""
+    from helpers import tiny
+
+    from trajeglish_env.checkpoint import save_checkpoint
+    from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, VocabularyError
+
+    ckpt = tiny()
+    save_checkpoint(tmp_path / "model.pt", ckpt.model, ckpt.vocabulary)
+    with pytest.raises(VocabularyError, match=r"model.pt: not a readable tokenizer file .*a checkpoint\?"):
+        MotionVocabulary.load(tmp_path / "model.pt")
+    state = ckpt.vocabulary.to_state()
+    with pytest.raises(VocabularyError, match=r"here: tokenizer version 'v2' is not a number"):
+        MotionVocabulary.from_state({**state, "version": "v2"}, where="here")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.csv").write_bytes(b"step,val_nll\n\x80\x81\xff\n")
+    assert _run(["curves", f"a={run}", "--out", str(tmp_path / "c.png"), "--quiet"]) == 2
+    assert "metrics.csv: not a text metrics file" in capsys.readouterr().err

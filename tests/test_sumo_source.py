@@ -395,6 +395,12 @@ def test_missing_sumo_gives_an_install_hint(monkeypatch: pytest.MonkeyPatch, tmp
     monkeypatch.delenv("SUMO_HOME", raising=False)
     with pytest.raises(sumo.SumoNotAvailableError, match="import sumo failed"):
         sumo.generate_shard(KINDS, SEED, SHARD, 1)
+    # the CLI: one line, exit 2, and no output folder made before the check (it crashed with a traceback)
+    from trajeglish_env.cli import main
+
+    out = tmp_path / "scenes"
+    assert main(["generate", "--source", "sumo", "--scenes", "2", "--out", str(out), "--quiet"]) == 2
+    assert not out.exists()
 
 
 def test_failing_tool_quotes_its_stderr(tmp_path: Path) -> None:

@@ -127,6 +127,12 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
             progress=False,
         )
 
+    other = MotionVocabulary(grid_vocabulary().templates * 1.1, method="xyh-grid")  # same size, other tokens
+    with pytest.raises(CheckpointError, match=r"b/last.pt: the run was trained with another vocabulary"):
+        train(
+            scenes_dir, tmp_path / "b", tiny_config(), _quick(), vocabulary=other, resume=True, progress=False
+        )
+
     # a new run into a folder that holds one is refused (its checkpoint untouched) unless asked to overwrite
     def new_run(out: str, **kw) -> dict:
         return train(
@@ -329,3 +335,26 @@ def test_trainer_state_is_typed_and_a_model_file_has_none(tmp_path) -> None:
     save_checkpoint(tmp_path / "model.pt", ckpt.model, ckpt.vocabulary)
     with pytest.raises(CheckpointError, match=r"model.pt: holds no training state to resume from"):
         TrainerState.of(load_checkpoint(tmp_path / "model.pt"))
+
+
+def test_a_checkpoint_with_a_flipped_byte_or_nan_weights_is_refused(tmp_path) -> None:
+    """Both loaded silently before: wrong weights (a flipped byte fails its zip member's CRC) or a diverged
+    run's NaNs, whose rollouts looked finite."""
+    from helpers import tiny
+
+    ckpt = tiny()
+    save_checkpoint(tmp_path / "ok.pt", ckpt.model, ckpt.vocabulary)
+    data = bytearray((tmp_path / "ok.pt").read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 64] = bytes(255 - b for b in data[middle : middle + 64])
+    (tmp_path / "flip.pt").write_bytes(bytes(data))
+    with pytest.raises(
+        CheckpointError, match=r"flip.pt: (corrupt checkpoint: its member .* fails its CRC|not a)"
+    ):
+        load_checkpoint(tmp_path / "flip.pt")
+    model = TrajeglishModel(tiny_config())
+    with torch.no_grad():
+        next(model.parameters()).fill_(float("nan"))
+    save_checkpoint(tmp_path / "nan.pt", model, grid_vocabulary())
+    with pytest.raises(CheckpointError, match=r"nan.pt: weights \[.*\] hold NaN or infinite values"):
+        load_checkpoint(tmp_path / "nan.pt")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import zipfile
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -249,6 +250,7 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     if not path.is_file():
         what = "a directory, not a checkpoint file" if path.is_dir() else "no such checkpoint file"
         raise CheckpointNotFoundError(f"{path}: {what}")
+    _check_archive(path)
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt/truncated/foreign files
@@ -279,13 +281,23 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
             raise
         if isinstance(exc, VocabularyError):
             raise CheckpointError(str(exc)) from exc
-        raise CheckpointError(f"{path}: malformed checkpoint config: {exc}") from exc
+        if isinstance(exc, KeyError):
+            raise CheckpointError(f"{path}: malformed checkpoint: no {exc.args[0]!r} entry") from exc
+        stored = {
+            k: v for k, v in dict(payload.get("config") or {}).items() if not isinstance(v, (int, float))
+        }
+        raise CheckpointError(
+            f"{path}: malformed checkpoint config: {exc} (its non-numeric fields: {stored})"
+        ) from exc
     check_compatible(cfg, vocabulary, where=str(path))
     model = TrajeglishModel(cfg)
     try:
         model.load_state_dict(payload["state_dict"])
     except (RuntimeError, KeyError) as exc:
         raise CheckpointError(f"{path}: weights do not match the stored config: {exc}") from exc
+    broken = [name for name, value in model.state_dict().items() if not torch.isfinite(value).all()]
+    if broken:
+        raise CheckpointError(f"{path}: weights {broken[:3]} hold NaN or infinite values (a diverged run?)")
     if cfg.drawn < cfg.vocab_size:
         _check_sources(model.token_source, cfg.drawn, str(path))
     model.eval()
@@ -297,6 +309,18 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
         optimizer=payload.get("optimizer"),
         trainer=payload.get("trainer"),
     )
+
+
+def _check_archive(path: Path) -> None:
+    """A checkpoint is a zip archive: each member's CRC is checked (a flipped byte in the weights would
+    otherwise load as wrong numbers, silently); a file that is no zip is left to ``torch.load``'s error."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError):
+        return
+    if bad is not None:
+        raise CheckpointError(f"{path}: corrupt checkpoint: its member {bad!r} fails its CRC check")
 
 
 def _check_sources(sources: torch.Tensor, drawn: int, where: str) -> None:

@@ -195,6 +195,8 @@ class Scorecard:
                 saved = json.loads(path.read_text())
             except (OSError, ValueError):
                 saved = None  # unreadable: computed again (the atomic write never leaves half a file)
+            if not isinstance(saved, dict):
+                saved = None  # not a part document (edited by hand?): computed again
             if saved and saved.get("format") == FORMAT and saved.get("settings") == settings:
                 self.log(f"scorecard: {label} {name}: from {path}")
                 return saved["result"]

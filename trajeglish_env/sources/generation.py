@@ -14,6 +14,7 @@ import json
 import os
 import sys
 import time
+import zipfile
 from concurrent.futures import FIRST_COMPLETED, wait
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -85,14 +86,36 @@ def _write_shard(config: GenerationConfig, index: int, out: str) -> tuple[int, i
 
 
 def _shard_complete(path: Path, expected: int) -> bool:
-    """A shard is done when its file holds the expected scenes (files are written atomically, so the
-    header suffices: no shard is loaded to resume a large run)."""
+    """A shard is done when its file holds the expected scenes and every member passes its CRC check (a
+    damaged shard is made again; no scene is parsed, so resuming a large run stays quick)."""
     if not path.is_file():
         return False
     try:
+        with zipfile.ZipFile(path) as archive:
+            if archive.testzip() is not None:
+                return False
         return len(scenario_ids(path)) == expected
-    except (ValueError, OSError):
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError):
         return False
+
+
+MANIFEST_FORMAT, MANIFEST_VERSION = "trajeglish_env.shards", 1
+
+
+def _read_manifest(manifest: Path) -> dict:
+    """A generate folder's manifest; a ValueError naming it when it is not one of ours."""
+    try:
+        have = json.loads(manifest.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{manifest}: not a readable manifest (corrupt?): {exc}") from exc
+    if not isinstance(have, dict) or have.get("format") != MANIFEST_FORMAT:
+        raise ValueError(f"{manifest}: not a scene folder's manifest (expected format {MANIFEST_FORMAT!r})")
+    if have.get("version") != MANIFEST_VERSION:
+        raise ValueError(
+            f"{manifest}: manifest version {have.get('version')!r}, this build reads {MANIFEST_VERSION}: "
+            "written by another version; use another --out directory"
+        )
+    return have
 
 
 def _check_manifest(out: Path, config: GenerationConfig) -> None:
@@ -103,7 +126,7 @@ def _check_manifest(out: Path, config: GenerationConfig) -> None:
     want["kinds"] = list(config.kinds)
     generator = int(getattr(load_source(config.source), "GENERATOR_VERSION", 1))
     if manifest.is_file():
-        have = json.loads(manifest.read_text())
+        have = _read_manifest(manifest)
         if have.get("config") != want:
             raise ValueError(
                 f"{manifest}: this directory was generated with different settings {have.get('config')}; "
@@ -118,8 +141,8 @@ def _check_manifest(out: Path, config: GenerationConfig) -> None:
         return
     with atomic_path(manifest) as tmp:
         doc = {
-            "format": "trajeglish_env.shards",
-            "version": 1,
+            "format": MANIFEST_FORMAT,
+            "version": MANIFEST_VERSION,
             "generator_version": generator,
             "config": want,
         }
@@ -150,6 +173,9 @@ def generate(
     config = GenerationConfig(
         config.source, config.scenes, config.seed, tuple(kinds), config.scenes_per_shard
     )
+    check = getattr(source, "check_available", None)
+    if check is not None:  # e.g. SUMO not installed: said before any folder is made
+        check()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if ranks.main:

@@ -23,11 +23,12 @@ from trajeglish_env.sources.generation import scene_seed
 from trajeglish_env.sources.sumo_map import NetworkMap, signal_states
 from trajeglish_env.sources.sumo_net import NETWORK_KINDS
 from trajeglish_env.sources.sumo_sim import DT, SimulationConfig, SumoRun, simulate
-from trajeglish_env.sources.sumo_tools import SumoNotAvailableError, SumoToolError
+from trajeglish_env.sources.sumo_tools import SumoNotAvailableError, SumoToolError, check_available
 
 __all__ = [
     "KINDS",
     "SumoNotAvailableError",
+    "check_available",
     "SumoSceneConfig",
     "SumoToolError",
     "cut_scenes",

@@ -12,13 +12,15 @@ from collections.abc import Sequence
 from pathlib import Path
 
 INSTALL_HINT = (
-    "install it with: pip install 'trajeglish_env[sumo]' (the eclipse-sumo wheel ships the binaries)"
+    "install it with: pip install 'trajeglish_env[sumo]' (the eclipse-sumo wheel ships the binaries), or "
+    "point SUMO_HOME at a SUMO installation (its bin/ holds sumo and netgenerate)"
 )
 _STDERR_TAIL_CHARS = 2000
 
 
-class SumoNotAvailableError(RuntimeError):
-    """Eclipse SUMO (its Python package or its binaries) cannot be found."""
+class SumoNotAvailableError(FileNotFoundError):
+    """Eclipse SUMO (its Python package or its binaries) cannot be found (bad input for the CLI: one line,
+    exit code 2)."""
 
 
 class SumoToolError(RuntimeError):
@@ -49,6 +51,12 @@ def sumo_binary(name: str) -> Path:
             f"SUMO binary {name!r} not found at {path} (SUMO_HOME={home}); {INSTALL_HINT}"
         )
     return path
+
+
+def check_available() -> None:
+    """Fail now, with the install hint, when a SUMO tool the generator runs is missing."""
+    for name in ("netgenerate", "sumo"):
+        sumo_binary(name)
 
 
 def run_tool(name: str, args: Sequence[str], cwd: Path, timeout_s: float = 600.0) -> str:

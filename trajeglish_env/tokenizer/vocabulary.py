@@ -122,7 +122,10 @@ class MotionVocabulary:
             raise VocabularyError(
                 f"{where}: not a trajeglish_env tokenizer (format {str(state['format'])!r})"
             )
-        version = int(state["version"])
+        try:
+            version = int(state["version"])
+        except (TypeError, ValueError) as exc:
+            raise VocabularyError(f"{where}: tokenizer version {state['version']!r} is not a number") from exc
         if version != FORMAT_VERSION:
             raise VocabularyError(
                 f"{where}: tokenizer format version {version} is not supported "
@@ -165,6 +168,11 @@ class MotionVocabulary:
             if isinstance(data, np.ndarray):  # a bare .npy array, not an archive of fields
                 raise ValueError("a single array, not a tokenizer archive")
             with data:
+                if any(not name.endswith(".npy") for name in data.zip.namelist()):  # a torch checkpoint...
+                    raise ValueError(
+                        "a zip of other files, not a tokenizer archive (a checkpoint? a vocabulary is a "
+                        "tokenizer .npz, as `trajeglish tokenizer fit` writes)"
+                    )
                 state = {k: data[k] for k in data.files}
         except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error) as exc:
             raise VocabularyError(

@@ -27,14 +27,17 @@ def read_metrics(run: str | os.PathLike[str]) -> list[dict[str, float]]:
     path = Path(run) / "metrics.csv" if Path(run).is_dir() else Path(run)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no metrics.csv (expected a run directory of `trajeglish train`)")
-    with open(path, newline="") as fh:
-        reader = csv.DictReader(fh)
-        if not reader.fieldnames or "step" not in reader.fieldnames or "val_nll" not in reader.fieldnames:
-            raise ValueError(f"{path}: not a training metrics file (columns {reader.fieldnames})")
-        try:
-            return [{k: float(v) for k, v in row.items() if v not in ("", None)} for row in reader]
-        except ValueError as exc:
-            raise ValueError(f"{path}: a non-numeric value ({exc})") from None
+    try:
+        with open(path, newline="") as fh:
+            reader = csv.DictReader(fh)
+            if not reader.fieldnames or "step" not in reader.fieldnames or "val_nll" not in reader.fieldnames:
+                raise ValueError(f"{path}: not a training metrics file (columns {reader.fieldnames})")
+            try:
+                return [{k: float(v) for k, v in row.items() if v not in ("", None)} for row in reader]
+            except ValueError as exc:
+                raise ValueError(f"{path}: a non-numeric value ({exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a text metrics file (binary or corrupt: {exc.reason})") from None
 
 
 def plot_runs(runs: dict[str, str | os.PathLike[str]], out: str | os.PathLike[str]) -> dict[str, Any]:

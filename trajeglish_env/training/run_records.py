@@ -134,3 +134,26 @@ def resumed_config(
             "another --out"
         )
     return config
+
+
+def check_resumed_inputs(
+    last: Path, ckpt: Checkpoint, vocabulary: MotionVocabulary, facts: RunFacts
+) -> str | None:
+    """A resumed run must read the vocabulary it was trained with (a CheckpointError otherwise: its
+    weights would go on learning other token meanings); other training data than recorded is allowed,
+    and returned as a warning to print."""
+    if not ckpt.vocabulary.equals(vocabulary):
+        have, want = ckpt.vocabulary, vocabulary
+        raise CheckpointError(
+            f"{last}: the run was trained with another vocabulary ({have.size} templates per class, "
+            f"{have.method}) than the one given now ({want.size}, {want.method}): resuming would train its "
+            "weights on other token meanings; pass the run's own (the same --vocab / --init as its start)"
+        )
+    recorded = (ckpt.training.get("train_scenes"), list(ckpt.training.get("sources") or []))
+    now = (facts.train_scenes, list(facts.sources))
+    if recorded[0] is not None and recorded != now:
+        return (
+            f"train: warning: {last} was trained on {recorded[0]} scenes of {recorded[1]}, this resume reads "
+            f"{now[0]} of {now[1]}: the schedule goes on with other data"
+        )
+    return None

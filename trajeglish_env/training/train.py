@@ -55,6 +55,7 @@ from trajeglish_env.training.mass_term_checks import check_mass_terms
 from trajeglish_env.training.offroad_mass import OffroadTerm
 from trajeglish_env.training.precision import check_precision, step_autocast
 from trajeglish_env.training.run_records import (
+    check_resumed_inputs,
     check_run_folder,
     resumed_config,
     run_facts,
@@ -259,6 +260,9 @@ def train(
         ckpt = load_checkpoint(last, map_location=device)
         trainer = TrainerState.of(ckpt)
         config = resumed_config(last, ckpt.config, model_config, trainer, config, fit_steps)
+        note = check_resumed_inputs(last, ckpt, vocabulary, facts)
+        if note and dd.main:
+            print(note, file=sys.stderr)
         model.load_state_dict(ckpt.model.state_dict())
         optimizer.load_state_dict(ckpt.optimizer or {})
         start_step, history = trainer.step, list(trainer.history)
