@@ -444,7 +444,7 @@ def test_junctions_of_random_networks_are_on_the_road() -> None:
     except sumo.SumoNotAvailableError as error:
         pytest.skip(str(error))
     scenes = sumo.cut_scenes(run, 50050, 2, COUNT)
-    assert sumo.GENERATOR_VERSION == 2  # directories of the maps before are not resumed into
+    assert sumo.GENERATOR_VERSION == 3  # directories of the maps before are not resumed into
     off, total = _lane_points_off_road(scenes)
     assert total > 15000
     assert off == 0, (off, total)
@@ -491,3 +491,47 @@ def test_curbs_meeting_at_a_corner_are_chained_and_sign_the_junction_as_road() -
     builder = _MapBuilder(1.0)
     assert builder.add(np.array([[0.0, 0.0], [0.2, 0.1]]), MapKind.ROAD_EDGE_BOUNDARY) == -1
     assert builder.add(np.array([[0.0, 0.0], [0.2, 0.1]]), MapKind.LANE_SURFACE_STREET) == 0
+
+
+HOOKED_KERB = (
+    np.array(  # a spider network's acute block corner (seed 100): the corner's kerb starts with a hook
+        [
+            [131.83, 210.57],
+            [131.04, 209.99],
+            [130.25, 209.42],
+            [129.46, 208.84],
+            [128.67, 208.26],
+            [129.57, 208.28],
+        ]
+        + [[129.93, 208.26], [129.74, 209.18], [129.61, 210.1], [129.5, 211.1]]
+    )
+)
+
+
+def test_a_hooked_kerb_loses_its_hook_and_the_junction_beyond_is_road() -> None:
+    """The hook winds the wrong way round the corner, which signed the junction beyond it 11.9 m "off the
+    road" where logged vehicles drive; real bends (a 2 m island, a square corner) are kept."""
+    from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road_edges
+    from trajeglish_env.sources.sumo_map import despike
+
+    unhooked = despike(HOOKED_KERB)
+    hook = HOOKED_KERB[4:7]
+    assert not (unhooked[:, None] == hook[None]).all(-1).any()  # the hook's three points are gone
+    assert len(unhooked) >= 5 and np.array_equal(unhooked[[0, -1]], HOOKED_KERB[[0, -1]])
+    in_junction = np.array([[122.8, 197.9]])
+    before = signed_distance_to_road_edges(in_junction, RoadEdges.from_polylines([HOOKED_KERB]))
+    after = signed_distance_to_road_edges(in_junction, RoadEdges.from_polylines([unhooked]))
+    assert before[0] > 10 and after[0] < 0
+    angle = np.linspace(0, 2 * np.pi, 26)
+    island = 2.0 * np.stack([np.cos(angle), np.sin(angle)], -1)
+    corner = np.array([[0.0, 0.0], [5.0, 0.0], [5.0, 5.0]])
+    assert np.array_equal(despike(island), island) and np.array_equal(despike(corner), corner)
+
+
+def test_a_partial_shard_holds_the_first_scenes_of_the_full_one(tmp_path: Path) -> None:
+    """`--scenes 3` gave scenes with the ids of `--scenes 8`'s first three but other content (the
+    simulation's length followed the shard's scene count)."""
+    short = sumo.generate_shard(("grid",), 0, 0, 2, capacity=4)
+    full = sumo.generate_shard(("grid",), 0, 0, 4, capacity=4)
+    assert [s.scenario_id for s in short] == [s.scenario_id for s in full[:2]]
+    assert all(a.equals(b) for a, b in zip(short, full, strict=False))

@@ -40,9 +40,10 @@ class SceneSource(Protocol):
     KINDS: tuple[str, ...]
 
     def generate_shard(
-        self, kinds: tuple[str, ...], seed: int, shard_index: int, count: int
+        self, kinds: tuple[str, ...], seed: int, shard_index: int, count: int, capacity: int | None = None
     ) -> list[Scenario]:
-        """Return ``count`` scenes, a deterministic function of the arguments."""
+        """Return ``count`` scenes, a deterministic function of the arguments; ``capacity``, a full shard's
+        scene count: a partial shard holds the first scenes of the full one."""
         ...
 
 
@@ -80,7 +81,8 @@ def _write_shard(config: GenerationConfig, index: int, out: str) -> tuple[int, i
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     start = time.perf_counter()
     source = load_source(config.source)
-    scenes = source.generate_shard(config.kinds, config.seed, index, config.shard_count(index))
+    count = config.shard_count(index)
+    scenes = source.generate_shard(config.kinds, config.seed, index, count, capacity=config.scenes_per_shard)
     save_scenarios(shard_path(Path(out), config, index), scenes)
     return index, len(scenes), time.perf_counter() - start
 

@@ -317,8 +317,11 @@ def generate_scene(kind: str, seed: int, config: HighwaySceneConfig = HighwaySce
     )
 
 
-def generate_shard(kinds: tuple[str, ...], seed: int, shard_index: int, count: int) -> list[Scenario]:
-    """``count`` scenes of shard ``shard_index``; slot ``i`` uses ``scene_seed(seed, shard_index, i)``.
+def generate_shard(
+    kinds: tuple[str, ...], seed: int, shard_index: int, count: int, capacity: int | None = None
+) -> list[Scenario]:
+    """``count`` scenes of shard ``shard_index``; slot ``i`` uses ``scene_seed(seed, shard_index, i)`` (so a
+    partial shard holds the first scenes of a full one whatever ``capacity``).
 
     The kind of each scene is drawn from ``kinds`` (all :data:`KINDS` when empty) by its own seed.
     """

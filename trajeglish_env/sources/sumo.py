@@ -41,7 +41,9 @@ NUM_STEPS = 91
 CURRENT_INDEX = 10
 # 2: curbs that meet end to start are one polyline and curb stubs are left out (sumo_map.chain_road_edges):
 # no wedge of a junction is signed off the road; scenes of version 1 are not resumed into
-GENERATOR_VERSION = 2
+# 3: curbs within 0.25 m chained and their hooks dropped (sumo_map.despike: a spider network's acute block
+# corners put logged vehicles 15 m "off the road"); a partial last shard simulates the full shard's time
+GENERATOR_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -211,10 +213,17 @@ def cut_scenes(
 
 
 def generate_shard(
-    kinds: tuple[str, ...], seed: int, shard_index: int, count: int, config: SumoSceneConfig = DEFAULT_CONFIG
+    kinds: tuple[str, ...],
+    seed: int,
+    shard_index: int,
+    count: int,
+    config: SumoSceneConfig = DEFAULT_CONFIG,
+    capacity: int | None = None,
 ) -> list[Scenario]:
-    """``count`` scenes of shard ``shard_index``: one SUMO simulation cut into windows (deterministic)."""
+    """``count`` scenes of shard ``shard_index``: one SUMO simulation cut into windows (deterministic).
+    ``capacity``: the scenes a full shard holds; the simulation is the full shard's, so a run's last,
+    partial shard holds the first scenes of the full one (the same id, the same scene)."""
     if count < 1:
         raise ValueError(f"count must be >= 1, got {count}")
-    run = simulate_shard(kinds, seed, shard_index, count, config)
+    run = simulate_shard(kinds, seed, shard_index, max(count, capacity or count), config)
     return cut_scenes(run, seed, shard_index, count, config)

@@ -40,7 +40,8 @@ _MEDIAN_WIDTH = 4.5  # opposite lanes at most this far apart (m) are separated b
 # comes from that segment's line), where logged vehicles drive and guarded ones then may not (random
 # networks: 17 stubs a scene, 0.8 % of their lane-centre points off the road; docs/evaluation.md, stop 57).
 _MIN_CURB = 1.0
-_JOIN_GAP = 0.1  # m: road edges whose end and start lie this close are one curb (chain_road_edges)
+_JOIN_GAP = 0.25  # m: road edges whose end and start lie this close are one curb (chain_road_edges)
+_HOOK_REACH = 2.5  # m: a road edge winding more than half a circle within this arc is a hook (despike)
 _MIN_MEDIAN_WIDTH = 0.5  # facing median sides closer than this (m) touch: the directions simply meet
 
 # SUMO link-state characters -> WOMD lane signal states.
@@ -117,6 +118,9 @@ class _MapBuilder:
         """``points, offsets, kinds, ids`` of the polylines, road edges that meet end to start chained
         (:func:`chain_road_edges`), and ``renumber [n]``: the id each id :meth:`add` returned now has."""
         lines, kinds, keep = chain_road_edges(self.lines, self.kinds)
+        lines = [
+            despike(line) if k in ROAD_EDGE_KINDS else line for line, k in zip(lines, kinds, strict=True)
+        ]
         offsets = np.zeros(len(lines) + 1, dtype=np.int64)
         offsets[1:] = np.cumsum([len(p) for p in lines])
         points = np.concatenate(lines) if lines else np.zeros((0, 2))
@@ -173,6 +177,42 @@ def chain_road_edges(
         [c for c, k in zip(kinds, keep, strict=True) if k],
         keep,
     )
+
+
+def despike(points: np.ndarray, reach: float = _HOOK_REACH) -> np.ndarray:
+    """A road edge without its hooks: a run of vertices within ``reach`` m of arc that turns more than half
+    a circle (one way) is dropped, again until none is left. Why: at an acute block corner of a spider
+    network the corner's kerb (an offset of its right-turn lane) starts with a short hook that winds the
+    wrong way round, and the off-road rule signs the points beyond a vertex by the turn there: the hook
+    flipped a wedge of the junction, up to 15 m deep where logged vehicles drive, to "off the road"
+    (stop 79). A real kerb turns that much only over metres (a 2 m island turns 72 degrees in 2.5 m)."""
+    points = np.asarray(points, dtype=np.float64)
+    while len(points) > 3:
+        step = np.diff(points, axis=0)
+        length = np.linalg.norm(step, axis=1)
+        heading = np.arctan2(step[:, 1], step[:, 0])
+        turn = (np.diff(heading) + np.pi) % (2 * np.pi) - np.pi  # at vertices 1 .. n-2
+        hook = _first_hook(turn, length, reach)
+        if hook is None:
+            return points
+        points = np.delete(points, np.arange(hook[0] + 1, hook[1] + 2), axis=0)
+    return points
+
+
+def _first_hook(turn: np.ndarray, length: np.ndarray, reach: float) -> tuple[int, int] | None:
+    """The first run ``turn[i..j]`` whose vertices lie within ``reach`` m of each other along the line
+    and whose turns add up to more than pi; None if there is none."""
+    for i in range(len(turn)):
+        total, arc = 0.0, 0.0
+        for j in range(i, len(turn)):
+            if j > i:
+                arc += length[j]  # the segment from vertex j to vertex j + 1
+                if arc > reach:
+                    break
+            total += turn[j]
+            if abs(total) > np.pi:
+                return i, j
+    return None
 
 
 def _closed(points: np.ndarray) -> bool:
