@@ -24,6 +24,7 @@ from trajeglish_env.batch_geometry import (
 )
 from trajeglish_env.env.routes import Paths, stack_paths
 from trajeglish_env.env.scene_state import SceneState
+from trajeglish_env.env.signal_features import signal_features
 from trajeglish_env.geometry import wrap_angle
 
 EDGE_REACH, EDGE_DRIFT = 40.0, 10.0  # m: road edges kept around an agent, and how far it may move off
@@ -258,7 +259,7 @@ class BatchGeometry:
             axis=-1,
         )
         size_n = size[:, : pictures.state.shape[1]]
-        return vector_observations(
+        vector = vector_observations(
             head,
             pictures.state[scene, agent],
             pictures.state[scene],
@@ -275,3 +276,15 @@ class BatchGeometry:
             obs.map_points,
             obs.radius,
         )
+        if not obs.signals:
+            return vector
+        signals = signal_features(
+            [s.signal_xy for s in unique],
+            [s.signal_state for s in unique],
+            [s.t for s in unique],
+            scene,
+            pictures.state[scene, agent],
+            obs.signals,
+            obs.radius,
+        )
+        return np.concatenate([vector, signals], axis=1)

@@ -93,7 +93,9 @@ class TrajeglishNPC:
 class ObservationConfig:
     """Sizes of the observations: ``neighbours`` nearest agents, ``map_points`` nearest map points
     (polylines resampled every ``map_spacing`` m), ``route_points`` route points ``route_spacing`` m apart,
-    all within ``radius`` m; the bev raster is ``bev_size`` x ``bev_size`` pixels of ``bev_resolution`` m."""
+    ``signals`` nearest traffic-signal stop points with their state (0: none, the default; see
+    :mod:`~trajeglish_env.env.signal_features`), all within ``radius`` m; the bev raster is ``bev_size`` x
+    ``bev_size`` pixels of ``bev_resolution`` m."""
 
     neighbours: int = 8
     map_points: int = 32
@@ -103,10 +105,14 @@ class ObservationConfig:
     radius: float = 50.0
     bev_size: int = 64
     bev_resolution: float = 1.0
+    signals: int = 0
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            if not getattr(self, f.name) > 0:
+            if f.name == "signals":
+                if not isinstance(self.signals, int) or isinstance(self.signals, bool) or self.signals < 0:
+                    raise ValueError(f"ObservationConfig.signals must be an int >= 0, got {self.signals!r}")
+            elif not getattr(self, f.name) > 0:
                 raise ValueError(f"ObservationConfig.{f.name} must be > 0, got {getattr(self, f.name)}")
 
 

@@ -31,6 +31,7 @@ from gymnasium import spaces
 from trajeglish_env.batch_geometry import EDGE, LANE, LINE, OTHER
 from trajeglish_env.env.batch_outcomes import Pictures
 from trajeglish_env.env.config import ObservationConfig
+from trajeglish_env.env.signal_features import SIGNAL_FEATURES
 from trajeglish_env.geometry import transform_points
 from trajeglish_env.scenario import LANE_KINDS, ROAD_EDGE_KINDS, ROAD_LINE_KINDS, Scenario
 
@@ -162,7 +163,8 @@ def observation_space(kind: str, config: ObservationConfig) -> spaces.Box:
     """The observation space of a type (independent of the scene)."""
     if kind == "vector":
         size = EGO_FEATURES + NEIGHBOUR_FEATURES * config.neighbours + MAP_FEATURES * config.map_points
-        return spaces.Box(-1.0, 1.0, shape=(size + 2 * config.route_points,), dtype=np.float32)
+        size += 2 * config.route_points + SIGNAL_FEATURES * config.signals
+        return spaces.Box(-1.0, 1.0, shape=(size,), dtype=np.float32)
     if kind == "bev":
         n = config.bev_size
         return spaces.Box(0, 255, shape=(BEV_CHANNELS, n, n), dtype=np.uint8)

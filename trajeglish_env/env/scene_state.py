@@ -52,6 +52,8 @@ class SceneState:
     progress: np.ndarray
     has_goal: np.ndarray
     kin: Kinematics
+    signal_xy: np.ndarray  # [L,2] stop points of the signal-controlled lanes
+    signal_state: np.ndarray | None  # [T,L] SignalState per logged step (None: no signals)
 
     @property
     def t(self) -> int:

@@ -210,6 +210,8 @@ class Simulation:
             progress=self.progress,
             has_goal=self.has_goal,
             kin=self.kin,
+            signal_xy=scenario.signal_xy,
+            signal_state=scenario.signal_state,
         )
         self.steps = 0
 
