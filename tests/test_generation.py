@@ -112,3 +112,12 @@ def test_cli_generate_json(tmp_path, capsys) -> None:
     }
     assert main(["generate", "--scenes", "2", "--out", str(tmp_path), "--kinds", "nope", "--quiet"]) == 2
     assert "unknown highway scene kinds" in capsys.readouterr().err
+
+
+def test_kinds_with_spaces_are_read_and_an_empty_list_is_refused(tmp_path, capsys) -> None:
+    """`--kinds "u-turn, two-way"` was refused for its space, `--kinds ","` generated every kind."""
+    args = ["generate", "--scenes", "2", "--out", str(tmp_path / "a"), "--quiet", "--json"]
+    assert main([*args, "--kinds", "u-turn, two-way"]) == 0
+    assert json.loads(capsys.readouterr().out)["kinds"] == ["u-turn", "two-way"]
+    assert main(["generate", "--scenes", "2", "--out", str(tmp_path / "b"), "--kinds", ",", "--quiet"]) == 2
+    assert "--kinds ',': no kind named" in capsys.readouterr().err

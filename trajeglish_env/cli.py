@@ -57,7 +57,9 @@ def cmd_generate(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.distributed import init_ranks
     from trajeglish_env.sources.generation import GenerationConfig, generate
 
-    kinds = tuple(k for k in (args.kinds or "").split(",") if k)
+    kinds = tuple(k.strip() for k in (args.kinds or "").split(",") if k.strip())  # "grid, spider" too
+    if args.kinds is not None and not kinds:
+        raise ValueError(f"--kinds {args.kinds!r}: no kind named (leave --kinds out for every kind)")
     ranks = init_ranks()
     config = GenerationConfig(args.source, args.scenes, args.seed, kinds, args.scenes_per_shard)
     result = generate(config, output_dir(args.out), args.workers, not args.quiet and ranks.main, ranks)

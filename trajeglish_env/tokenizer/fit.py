@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from trajeglish_env.scenario import AgentKind
 from trajeglish_env.tokenizer.baselines import kmeans_templates, xy_grid_templates, xyh_grid_templates
@@ -256,8 +257,17 @@ def _best_candidate(
     reserved = np.zeros((0, 3)) if reserved is None else reserved
     sampled = vocab_size - len(reserved)
     best, best_err, errors = None, np.inf, []
+    bar = tqdm(
+        total=len(epsilons) * trials,
+        desc=f"tokenizer {AgentKind(kind).name.lower()} candidates",
+        unit="set",
+        file=sys.stderr,
+        leave=False,
+        disable=None,  # shown on a terminal
+    )
     for eps in epsilons:
         for trial in range(trials):
+            bar.update(1)
             rng = np.random.default_rng(
                 np.random.SeedSequence([seed, kind, vocab_size, trial, int(eps * 1e6)])
             )
@@ -270,6 +280,8 @@ def _best_candidate(
             errors.append([eps, trial, round(err * 100, 4)])
             if err < best_err:
                 best, best_err = candidate, err
+            bar.set_postfix(best_cm=f"{best_err * 100:.2f}")
+    bar.close()
     assert best is not None
     return best, errors
 
