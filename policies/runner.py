@@ -18,8 +18,8 @@ PolicyMap = Mapping[str, Policy] | Policy | Callable[[str], Policy]
 
 @dataclass(frozen=True)
 class EpisodeResult:
-    """One episode: per external agent its return, whether it collided / went off-road at any step of the
-    episode, whether it reached its goal, and its progress (m, fraction)."""
+    """One episode: per external agent its return, whether it collided / went off-road / reached its goal
+    at any step of the episode, and its progress (m, fraction)."""
 
     scenario_id: str
     steps: int
@@ -108,7 +108,7 @@ def play_episode(
         returns=returns,
         collision={a: bool(i.get("collision_steps", 0) > 0 or i.get("collision")) for a, i in infos.items()},
         offroad={a: bool(i.get("offroad_steps", 0) > 0 or i.get("offroad")) for a, i in infos.items()},
-        goal={a: bool(i.get("goal", False)) for a, i in infos.items()},
+        goal={a: bool(i.get("goal_reached") or i.get("goal")) for a, i in infos.items()},
         progress_m={a: float(i.get("progress_m", 0.0)) for a, i in infos.items()},
         route_fraction={a: float(i.get("route_fraction", 0.0)) for a, i in infos.items()},
         video=path,

@@ -173,7 +173,7 @@ def test_reset_infos_hold_the_step_info_keys() -> None:
     *_, info = e.last()
     assert info == {
         "collision": False, "offroad": False, "goal": False, "progress_m": 0.0, "route_fraction": 0.0,
-        "collision_steps": 0, "offroad_steps": 0,
+        "collision_steps": 0, "offroad_steps": 0, "goal_reached": False,
     }  # fmt: skip
     e.step(e.action_space(e.agent_selection).sample())
     assert set(e.infos[e.possible_agents[0]]) == set(info)
@@ -344,3 +344,27 @@ def test_random_agents_can_keep_the_sdc_and_take_what_a_small_scene_has() -> Non
         assert raw.sim.names[sc.sdc] in env.agents
     with pytest.raises(ValueError, match=r"RandomAgents\(k=40\) but only .* at_most=True"):
         trajeglish_env.parallel_env(npc="constant_velocity", external=RandomAgents(40)).reset(seed=0)
+
+
+def test_an_episode_counts_a_goal_reached_at_any_step() -> None:
+    """With the episode going on past the goal, an agent that reached it and drove back off was reported
+    as not reaching it (the last step's flag)."""
+    from policies import play_episode
+    from trajeglish_env.env import RewardConfig
+
+    class ToTheEndAndBack:
+        def reset(self, env, agent):
+            self.back = False
+
+        def act(self, env, agent, obs):
+            self.seen = env.unwrapped.infos[agent]
+            self.back |= self.seen["goal"]
+            return np.array([-1.0 if self.back else 5.0, 0.0, 0.0], np.float32)
+
+    reward = RewardConfig(terminate_on_goal=False, terminate_on_offroad=False, terminate_on_collision=False)
+    env = raw_env([bundle_scene(MERGE)], npc="replay", action="delta", max_cycles=70, reward=reward)
+    policy = ToTheEndAndBack()
+    result = play_episode(env, policy, seed=0)
+    (agent,) = result.returns
+    assert policy.back and not policy.seen["goal"] and policy.seen["goal_reached"]  # left the goal again
+    assert result.goal[agent]

@@ -34,6 +34,36 @@ def test_an_interrupt_cancels_the_queue_and_ends_the_workers() -> None:
     assert sum(f.cancelled() for f in futures) >= 3  # those not handed to the workers' queue yet
 
 
+def _holding(folder: str) -> int:
+    """A job that holds a temporary folder and a child process (as a SUMO run does) until it is ended."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(dir=folder):
+        subprocess.run(["sleep", "30"], check=False)
+    return 0
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="/proc")
+def test_ended_workers_remove_their_temporary_folders_and_tools(tmp_path: Path) -> None:
+    """SIGTERM unwinds a worker: its temporary folder is removed and the tool it runs is killed (they
+    were left behind, the tool running on)."""
+    with pytest.raises(KeyboardInterrupt), worker_pool(1) as pool:
+        job = pool.submit(_holding, str(tmp_path))
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not list(tmp_path.iterdir()):
+            time.sleep(0.1)
+        time.sleep(0.5)  # the sleep tool has started
+        (worker,) = pool._processes.values()
+        tools = [int(p) for p in Path(f"/proc/{worker.pid}/task/{worker.pid}/children").read_text().split()]
+        raise KeyboardInterrupt
+    assert job.cancelled() or job.done()
+    assert list(tmp_path.iterdir()) == [] and tools
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(Path(f"/proc/{t}").exists() for t in tools):
+        time.sleep(0.1)
+    assert not any(Path(f"/proc/{t}").exists() for t in tools), "the tool outlived its worker"
+
+
 def test_the_pool_finishes_its_jobs_when_nothing_goes_wrong() -> None:
     with worker_pool(2) as pool:
         results = list(pool.map(_slow, [0.0] * 4))

@@ -2,9 +2,11 @@
 at once, instead of running every queued job first (``ProcessPoolExecutor``'s exit waits for them) or
 lingering as orphans.
 
-Workers ignore Ctrl-C (the terminal sends it to the whole process group: the caller handles it) and get
-SIGTERM when the caller dies, even by SIGKILL (Linux ``PR_SET_PDEATHSIG``). On any exception in the
-``with`` block, queued jobs are cancelled and the workers terminated before the exception goes on.
+Workers ignore Ctrl-C (the terminal sends it to the whole process group: the caller handles it), unwind
+on SIGTERM (their ``with`` blocks exit: temporary folders removed, tools they run killed) and get SIGTERM
+when the caller dies, even by SIGKILL (Linux ``PR_SET_PDEATHSIG``). On any exception in the ``with`` block,
+queued jobs are cancelled and the workers terminated (killed if one has not ended after 10 s) before the
+exception goes on.
 """
 
 from __future__ import annotations
@@ -37,9 +39,16 @@ def die_with_parent(parent: int | None) -> None:
         os._exit(1)
 
 
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    """SIGTERM in a worker unwinds it (``with`` blocks exit: temporary folders removed, a running
+    ``subprocess.run`` kills its child) instead of ending it where it stands."""
+    raise SystemExit(128 + signum)
+
+
 def _start_worker(parent: int) -> None:
-    """A pool worker's first act: leave Ctrl-C to the caller, end with it."""
+    """A pool worker's first act: leave Ctrl-C to the caller, clean up on SIGTERM, end with the caller."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     die_with_parent(parent)
 
 
@@ -63,14 +72,14 @@ def worker_pool(workers: int, method: str = "spawn") -> Iterator[ProcessPoolExec
     except BaseException:
         processes = _processes(pool)
         pool.shutdown(wait=False, cancel_futures=True)
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline:
-            processes += [p for p in _processes(pool) if p not in processes]  # one started meanwhile
-            alive = [p for p in processes if p.exitcode is None]
-            if not alive:
-                break
-            for process in alive:
-                process.terminate()
-                process.join(timeout=0.2)
+        deadline = time.monotonic() + 10  # SIGTERM (they clean up), then SIGKILL for one that will not end
+        while [p for p in processes if p.exitcode is None]:
+            for process in processes:
+                if process.exitcode is None:
+                    if time.monotonic() > deadline:
+                        process.kill()
+                    else:
+                        process.terminate()
+                    process.join(timeout=0.2)
         raise
     pool.shutdown(wait=True)

@@ -42,7 +42,7 @@ def signal_features(
     out = np.zeros((q, count, SIGNAL_FEATURES), dtype=np.float32)
     most = max((len(xy) for xy in signal_xy), default=0)
     if q == 0 or most == 0:
-        return out.reshape(q, -1)
+        return out.reshape(q, count * SIGNAL_FEATURES)
     b = len(signal_xy)
     xy = np.zeros((b, most, 2))
     colour = np.zeros((b, most, 3), dtype=np.float32)
@@ -64,4 +64,4 @@ def signal_features(
     out[:, :shown, 0] = take
     out[:, :shown, 1:3] = np.where(take[..., None], local[rows, order] / radius, 0.0)
     out[:, :shown, 3:] = np.where(take[..., None], colour[scene][rows, order], 0.0)
-    return out.reshape(q, -1)
+    return out.reshape(q, count * SIGNAL_FEATURES)

@@ -270,8 +270,8 @@ class Simulation:
     def agent_info(
         self, a: int, collision: bool = False, offroad: bool = False, goal: bool = False
     ) -> dict[str, Any]:
-        """External agent ``a``'s info: this step's flags, its progress so far (at reset: no flags, no
-        progress, the same keys as after a step)."""
+        """External agent ``a``'s info: this step's flags, its progress so far and whether it has reached
+        its goal at some step (at reset: no flags, no progress, the same keys as after a step)."""
         row = self.route_row[a]
         return {
             "collision": collision,
@@ -281,6 +281,7 @@ class Simulation:
             "route_fraction": float(self.progress[row] / max(self.routes.length[row], 1e-6)),
             "collision_steps": int(self.collision_steps[row]),
             "offroad_steps": int(self.offroad_steps[row]),
+            "goal_reached": bool(self.goal_paid[row]),
         }
 
     def report(self, live: np.ndarray, out: StepOutcome) -> dict[str, AgentReport]:

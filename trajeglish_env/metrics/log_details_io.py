@@ -73,6 +73,15 @@ def details_for_files(files: Sequence[str | os.PathLike[str]]) -> list[LogDetail
     details file (each shard on its own: one shard without them leaves the others' details in use)."""
     out: list[LogDetails | None] = []
     for f in files:
-        sidecar = details_path(f)
-        out += list(load_log_details(sidecar)) if sidecar.is_file() else [None] * len(scenario_ids(f))
+        sidecar, count = details_path(f), len(scenario_ids(f))
+        if not sidecar.is_file():
+            out += [None] * count
+            continue
+        details = load_log_details(sidecar)
+        if len(details) != count:
+            raise ValueError(
+                f"{sidecar}: holds details of {len(details)} scenes, {f} holds {count}: not its shard's "
+                "(convert the TFRecord again with `trajeglish convert-womd`)"
+            )
+        out += details
     return out

@@ -89,7 +89,8 @@ def _write_shard(config: GenerationConfig, index: int, out: str) -> tuple[int, i
 
 def _shard_complete(path: Path, expected: int) -> bool:
     """A shard is done when its file holds the expected scenes and every member passes its CRC check (a
-    damaged shard is made again; no scene is parsed, so resuming a large run stays quick)."""
+    damaged shard is made again; the check decompresses the shard, about 20 ms a megabyte-sized shard, but
+    parses no scene)."""
     if not path.is_file():
         return False
     try:

@@ -42,6 +42,7 @@ _MEDIAN_WIDTH = 4.5  # opposite lanes at most this far apart (m) are separated b
 _MIN_CURB = 1.0
 _JOIN_GAP = 0.25  # m: road edges whose end and start lie this close are one curb (chain_road_edges)
 _HOOK_REACH = 2.5  # m: a road edge winding more than half a circle within this arc is a hook (despike)
+_HOOK_EXCESS = 0.3  # rad beyond pi: median islands and slivers turn exactly pi at their tips (kept)
 _MIN_MEDIAN_WIDTH = 0.5  # facing median sides closer than this (m) touch: the directions simply meet
 
 # SUMO link-state characters -> WOMD lane signal states.
@@ -181,7 +182,8 @@ def chain_road_edges(
 
 def despike(points: np.ndarray, reach: float = _HOOK_REACH) -> np.ndarray:
     """A road edge without its hooks: a run of vertices within ``reach`` m of arc that turns more than half
-    a circle (one way) is dropped, again until none is left. Why: at an acute block corner of a spider
+    a circle (one way, by a margin: the tips of the generator's median islands turn exactly half a circle)
+    is dropped, again until none is left. Why: at an acute block corner of a spider
     network the corner's kerb (an offset of its right-turn lane) starts with a short hook that winds the
     wrong way round, and the off-road rule signs the points beyond a vertex by the turn there: the hook
     flipped a wedge of the junction, up to 15 m deep where logged vehicles drive, to "off the road"
@@ -210,7 +212,7 @@ def _first_hook(turn: np.ndarray, length: np.ndarray, reach: float) -> tuple[int
                 if arc > reach:
                     break
             total += turn[j]
-            if abs(total) > np.pi:
+            if abs(total) > np.pi + _HOOK_EXCESS:  # a ring's tip turns exactly pi (plus rounding)
                 return i, j
     return None
 
