@@ -446,7 +446,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``trajeglish`` console script; returns the process exit code.
 
     Bad input (:data:`USER_ERRORS`) is one line on stderr (and an ``error`` object on stdout with
-    ``--json``) and exit code 2; any other exception is a bug and propagates with its traceback. With
+    ``--json``) and exit code 2; Ctrl-C or SIGTERM one line and exit code 130; any other exception is a bug
+    and propagates with its traceback. With
     ``TRAJEGLISH_TRACEBACK=1`` bad input propagates too (to see where a ValueError came from).
     """
     words = list(sys.argv[1:] if argv is None else argv)

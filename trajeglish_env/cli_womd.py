@@ -1,4 +1,5 @@
-"""The ``trajeglish`` commands of the WOMD-to-leaderboard workflow (``export-submission``), registered by
+"""The ``trajeglish`` commands of the WOMD-to-leaderboard workflow (``export-submission``,
+``score-submission``), registered by
 :func:`trajeglish_env.cli.build_parser`; each runs alone or under ``torchrun`` (ranks share the work and
 the main rank prints the merged result)."""
 

@@ -58,7 +58,7 @@ def run_demo(
         )
     except CheckpointError as exc:
         if checkpoint is None:  # the shipped model is missing: say how to give one
-            raise CheckpointError(f"{exc}; or run the demo with --checkpoint PATH") from exc
+            raise CheckpointError(f"{exc}; or run the demo with --ckpt PATH") from exc
         raise
     env.reset(seed=seed, options={"scene": int(scene) if scene.isdigit() else scene})
     sim = env.sim

@@ -14,6 +14,8 @@ agent that acted before it). Fixed size, finite bounds, everything in the agent'
 | | every ``map_spacing`` m): present, x, y (/R), is lane centre, is road line, is road edge |
 | route [.. : ..+2Q] | the logged route ``route_spacing``, 2 x ``route_spacing``, ... m ahead of the agent's |
 | | progress: x, y (/R) |
+| signals [.. : ..+6S] | only with ``signals`` S > 0: per stop point of a signal-controlled lane, nearest |
+| | first: present, x, y (/R), red, yellow, green (:mod:`~trajeglish_env.env.signal_features`) |
 
 Neighbours show each agent's latest decided state: its next state if it already moved this step (the
 flag is 1), else its current one. ``bev`` (uint8, C x H x W, ``bev_size`` pixels of ``bev_resolution`` m,

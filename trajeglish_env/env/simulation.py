@@ -348,7 +348,8 @@ def apply_actions(
 ) -> np.ndarray:
     """Next states ``[n,3]`` of external agent ``agents[i]`` of ``sims[i]`` under its (validated) action
     ``actions[i]``, each action type in one vectorized step (continuous actions: one bicycle step per
-    vehicle-limits object, at each class's top speed); the agents' kinematics are updated."""
+    class's limits, speed, braking and grip, :func:`~trajeglish_env.env.actions.class_limits`); the agents'
+    kinematics are updated."""
     n = len(sims)
     now = np.stack([s.driver.xyh[a, s.t] for s, a in zip(sims, agents, strict=True)])
     speed = np.array([s.kin.speed[a] for s, a in zip(sims, agents, strict=True)], dtype=np.float64)
