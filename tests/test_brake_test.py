@@ -57,6 +57,15 @@ def test_replay_npcs_rear_end_the_braking_ego_and_idm_ones_do_not(tmp_path: Path
     assert json.loads((tmp_path / "bt" / "brake_test.json").read_text())["npcs"] == npcs
 
 
+def test_fewer_candidates_than_episodes_are_named(capsys: pytest.CaptureFixture[str]) -> None:
+    """Deterministic NPCs replayed one candidate four times, reading as four episodes: now warned."""
+    scenes = [bundle_scene("highway-exit-999001")]
+    config = BrakeTestConfig(npcs=("idm",), episodes=10, steps=5)
+    result = brake_test(scenes, config, None, None, progress=False)
+    assert result["candidates"] == 8
+    assert "brake-test: warning: 8 ego(s) with a follower for 10 episodes" in (capsys.readouterr().err)
+
+
 def test_model_npcs_play_the_same_episodes() -> None:
     scenes = [bundle_scene("highway-exit-999001")]
     config = BrakeTestConfig(npcs=("trajeglish", "trajeglish+guard"), episodes=1, steps=15)

@@ -70,3 +70,10 @@ def test_the_command_writes_json_table_and_plot(tmp_path, capsys: pytest.Capture
     assert list(result["methods"]) == ["trajeglish+guard"] and result["scenes"] == 1
     assert (tmp_path / "out" / "long_rollout_rates.png").stat().st_size > 1000
     assert "| trajeglish+guard |" in (tmp_path / "out" / "long_rollouts.md").read_text()
+
+
+def test_the_split_is_a_whole_second() -> None:
+    """The onset rates are per second: a split of 8.5 s was rounded to 8 without a word."""
+    with pytest.raises(ValueError, match="whole number of seconds .*got 8.5"):
+        LongRolloutConfig(seconds=30.0, split_s=8.5)
+    assert LongRolloutConfig(seconds=30.0, split_s=8).split_s == 8

@@ -173,6 +173,14 @@ def brake_test(
             f"{config.max_gap} m in its lane"
         )
     plan = [(candidates[k % len(candidates)], config.seed + k) for k in range(config.episodes)]
+    if len(candidates) < config.episodes:
+        print(
+            f"brake-test: warning: {len(candidates)} ego(s) with a follower for {config.episodes} episodes: "
+            "each is played again with other seeds, so deterministic NPCs (idm, replay) repeat the same "
+            "episode; "
+            "give more scenes (--data) for more distinct ones",
+            file=sys.stderr,
+        )
     if any(n.startswith("trajeglish") for n in config.npcs) and checkpoint is None:
         from trajeglish_env.checkpoint import load_pretrained
 

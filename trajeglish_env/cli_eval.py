@@ -117,13 +117,14 @@ def cmd_brake_test(args: argparse.Namespace) -> dict[str, Any]:
 def cmd_long_rollouts(args: argparse.Namespace) -> dict[str, Any]:
     import json
 
+    from trajeglish_env.evaluation import spread_indices
     from trajeglish_env.long_rollouts import LongRolloutConfig, long_rollout_rates, markdown_table, plot_rates
     from trajeglish_env.sampler.config import SamplingConfig
     from trajeglish_env.scenario_io import atomic_path
     from trajeglish_env.training.dataset import SceneStore
 
     every = SceneStore(args.data).scenes
-    scenes = list(every)[:: max(1, len(every) // args.scenes)][: args.scenes]
+    scenes = [every[k] for k in spread_indices(len(every), args.scenes)]
     config = LongRolloutConfig(
         seconds=args.seconds,
         rollouts=args.rollouts,

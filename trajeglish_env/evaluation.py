@@ -32,6 +32,7 @@ from trajeglish_env.evaluation_plots import plot_evaluation, plot_feature_scores
 from trajeglish_env.evaluation_tables import markdown_table
 from trajeglish_env.metrics import LogDetails, RealismScores, mean_scores, score_rollouts
 from trajeglish_env.metrics.collision_fault import collisions_by_fault
+from trajeglish_env.metrics.features import evaluated_agents
 from trajeglish_env.metrics.log_details_io import details_for_files
 from trajeglish_env.metrics.submission import iter_submission
 from trajeglish_env.metrics.traffic_lights import red_light_violations
@@ -87,39 +88,94 @@ def simulated(scene: Scenario) -> np.ndarray:
     return np.flatnonzero(scene.valid[:, scene.current_index])
 
 
+def spread_indices(n: int, k: int) -> list[int]:
+    """``min(n, k)`` indices evenly spread over ``range(n)`` (``k * n // k``-spaced): scenes of several
+    sources or shards, listed one after the other, are each represented (a stride ``n // k`` dropped the
+    last source whenever ``k < n < 2k``); the first ``k`` when ``n`` is a multiple of ``k``."""
+    return sorted({j * n // k for j in range(k)}) if k < n else list(range(n))
+
+
 def horizon(scene: Scenario) -> int:
     return scene.num_steps - scene.current_index - 1
 
 
-def log_method(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
-    """The logged future repeated; after an agent leaves, its last valid state is held."""
+def departed_filled(
+    scene: Scenario, xyh: np.ndarray, valid: np.ndarray, details: LogDetails | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The future ``[N_sim, H, 3]`` of the simulated agents' logged ``xyh [N, T, 3]`` where ``valid [N, T]``,
+    and their z ``[N_sim, H]`` (from ``details``, else None). Where an agent has no logged state, an
+    evaluated agent keeps the raw log's value where ``details`` exist (as the official scorer replays the
+    log) and else holds its last state (it is scored: its departure must not read as off-road or a jump);
+    any other agent, an obstacle only, is parked far beyond the scene, each at its own spot, so the agents
+    still driving do not collide with the ghost of one that left (WOMD's own placeholders pile up at (0, 0),
+    where they overlap one another)."""
     sim = simulated(scene)
-    xyh = scene.xyh[sim].copy()
-    valid = scene.valid[sim]
-    last = np.maximum.accumulate(np.where(valid, np.arange(scene.num_steps), 0), axis=1)
-    xyh = np.take_along_axis(xyh, last[..., None], axis=1)
-    fut = xyh[:, scene.current_index + 1 :]
-    return np.broadcast_to(fut, (rollouts, *fut.shape)).copy()
-
-
-def tokenized_log_method(vocab: MotionVocabulary) -> Method:
-    """The log as the vocabulary's argmin tokens render it (the model's training targets): every simulated
-    agent's logged future snapped to the templates, held at its last valid state after it leaves, as in
-    :func:`log_method`. Its scores are the ceiling of any model that speaks this vocabulary."""
-
-    def run(scene: Scenario, rollouts: int, seed: int) -> np.ndarray:
-        sim = simulated(scene)
-        tok = tokenize_scenario(vocab, scene)
-        valid = tok.valid[sim]
+    c = scene.current_index
+    raw = details is not None
+    if raw:
+        xyh = np.concatenate([details.xyz[..., :2], details.heading[..., None]], axis=-1)
+    xyh, valid = xyh[sim], valid[sim]
+    if not raw:
         last = np.maximum.accumulate(np.where(valid, np.arange(scene.num_steps), 0), axis=1)
-        xyh = np.take_along_axis(tok.xyh[sim], last[..., None], axis=1)
-        fut = xyh[:, scene.current_index + 1 :]
-        return np.broadcast_to(fut, (rollouts, *fut.shape)).copy()
+        xyh = np.take_along_axis(xyh, last[..., None], axis=1)
+    extent = max(
+        np.abs(scene.xyh[scene.valid, :2]).max(initial=0.0), np.abs(scene.map_points).max(initial=0.0)
+    )
+    park = np.zeros((len(sim), 3))
+    park[:, 0] = extent + 1000.0 + 100.0 * np.arange(len(sim))
+    park[:, 1] = extent + 1000.0
+    kept = valid | np.isin(sim, evaluated_agents(scene, sim))[:, None]
+    filled = np.where(kept[..., None], xyh, park[:, None, :])[:, c + 1 :]
+    return filled, (details.xyz[sim, c + 1 :, 2] if raw else None)
+
+
+def _repeated(
+    future: tuple[np.ndarray, np.ndarray | None], rollouts: int
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """One future ``(xyh, z)`` as ``rollouts`` identical rollouts (z only where known)."""
+    xyh, z = future
+    rep = np.broadcast_to(xyh, (rollouts, *xyh.shape)).copy()
+    return rep if z is None else (rep, np.broadcast_to(z, (rollouts, *z.shape)).copy())
+
+
+def log_method(
+    scene: Scenario, rollouts: int, seed: int, details: LogDetails | None = None
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """The logged future repeated (:func:`departed_filled`: departed agents held or parked); with the
+    scene's raw log ``details``, the raw values and their z (the official replayed-log scores)."""
+    return _repeated(departed_filled(scene, scene.xyh, scene.valid, details), rollouts)
+
+
+def with_details(method: Callable[..., Any], details: dict[str, LogDetails | None]) -> Method:
+    """``method`` given each scene's raw log details (by scenario id) as its ``details`` argument."""
+
+    def run(scene: Scenario, rollouts: int, seed: int) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        return method(scene, rollouts, seed, details=details.get(scene.scenario_id))
 
     return run
 
 
-def tokenized_log_methods(checkpoints: dict[str, Checkpoint]) -> dict[str, Method]:
+def tokenized_log_method(
+    vocab: MotionVocabulary,
+) -> Callable[..., np.ndarray | tuple[np.ndarray, np.ndarray]]:
+    """The log as the vocabulary's argmin tokens render it (the model's training targets): every simulated
+    agent's logged future snapped to the templates, departed agents held or parked as in
+    :func:`log_method` (z from ``details`` where given). Its scores are the ceiling of any model that
+    speaks this vocabulary."""
+
+    def run(
+        scene: Scenario, rollouts: int, seed: int, details: LogDetails | None = None
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        tok = tokenize_scenario(vocab, scene)
+        xyh, z = departed_filled(scene, tok.xyh, tok.valid)
+        if details is not None:
+            z = departed_filled(scene, scene.xyh, scene.valid, details)[1]
+        return _repeated((xyh, z), rollouts)
+
+    return run
+
+
+def tokenized_log_methods(checkpoints: dict[str, Checkpoint]) -> dict[str, Callable[..., Any]]:
     """One :func:`tokenized_log_method` per distinct vocabulary of ``checkpoints``: ``tokenized_log`` when
     they all share one, else ``tokenized_log[NAME]`` for the first checkpoint of each vocabulary."""
     distinct: dict[str, MotionVocabulary] = {}
@@ -410,7 +466,7 @@ def evaluate(
     ranks = ranks or Ranks()
     store = SceneStore(data)
     every = store.scenes
-    chosen = list(range(len(every)))[:: max(1, len(every) // config.scenes)][: config.scenes]  # all sources
+    chosen = spread_indices(len(every), config.scenes)  # every source represented
     scenes = [every[k] for k in chosen]
     if not scenes:
         raise ValueError(f"{data}: no scenes to evaluate")
@@ -427,10 +483,14 @@ def evaluate(
             "values, not as the official scorer does; convert them again with `trajeglish convert-womd`",
             file=sys.stderr,
         )
-    methods: dict[str, Method] = {"log": log_method, "constant_velocity": constant_velocity_method}
+    by_id = {s.scenario_id: d for s, d in zip(scenes, details, strict=True)}
+    methods: dict[str, Method] = {
+        "log": with_details(log_method, by_id),
+        "constant_velocity": constant_velocity_method,
+    }
     if submission is not None:
         methods["submission"] = submission_method(submission, [s.scenario_id for s in scenes])
-    methods.update(tokenized_log_methods(checkpoints))
+    methods.update({k: with_details(m, by_id) for k, m in tokenized_log_methods(checkpoints).items()})
     for name, ckpt in checkpoints.items():
         for temp in config.temperatures:
             for guard in config.guards:
@@ -457,7 +517,7 @@ def evaluate(
             }
             best[key] = max(cands, key=cands.get)  # type: ignore[arg-type]
     result: dict[str, Any] = {
-        "data": str(data),
+        "data": [str(d) for d in data] if isinstance(data, (list, tuple)) else str(data),
         "scenes": len(scenes),
         "rollouts": config.rollouts,
         "metrics_config": config.metrics,

@@ -22,12 +22,22 @@ HEADLINE = (
 )
 
 
+def _submission_rollouts(result: dict[str, Any]) -> str:
+    """`` (the submission row: its file's N)`` where a submission's rollout count per scene differs."""
+    sub = result["methods"].get("submission")
+    if sub is None:
+        return ""
+    per_scene = sub["scores"]["num_rollouts"] / max(result["scenes"], 1)  # the mean sums them over scenes
+    return "" if per_scene == result["rollouts"] else f" (the submission row: its file's {per_scene:g})"
+
+
 def markdown_table(result: dict[str, Any]) -> str:
     """The evaluation as a Markdown table (one row per method)."""
     cols = HEADLINE
     lines = [
-        f"Held-out scenes: {result['scenes']}, rollouts per scene: {result['rollouts']}, "
-        f"metrics: WOSAC {result['metrics_config']}",
+        f"Held-out scenes: {result['scenes']}, rollouts per scene: {result['rollouts']}"
+        + _submission_rollouts(result)
+        + f", metrics: WOSAC {result['metrics_config']}",
         "",
         "| method | " + " | ".join(cols) + " |",
         "|---|" + "---|" * len(cols),

@@ -51,6 +51,11 @@ class LongRolloutConfig:
             )
         if self.rollouts < 1 or not self.guards:
             raise ValueError("LongRolloutConfig: rollouts >= 1 and at least one guard setting are needed")
+        if not float(self.split_s).is_integer():  # the rates are per whole second: a split inside one
+            raise ValueError(
+                f"LongRolloutConfig: split_s must be a whole number of seconds (the onset rates are per "
+                f"second), got {self.split_s}"
+            )
 
 
 def event_onsets(

@@ -59,7 +59,7 @@ class MetricScene:
         return np.arange(self.num_evaluated)
 
 
-def _evaluated_agents(scenario: Scenario, simulated: np.ndarray) -> np.ndarray:
+def evaluated_agents(scenario: Scenario, simulated: np.ndarray) -> np.ndarray:
     """Agent indices scored: the sdc and the agents to predict (all simulated agents if none is named)."""
     if len(scenario.tracks_to_predict) == 0:
         return simulated
@@ -80,7 +80,7 @@ def prepare_scene(scenario: Scenario, details: LogDetails | None = None) -> Metr
     if scenario.current_index + 1 >= scenario.num_steps:
         raise ValueError(f"scenario {scenario.scenario_id!r}: no future step after current_index")
     simulated = np.flatnonzero(scenario.valid[:, scenario.current_index])
-    evaluated = _evaluated_agents(scenario, simulated)
+    evaluated = evaluated_agents(scenario, simulated)
     ev_sorted = evaluated[np.argsort(scenario.track_id[evaluated], kind="stable")]
     others = np.setdiff1d(simulated, evaluated)
     order = np.concatenate([ev_sorted, others[np.argsort(scenario.track_id[others], kind="stable")]])

@@ -8,6 +8,7 @@ rates).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 
@@ -269,7 +270,18 @@ def mean_scores(results: Sequence[RealismScores], config: str | MetricsConfig | 
         raise ValueError("mean_scores: no results to average")
     cfg = get_config(config if config is not None else results[0].config)
     numeric = [f.name for f in fields(RealismScores) if f.name not in ("config", "scenario_id")]
-    mean = {name: float(np.mean([getattr(r, name) for r in results])) for name in numeric}
+    values = {name: np.array([getattr(r, name) for r in results], dtype=np.float64) for name in numeric}
+    undefined = [r.scenario_id for k, r in enumerate(results) if any(np.isnan(v[k]) for v in values.values())]
+    if undefined:  # e.g. time_to_collision of a scene whose evaluated agents hold no vehicle (spec §3.4)
+        warnings.warn(
+            f"mean_scores: {len(undefined)} of {len(results)} scene(s) ({', '.join(undefined[:3])}) have an "
+            "undefined (NaN) score, e.g. time_to_collision where no evaluated agent is a vehicle: each "
+            "field is averaged over the scenes where it is defined",
+            stacklevel=2,
+        )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a field undefined in every scene stays NaN
+        mean = {name: float(np.nanmean(v)) for name, v in values.items()}
     mean.update(_aggregates(cfg, {f: mean[f] for f in FEATURE_NAMES}))
     mean["num_rollouts"] = int(sum(r.num_rollouts for r in results))
     mean["num_evaluated"] = int(sum(r.num_evaluated for r in results))
