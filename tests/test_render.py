@@ -152,3 +152,105 @@ def test_a_scene_too_long_to_fit_is_followed_around_the_sdc() -> None:
     asked = SceneRenderer(long, config=RenderConfig(200, 200, view_radius=400.0, title=False))
     assert not asked._follow  # a radius asked for is kept
     asked.close()
+
+
+def test_outputs_are_checked_before_any_frame_is_drawn(
+    tmp_path, straight_scene: Scenario, monkeypatch
+) -> None:
+    """A missing ffmpeg was a traceback after every frame was rendered (and `rollout` sampled first); a
+    folder or a file in the way failed at the final rename, naming the temporary file."""
+    from trajeglish_env.render import check_output, write_video
+
+    (tmp_path / "adir.png").mkdir()
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ValueError, match="adir.png: is a folder"):
+        save_render(straight_scene, tmp_path / "adir.png")
+    with pytest.raises(ValueError, match="afile is a file, not a folder"):
+        save_render(straight_scene, tmp_path / "afile" / "x.gif")
+    with pytest.raises(ValueError, match="GIF at 100 fps"):
+        save_render(straight_scene, tmp_path / "fast.gif", fps=100)
+    import imageio_ffmpeg
+
+    def no_ffmpeg() -> str:
+        raise RuntimeError("No ffmpeg exe could be found")
+
+    monkeypatch.setattr(imageio_ffmpeg, "get_ffmpeg_exe", no_ffmpeg)
+    drawn = []
+
+    def frames():
+        drawn.append(1)
+        yield np.zeros((16, 16, 3), np.uint8)
+
+    with pytest.raises(ValueError, match="MP4 needs ffmpeg.*IMAGEIO_FFMPEG_EXE"):
+        write_video(frames(), tmp_path / "x.mp4")
+    assert not drawn and check_output(tmp_path / "y.gif", (".gif",)) == tmp_path / "y.gif"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir.png", "afile"]
+
+
+def test_videos_are_written_frame_by_frame_at_their_size(tmp_path) -> None:
+    """Every frame was kept in a list before encoding (1.4 GB for a 610-step GIF); an MP4 of a size not a
+    multiple of 8 was resized."""
+    from trajeglish_env.render import write_video
+
+    seen = []
+
+    def frames(n: int):
+        for k in range(n):
+            seen.append(k)
+            yield np.full((50, 66, 3), 20 * k, np.uint8)
+
+    gif = write_video(frames(5), tmp_path / "a.gif", fps=10)
+    assert seen == list(range(5)) and len(imageio.mimread(gif)) == 5
+    mp4 = write_video(frames(4), tmp_path / "a.mp4", fps=10)
+    reader = imageio.get_reader(mp4)
+    assert reader.get_data(0).shape == (50, 66, 3)
+    reader.close()
+
+
+def test_a_tall_picture_keeps_the_radius_across_its_width(straight_scene: Scenario) -> None:
+    r = SceneRenderer(straight_scene, config=RenderConfig(100, 200, view_radius=10.0, title=False))
+    try:
+        assert np.diff(r.ax.get_xlim())[0] == pytest.approx(20.0)
+        assert np.diff(r.ax.get_ylim())[0] == pytest.approx(40.0)
+    finally:
+        r.close()
+
+
+def test_the_view_moves_on_to_the_next_external_agent_and_holds_in_gaps(straight_scene: Scenario) -> None:
+    """The view followed the first external agent only: when its episode ended it jumped to the whole
+    scene and the agents still driving left the picture; a gap in a followed track did the same."""
+    from trajeglish_env.render import EpisodeRenderer
+
+    sc = straight_scene
+    valid = sc.valid.copy()
+    external = np.zeros(sc.num_agents, bool)
+    external[[1, 2]] = True
+    valid[1, 20:] = False  # agent 1's episode ends at step 20
+    er = EpisodeRenderer(sc, sc.xyh, valid, external, ~external, size=100, radius=10.0)
+    try:
+        assert er.renderer.focus_at(19) == 1 and er.renderer.focus_at(20) == 2
+        er.frame(25)
+        assert np.mean(er.renderer.ax.get_xlim()) == pytest.approx(sc.xyh[2, 25, 0])
+        valid[2, 30:] = False  # nobody left to follow: the last view stays
+        er.frame(35)
+        assert np.mean(er.renderer.ax.get_xlim()) == pytest.approx(sc.xyh[2, 25, 0])
+    finally:
+        er.close()
+
+
+def test_human_mode_draws_once_per_timestep(monkeypatch) -> None:
+    """With several external agents the window was redrawn after every agent's action (40x slower)."""
+    from helpers import bundle_scene
+
+    from trajeglish_env.env import raw_env
+
+    scene = bundle_scene("highway-roundabout-999000")
+    env = raw_env([scene], npc="replay", external="all", render_mode="human", max_cycles=3)
+    calls = []
+    monkeypatch.setattr(type(env), "render", lambda self: calls.append(self.sim.t))
+    env.reset(seed=0)
+    agents = len(env.agents)
+    assert agents > 1 and calls == [scene.current_index]
+    for _ in range(agents):
+        env.step(env.action_space(env.agent_selection).sample())
+    assert calls == [scene.current_index, scene.current_index + 1]

@@ -152,10 +152,11 @@ def cmd_long_rollouts(args: argparse.Namespace) -> dict[str, Any]:
 def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
     import numpy as np
 
-    from trajeglish_env.render import RenderConfig, role_colors, save_render
+    from trajeglish_env.render import VIDEO_SUFFIXES, RenderConfig, check_output, role_colors, save_render
     from trajeglish_env.sampler import rollout
     from trajeglish_env.sampler.config import SamplingConfig
 
+    check_output(args.out, (".png", *VIDEO_SUFFIXES))  # before the rollout is sampled, not after
     scene = scene_at(args.scenario, args.index)
     ckpt = next(iter(checkpoints([args.ckpt] if args.ckpt else None).values()))
     horizon = args.horizon or scene.num_steps - scene.current_index - 1
@@ -181,8 +182,8 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
         args.out,
         xyh=res.xyh[0],
         valid=res.valid[0],
-        # the model's agents by class, the sdc among them (full control); the log's grey
-        colors=role_colors(scene, np.zeros(scene.num_agents, bool), res.controlled),
+        # the model's agents by class, the sdc (also the model's: full control) red; the log's grey
+        colors=role_colors(scene, np.arange(scene.num_agents) == scene.sdc, res.controlled),
         config=RenderConfig(follow_sdc=args.follow_sdc),
         png_step=res.xyh.shape[2] - 1,  # a picture shows where the rollout ends, its last second in trails
         caption=f"Trajeglish rollout, guard {args.guard}, T = {args.temperature:g}",

@@ -10,7 +10,8 @@ Traffic signals are lamps at their stop points, red / amber / green by their sta
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, replace
+from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -105,12 +106,24 @@ class SceneRenderer:
         self.ax.add_collection(self._trails)
         self._heading = LineCollection([], zorder=6, linewidths=0.8, colors="k")
         self.ax.add_collection(self._heading)
-        self._text = self.ax.text(0.01, 0.99, "", transform=self.ax.transAxes, va="top", fontsize=9, zorder=7)
+        font = float(np.clip(9.0 * min(config.width_px, config.height_px) / 480.0, 5.0, 11.0))
+        self._text = self.ax.text(
+            0.01,
+            0.99,
+            "",
+            transform=self.ax.transAxes,
+            va="top",
+            fontsize=font,
+            zorder=7,
+            bbox={"facecolor": "white", "alpha": 0.65, "edgecolor": "none", "pad": 1.5},
+        )
         self._labels: list[plt.Text] = []
         self._lamps = None
         if scenario.signal_state is not None and len(scenario.signal_lane_id):
             xy = scenario.signal_xy
             self._lamps = self.ax.scatter(xy[:, 0], xy[:, 1], s=22, zorder=3, edgecolors="k", linewidths=0.4)
+        self.focus_order = np.array([scenario.sdc], dtype=np.int64)
+        self._centre: np.ndarray | None = None
         # a scene wider than MAX_FITTED_RADIUS (a straight highway: cars a few pixels in a thin strip) is
         # followed around the sdc instead, unless a radius is asked for
         self._follow = config.follow_sdc or (
@@ -158,7 +171,17 @@ class SceneRenderer:
             self.ax.add_collection(LineCollection(lines, zorder=2 if key != "lane" else 1, **styles[key]))
         if stop_pts:
             p = np.array(stop_pts)
-            self.ax.scatter(p[:, 0], p[:, 1], marker="8", s=30, c=[(0.8, 0.1, 0.1)], zorder=3)
+            # a dark-red octagon ringed in white: unlike a signal lamp (a round lamp ringed in black)
+            self.ax.scatter(
+                p[:, 0],
+                p[:, 1],
+                marker="8",
+                s=34,
+                c=[(0.6, 0.0, 0.0)],
+                edgecolors="w",
+                linewidths=1.0,
+                zorder=3,
+            )
 
     def _fitted_view(self) -> tuple[np.ndarray, float]:
         """Centre and half-width (m) of the view that holds every agent over the whole scene."""
@@ -170,15 +193,25 @@ class SceneRenderer:
 
     def _set_view(self, step: int) -> None:
         cfg = self.config
-        if self._follow and self.valid[self.scenario.sdc, step]:
-            centre = self.xyh[self.scenario.sdc, step, :2]
+        focus = self.focus_at(step) if self._follow else None
+        if focus is not None:
+            centre = self._centre = self.xyh[focus, step, :2].copy()
             r = cfg.view_radius or FOLLOW_RADIUS
+        elif self._follow and self._centre is not None:  # a gap in the followed track: keep the view
+            centre, r = self._centre, cfg.view_radius or FOLLOW_RADIUS
         else:
             centre, r = self._fitted_view()
             r = cfg.view_radius or r
-        aspect = cfg.width_px / cfg.height_px
-        self.ax.set_xlim(centre[0] - r * aspect, centre[0] + r * aspect)
-        self.ax.set_ylim(centre[1] - r, centre[1] + r)
+        aspect = cfg.width_px / cfg.height_px  # r fits the shorter side: a tall picture keeps the width
+        self.ax.set_xlim(centre[0] - r * max(aspect, 1.0), centre[0] + r * max(aspect, 1.0))
+        self.ax.set_ylim(centre[1] - r * max(1.0 / aspect, 1.0), centre[1] + r * max(1.0 / aspect, 1.0))
+
+    def focus_at(self, step: int) -> int | None:
+        """The agent a following view centres on at ``step``: the first of :attr:`focus_order` present
+        then (the sdc by default; an env's external agents in order, so the view moves on to the next
+        when the first one's episode ends), None when none is."""
+        present = self.focus_order[self.valid[self.focus_order, step]]
+        return int(present[0]) if len(present) else None
 
     def frame(self, step: int, caption: str | None = None) -> np.ndarray:
         """Render the agents at ``step``; returns an ``[H,W,3]`` uint8 image."""
@@ -229,21 +262,55 @@ def render_image(scenario: Scenario, step: int | None = None, **kwargs: object) 
         renderer.close()
 
 
-def write_video(frames: list[np.ndarray], out: str | os.PathLike[str], fps: int = 10) -> Path:
-    """Write frames to a GIF or MP4 (chosen by the suffix) atomically."""
-    import imageio.v2 as imageio
+VIDEO_SUFFIXES = (".gif", ".mp4")
+MAX_GIF_FPS = 50  # browsers play GIF frame delays under 20 ms at about 10 fps
 
+
+def check_output(out: str | os.PathLike[str], suffixes: tuple[str, ...], fps: int = 10) -> Path:
+    """``out`` as a path a picture or video can be written to, checked before any frame is drawn (or any
+    rollout sampled): its suffix among ``suffixes``, not a folder, no file where its folder should be,
+    and for an MP4 an ffmpeg to encode it (imageio-ffmpeg's or ``IMAGEIO_FFMPEG_EXE``)."""
     out = Path(out)
     suffix = out.suffix.lower()
-    if suffix not in (".gif", ".mp4"):
-        raise ValueError(f"{out}: video must end in .gif or .mp4")
+    if suffix not in suffixes:
+        raise ValueError(f"{out}: expected a {', '.join(suffixes[:-1])} or {suffixes[-1]} output path")
+    if out.is_dir():
+        raise ValueError(f"{out}: is a folder; give a file name ending in {suffix}")
+    blocked = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocked is not None:
+        raise ValueError(f"{out}: cannot write there: {blocked} is a file, not a folder")
+    if suffix == ".gif" and fps > MAX_GIF_FPS:
+        raise ValueError(
+            f"{out}: a GIF at {fps} fps has frame delays browsers play at about 10 fps; use fps <= "
+            f"{MAX_GIF_FPS} or an .mp4"
+        )
+    if suffix == ".mp4":
+        try:
+            import imageio_ffmpeg
+
+            imageio_ffmpeg.get_ffmpeg_exe()
+        except (ImportError, RuntimeError) as err:
+            raise ValueError(
+                f"{out}: writing an MP4 needs ffmpeg, and none was found ({err}); install imageio-ffmpeg "
+                "or ffmpeg, set IMAGEIO_FFMPEG_EXE to an ffmpeg binary, or write a .gif"
+            ) from None
+    return out
+
+
+def write_video(frames: Iterable[np.ndarray], out: str | os.PathLike[str], fps: int = 10) -> Path:
+    """Write frames to a GIF or MP4 (chosen by the suffix) atomically, one frame at a time: ``frames`` may
+    be a generator, so an MP4 of any length takes the memory of a frame or two."""
+    import imageio.v2 as imageio
+
+    out = check_output(out, VIDEO_SUFFIXES, fps)
     with atomic_path(out) as tmp:
-        if suffix == ".gif":
-            imageio.mimsave(tmp, frames, format="GIF", duration=1000 / fps, loop=0)
-        else:
-            with imageio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", macro_block_size=8) as w:
-                for f in frames:
-                    w.append_data(f)
+        if out.suffix.lower() == ".gif":
+            writer = imageio.get_writer(tmp, format="GIF", duration=1000 / fps, loop=0)
+        else:  # even sizes suffice for yuv420p: no resize
+            writer = imageio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", macro_block_size=2)
+        with writer:
+            for f in frames:
+                writer.append_data(f)
     return out
 
 
@@ -261,23 +328,20 @@ def save_render(
 ) -> Path:
     """Render ``scenario`` (or a rollout of it) to a PNG picture at ``png_step`` (default: the current
     step), or a GIF/MP4 animation over ``steps``; ``caption``: a line under every frame's title."""
-    out = Path(out)
-    suffix = out.suffix.lower()
+    out = check_output(out, (".png", *VIDEO_SUFFIXES), fps)
     renderer = SceneRenderer(scenario, xyh=xyh, valid=valid, colors=colors, config=config)
     try:
-        if suffix == ".png":
+        if out.suffix.lower() == ".png":
             img = renderer.frame(scenario.current_index if png_step is None else png_step, caption)
             import imageio.v2 as imageio
 
             with atomic_path(out) as tmp:
                 imageio.imwrite(tmp, img, format="PNG")
             return out
-        if suffix not in (".gif", ".mp4"):
-            raise ValueError(f"{out}: expected a .png, .gif or .mp4 output path")
-        frames = [renderer.frame(t, caption) for t in (steps or range(renderer.xyh.shape[1]))]
+        frames = (renderer.frame(t, caption) for t in (steps or range(renderer.xyh.shape[1])))
+        return write_video(frames, out, fps=fps)
     finally:
         renderer.close()
-    return write_video(frames, out, fps=fps)
 
 
 # ---------------------------------------------------------------------------------------------- episodes
@@ -307,12 +371,13 @@ class EpisodeRenderer:
         size: int = 480,
         radius: float = 40.0,
     ):
-        focus = int(np.flatnonzero(external)[0]) if external.any() else scenario.sdc
         colors = role_colors(scenario, external, npc)
         config = RenderConfig(width_px=size, height_px=size, view_radius=radius, follow_sdc=True)
-        self.renderer = SceneRenderer(
-            replace(scenario, sdc=focus), xyh=xyh, valid=valid, colors=colors, config=config
-        )
+        self.renderer = SceneRenderer(scenario, xyh=xyh, valid=valid, colors=colors, config=config)
+        # the view follows the external agents in order (the next one when an episode ends), else the sdc
+        order = np.flatnonzero(external)
+        self.renderer.focus_order = order if len(order) else np.array([scenario.sdc], dtype=np.int64)
+        self.renderer._set_view(scenario.current_index)
         self._window = None
 
     def frame(self, step: int) -> np.ndarray:
@@ -320,8 +385,8 @@ class EpisodeRenderer:
         return self.renderer.frame(step)
 
     def save(self, path: str | os.PathLike[str], steps: range, fps: int = 10) -> Path:
-        """Write the frames of ``steps`` to a GIF or MP4 (chosen by the suffix)."""
-        return write_video([self.frame(t) for t in steps], path, fps=fps)
+        """Write the frames of ``steps`` to a GIF or MP4 (chosen by the suffix), drawn as they are written."""
+        return write_video((self.frame(t) for t in steps), path, fps=fps)
 
     def show(self, frame: np.ndarray) -> None:
         """Display a frame in a window (pygame; set SDL_VIDEODRIVER=dummy to run headless)."""

@@ -150,10 +150,11 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         if nxt is not None:
             self._clear_rewards()
             self.agent_selection = self._sim().names[int(nxt[1][0])]
-        else:
-            self._end_of_timestep(self.batch.finish([0])[0])
+            self._accumulate_rewards()
+            return
+        self._end_of_timestep(self.batch.finish([0])[0])
         self._accumulate_rewards()
-        if self.render_mode == "human":
+        if self.render_mode == "human":  # one window update per timestep, not per external agent's action
             self.render()
 
     def _end_of_timestep(self, reports: dict[str, AgentReport]) -> None:
