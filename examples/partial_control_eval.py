@@ -31,7 +31,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--ego", default="idm", choices=sorted(EGOS))
     parser.add_argument("--npc-a", default="trajeglish", help="reactive NPCs (trajeglish, idm, ...)")
     parser.add_argument("--npc-b", default="replay", help="the non-reactive reference")
-    parser.add_argument("--checkpoint", help="Trajeglish model (default: the shipped one)")
+    parser.add_argument(
+        "--ckpt", "--checkpoint", dest="checkpoint", help="Trajeglish model (default: the shipped one)"
+    )
     parser.add_argument("--max-cycles", type=int, default=None)
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--smoke", action="store_true", help="2 episodes of 6 steps")

@@ -139,7 +139,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--npc", default="trajeglish", choices=("trajeglish", "idm", "replay", "constant_velocity")
     )
-    parser.add_argument("--checkpoint", help="Trajeglish model for the NPCs (default: the shipped one)")
+    parser.add_argument(
+        "--ckpt",
+        "--checkpoint",
+        dest="checkpoint",
+        help="Trajeglish model for the NPCs (default: the shipped one)",
+    )
     parser.add_argument("--max-cycles", type=int, default=None, help="episode length cap")
     parser.add_argument("--n-steps", type=int, default=512, help="PPO rollout steps per env")
     parser.add_argument("--eval-episodes", type=int, default=40)

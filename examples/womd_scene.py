@@ -48,7 +48,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument(
         "--npc", default="trajeglish", choices=("trajeglish", "idm", "replay", "constant_velocity")
     )
-    parser.add_argument("--checkpoint", help="Trajeglish model for the NPCs (default: the shipped one)")
+    parser.add_argument(
+        "--ckpt",
+        "--checkpoint",
+        dest="checkpoint",
+        help="Trajeglish model for the NPCs (default: the shipped one)",
+    )
     parser.add_argument(
         "--steps", type=int, default=None, help="episode length (default: the 8 s of the log)"
     )

@@ -466,3 +466,22 @@ def test_a_gpu_model_spawns_its_workers_and_goes_to_them_on_the_cpu(monkeypatch:
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(RuntimeError, match="SplitEgoEnv: the NPC model's device 'cuda' needs CUDA"):
         SplitEgoEnv(4, processes=2, **kwargs(npc=npc))
+
+
+def test_batched_envs_render_as_single_envs_do_before_reset_and_without_a_mode() -> None:
+    """Before reset a batched env rendered ``(None, None)`` silently (single envs raise), and the parallel
+    ones rendered without a render_mode."""
+    import warnings
+
+    for kind in (BatchedEgoEnv, BatchedParallelEnv):
+        env = kind(2, npc="idm", max_cycles=3, render_mode="rgb_array")
+        with pytest.raises(RuntimeError, match=r"call reset\(\) before render\(\)"):
+            env.render()
+        env.close()
+        quiet = kind(2, npc="idm", max_cycles=3)
+        quiet.reset(seed=0)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert quiet.render() is None
+        assert any("without a render_mode" in str(w.message) for w in caught)
+        quiet.close()

@@ -149,6 +149,21 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
     (tmp_path / "c" / "model.pt").write_bytes((tmp_path / "b" / "model.pt").read_bytes())
     with pytest.raises(FileExistsError, match=r"holds a run \(model\.pt\)"):
         new_run("c", config=_quick())
+    # ... and resuming it would train a new model over the kept one: refused, the model untouched
+    model_bytes = (tmp_path / "c" / "model.pt").read_bytes()
+    with pytest.raises(
+        FileExistsError, match=r"holds a model \(model.pt\) but no last.pt .*--init .*c/model.pt"
+    ):
+        new_run("c", config=_quick(), resume=True)
+    assert (tmp_path / "c" / "model.pt").read_bytes() == model_bytes
+    with pytest.raises(ValueError, match="one of --resume .* and --overwrite"):
+        new_run("c", config=_quick(), resume=True, overwrite=True)
+    # --overwrite removes the old run's files first: a run stopped early never leaves the old model beside it
+    (tmp_path / "c" / "training_curve.png").write_bytes(b"old")
+    from trajeglish_env.training.run_records import check_run_folder
+
+    check_run_folder(tmp_path / "c", resume=False, overwrite=True)
+    assert not any((tmp_path / "c" / f).exists() for f in run_records.RUN_FILES)
 
 
 def _free_port() -> int:
@@ -301,7 +316,11 @@ def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
 
     # gradients that stay non-finite stop the run; the checkpoint keeps the last finite weights
     poison(lambda step: step >= 4)
-    with pytest.raises(RuntimeError, match="in a row up to step 14 had non-finite gradients"):
+    with pytest.raises(
+        run_records.TrainingDiverged,
+        match=r"in a row up to step 14 had non-finite gradients.*b/last.pt keeps the weights of step 12\); "
+        "train again with a lower --lr and --overwrite",
+    ):
         train(
             scenes_dir,
             tmp_path / "b",
@@ -358,3 +377,53 @@ def test_a_checkpoint_with_a_flipped_byte_or_nan_weights_is_refused(tmp_path) ->
     save_checkpoint(tmp_path / "nan.pt", model, grid_vocabulary())
     with pytest.raises(CheckpointError, match=r"nan.pt: weights \[.*\] hold NaN or infinite values"):
         load_checkpoint(tmp_path / "nan.pt")
+
+
+def test_a_warmup_as_long_as_the_schedule_is_cut_to_a_tenth() -> None:
+    """--steps 10 --warmup 50 (or a schedule fitted to 36 steps with the default warmup of 100) never peaked
+    and never decayed: the learning rate ended at a fifth of the peak."""
+    short = TrainConfig(steps=40, lr=1e-3, warmup_steps=100)
+    lrs = [short.lr_at(k) for k in range(40)]
+    assert (
+        max(lrs) == pytest.approx(1e-3) and lrs.index(max(lrs)) == 3 and lrs[-1] == pytest.approx(1e-3 / 36)
+    )
+    normal = TrainConfig(steps=1000, lr=1e-3, warmup_steps=100)  # unchanged where the warmup fits
+    assert normal.lr_at(49) == pytest.approx(5e-4) and normal.lr_at(550) == pytest.approx(5e-4)
+
+
+def test_validation_scenes_that_are_training_scenes_are_warned(
+    scenes_dir, tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from trajeglish_env.training.scene_split import training_scenes, warn_overlap
+    from trajeglish_env.training.shard_cache import split_shards
+
+    for cache in (0, 2):
+        train_s, val_s = training_scenes(scenes_dir, scenes_dir, 0.05, cache, 8)
+        warn_overlap(train_s, val_s)
+        assert (
+            "4 of the 4 validation scenes (straight-0, straight-1, straight-2) are training scenes too"
+            in (capsys.readouterr().err)
+        )
+    warn_overlap([], [])
+    assert capsys.readouterr().err == ""
+    # two shards at a held-out share of 1/20: none is held out (the first was: half of the data)
+    files = [tmp_path / "a.scn.npz", tmp_path / "b.scn.npz"]
+    assert split_shards(files, 0.05) == (files, []) and split_shards(files * 10, 0.05)[1] == [files[0]]
+
+
+def test_an_interrupted_run_names_the_step_its_resume_goes_on_from(scenes_dir, tmp_path) -> None:
+    import argparse
+
+    from trajeglish_env.cli_args import interrupted_note
+
+    args = argparse.Namespace(command_name="train", out=str(tmp_path / "r"))
+    assert "no checkpoint was written yet" in interrupted_note(args)
+    train(
+        scenes_dir,
+        tmp_path / "r",
+        tiny_config(),
+        _quick(steps=3),
+        vocabulary=grid_vocabulary(),
+        progress=False,
+    )
+    assert "train --resume goes on from step 3" in interrupted_note(args)

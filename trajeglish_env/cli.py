@@ -27,6 +27,7 @@ from trajeglish_env.cli_args import (
     at_least_one,
     below_one,
     interrupt_on_sigterm,
+    interrupted_note,
     one_line,
     output_dir,
     positive_float,
@@ -465,19 +466,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # Ctrl-C, or SIGTERM: worker pools and temporary folders are torn down
         if os.environ.get("TRAJEGLISH_TRACEBACK", "") not in ("", "0"):
             raise
-        print(
-            f"{args.command_name}: interrupted; the files already written are whole (atomic writes), and "
-            "generate, convert-womd, train --resume, export-submission and scorecard go on from them",
-            file=sys.stderr,
-        )
+        if os.environ.get("RANK", "0") == "0":  # under torchrun one line, not one per rank
+            print(f"{args.command_name}: interrupted; {interrupted_note(args)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except USER_ERRORS as exc:
         if os.environ.get("TRAJEGLISH_TRACEBACK", "") not in ("", "0"):
             raise
         message = one_line(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
-        if getattr(args, "json", False):
-            print(json.dumps({"error": message, "type": type(exc).__name__}))
-        print(f"{args.command_name}: error: {message}", file=sys.stderr)
+        if os.environ.get("RANK", "0") == "0":  # every rank meets the same bad input: the main one says so
+            if getattr(args, "json", False):
+                print(json.dumps({"error": message, "type": type(exc).__name__}))
+            print(f"{args.command_name}: error: {message}", file=sys.stderr)
         return EXIT_BAD_INPUT
     code = int(result.pop("exit_code", 0))
     if not result.pop("_silent", False):  # non-main ranks of a torchrun job print nothing

@@ -266,3 +266,22 @@ def interrupt_on_sigterm() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def interrupted_note(args: argparse.Namespace) -> str:
+    """What an interrupted command left: whole files, and for ``train`` the step its resume goes on from."""
+    note = (
+        "the files already written are whole (atomic writes), and generate, convert-womd, train --resume, "
+        "export-submission and scorecard go on from them"
+    )
+    if args.command_name == "train" and getattr(args, "out", None):
+        from trajeglish_env.training.run_records import resume_point
+
+        step = resume_point(Path(args.out))
+        note += (
+            f"; train --resume goes on from step {step} ({Path(args.out) / 'last.pt'}; the steps since are "
+            "taken again, --checkpoint-every N to lose fewer)"
+            if step is not None
+            else "; no checkpoint was written yet, so train --resume starts again"
+        )
+    return note

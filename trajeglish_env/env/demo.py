@@ -66,12 +66,13 @@ def run_demo(
     controller = RuleBasedController(ego)
     agent = env.agent_selection
     ego_index = env.agent_index(agent)
-    total, start = 0.0, time.perf_counter()
+    total, start, shown = 0.0, time.perf_counter(), 0
     for name in env.agent_iter():
         _, reward, terminated, truncated, _ = env.last()
         total += float(reward)
         env.step(None if terminated or truncated else controller.action(env, name))
-        if progress and sim.steps % 10 == 0:
+        if progress and sim.steps % 10 == 0 and sim.steps != shown:  # once per step (dead steps repeat it)
+            shown = sim.steps
             print(f"step {sim.steps}/{sim.horizon}", end="\r", flush=True, file=sys.stderr)
     seconds = time.perf_counter() - start
     row = sim.route_row[ego_index]

@@ -376,8 +376,11 @@ class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
             self.agents[start : start + len(agents)] = [list(a) for a in agents]
         return out
 
-    def render(self) -> tuple[Any, ...]:
+    def render(self) -> tuple[Any, ...] | None:
         """Frames of every scene (``rgb_array``; None for a finished scene)."""
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
+            return None
         return self._render()
 
     def close(self) -> None:

@@ -65,6 +65,7 @@ class BatchCore:
         self.scenes = scene_set(scenes)
         self.streams = [EpisodeStream(self.scenes) for _ in range(self.num_envs)]
         self.renderers: list[Any] = []  # one LiveRenderer per scene, made on the first frame (matplotlib)
+        self.started = False  # any scene reset yet (render() before reset is an error, as single envs')
         self.single_observation_space = observation_space(config.observation, config.obs)
         vocab = self.batch.vocabulary
         self.vocab_size = vocab.size if vocab is not None else 1
@@ -72,6 +73,7 @@ class BatchCore:
     def start(self, scene: int, seed: int | None, options: dict[str, Any] | None) -> Simulation:
         """Start the next episode of ``scene`` (positioned by the next :meth:`position`)."""
         scenario, rng = self.streams[scene].next(seed, options)
+        self.started = True
         return self.batch.start(scene, scenario, rng)
 
     def position(self) -> None:
@@ -83,6 +85,8 @@ class BatchCore:
 
     def frames(self) -> tuple[np.ndarray | None, ...]:
         """The current frame of every scene (None for a stopped one)."""
+        if not self.started:
+            raise RuntimeError("call reset() before render()")
         return tuple(self.frame(i) for i in range(self.num_envs))
 
     def frame(self, scene: int) -> np.ndarray | None:
@@ -376,8 +380,11 @@ class BatchedParallelEnv(ParallelBatchAPI):
             out[3][scene][name] = r.truncated
             out[4][scene][name] = r.info
 
-    def render(self) -> tuple[Any, ...]:
+    def render(self) -> tuple[Any, ...] | None:
         """Frames of every scene (``rgb_array``; None for a finished scene)."""
+        if self.render_mode is None:
+            gymnasium.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
+            return None
         return self.core.frames()
 
     def apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> list[Any]:

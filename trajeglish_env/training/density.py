@@ -230,7 +230,8 @@ def evaluate_nll(
     if compute_dtypes and not cache_dtypes:
         cache_dtypes = ("float32",)
     scenes = SceneStore(data).scenes
-    result: dict[str, Any] = {"data": str(data), "windows": windows, "models": {}}
+    paths = [str(d) for d in data] if isinstance(data, (list, tuple)) else str(data)
+    result: dict[str, Any] = {"data": paths, "windows": windows, "models": {}}
     for name, ckpt in checkpoints.items():
         tok = token_nll(ckpt, scenes, windows, seed)
         if unigram_data is not None:  # fitted on the checkpoint's own tokens (vocabularies may differ)

@@ -79,17 +79,65 @@ def save_last(
     save_checkpoint(path, model, vocabulary, training=info, optimizer=optimizer.state_dict(), trainer=trainer)
 
 
+RUN_FILES = ("last.pt", "model.pt", "metrics.csv", "training_curve.png")
+
+
 def check_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
     """A new run into a folder that holds one (``last.pt`` or ``model.pt``) would overwrite it: refused unless
-    ``resume`` (go on with it) or ``overwrite`` (start again) says what is wanted."""
-    if resume or overwrite:
-        return
+    ``resume`` (go on with it) or ``overwrite`` (start again: the old run's files are removed now, so the
+    folder never mixes two runs' files). A ``resume`` of a folder with a ``model.pt`` and no ``last.pt`` (a
+    finished model kept alone) is refused too: it would train a new model over it."""
+    if resume and overwrite:
+        raise ValueError(
+            "pass one of --resume (go on with the run) and --overwrite (start it again), not both"
+        )
     held = [f for f in ("last.pt", "model.pt") if (out / f).is_file()]
-    if held:
+    if overwrite:
+        for name in RUN_FILES:
+            (out / name).unlink(missing_ok=True)
+        return
+    if resume and held == ["model.pt"]:
         raise FileExistsError(
-            f"train: {out} holds a run ({', '.join(held)}): pass --resume to continue it, --overwrite to "
+            f"{out} holds a model (model.pt) but no last.pt to resume from: resuming would train a new model "
+            f"over it; fine-tune it with --init {out / 'model.pt'} and another --out, or pass --overwrite"
+        )
+    if held and not resume:
+        raise FileExistsError(
+            f"{out} holds a run ({', '.join(held)}): pass --resume to continue it, --overwrite to "
             "start it again, or another --out"
         )
+
+
+class TrainingDiverged(ValueError):
+    """Training stopped on non-finite gradients: the run's settings (its learning rate) are the cause, so
+    the CLI reports it in one line, as bad input."""
+
+
+def diverged_note(last: Path, unstable: int, step: int) -> str:
+    """What stopped a diverging run and what to do: a lower ``--lr`` is another schedule, so a new run."""
+    kept = resume_point(last.parent)
+    where = (
+        f"{last} keeps the weights of step {kept}"
+        if kept is not None
+        else f"no checkpoint was written before it (no {last.name})"
+    )
+    return (
+        f"{unstable} steps in a row up to step {step} had non-finite gradients, so training stopped "
+        f"({where}); train again with a lower --lr and --overwrite (or another --out)"
+    )
+
+
+def resume_point(out: Path) -> int | None:
+    """The step a ``train --resume`` of ``out`` goes on from (its ``last.pt``'s), None without one."""
+    from trajeglish_env.checkpoint import load_checkpoint
+
+    last = out / "last.pt"
+    if not last.is_file():
+        return None
+    try:
+        return TrainerState.of(load_checkpoint(last)).step
+    except (CheckpointError, OSError, ValueError):
+        return None
 
 
 def differences(saved: dict[str, Any], requested: dict[str, Any]) -> str:
@@ -130,8 +178,8 @@ def resumed_config(
     if saved != dataclasses.asdict(config):
         raise CheckpointError(
             f"{last}: it was trained with other settings than requested now ("
-            f"{differences(saved, dataclasses.asdict(config))}); resume with its own, or train into "
-            "another --out"
+            f"{differences(saved, dataclasses.asdict(config))}); resume with its own, or train it further on "
+            f"another schedule as a fine-tune: --init {last} and another --out"
         )
     return config
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from trajeglish_env.scenario import Scenario
-from trajeglish_env.scenario_io import load_scenarios, scenario_files, scene_sources
+from trajeglish_env.scenario_io import load_scenarios, scenario_files, scenario_ids, scene_sources
 
 __all__ = ["ShardBlockOrder", "ShardedScenes", "split_shards"]
 
@@ -63,16 +63,21 @@ class ShardedScenes(Sequence[Scenario]):
         self._cache.move_to_end(k)
         return self._cache[k]
 
+    def scenario_ids(self) -> set[str]:
+        """Every scene's scenario id (read from the files without loading the scenes)."""
+        return {sid for f in self.files for sid in scenario_ids(f)}
+
     def all_sources(self) -> list[str]:
         """Sorted set of the scenes' sources (from the headers)."""
         return sorted({s for shard in self.sources for s in shard})
 
 
 def split_shards(files: Sequence[Path], fraction: float) -> tuple[list[Path], list[Path]]:
-    """Deterministic train/validation split by whole shards: every k-th shard goes to validation."""
-    if fraction <= 0 or len(files) < 2:
+    """Deterministic train/validation split by whole shards: every k-th shard (k = 1 / ``fraction``) goes to
+    validation, none with fewer than k shards (the first of two shards held out half the data)."""
+    k = max(2, round(1 / fraction)) if fraction > 0 else 0
+    if fraction <= 0 or len(files) < k:
         return list(files), []
-    k = max(2, round(1 / fraction))
     return [f for i, f in enumerate(files) if i % k], [f for i, f in enumerate(files) if not i % k]
 
 

@@ -41,13 +41,11 @@ from trajeglish_env.distributed import init_ranks, rank_device
 from trajeglish_env.model.config import ModelConfig
 from trajeglish_env.model.encoder import SIGNAL_PARAMS
 from trajeglish_env.model.network import TrajeglishModel
-from trajeglish_env.scenario import Scenario
-from trajeglish_env.scenario_io import load_scenarios
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
 from trajeglish_env.training.curves import plot_curve, write_metrics
-from trajeglish_env.training.dataset import SceneStore, collate_windows, window_config
+from trajeglish_env.training.dataset import collate_windows, window_config
 from trajeglish_env.training.device_noise import DeviceTemplates, device_input_tokens
 from trajeglish_env.training.kind_repeat import window_order
 from trajeglish_env.training.loss import TrainingLoss
@@ -55,14 +53,16 @@ from trajeglish_env.training.mass_term_checks import check_mass_terms
 from trajeglish_env.training.offroad_mass import OffroadTerm
 from trajeglish_env.training.precision import check_precision, step_autocast
 from trajeglish_env.training.run_records import (
+    TrainingDiverged,
     check_resumed_inputs,
     check_run_folder,
+    diverged_note,
     resumed_config,
     run_facts,
     save_last,
     training_info,
 )
-from trajeglish_env.training.shard_cache import ShardedScenes, split_shards
+from trajeglish_env.training.scene_split import training_scenes, warn_overlap
 from trajeglish_env.training.term_sources import collision_scenes, scene_source_list
 from trajeglish_env.training.training_data import StepBatchSampler, TokenizedWindows
 from trajeglish_env.training.validation import batch_to, validation_nll
@@ -159,10 +159,13 @@ class TrainConfig:
         )
 
     def lr_at(self, step: int) -> float:
-        """Learning rate at ``step``: linear warmup, then linear decay to 0 at ``steps``."""
-        if step < self.warmup_steps:
-            return self.lr * (step + 1) / self.warmup_steps
-        return self.lr * max(0.0, (self.steps - step) / max(1, self.steps - self.warmup_steps))
+        """Learning rate at ``step``: linear warmup, then linear decay to 0 at ``steps``; a warmup as long as
+        the schedule (a short run, or one fitted to a small budget) is cut to a tenth of it, so the
+        learning rate still peaks and reaches 0."""
+        warm = self.warmup_steps if self.warmup_steps < self.steps else self.steps // 10
+        if step < warm:
+            return self.lr * (step + 1) / warm
+        return self.lr * max(0.0, (self.steps - step) / max(1, self.steps - warm))
 
 
 def _param_groups(model: TrajeglishModel, config: TrainConfig) -> list[dict[str, Any]]:
@@ -177,14 +180,6 @@ def _param_groups(model: TrajeglishModel, config: TrainConfig) -> list[dict[str,
         key = "signal" if name.startswith(SIGNAL_PARAMS) else "decay" if p.ndim >= 2 else "no_decay"
         groups[key]["params"].append(p)
     return [g for g in groups.values() if g["params"]]
-
-
-def split_scenes(scenes: Sequence[Scenario], fraction: float) -> tuple[list[Scenario], list[Scenario]]:
-    """Deterministic train/validation split: every k-th scene goes to validation."""
-    if fraction <= 0 or len(scenes) < 2:
-        return list(scenes), []
-    k = max(2, round(1 / fraction))
-    return [s for i, s in enumerate(scenes) if i % k], [s for i, s in enumerate(scenes) if not i % k]
 
 
 def train(
@@ -241,7 +236,11 @@ def train(
     if start_ckpt is not None:
         check_init(start_ckpt, model_config, vocabulary)
     check_compatible(model_config, vocabulary, where="train: --vocab")
-    train_scenes, val_scenes = _training_scenes(data, val_data, config)
+    train_scenes, val_scenes = training_scenes(
+        data, val_data, config.val_fraction, config.shard_cache, config.val_windows
+    )
+    if dd.main:
+        warn_overlap(train_scenes, val_scenes)
     if not val_scenes and dd.main:  # no held-out NLL (curves stay empty): say so, never silently
         print(
             f"train: warning: no validation scenes (the held-out share {config.val_fraction} of "
@@ -354,10 +353,7 @@ def train(
             if dd.main:
                 bar.write(f"train: non-finite gradients at step {step + 1}; update skipped", file=sys.stderr)
             if unstable > MAX_UNSTABLE_STEPS:
-                raise RuntimeError(
-                    f"train: {unstable} steps in a row up to step {step + 1} had non-finite gradients; "
-                    f"stopped ({last} keeps the weights of its last checkpoint; lower --lr and --resume)"
-                )
+                raise TrainingDiverged(diverged_note(last, unstable, step + 1))
         optimizer.zero_grad(set_to_none=True)
         step += 1
         if probe is not None and step == probe[0]:
@@ -471,28 +467,3 @@ def _rank0_says(flag: bool, device: torch.device, world: int) -> bool:
         dist.broadcast(value, src=0)
         flag = bool(value.item())
     return flag
-
-
-def _training_scenes(
-    data: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
-    val_data: str | os.PathLike[str] | None,
-    config: TrainConfig,
-) -> tuple[Sequence[Scenario], list[Scenario]]:
-    """Training and validation scenes: all in memory, or (``shard_cache``) a shard-cached sequence and the
-    first ``val_windows`` scenes of the validation shards (every k-th shard unless ``val_data``)."""
-    if config.shard_cache <= 0:
-        scenes = SceneStore(data).scenes
-        if val_data is not None:
-            return scenes, SceneStore(val_data).scenes
-        return split_scenes(scenes, config.val_fraction)
-    files = SceneStore(data).files
-    if val_data is not None:
-        train_files, val_files = files, SceneStore(val_data).files
-    else:
-        train_files, val_files = split_shards(files, config.val_fraction)
-    val: list[Scenario] = []
-    for file in val_files:
-        if len(val) >= config.val_windows:
-            break
-        val.extend(load_scenarios(file)[: config.val_windows - len(val)])
-    return ShardedScenes(train_files, config.shard_cache), val
