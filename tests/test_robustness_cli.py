@@ -172,6 +172,19 @@ def test_files_of_the_wrong_kind_are_named_with_what_was_expected(tmp_path: Path
     save_checkpoint(tmp_path / "model.pt", ckpt.model, ckpt.vocabulary)
     with pytest.raises(VocabularyError, match=r"model.pt: not a readable tokenizer file .*a checkpoint\?"):
         MotionVocabulary.load(tmp_path / "model.pt")
+    # ... and the other way round: a vocabulary or a scene shard given as a checkpoint
+    from trajeglish_env.checkpoint import CheckpointError, load_checkpoint
+
+    with pytest.raises(
+        CheckpointError, match=r"tokenizer_v384.npz: a motion vocabulary .* pass it as --vocab"
+    ):
+        load_checkpoint(Path(__file__).parents[1] / "trajeglish_env/assets/tokenizer_v384.npz")
+    with pytest.raises(CheckpointError, match=r"scenes_bundle.scn.npz: a scenario shard, not a model"):
+        load_checkpoint(Path(__file__).parents[1] / "trajeglish_env/assets/scenes_bundle.scn.npz")
+    import trajeglish_env
+
+    with pytest.raises(ValueError, match=r"a checkpoint\? pass npc=TrajeglishNPC\('runs/x/model.pt'\)"):
+        trajeglish_env.env(npc="runs/x/model.pt")
     state = ckpt.vocabulary.to_state()
     with pytest.raises(VocabularyError, match=r"here: tokenizer version 'v2' is not a number"):
         MotionVocabulary.from_state({**state, "version": "v2"}, where="here")

@@ -317,8 +317,16 @@ def _check_archive(path: Path) -> None:
     try:
         with zipfile.ZipFile(path) as archive:
             bad = archive.testzip()
+            names = set(archive.namelist())
     except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError):
         return
+    if {"templates.npy", "kinds.npy"} <= names:  # a motion vocabulary (tokenizer .npz), not a model
+        raise CheckpointError(
+            f"{path}: a motion vocabulary (tokenizer file), not a model checkpoint: pass it as --vocab "
+            "(TrajeglishNPC and --ckpt take a checkpoint .pt)"
+        )
+    if "__format__.npy" in names:
+        raise CheckpointError(f"{path}: a scenario shard, not a model checkpoint")
     if bad is not None:
         raise CheckpointError(f"{path}: corrupt checkpoint: its member {bad!r} fails its CRC check")
 

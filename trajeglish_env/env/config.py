@@ -222,6 +222,11 @@ class EnvConfig:
         if isinstance(self.npc, str) and self.npc not in NPC_NAMES:
             raise ValueError(
                 f"EnvConfig.npc: expected one of {NPC_NAMES} or an NPC policy object, got {self.npc!r}"
+                + (
+                    f" (a checkpoint? pass npc=TrajeglishNPC({self.npc!r}))"
+                    if self.npc.endswith((".pt", ".pth")) or "/" in self.npc
+                    else ""
+                )
             )
         if self.action not in ACTION_TYPES:
             raise ValueError(f"EnvConfig.action: expected one of {ACTION_TYPES}, got {self.action!r}")
