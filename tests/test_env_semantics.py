@@ -368,3 +368,83 @@ def test_an_episode_counts_a_goal_reached_at_any_step() -> None:
     (agent,) = result.returns
     assert policy.back and not policy.seen["goal"] and policy.seen["goal_reached"]  # left the goal again
     assert result.goal[agent]
+
+
+def test_an_npc_policy_object_is_copied_per_scene_and_rule_based_envs_pickle() -> None:
+    """One ReplayNPC / IDMNPC object given to a batch of scenes, or to two envs, was shared: each reset
+    overwrote another scene's episode state, so NPCs replayed another scene's log (observations 2.0
+    apart on [-1, 1] features). And an env with rule-based NPCs did not pickle (a lambda)."""
+    import pickle
+
+    from trajeglish_env.env import IDMNPC, EgoEnv, ReplayNPC
+    from trajeglish_env.env.vector import BatchedEgoEnv
+
+    scenes = small_scenes()[:2]
+    zero = np.zeros((2, 2), np.float32)
+    for obj, name in ((ReplayNPC(), "replay"), (IDMNPC(), "idm")):
+        shared = [EgoEnv(scenes, npc=obj, max_cycles=6) for _ in range(2)]
+        alone = [EgoEnv(scenes, npc=name, max_cycles=6) for _ in range(2)]
+        got = [e.reset(seed=0, options={"scene": k})[0] for k, e in enumerate(shared)]
+        want = [e.reset(seed=0, options={"scene": k})[0] for k, e in enumerate(alone)]
+        for _ in range(4):  # interleaved: each env's reset and steps between the other's
+            got += [e.step(zero[0])[0] for e in shared]
+            want += [e.step(zero[0])[0] for e in alone]
+        np.testing.assert_array_equal(np.stack(got), np.stack(want))
+        batch = BatchedEgoEnv(2, scenes, npc=obj, max_cycles=6)
+        ref = BatchedEgoEnv(2, scenes, npc=name, max_cycles=6)
+        a, b = batch.reset(seed=3)[0], ref.reset(seed=3)[0]
+        for _ in range(3):
+            a, b = batch.step(zero)[0], ref.step(zero)[0]
+            np.testing.assert_array_equal(a, b)
+        batch.close(), ref.close()
+    env = EgoEnv(scenes, npc="idm", max_cycles=6)
+    env.reset(seed=1)
+    copy = pickle.loads(pickle.dumps(env))
+    np.testing.assert_array_equal(copy.step(zero[0])[0], env.step(zero[0])[0])
+
+
+def test_config_fields_take_numpy_integers_and_refuse_bools_and_fractions() -> None:
+    """`max_cycles=np.int64(5)` was refused and `max_cycles=True` taken as 1; `neighbours=2.5` failed
+    later inside Gymnasium, `neighbours='3'` with a bare TypeError; `bev_resolution=1e-3` ran out of memory
+    at reset (22 GB); a single env refused `torch_threads="auto"` with a bare TypeError."""
+    from trajeglish_env.env.config import EnvConfig, ObservationConfig
+
+    assert EnvConfig(max_cycles=np.int64(5)).max_cycles == 5
+    assert type(ObservationConfig(neighbours=np.int64(3)).neighbours) is int
+    for kw, field in (
+        ({"neighbours": 2.5}, "neighbours must be an int >= 1"),
+        ({"neighbours": True}, "neighbours must be an int >= 1"),
+        ({"bev_size": "8"}, "bev_size must be an int >= 1"),
+        ({"signals": -1}, "signals must be an int >= 0"),
+        ({"radius": True}, "radius must be a number > 0"),
+        ({"bev_resolution": 1e-3}, "bev_resolution must be >= 0.05 m per pixel"),
+    ):
+        with pytest.raises(ValueError, match=f"ObservationConfig.{field}"):
+            ObservationConfig(**kw)
+    with pytest.raises(ValueError, match="max_cycles must be a positive integer or None, got True"):
+        EnvConfig(max_cycles=True)
+    with pytest.raises(ValueError, match="torch_threads must be 'auto', None or an integer >= 1, got 'x'"):
+        EnvConfig(torch_threads="x")
+    env = raw_env(small_scenes(), npc="idm", torch_threads="auto", max_cycles=2)
+    env.reset(seed=0)
+
+
+def test_the_ego_envs_infos_have_the_same_keys_at_reset_and_every_step() -> None:
+    """EgoEnv's reset info held `agent` and `scenario_id` only, its step info neither (the AEC and
+    parallel envs keep one set of keys); BatchedEgoEnv the same."""
+    from trajeglish_env.env import EgoEnv
+    from trajeglish_env.env.vector import BatchedEgoEnv
+
+    env = EgoEnv(small_scenes(), npc="idm", max_cycles=3)
+    _, first = env.reset(seed=0)
+    later = env.step(np.zeros(2, np.float32))[4]
+    assert set(first) == set(later) >= {"agent", "scenario_id", "collision", "route_fraction"}
+    assert later["agent"] == first["agent"] and first["collision"] is False
+    batch = BatchedEgoEnv(2, small_scenes(), npc="idm", max_cycles=3)
+    keys = {k for k in batch.reset(seed=0)[1] if not k.startswith("_")}
+    assert (
+        keys
+        == set(first)
+        == {k for k in batch.step(np.zeros((2, 2), np.float32))[4] if not k.startswith("_")}
+    )
+    batch.close()

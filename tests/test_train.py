@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import socket
 
@@ -427,3 +428,41 @@ def test_an_interrupted_run_names_the_step_its_resume_goes_on_from(scenes_dir, t
         progress=False,
     )
     assert "train --resume goes on from step 3" in interrupted_note(args)
+
+
+def test_a_resume_needs_no_flag_but_data_and_out(scenes_dir, tmp_path) -> None:
+    """`train --data D --out RUN --resume` was refused for every schedule flag left at its default
+    ("batch_size: 4 -> 16, steps: 30 -> 2000, ..."): flags not given now take the run's own settings, and one
+    given that differs is still refused."""
+    from trajeglish_env.cli_train import default_train_args, train_config_of
+
+    run = tmp_path / "r"
+    first = _quick(steps=6)
+    cut = train(
+        scenes_dir, run, tiny_config(), first, vocabulary=grid_vocabulary(), progress=False, time_limit=0.0
+    )
+    assert cut["steps"] < 6
+    defaults = train_config_of(default_train_args())
+    assert defaults.batch_size != first.batch_size and defaults.steps != first.steps
+    done = train(
+        scenes_dir,
+        run,
+        tiny_config(),
+        defaults,
+        vocabulary=grid_vocabulary(),
+        progress=False,
+        resume=True,
+        resume_defaults=defaults,
+    )
+    assert done["steps"] == 6 and done["resumed_from"] == cut["steps"]
+    with pytest.raises(CheckpointError, match=r"batch_size: 4 -> 8\); .*--init .*last.pt and another --out"):
+        train(
+            scenes_dir,
+            run,
+            tiny_config(),
+            dataclasses.replace(defaults, batch_size=8),
+            vocabulary=grid_vocabulary(),
+            progress=False,
+            resume=True,
+            resume_defaults=defaults,
+        )

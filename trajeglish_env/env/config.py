@@ -4,6 +4,7 @@ and observation types, rewards, vehicle limits, episode length and rendering (fr
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
@@ -18,6 +19,7 @@ ACTION_TYPES = ("token", "continuous", "delta")
 OBSERVATION_TYPES = ("vector", "bev")
 ORDERS = ("first", "last", "random")
 NPC_NAMES = ("trajeglish", "replay", "constant_velocity", "idm")
+MIN_BEV_RESOLUTION = 0.05  # m per pixel: finer rasters sample each box at millions of points
 
 
 @dataclass(frozen=True)
@@ -109,11 +111,19 @@ class ObservationConfig:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            if f.name == "signals":
-                if not isinstance(self.signals, int) or isinstance(self.signals, bool) or self.signals < 0:
-                    raise ValueError(f"ObservationConfig.signals must be an int >= 0, got {self.signals!r}")
-            elif not getattr(self, f.name) > 0:
-                raise ValueError(f"ObservationConfig.{f.name} must be > 0, got {getattr(self, f.name)}")
+            value = getattr(self, f.name)
+            if f.type in (int, "int"):  # counts and sizes: whole numbers (NumPy's too), never a bool
+                least = 0 if f.name == "signals" else 1
+                if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < least:
+                    raise ValueError(f"ObservationConfig.{f.name} must be an int >= {least}, got {value!r}")
+                object.__setattr__(self, f.name, int(value))
+            elif isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0:
+                raise ValueError(f"ObservationConfig.{f.name} must be a number > 0, got {value!r}")
+        if self.bev_resolution < MIN_BEV_RESOLUTION:  # the raster samples each box at half a pixel
+            raise ValueError(
+                f"ObservationConfig.bev_resolution must be >= {MIN_BEV_RESOLUTION} m per pixel, got "
+                f"{self.bev_resolution!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -191,7 +201,7 @@ class EnvConfig:
     max_cycles: int | None = None
     render_size: int = 480
     render_radius: float = 40.0
-    torch_threads: int | None = 1
+    torch_threads: int | str | None = 1
 
     def __post_init__(self) -> None:
         ext = self.external
@@ -234,14 +244,21 @@ class EnvConfig:
             raise ValueError(
                 f"EnvConfig.observation: expected one of {OBSERVATION_TYPES}, got {self.observation!r}"
             )
-        if self.max_cycles is not None and (not isinstance(self.max_cycles, int) or self.max_cycles < 1):
-            raise ValueError(
-                f"EnvConfig.max_cycles must be a positive integer or None, got {self.max_cycles!r}"
-            )
+        cycles = self.max_cycles
+        if cycles is not None:
+            if not isinstance(cycles, numbers.Integral) or isinstance(cycles, bool) or cycles < 1:
+                raise ValueError(f"EnvConfig.max_cycles must be a positive integer or None, got {cycles!r}")
+            object.__setattr__(self, "max_cycles", int(cycles))
         if self.render_size < 16 or not self.render_radius > 0:
             raise ValueError("EnvConfig.render_size must be >= 16 pixels and render_radius > 0 m")
-        if self.torch_threads is not None and self.torch_threads < 1:
-            raise ValueError(f"EnvConfig.torch_threads must be >= 1 or None, got {self.torch_threads}")
+        threads = self.torch_threads
+        if not (
+            threads in ("auto", None)
+            or (isinstance(threads, numbers.Integral) and not isinstance(threads, bool) and threads >= 1)
+        ):
+            raise ValueError(
+                f"EnvConfig.torch_threads must be 'auto', None or an integer >= 1, got {threads!r}"
+            )
 
     def with_overrides(self, **overrides: Any) -> EnvConfig:
         """A copy with some fields replaced (unknown names are refused, naming the valid ones)."""

@@ -182,9 +182,13 @@ class RuleRows:
     complete when its driver has walked its order; :meth:`advance` returns None once every row that takes
     part in the step is complete (rows wait for each other, as in the engine)."""
 
-    def __init__(self, rows: int, make_policy: Callable[[], NPCPolicy]):
+    def __init__(self, rows: int, make_policy: Callable[[], NPCPolicy], fresh_each_start: bool = True):
         self.drivers: list[OrderedDriver | None] = [None] * rows
         self.make_policy = make_policy
+        # False: one policy per row, made at its first start and reset at every later one (a user's object,
+        # copied once per row: its copy may be costly, and its reset() starts each episode)
+        self.fresh_each_start = fresh_each_start
+        self._policies: list[NPCPolicy | None] = [None] * rows
         self._complete: set[int] = set()
 
     def start(
@@ -198,7 +202,10 @@ class RuleRows:
     ) -> RowView:
         """(Re)start ``row`` on a scene (rows are independent: any time)."""
         self._complete.discard(row)
-        self.drivers[row] = OrderedDriver(self.make_policy(), scenario, external, horizon, priority, seed)
+        policy = self._policies[row]
+        if policy is None or self.fresh_each_start:
+            policy = self._policies[row] = self.make_policy()
+        self.drivers[row] = OrderedDriver(policy, scenario, external, horizon, priority, seed)
         return self.drivers[row]
 
     def stop(self, row: int) -> None:

@@ -45,11 +45,18 @@ class EgoEnv(gymnasium.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start an episode (``options["scene"]`` picks the scene); info names the ego and the scene."""
+        """Start an episode (``options["scene"]`` picks the scene); info: the step's keys (zeros now), the
+        ego's name and the scene's id."""
         super().reset(seed=seed)
         self.aec.reset(seed=seed, options=options)
         self.agent = self.aec.agents[0]
-        return self.aec.observe(self.agent), {
+        return self.aec.observe(self.agent), self._info()
+
+    def _info(self) -> dict[str, Any]:
+        """The ego's info: the same keys at reset and at every step (the AEC env's, the ego's name and the
+        scene's id)."""
+        return {
+            **self.aec.infos[self.agent],
             "agent": self.agent,
             "scenario_id": self.aec.scenario.scenario_id,
         }
@@ -67,7 +74,7 @@ class EgoEnv(gymnasium.Env):
             float(aec._cumulative_rewards[agent]),
             bool(aec.terminations[agent]),
             bool(aec.truncations[agent]),
-            dict(aec.infos[agent]),
+            self._info(),
         )
 
     def render(self) -> np.ndarray | None:

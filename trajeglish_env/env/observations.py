@@ -89,9 +89,8 @@ class VectorObserver:
     def __init__(self, scenario: Scenario, config: ObservationConfig):
         self.sc, self.cfg = scenario, config
         self.points, self.category = sample_map_points(scenario, config.map_spacing)
-        size = EGO_FEATURES + NEIGHBOUR_FEATURES * config.neighbours + MAP_FEATURES * config.map_points
-        self.size = size + 2 * config.route_points
-        self.space = spaces.Box(-1.0, 1.0, shape=(self.size,), dtype=np.float32)
+        self.space = observation_space("vector", config)  # one definition of the layout's size
+        self.size = int(self.space.shape[0])
 
 
 class BevObserver:

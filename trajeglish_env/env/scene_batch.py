@@ -11,6 +11,8 @@ on the other scenes of the batch.
 
 from __future__ import annotations
 
+import copy
+import functools
 import os
 from collections.abc import Sequence
 from typing import Any
@@ -109,9 +111,11 @@ class SceneBatch:
     def _make_rows(self, torch_threads: int | str | None) -> NPCRows:
         npc = self.config.npc
         if self.settings is None:
-            return RuleRows(
-                self.num_scenes, (lambda: make_npc_policy(npc)) if isinstance(npc, str) else lambda: npc
-            )
+            if isinstance(npc, str):  # partials, not lambdas: an env with rule-based NPCs pickles
+                return RuleRows(self.num_scenes, functools.partial(make_npc_policy, npc))
+            # a user's policy object: each scene plays its own copy (one object shared by the rows of a
+            # batch, or by several envs, would have each reset overwrite another scene's episode state)
+            return RuleRows(self.num_scenes, functools.partial(copy.deepcopy, npc), fresh_each_start=False)
         from trajeglish_env.env.engine_shards import ShardedEngineRows, engine_shards
         from trajeglish_env.sampler.engine import BatchEngine
 

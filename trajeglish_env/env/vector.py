@@ -218,7 +218,11 @@ class BatchedEgoEnv(EgoVectorEnv):
         sim = self.core.start(scene, seed, options)
         self.egos[scene] = sim.external_index[0]
         self.agents[scene] = sim.names[int(self.egos[scene])]
-        return {"agent": self.agents[scene], "scenario_id": sim.sc.scenario_id}
+        return self._info(scene, sim.agent_info(int(self.egos[scene])))
+
+    def _info(self, scene: int, info: dict[str, Any]) -> dict[str, Any]:
+        """Scene ``scene``'s ego info: the same keys at reset and at every step, as ``EgoEnv``'s."""
+        return {**info, "agent": self.agents[scene], "scenario_id": self.core.sim(scene).sc.scenario_id}
 
     def reset_each(
         self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
@@ -249,7 +253,7 @@ class BatchedEgoEnv(EgoVectorEnv):
         reports = [r[name] for r, name in zip(batch.finish(scenes), self.agents, strict=True)]
         done = [i for i, r in enumerate(reports) if r.terminated or r.truncated]
         finals = dict(zip(done, batch.observe(done, self.egos[done]), strict=True))
-        infos = [dict(r.info) for r in reports]
+        infos = [self._info(i, r.info) for i, r in enumerate(reports)]
         for i in done:
             infos[i] = self.restart(i, None, None)
         self.core.position()

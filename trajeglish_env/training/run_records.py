@@ -157,9 +157,12 @@ def resumed_config(
     trainer: TrainerState,
     config: TrainConfig,
     fit_steps: bool,
+    defaults: TrainConfig | None = None,
 ) -> TrainConfig:
     """The settings a resumed run goes on with: the requested ones, which must be the run's own (a
-    CheckpointError naming the fields that differ otherwise), with the schedule's fitted length kept."""
+    CheckpointError naming the fields that differ otherwise), with the schedule's fitted length kept.
+    With ``defaults`` (what flags left unset mean), every field the request leaves at its default takes
+    the run's own value, so ``train --resume`` needs no flag but ``--data`` and ``--out``."""
     if saved_model != model:
         raise CheckpointError(
             f"{last}: its model config differs from the requested one ("
@@ -175,6 +178,12 @@ def resumed_config(
     saved["collision_sources"] = tuple(str(k) for k in saved["collision_sources"])
     if fit_steps:  # the schedule's length was fitted to the first call's budget
         config = dataclasses.replace(config, steps=int(saved["steps"]))
+    if defaults is not None:
+        unset = dataclasses.asdict(defaults)
+        asked = dataclasses.asdict(config)
+        config = dataclasses.replace(
+            config, **{k: saved[k] for k, v in asked.items() if k in saved and v == unset.get(k, v)}
+        )
     if saved != dataclasses.asdict(config):
         raise CheckpointError(
             f"{last}: it was trained with other settings than requested now ("

@@ -195,6 +195,7 @@ def train(
     time_limit: float | None = None,
     fit_steps: bool = False,
     overwrite: bool = False,
+    resume_defaults: TrainConfig | None = None,
 ) -> dict[str, Any]:
     """Train (or resume) a model on scene shards; writes ``last.pt``, ``model.pt`` and ``metrics.csv``.
 
@@ -207,7 +208,8 @@ def train(
     ``fit_steps`` (with ``time_limit``, a new run): the step rate over the first tenth of the budget sets the
     schedule's length, so the learning rate reaches 0 as the budget ends (``config.steps`` is then the most);
     the fitted length is saved, and a ``resume`` keeps it. A new run into a folder with a ``last.pt`` needs
-    ``overwrite`` (:func:`check_run_folder`).
+    ``overwrite`` (:func:`check_run_folder`). ``resume_defaults``: the settings a flag left unset means (the
+    CLI's defaults); on a resume each field ``config`` leaves at them takes the run's own value.
     """
     if fit_steps and time_limit is None:
         raise ValueError("train: fit_steps needs a time_limit (train --fit-steps needs --minutes)")
@@ -258,7 +260,7 @@ def train(
     if resume and last.is_file():
         ckpt = load_checkpoint(last, map_location=device)
         trainer = TrainerState.of(ckpt)
-        config = resumed_config(last, ckpt.config, model_config, trainer, config, fit_steps)
+        config = resumed_config(last, ckpt.config, model_config, trainer, config, fit_steps, resume_defaults)
         note = check_resumed_inputs(last, ckpt, vocabulary, facts)
         if note and dd.main:
             print(note, file=sys.stderr)
