@@ -99,6 +99,22 @@ def test_data_flows_one_way() -> None:
     assert not wrong, wrong
 
 
+def test_the_package_never_imports_policies() -> None:
+    """``policies/`` builds on ``trajeglish_env``, never the other way round (imports inside functions
+    count too)."""
+    policies = {"policies"} | {
+        f"policies.{Path(p).stem}" for p in Path(PACKAGE.parent, "policies").glob("*.py")
+    }
+    wrong = sorted(
+        f"{module_name(p)} imports {n}"
+        for p in PACKAGE.rglob("*.py")
+        for n in module_level_imports(p, policies, in_functions=True)
+    )
+    assert not wrong, wrong
+    # the scan sees an import of policies where there is one
+    assert module_level_imports(Path(PACKAGE.parent, "examples", "train_ppo_ego.py"), policies, True)
+
+
 def test_no_module_over_500_lines() -> None:
     long = {
         str(p.relative_to(PACKAGE)): n
