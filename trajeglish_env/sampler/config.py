@@ -14,7 +14,7 @@ CACHE_DTYPES = ("float32", "bfloat16")
 # 0.564 at 1.0, with the fewest collisions; docs/evaluation.md).
 DEFAULT_TEMPERATURE = 0.75
 # Metres a vehicle's box corner may reach beyond a road edge before it is off the road: the env's
-# ``RewardConfig.offroad_margin`` default, and the margin of guarded sampling's road-edge rule.
+# ``RewardConfig.offroad_margin`` default (and the off-road loss term's); the guard uses GUARD_ROAD_MARGIN.
 OFFROAD_MARGIN = 0.5
 DEFAULT_GUARD = True
 # Metres a guarded vehicle's box corner may reach beyond a road edge: 0, the WOSAC off-road threshold (a

@@ -36,7 +36,7 @@ from trajeglish_env.metrics.road_edges import RoadEdges
 from trajeglish_env.scenario import ROAD_EDGE_KINDS, AgentKind, Scenario
 from trajeglish_env.training.blocked_mass import BlockedCandidates
 
-MARGIN = 0.5  # m: the guard's (sampler.config.OFFROAD_MARGIN; training does not import the sampler)
+MARGIN = 0.5  # m: the env's reward margin (sampler.config.OFFROAD_MARGIN; training imports no sampler)
 
 
 @dataclass(frozen=True)
