@@ -466,3 +466,21 @@ def test_a_resume_needs_no_flag_but_data_and_out(scenes_dir, tmp_path) -> None:
             resume=True,
             resume_defaults=defaults,
         )
+
+
+def test_resuming_a_complete_run_keeps_its_model(scenes_dir, tmp_path, capsys) -> None:
+    """A resume of a finished run rewrote model.pt with a training time of 0 s, saying nothing."""
+    run = tmp_path / "done"
+    train(scenes_dir, run, tiny_config(), _quick(steps=3), vocabulary=grid_vocabulary(), progress=False)
+    kept = (run / "model.pt").read_bytes()
+    again = train(
+        scenes_dir,
+        run,
+        tiny_config(),
+        _quick(steps=3),
+        vocabulary=grid_vocabulary(),
+        progress=False,
+        resume=True,
+    )
+    assert again["steps"] == 3 and (run / "model.pt").read_bytes() == kept
+    assert "is complete (step 3 of 3): nothing to train" in capsys.readouterr().err

@@ -423,10 +423,17 @@ def train(
         result["steps_fitted_to_time"] = config.steps
     if dd.main:
         final = out / "model.pt"
-        info = training_info(config, step, history, facts)
-        info["seconds"] = round(elapsed, 1)
-        save_checkpoint(final, model, vocabulary, training=info)
-        plot_curve(history, out / "training_curve.png")
+        finished_before = start_step >= config.steps and final.is_file()
+        if finished_before:  # a resume of a complete run: its model.pt (and its training time) stay
+            print(
+                f"train: {out} is complete (step {start_step} of {config.steps}): nothing to train",
+                file=sys.stderr,
+            )
+        else:
+            info = training_info(config, step, history, facts)
+            info["seconds"] = round(elapsed, 1)
+            save_checkpoint(final, model, vocabulary, training=info)
+            plot_curve(history, out / "training_curve.png")
         vals = [h["val_nll"] for h in history if "val_nll" in h]
         result.update(
             checkpoint=str(final),
