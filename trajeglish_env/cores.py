@@ -3,15 +3,37 @@ many other processes keep busy (the env's adaptive torch threads, multi-process 
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import os
 import sys
 import time
+from pathlib import Path
 
 
 def usable_cores() -> int:
-    """Cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    """Cores this process may run on: those it is pinned to, at most its container's CPU quota (a cgroup's
+    ``cpu.max``, as ``docker --cpus=2`` sets it; rounded up)."""
+    pinned = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    quota = cgroup_cpu_quota()
+    return max(1, min(pinned, math.ceil(quota))) if quota is not None else pinned
+
+
+def cgroup_cpu_quota(root: str = "/sys/fs/cgroup") -> float | None:
+    """The CPUs this process's cgroup may use (cgroup v2 ``cpu.max``, or v1's ``cpu.cfs_quota_us`` over
+    ``cpu.cfs_period_us``); None without a quota or where none is readable."""
+    base = Path(root)
+    try:
+        quota, period = (base / "cpu.max").read_text().split()[:2]
+        return None if quota == "max" else int(quota) / int(period)
+    except (OSError, ValueError):
+        pass
+    try:
+        quota_us = int((base / "cpu" / "cpu.cfs_quota_us").read_text())
+        period_us = int((base / "cpu" / "cpu.cfs_period_us").read_text())
+        return quota_us / period_us if quota_us > 0 and period_us > 0 else None
+    except (OSError, ValueError):
+        return None
 
 
 def cpu_seconds() -> tuple[float, float] | None:

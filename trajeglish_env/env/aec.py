@@ -19,6 +19,7 @@ from trajeglish_env.env.observations import observation_space
 from trajeglish_env.env.scene_batch import SceneBatch
 from trajeglish_env.env.scenes import scene_set
 from trajeglish_env.env.simulation import AgentReport, Simulation, agent_names, select_external
+from trajeglish_env.heap import release_freed_memory
 from trajeglish_env.scenario import Scenario
 
 
@@ -228,9 +229,10 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         return self._renderer
 
     def close(self) -> None:
-        """Release the renderer and its window."""
+        """Release the renderer and its window, and the C heap's free pages (:mod:`trajeglish_env.heap`)."""
         if self._renderer is not None:
             self._renderer.close()
+        release_freed_memory()
 
 
 def env(

@@ -191,20 +191,26 @@ def _serve(
         conn.send(("error", _portable(error)))
         conn.close()
         return
-    while True:
-        try:
-            command, args = conn.recv()
-        except (EOFError, KeyboardInterrupt):
-            break
-        if command == "close":
-            env.close()
-            conn.send(("ok", None))
-            break
-        try:
-            conn.send(("ok", _run(env, command, args)))
-        except BaseException as error:
-            conn.send(("error", _portable(error)))
-    conn.close()
+    try:
+        while True:
+            try:
+                command, args = conn.recv()
+            except (EOFError, KeyboardInterrupt):
+                break
+            if command == "close":
+                env.close()
+                conn.send(("ok", None))
+                break
+            try:
+                conn.send(("ok", _run(env, command, args)))
+            except OSError:
+                raise
+            except BaseException as error:  # the command's error, or its result's (pickling)
+                conn.send(("error", _portable(error)))
+    except OSError:  # the caller is gone (killed): its end of the pipe broke; leave without a traceback
+        pass
+    finally:
+        conn.close()
 
 
 class ShardWorkers:

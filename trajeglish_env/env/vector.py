@@ -33,6 +33,7 @@ from trajeglish_env.env.scene_batch import SceneBatch
 from trajeglish_env.env.scenes import scene_set
 from trajeglish_env.env.simulation import AgentReport, Simulation
 from trajeglish_env.env.threads import auto_threads
+from trajeglish_env.heap import release_freed_memory
 
 __all__ = [
     "BatchedEgoEnv",
@@ -106,6 +107,7 @@ class BatchCore:
         close_rows = getattr(self.batch.rows, "close", None)
         if close_rows is not None:
             close_rows()
+        release_freed_memory()  # what was freed goes back to the kernel (docs in heap.py)
 
 
 class EgoScene:
@@ -254,6 +256,7 @@ class BatchedEgoEnv(EgoVectorEnv):
         done = [i for i, r in enumerate(reports) if r.terminated or r.truncated]
         finals = dict(zip(done, batch.observe(done, self.egos[done]), strict=True))
         infos = [self._info(i, r.info) for i, r in enumerate(reports)]
+        ended = {i: infos[i] for i in done}  # the finished episodes' last infos (their ego and scene)
         for i in done:
             infos[i] = self.restart(i, None, None)
         self.core.position()
@@ -265,7 +268,7 @@ class BatchedEgoEnv(EgoVectorEnv):
                 r.terminated,
                 r.truncated,
                 info,
-                (finals[i], dict(r.info)) if i in finals else None,
+                (finals[i], ended[i]) if i in finals else None,
             )
             for i, (obs, r, info) in enumerate(zip(observations, reports, infos, strict=True))
         ]
