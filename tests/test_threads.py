@@ -121,3 +121,30 @@ def test_the_env_sets_its_threads_only_while_it_runs_the_model(monkeypatch) -> N
         batch.close()
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_containers_cpu_quota_caps_the_usable_cores(tmp_path, monkeypatch) -> None:
+    """`docker --cpus=2` on a 64-core host left the env's "auto" policies at 64 threads / processes."""
+    from trajeglish_env import cores
+
+    v2 = tmp_path / "v2"
+    v2.mkdir()
+    (v2 / "cpu.max").write_text("150000 100000\n")
+    assert cores.cgroup_cpu_quota(str(v2)) == 1.5
+    (v2 / "cpu.max").write_text("max 100000\n")
+    assert cores.cgroup_cpu_quota(str(v2)) is None
+    v1 = tmp_path / "v1"
+    (v1 / "cpu").mkdir(parents=True)
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("300000")
+    (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000")
+    assert cores.cgroup_cpu_quota(str(v1)) == 3.0
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1")
+    assert cores.cgroup_cpu_quota(str(v1)) is None and cores.cgroup_cpu_quota(str(tmp_path / "none")) is None
+    monkeypatch.setattr(cores, "cgroup_cpu_quota", lambda: 0.5)
+    assert cores.usable_cores() == 1
+
+
+def test_closed_envs_give_the_heaps_free_pages_back() -> None:
+    from trajeglish_env.heap import release_freed_memory
+
+    assert release_freed_memory() is True  # glibc: malloc_trim ran
