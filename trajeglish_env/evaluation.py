@@ -34,6 +34,7 @@ from trajeglish_env.evaluation_methods import (  # noqa: F401 (re-exported: eval
     departed_filled,
     horizon,
     log_method,
+    parked,
     simulated,
     spread_indices,
     submission_method,
@@ -136,7 +137,7 @@ def red_light_runs(scene: Scenario, fut: np.ndarray) -> np.ndarray:
     sim = simulated(scene)
     now = np.broadcast_to(scene.xyh[sim, scene.current_index, None, :2], (fut.shape[0], len(sim), 1, 2))
     xy = np.concatenate([now, fut[..., :2]], axis=2)
-    ran = red_light_violations(signals.signals, xy, np.ones(xy.shape[:3], bool), scene.current_index).any(-1)
+    ran = red_light_violations(signals.signals, xy, ~parked(scene, xy), scene.current_index).any(-1)
     kind = scene.kind[sim]
     for k in AgentKind:
         out[k] = ran[:, kind == k].sum(), ran.shape[0] * int((kind == k).sum())

@@ -58,15 +58,28 @@ def departed_filled(
     if not raw:
         last = np.maximum.accumulate(np.where(valid, np.arange(scene.num_steps), 0), axis=1)
         xyh = np.take_along_axis(xyh, last[..., None], axis=1)
-    extent = max(
-        np.abs(scene.xyh[scene.valid, :2]).max(initial=0.0), np.abs(scene.map_points).max(initial=0.0)
-    )
     park = np.zeros((len(sim), 3))
-    park[:, 0] = extent + 1000.0 + 100.0 * np.arange(len(sim))
-    park[:, 1] = extent + 1000.0
+    park[:, 0] = scene_extent(scene) + PARK_GAP + PARK_SPACING * np.arange(len(sim))
+    park[:, 1] = scene_extent(scene) + PARK_GAP
     kept = valid | np.isin(sim, evaluated_agents(scene, sim))[:, None]
     filled = np.where(kept[..., None], xyh, park[:, None, :])[:, c + 1 :]
     return filled, (details.xyz[sim, c + 1 :, 2] if raw else None)
+
+
+PARK_GAP, PARK_SPACING = 1000.0, 100.0  # m: where departed obstacles are parked, beyond the scene, apart
+
+
+def scene_extent(scene: Scenario) -> float:
+    """The largest |x| or |y| of the scene's logged agents and map points (m)."""
+    agents = np.abs(scene.xyh[scene.valid, :2]).max(initial=0.0)
+    return float(max(agents, np.abs(scene.map_points).max(initial=0.0)))
+
+
+def parked(scene: Scenario, xy: np.ndarray) -> np.ndarray:
+    """Where positions ``xy [..., 2]`` are parking spots of :func:`departed_filled` (beyond the scene): the
+    diagnostics that read every simulated agent's moves leave those steps out (a jump to a spot is no
+    move: it crossed red stop lines)."""
+    return np.abs(np.asarray(xy)).max(axis=-1) > scene_extent(scene) + PARK_GAP / 2
 
 
 def _repeated(
