@@ -254,3 +254,16 @@ def test_human_mode_draws_once_per_timestep(monkeypatch) -> None:
     for _ in range(agents):
         env.step(env.action_space(env.agent_selection).sample())
     assert calls == [scene.current_index, scene.current_index + 1]
+
+
+def test_a_legend_names_the_colours_the_picture_uses(straight_scene: Scenario) -> None:
+    """Pictures had no key: the colours' meanings were in the README only."""
+    r = SceneRenderer(straight_scene, config=RenderConfig(200, 200, legend=True))
+    try:
+        labels = [t.get_text() for t in r.ax.get_legend().get_texts()]
+        assert labels[:2] == ["sdc / external", "vehicle"] and "log replay" not in labels
+    finally:
+        r.close()
+    plain = SceneRenderer(straight_scene, config=RenderConfig(200, 200))
+    assert plain.ax.get_legend() is None
+    plain.close()

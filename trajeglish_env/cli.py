@@ -77,7 +77,9 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.render import RenderConfig, save_render
 
     scene = scene_at(args.scene, args.index)
-    config = RenderConfig(view_radius=args.radius, follow_sdc=args.follow_sdc, show_ids=args.ids)
+    config = RenderConfig(
+        view_radius=args.radius, follow_sdc=args.follow_sdc, show_ids=args.ids, legend=args.legend
+    )
     out = save_render(scene, args.out, config=config, fps=args.fps)
     return {"scene": scene.scenario_id, "source": scene.source, "agents": scene.num_agents, "out": str(out)}
 
@@ -166,6 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--radius", type=positive_float, default=None, help="half-width of the view in metres")
     p.add_argument("--follow-sdc", action="store_true", help="keep the sdc at the centre")
     p.add_argument("--ids", action="store_true", help="label agents with their track ids")
+    p.add_argument("--legend", action="store_true", help="a key of the colours in the lower left corner")
     p.add_argument("--fps", type=POSITIVE, default=10)
 
     add_tokenizer_commands(add, sub)

@@ -184,7 +184,7 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
         valid=res.valid[0],
         # the model's agents by class, the sdc (also the model's: full control) red; the log's grey
         colors=role_colors(scene, np.arange(scene.num_agents) == scene.sdc, res.controlled),
-        config=RenderConfig(follow_sdc=args.follow_sdc),
+        config=RenderConfig(follow_sdc=args.follow_sdc, legend=args.legend),
         png_step=res.xyh.shape[2] - 1,  # a picture shows where the rollout ends, its last second in trails
         caption=f"Trajeglish rollout, guard {args.guard}, T = {args.temperature:g}",
     )
@@ -313,6 +313,7 @@ def add_eval_commands(add: AddCommand) -> None:
     )
     add_sampling_args(p)
     p.add_argument("--follow-sdc", action="store_true")
+    p.add_argument("--legend", action="store_true", help="a key of the colours in the lower left corner")
     p.add_argument("--guard", choices=("on", "off"), default="on", help="guarded sampling (default: on)")
     p.add_argument("--no-green-rule", action="store_true", help="the guard without its green-light rule")
     add_road_ahead_arg(p)

@@ -38,6 +38,7 @@ KIND_COLORS = {
     AgentKind.CYCLIST: (0.20, 0.70, 0.30),
 }
 SDC_COLOR = (0.85, 0.10, 0.15)
+REPLAY_COLOR = (0.55, 0.55, 0.55)  # agents replaying their log in an env or rollout
 # traffic-signal lamps at their stop points, by SignalState (unknown: grey)
 SIGNAL_COLORS = np.full((max(SignalState) + 1, 3), 0.6)
 SIGNAL_COLORS[[SignalState.STOP, SignalState.ARROW_STOP, SignalState.FLASHING_STOP]] = (0.90, 0.05, 0.05)
@@ -67,6 +68,7 @@ class RenderConfig:
     trail_steps: int = 10
     show_ids: bool = False
     title: bool = True
+    legend: bool = False  # a key of the colours in the lower left corner
 
 
 class SceneRenderer:
@@ -122,6 +124,8 @@ class SceneRenderer:
         if scenario.signal_state is not None and len(scenario.signal_lane_id):
             xy = scenario.signal_xy
             self._lamps = self.ax.scatter(xy[:, 0], xy[:, 1], s=22, zorder=3, edgecolors="k", linewidths=0.4)
+        if config.legend:
+            self._draw_legend(font)
         self.focus_order = np.array([scenario.sdc], dtype=np.int64)
         self._centre: np.ndarray | None = None
         # a scene wider than MAX_FITTED_RADIUS (a straight highway: cars a few pixels in a thin strip) is
@@ -169,6 +173,7 @@ class SceneRenderer:
             groups.setdefault(key, []).append(pts)
         for key, lines in groups.items():
             self.ax.add_collection(LineCollection(lines, zorder=2 if key != "lane" else 1, **styles[key]))
+        self._stop_signs = bool(stop_pts)
         if stop_pts:
             p = np.array(stop_pts)
             # a dark-red octagon ringed in white: unlike a signal lamp (a round lamp ringed in black)
@@ -182,6 +187,38 @@ class SceneRenderer:
                 linewidths=1.0,
                 zorder=3,
             )
+
+    def _draw_legend(self, font: float) -> None:
+        """A key of the colours this picture uses (agent roles and classes, signal lamps, stop signs)."""
+        from matplotlib.lines import Line2D
+        from matplotlib.patches import Patch
+
+        used = {tuple(np.round(c, 3)) for c in self.colors}
+        names = [
+            (SDC_COLOR, "sdc / external"),
+            (KIND_COLORS[AgentKind.VEHICLE], "vehicle"),
+            (KIND_COLORS[AgentKind.PEDESTRIAN], "pedestrian"),
+            (KIND_COLORS[AgentKind.CYCLIST], "cyclist"),
+            (REPLAY_COLOR, "log replay"),
+        ]
+        handles: list = [
+            Patch(facecolor=c, edgecolor="k", label=n) for c, n in names if tuple(np.round(c, 3)) in used
+        ]
+        if self._lamps is not None:
+            handles.append(
+                Line2D(
+                    [],
+                    [],
+                    marker="o",
+                    ls="",
+                    mfc=SIGNAL_COLORS[SignalState.STOP],
+                    mec="k",
+                    label="signal (its state)",
+                )
+            )
+        if self._stop_signs:
+            handles.append(Line2D([], [], marker="8", ls="", mfc=(0.6, 0.0, 0.0), mec="w", label="stop sign"))
+        self.ax.legend(handles=handles, loc="lower left", fontsize=font * 0.85, framealpha=0.75)
 
     def _fitted_view(self) -> tuple[np.ndarray, float]:
         """Centre and half-width (m) of the view that holds every agent over the whole scene."""
@@ -345,7 +382,6 @@ def save_render(
 
 
 # ---------------------------------------------------------------------------------------------- episodes
-REPLAY_COLOR = (0.55, 0.55, 0.55)
 
 
 def role_colors(scenario: Scenario, external: np.ndarray, npc: np.ndarray) -> np.ndarray:
