@@ -448,3 +448,47 @@ def test_the_ego_envs_infos_have_the_same_keys_at_reset_and_every_step() -> None
         == {k for k in batch.step(np.zeros((2, 2), np.float32))[4] if not k.startswith("_")}
     )
     batch.close()
+
+
+def test_the_first_slot_plays_the_users_npc_object_and_an_uncopyable_one_is_shared_with_a_warning() -> None:
+    """Copying for every slot broke what worked: an object's own counters never saw an episode, and one
+    holding a lock could not be used at all."""
+    import gc
+    import threading
+
+    from trajeglish_env.env import EgoEnv, ReplayNPC
+
+    class Counting(ReplayNPC):
+        def __init__(self) -> None:
+            super().__init__()
+            self.resets = 0
+
+        def reset(self, *args, **kwargs):
+            self.resets += 1
+            return super().reset(*args, **kwargs)
+
+    mine = Counting()
+    first = EgoEnv(small_scenes(), npc=mine, max_cycles=3)
+    first.reset(seed=0)
+    first.reset(seed=1)
+    assert mine.resets == 2  # the object itself plays the first env's episodes
+    second = EgoEnv(small_scenes(), npc=mine, max_cycles=3)
+    second.reset(seed=0)
+    assert mine.resets == 2  # the second env plays a copy
+    del first, second
+    gc.collect()
+    third = EgoEnv(small_scenes(), npc=mine, max_cycles=3)  # the first env gone: the object plays again
+    third.reset(seed=0)
+    assert mine.resets == 3
+
+    class Locked(ReplayNPC):
+        def __init__(self) -> None:
+            super().__init__()
+            self.lock = threading.Lock()
+
+    from trajeglish_env.env.vector import BatchedEgoEnv
+
+    with pytest.warns(UserWarning, match="Locked: cannot be copied"):
+        batch = BatchedEgoEnv(2, small_scenes(), npc=Locked(), max_cycles=3)
+        batch.reset(seed=0)
+    batch.close()

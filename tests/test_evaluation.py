@@ -262,16 +262,30 @@ def test_a_scene_with_an_undefined_score_leaves_the_others_mean() -> None:
     assert mean.metametric == pytest.approx(a.metametric)
 
 
-def test_a_parked_agents_jump_is_no_red_light_run() -> None:
+def test_a_parked_agents_jump_is_no_red_light_run(monkeypatch) -> None:
     """Parking a departed obstacle beyond the scene moved it across red stop lines on the way: 5 vehicle
-    "runs" of the SUMO log in evaluate's red-light diagnostic (every simulated agent), none held."""
+    "runs" of the SUMO log in evaluate's red-light diagnostic (every simulated agent), none held. Neither
+    the jump onto a parking spot nor one back from it (an agent that returns after a gap) is a move."""
+    import trajeglish_env.evaluation as evaluation
     from trajeglish_env.evaluation_methods import PARK_GAP, scene_extent
+    from trajeglish_env.sampler.guard_signals import SceneSignals
 
     sc = generate_scene("two-way", seed=3)
     fut = log_method(sc, 1, 0)
-    edge = scene_extent(sc)
     assert not parked(sc, fut[..., :2]).any()
     far = fut.copy()
-    far[0, 0, 40:, 0] = edge + PARK_GAP
-    mask = parked(sc, far[..., :2])
-    assert mask[0, 0, 40:].all() and mask.sum() == far.shape[2] - 40
+    far[0, 0, 40:50, 0] = scene_extent(sc) + PARK_GAP  # agent 0 away for 10 steps, then back
+    seen = {}
+
+    def spy(signals, xy, valid, first):
+        seen["valid"] = valid
+        return np.zeros((*valid.shape, 1), bool)
+
+    monkeypatch.setattr(
+        SceneSignals, "of", classmethod(lambda cls, scene: type("S", (), {"signals": None})())
+    )
+    monkeypatch.setattr(evaluation, "red_light_violations", spy)
+    red_light_runs(sc, far)
+    # positions: the current step, then the 80 future ones (future step g at index g + 1)
+    away = ~seen["valid"][0, 0]
+    assert away[41:52].all() and away.sum() == 11  # the 10 parked steps and the first one back

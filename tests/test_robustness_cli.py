@@ -193,3 +193,17 @@ def test_files_of_the_wrong_kind_are_named_with_what_was_expected(tmp_path: Path
     (run / "metrics.csv").write_bytes(b"step,val_nll\n\x80\x81\xff\n")
     assert _run(["curves", f"a={run}", "--out", str(tmp_path / "c.png"), "--quiet"]) == 2
     assert "metrics.csv: not a text metrics file" in capsys.readouterr().err
+
+
+def test_a_ranks_own_error_is_named_and_stdout_keeps_one_object(capsys, monkeypatch) -> None:
+    """Under torchrun every rank printed the error (two JSON objects on stdout); then rank > 0 printed
+    nothing, though an error may be its own (a shard only it reads)."""
+    monkeypatch.setenv("RANK", "1")
+    assert _run(["train", "--data", "/nonexistent", "--out", "/tmp/never", "--json"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and "trajeglish train [rank 1]: error: /nonexistent" in err
+    monkeypatch.setenv("RANK", "0")
+    assert _run(["train", "--data", "/nonexistent", "--out", "/tmp/never", "--json"]) == 2
+    out, err = capsys.readouterr()
+    assert json.loads(out)["type"] == "FileNotFoundError"
+    assert err.startswith("trajeglish train: error: /nonexistent")

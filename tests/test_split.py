@@ -485,3 +485,24 @@ def test_batched_envs_render_as_single_envs_do_before_reset_and_without_a_mode()
             assert quiet.render() is None
         assert any("without a render_mode" in str(w.message) for w in caught)
         quiet.close()
+
+
+def _missing_file(env):
+    raise FileNotFoundError("no such file: x.npz")
+
+
+def _ones(env):
+    return 1
+
+
+def test_a_commands_oserror_reaches_the_caller_and_the_worker_lives_on() -> None:
+    """A first version of the quiet exit on a broken pipe took any OSError of a command (a user's
+    FileNotFoundError in `apply`) for the caller being gone: the worker died, the error was lost."""
+    split = SplitEgoEnv(2, processes=2, npc="replay", max_cycles=3)
+    try:
+        split.reset(seed=0)
+        with pytest.raises(FileNotFoundError, match="no such file: x.npz"):
+            split.apply(_missing_file)
+        assert split.apply(_ones) == [1, 1]
+    finally:
+        split.close()

@@ -159,11 +159,13 @@ def test_resume_continues_exactly(scenes_dir, tmp_path, monkeypatch) -> None:
     assert (tmp_path / "c" / "model.pt").read_bytes() == model_bytes
     with pytest.raises(ValueError, match="one of --resume .* and --overwrite"):
         new_run("c", config=_quick(), resume=True, overwrite=True)
-    # --overwrite removes the old run's files first: a run stopped early never leaves the old model beside it
+    # --overwrite removes the old run's files once the new inputs have loaded (a typo in the new command
+    # keeps them), so a run stopped early never leaves the old model beside its own last.pt
     (tmp_path / "c" / "training_curve.png").write_bytes(b"old")
-    from trajeglish_env.training.run_records import check_run_folder
-
-    check_run_folder(tmp_path / "c", resume=False, overwrite=True)
+    with pytest.raises(FileNotFoundError):
+        train(tmp_path / "nowhere", tmp_path / "c", tiny_config(), _quick(), overwrite=True, progress=False)
+    assert (tmp_path / "c" / "model.pt").read_bytes() == model_bytes
+    run_records.clear_old_run(tmp_path / "c")
     assert not any((tmp_path / "c" / f).exists() for f in run_records.RUN_FILES)
 
 
@@ -320,7 +322,7 @@ def test_non_finite_gradients_skip_the_update_and_never_reach_a_checkpoint(
     with pytest.raises(
         run_records.TrainingDiverged,
         match=r"in a row up to step 14 had non-finite gradients.*b/last.pt keeps the weights of step 12\); "
-        "train again with a lower --lr and --overwrite",
+        r"train again with a lower --lr: from it with --init .*b/last.pt and another --out, or from the ",
     ):
         train(
             scenes_dir,
@@ -380,13 +382,16 @@ def test_a_checkpoint_with_a_flipped_byte_or_nan_weights_is_refused(tmp_path) ->
         load_checkpoint(tmp_path / "nan.pt")
 
 
-def test_a_warmup_as_long_as_the_schedule_is_cut_to_a_tenth() -> None:
+def test_a_warmup_longer_than_half_the_schedule_is_cut_to_half() -> None:
     """--steps 10 --warmup 50 (or a schedule fitted to 36 steps with the default warmup of 100) never peaked
     and never decayed: the learning rate ended at a fifth of the peak."""
     short = TrainConfig(steps=40, lr=1e-3, warmup_steps=100)
     lrs = [short.lr_at(k) for k in range(40)]
-    assert (
-        max(lrs) == pytest.approx(1e-3) and lrs.index(max(lrs)) == 3 and lrs[-1] == pytest.approx(1e-3 / 36)
+    assert max(lrs) == pytest.approx(1e-3) and lrs.index(max(lrs)) == 19
+    assert lrs[-1] == pytest.approx(1e-3 / 20)
+    # no cliff at warmup = steps: 39 and 40 of 40 warm up alike
+    assert TrainConfig(steps=40, warmup_steps=39).lr_at(30) == TrainConfig(steps=40, warmup_steps=40).lr_at(
+        30
     )
     normal = TrainConfig(steps=1000, lr=1e-3, warmup_steps=100)  # unchanged where the warmup fits
     assert normal.lr_at(49) == pytest.approx(5e-4) and normal.lr_at(550) == pytest.approx(5e-4)
@@ -407,9 +412,12 @@ def test_validation_scenes_that_are_training_scenes_are_warned(
         )
     warn_overlap([], [])
     assert capsys.readouterr().err == ""
-    # two shards at a held-out share of 1/20: none is held out (the first was: half of the data)
-    files = [tmp_path / "a.scn.npz", tmp_path / "b.scn.npz"]
-    assert split_shards(files, 0.05) == (files, []) and split_shards(files * 10, 0.05)[1] == [files[0]]
+    # two shards at a held-out share of 1/20: none is held out (the first was: half of the data); from four
+    # shards on the first one (19 kept one before and keep it)
+    files = [tmp_path / f"{k}.scn.npz" for k in range(20)]
+    assert split_shards(files[:2], 0.05) == (files[:2], []) and split_shards(files[:3], 0.05)[1] == []
+    assert split_shards(files[:4], 0.05)[1] == [files[0]] and split_shards(files[:19], 0.05)[1] == [files[0]]
+    assert split_shards(files, 0.05)[1] == [files[0]]
 
 
 def test_an_interrupted_run_names_the_step_its_resume_goes_on_from(scenes_dir, tmp_path) -> None:

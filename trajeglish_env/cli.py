@@ -266,10 +266,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         if os.environ.get("TRAJEGLISH_TRACEBACK", "") not in ("", "0"):
             raise
         message = one_line(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
-        if os.environ.get("RANK", "0") == "0":  # every rank meets the same bad input: the main one says so
+        rank = os.environ.get("RANK", "0")
+        if rank == "0":  # the JSON object once per job (stdout stays one object)
             if getattr(args, "json", False):
                 print(json.dumps({"error": message, "type": type(exc).__name__}))
             print(f"{args.command_name}: error: {message}", file=sys.stderr)
+        else:  # a rank's own error (a shard only it reads) is named too
+            print(f"{args.command_name} [rank {rank}]: error: {message}", file=sys.stderr)
         return EXIT_BAD_INPUT
     code = int(result.pop("exit_code", 0))
     if not result.pop("_silent", False):  # non-main ranks of a torchrun job print nothing

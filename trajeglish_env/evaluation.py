@@ -137,7 +137,10 @@ def red_light_runs(scene: Scenario, fut: np.ndarray) -> np.ndarray:
     sim = simulated(scene)
     now = np.broadcast_to(scene.xyh[sim, scene.current_index, None, :2], (fut.shape[0], len(sim), 1, 2))
     xy = np.concatenate([now, fut[..., :2]], axis=2)
-    ran = red_light_violations(signals.signals, xy, ~parked(scene, xy), scene.current_index).any(-1)
+    away = parked(scene, xy)
+    moved = ~away
+    moved[..., 1:] &= ~away[..., :-1]  # neither the jump onto a parking spot nor back from it is a move
+    ran = red_light_violations(signals.signals, xy, moved, scene.current_index).any(-1)
     kind = scene.kind[sim]
     for k in AgentKind:
         out[k] = ran[:, kind == k].sum(), ran.shape[0] * int((kind == k).sum())

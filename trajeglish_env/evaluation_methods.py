@@ -29,9 +29,10 @@ def simulated(scene: Scenario) -> np.ndarray:
 
 
 def spread_indices(n: int, k: int) -> list[int]:
-    """``min(n, k)`` indices evenly spread over ``range(n)`` (``k * n // k``-spaced): scenes of several
-    sources or shards, listed one after the other, are each represented (a stride ``n // k`` dropped the
-    last source whenever ``k < n < 2k``); the first ``k`` when ``n`` is a multiple of ``k``."""
+    """``min(n, k)`` indices evenly spread over ``range(n)`` (index ``j * n // k`` for j < k): scenes of
+    several sources or shards, listed one after the other, are each represented (a stride ``n // k``
+    dropped the last source whenever ``k < n < 2k``); every ``n / k``-th where ``k`` divides ``n``, as
+    before."""
     return sorted({j * n // k for j in range(k)}) if k < n else list(range(n))
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import os
 
 # allocations below this come from the heap (reused) rather than fresh kernel pages; 32 MB is the most
@@ -41,11 +42,9 @@ def keep_freed_memory() -> bool:
 
 def _mallopt() -> bool:
     """Both thresholds set, each on its own (True where both were accepted)."""
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError, TypeError):
+    libc = _libc()
+    mallopt = getattr(libc, "mallopt", None) if libc is not None else None
+    if mallopt is None:
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     trim = bool(mallopt(_M_TRIM_THRESHOLD, TRIM_MB << 20))
@@ -56,11 +55,19 @@ def _mallopt() -> bool:
 def release_freed_memory() -> bool:
     """Give the C heap's free pages back to the kernel (glibc's ``malloc_trim(0)``, every arena); whether
     it ran. Call it after dropping a large env (``del env``) to shrink the process's resident memory."""
-    name = ctypes.util.find_library("c")
-    try:
-        trim = ctypes.CDLL(name).malloc_trim
-    except (OSError, AttributeError, TypeError):
+    libc = _libc()
+    trim = getattr(libc, "malloc_trim", None) if libc is not None else None
+    if trim is None:
         return False
     trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
     trim(0)
     return True
+
+
+@functools.cache
+def _libc() -> ctypes.CDLL | None:
+    """The C library, found once (``find_library`` runs ``ldconfig``: milliseconds a call)."""
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c"))
+    except (OSError, TypeError):
+        return None

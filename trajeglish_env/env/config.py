@@ -259,6 +259,8 @@ class EnvConfig:
             raise ValueError(
                 f"EnvConfig.torch_threads must be 'auto', None or an integer >= 1, got {threads!r}"
             )
+        if isinstance(threads, numbers.Integral):
+            object.__setattr__(self, "torch_threads", int(threads))
 
     def with_overrides(self, **overrides: Any) -> EnvConfig:
         """A copy with some fields replaced (unknown names are refused, naming the valid ones)."""

@@ -10,8 +10,12 @@ states through :meth:`view` (a :class:`RowView`).
 
 from __future__ import annotations
 
+import copy
+import functools
+import warnings
+import weakref
 from collections.abc import Callable
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 
@@ -175,6 +179,47 @@ class OrderedDriver:
         self.xyh[agent, self._t + 1] = next_xyh if valid else 0.0
         self.valid[agent, self._t + 1] = bool(valid) and self.valid[agent, self._t]
         self.known[agent] = True
+
+
+class PolicyCopies:
+    """The policy of each scene slot of an env given a user's NPC policy object: the object itself for the
+    first slot, while no other env's slot plays it (its counters and logs see the episodes, as before), and
+    a ``copy.deepcopy`` for every other slot (other scenes of a batch, other envs): one object shared by
+    several slots had each reset overwrite another scene's episode state. An object that cannot be copied
+    (a lock, a client) is shared, with a warning."""
+
+    _players: ClassVar[dict[int, weakref.ref]] = {}  # id(object) -> the PolicyCopies whose slot plays it
+
+    def __init__(self, npc: NPCPolicy):
+        self.npc = npc
+        self._gave_original = False
+
+    def __call__(self) -> NPCPolicy:
+        key = id(self.npc)
+        player = PolicyCopies._players.get(key)
+        if not self._gave_original and (player is None or player() is None):
+            PolicyCopies._players[key] = weakref.ref(self, functools.partial(_release, key))
+            self._gave_original = True
+            return self.npc
+        try:
+            return copy.deepcopy(self.npc)
+        except Exception as error:  # noqa: BLE001 (any failure to copy: share instead, and say so)
+            warnings.warn(
+                f"NPC policy {type(self.npc).__name__}: cannot be copied ({error}); the scenes share the one "
+                "object, so each one's reset overwrites the others' episode state (give each env its own, or "
+                "let it deep-copy)",
+                stacklevel=2,
+            )
+            return self.npc
+
+    def __getstate__(self) -> dict[str, object]:
+        return {"npc": self.npc, "_gave_original": False}  # another process: its own first slot
+
+
+def _release(key: int, ref: weakref.ref) -> None:
+    """A :class:`PolicyCopies` whose slot played an object is gone: another env's slot may play it."""
+    if PolicyCopies._players.get(key) is ref:
+        del PolicyCopies._players[key]
 
 
 class RuleRows:

@@ -11,7 +11,6 @@ on the other scenes of the batch.
 
 from __future__ import annotations
 
-import copy
 import functools
 import os
 from collections.abc import Sequence
@@ -21,7 +20,7 @@ import numpy as np
 
 from trajeglish_env.env.batch_outcomes import BatchGeometry
 from trajeglish_env.env.config import EnvConfig, TrajeglishNPC
-from trajeglish_env.env.drivers import EngineRows, NPCRows, RuleRows
+from trajeglish_env.env.drivers import EngineRows, NPCRows, PolicyCopies, RuleRows
 from trajeglish_env.env.npc import NPCPolicy, make_npc_policy
 from trajeglish_env.env.observations import EgoState
 from trajeglish_env.env.simulation import AgentReport, Roles, Simulation, apply_actions, episode_horizon
@@ -113,9 +112,8 @@ class SceneBatch:
         if self.settings is None:
             if isinstance(npc, str):  # partials, not lambdas: an env with rule-based NPCs pickles
                 return RuleRows(self.num_scenes, functools.partial(make_npc_policy, npc))
-            # a user's policy object: each scene plays its own copy (one object shared by the rows of a
-            # batch, or by several envs, would have each reset overwrite another scene's episode state)
-            return RuleRows(self.num_scenes, functools.partial(copy.deepcopy, npc), fresh_each_start=False)
+            # a user's policy object: the first slot plays it, every other slot its own copy (PolicyCopies)
+            return RuleRows(self.num_scenes, PolicyCopies(npc), fresh_each_start=False)
         from trajeglish_env.env.engine_shards import ShardedEngineRows, engine_shards
         from trajeglish_env.sampler.engine import BatchEngine
 

@@ -191,26 +191,37 @@ def _serve(
         conn.send(("error", _portable(error)))
         conn.close()
         return
+    while True:
+        try:
+            command, args = conn.recv()
+        except (EOFError, KeyboardInterrupt, OSError):  # the caller closed its end, or is gone (killed)
+            break
+        if command == "close":
+            env.close()
+            _reply(conn, ("ok", None))
+            break
+        try:
+            reply = ("ok", _run(env, command, args))
+        except BaseException as error:  # the command's own error (an OSError too) goes back to the caller
+            reply = ("error", _portable(error))
+        if not _reply(conn, reply):
+            break
+    conn.close()
+
+
+def _reply(conn: Any, message: tuple[str, Any]) -> bool:
+    """Send ``message``; a result that does not pickle is sent as its error instead. False where the caller
+    is gone (its end of the pipe broke: the worker leaves quietly, without a traceback)."""
     try:
-        while True:
-            try:
-                command, args = conn.recv()
-            except (EOFError, KeyboardInterrupt):
-                break
-            if command == "close":
-                env.close()
-                conn.send(("ok", None))
-                break
-            try:
-                conn.send(("ok", _run(env, command, args)))
-            except OSError:
-                raise
-            except BaseException as error:  # the command's error, or its result's (pickling)
-                conn.send(("error", _portable(error)))
-    except OSError:  # the caller is gone (killed): its end of the pipe broke; leave without a traceback
-        pass
-    finally:
-        conn.close()
+        conn.send(message)
+    except (BrokenPipeError, ConnectionError, EOFError):
+        return False
+    except Exception as error:  # pickling the result failed: nothing was written
+        try:
+            conn.send(("error", _portable(error)))
+        except (BrokenPipeError, ConnectionError, EOFError):
+            return False
+    return True
 
 
 class ShardWorkers:

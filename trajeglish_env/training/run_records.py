@@ -5,7 +5,7 @@ the checks that keep a run folder from being overwritten or resumed with other s
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -84,18 +84,16 @@ RUN_FILES = ("last.pt", "model.pt", "metrics.csv", "training_curve.png")
 
 def check_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
     """A new run into a folder that holds one (``last.pt`` or ``model.pt``) would overwrite it: refused unless
-    ``resume`` (go on with it) or ``overwrite`` (start again: the old run's files are removed now, so the
-    folder never mixes two runs' files). A ``resume`` of a folder with a ``model.pt`` and no ``last.pt`` (a
-    finished model kept alone) is refused too: it would train a new model over it."""
+    ``resume`` (go on with it) or ``overwrite`` (start again: :func:`clear_old_run` removes the old run's
+    files once the new run's inputs have loaded). A ``resume`` of a folder with a ``model.pt`` and no
+    ``last.pt`` (a finished model kept alone) is refused too: it would train a new model over it."""
     if resume and overwrite:
         raise ValueError(
             "pass one of --resume (go on with the run) and --overwrite (start it again), not both"
         )
     held = [f for f in ("last.pt", "model.pt") if (out / f).is_file()]
     if overwrite:
-        for name in RUN_FILES:
-            (out / name).unlink(missing_ok=True)
-        return
+        return  # the old files go once the new run's inputs have loaded (clear_old_run)
     if resume and held == ["model.pt"]:
         raise FileExistsError(
             f"{out} holds a model (model.pt) but no last.pt to resume from: resuming would train a new model "
@@ -123,8 +121,18 @@ def diverged_note(last: Path, unstable: int, step: int) -> str:
     )
     return (
         f"{unstable} steps in a row up to step {step} had non-finite gradients, so training stopped "
-        f"({where}); train again with a lower --lr and --overwrite (or another --out)"
+        f"({where}); train again with a lower --lr: from it with --init {last} and another --out, or "
+        "from the start with --overwrite"
+        if kept is not None
+        else f"({where}); train again with a lower --lr and --overwrite (or another --out)"
     )
+
+
+def clear_old_run(out: Path) -> None:
+    """``--overwrite``: remove the old run's files, once the new run's inputs have loaded (a typo in the
+    new command must not cost the old model), so the folder never mixes two runs' files."""
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
 
 
 def resume_point(out: Path) -> int | None:
@@ -158,6 +166,7 @@ def resumed_config(
     config: TrainConfig,
     fit_steps: bool,
     defaults: TrainConfig | None = None,
+    note: Callable[[str], None] | None = None,
 ) -> TrainConfig:
     """The settings a resumed run goes on with: the requested ones, which must be the run's own (a
     CheckpointError naming the fields that differ otherwise), with the schedule's fitted length kept.
@@ -181,9 +190,15 @@ def resumed_config(
     if defaults is not None:
         unset = dataclasses.asdict(defaults)
         asked = dataclasses.asdict(config)
-        config = dataclasses.replace(
-            config, **{k: saved[k] for k, v in asked.items() if k in saved and v == unset.get(k, v)}
-        )
+        taken = {
+            k: saved[k] for k, v in asked.items() if k in saved and v == unset.get(k, v) and saved[k] != v
+        }
+        config = dataclasses.replace(config, **taken)
+        if taken and note is not None:  # visible: a flag given at its default value is taken as not given
+            note(
+                f"train: resuming {last.parent} with its own settings where the flags are at their defaults: "
+                + ", ".join(f"{k} {v!r}" for k, v in sorted(taken.items()))
+            )
     if saved != dataclasses.asdict(config):
         raise CheckpointError(
             f"{last}: it was trained with other settings than requested now ("

@@ -72,12 +72,16 @@ class ShardedScenes(Sequence[Scenario]):
         return sorted({s for shard in self.sources for s in shard})
 
 
+MIN_SHARDS_TO_HOLD_OUT = 4  # fewer shards: none is held out (train warns; --val-data gives a held-out set)
+
+
 def split_shards(files: Sequence[Path], fraction: float) -> tuple[list[Path], list[Path]]:
     """Deterministic train/validation split by whole shards: every k-th shard (k = 1 / ``fraction``) goes to
-    validation, none with fewer than k shards (the first of two shards held out half the data)."""
-    k = max(2, round(1 / fraction)) if fraction > 0 else 0
-    if fraction <= 0 or len(files) < k:
+    validation; with fewer than k shards the first one, where there are at least four (a quarter of the data
+    at most; the first of two shards held out half of it), else none."""
+    if fraction <= 0 or len(files) < MIN_SHARDS_TO_HOLD_OUT:
         return list(files), []
+    k = max(2, round(1 / fraction))
     return [f for i, f in enumerate(files) if i % k], [f for i, f in enumerate(files) if not i % k]
 
 

@@ -56,6 +56,7 @@ from trajeglish_env.training.run_records import (
     TrainingDiverged,
     check_resumed_inputs,
     check_run_folder,
+    clear_old_run,
     diverged_note,
     resumed_config,
     run_facts,
@@ -159,10 +160,10 @@ class TrainConfig:
         )
 
     def lr_at(self, step: int) -> float:
-        """Learning rate at ``step``: linear warmup, then linear decay to 0 at ``steps``; a warmup as long as
-        the schedule (a short run, or one fitted to a small budget) is cut to a tenth of it, so the
+        """Learning rate at ``step``: linear warmup, then linear decay to 0 at ``steps``; a warmup longer than
+        half the schedule (a short run, or one fitted to a small budget) is cut to half of it, so the
         learning rate still peaks and reaches 0."""
-        warm = self.warmup_steps if self.warmup_steps < self.steps else self.steps // 10
+        warm = min(self.warmup_steps, self.steps // 2)
         if step < warm:
             return self.lr * (step + 1) / warm
         return self.lr * max(0.0, (self.steps - step) / max(1, self.steps - warm))
@@ -243,6 +244,8 @@ def train(
     )
     if dd.main:
         warn_overlap(train_scenes, val_scenes)
+    if overwrite:  # the inputs loaded: now the old run's files go (every rank: missing_ok)
+        clear_old_run(out)
     if not val_scenes and dd.main:  # no held-out NLL (curves stay empty): say so, never silently
         print(
             f"train: warning: no validation scenes (the held-out share {config.val_fraction} of "
@@ -260,7 +263,10 @@ def train(
     if resume and last.is_file():
         ckpt = load_checkpoint(last, map_location=device)
         trainer = TrainerState.of(ckpt)
-        config = resumed_config(last, ckpt.config, model_config, trainer, config, fit_steps, resume_defaults)
+        note = (lambda text: print(text, file=sys.stderr)) if dd.main else None
+        config = resumed_config(
+            last, ckpt.config, model_config, trainer, config, fit_steps, resume_defaults, note
+        )
         note = check_resumed_inputs(last, ckpt, vocabulary, facts)
         if note and dd.main:
             print(note, file=sys.stderr)
