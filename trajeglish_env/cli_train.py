@@ -243,8 +243,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "--resume",
         action="store_true",
         help="continue from RUN/last.pt exactly where it stopped, with its own model, vocabulary and "
-        "settings (flags not given take the run's; one given that differs from the run's is refused, "
-        "naming it)",
+        "settings (flags at their default values take the run's, listed on stderr; one given with another "
+        "value that differs from the run's is refused, naming it)",
     )
     p.add_argument(
         "--overwrite",
