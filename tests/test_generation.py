@@ -79,7 +79,7 @@ def test_mismatched_resume_and_bad_kinds_are_refused(tmp_path) -> None:
     # a directory of the sharp-kerb generator (version 1, no generator_version recorded) is not resumed
     manifest = tmp_path / "manifest.json"
     doc = json.loads(manifest.read_text())
-    assert doc["generator_version"] == 2
+    assert doc["generator_version"] == 3
     manifest.write_text(json.dumps({k: v for k, v in doc.items() if k != "generator_version"}))
     with pytest.raises(ValueError, match="version 1 of the highway generator, this is version 2"):
         generate(GenerationConfig("highway", 1, seed=0, kinds=("two-way",)), tmp_path, progress=False)

@@ -271,3 +271,15 @@ def test_bad_inputs_are_named() -> None:
         generate_scene("highway", -1)
     with pytest.raises(ValueError, match="HighwaySceneConfig.current_index"):
         HighwaySceneConfig(steps=10, current_index=10)
+
+
+def test_two_way_traffic_keeps_its_lanes() -> None:
+    """In every two-way scene the sdc overtook into the lane of the oncoming traffic (MOBIL does not see
+    it) and drove the whole 9 s head-on at oncoming cars: no vehicle changes lanes there now."""
+    for seed in (100, 101, 102, 103):
+        sc = generate_scene("two-way", seed)
+        for i in range(sc.num_agents):
+            xyh = sc.xyh[i, sc.valid[i]]
+            ahead = np.cos(xyh[:, 2]) > 0  # driving the forward way: the right lane (y = -4); else y = 0
+            lane_y = np.where(ahead, -4.0, 0.0)
+            assert np.abs(xyh[:, 1] - lane_y).max() < 0.5, (seed, i)

@@ -72,7 +72,8 @@ __all__ = [
 ]
 
 SOURCE = "highway"
-GENERATOR_VERSION = 2  # 2: rounded kerb corners (HighwaySceneConfig.kerb_radius)
+# 2: rounded kerb corners (HighwaySceneConfig.kerb_radius); 3: no lane changes in two-way scenes
+GENERATOR_VERSION = 3
 # Kinds accepted by ``--kinds`` but not drawn by default: each base kind with a stop event (highway_stops).
 EXTRA_KINDS: tuple[str, ...] = tuple(kind + STOP_SUFFIX for kind in KINDS)
 
@@ -252,6 +253,9 @@ def _attempt(kind: str, seed: int, attempt: int, config: HighwaySceneConfig) -> 
     road = env.road
     ego_index = next(i for i, v in enumerate(road.vehicles) if v is env.vehicle)
     road.vehicles[:] = [as_scene_vehicle(v, spec.idm_class) for v in road.vehicles]
+    if not spec.lane_changes:
+        for vehicle in road.vehicles:
+            vehicle.enable_lane_change = False
     if spec.sdc_in_platoon:
         n = len(road.vehicles)
         ego_index = int(rng.integers(n // 4, max(n // 2, n // 4 + 1)))

@@ -115,6 +115,9 @@ class KindSpec:
     spawns_traffic: bool = False
     # Adjusts the freshly reset env (rng, density) before its vehicles become SceneIDMVehicles.
     prepare: Callable[[AbstractEnv, np.random.Generator, float], None] | None = None
+    # False: no vehicle changes lanes (two-way: the left lane is the oncoming traffic's, which MOBIL does
+    # not see: the sdc overtook into it and drove the whole log head-on at oncoming cars)
+    lane_changes: bool = True
 
 
 _ROUNDABOUT_RING = frozenset({"se", "ex", "ee", "nx", "ne", "wx", "we", "sx"})
@@ -210,7 +213,7 @@ KIND_SPECS: dict[str, KindSpec] = {
         },
         sdc_in_platoon=True,
     ),
-    "two-way": KindSpec(TwoWayEnv, MapKind.LANE_SURFACE_STREET, lambda rng, d: {}),
+    "two-way": KindSpec(TwoWayEnv, MapKind.LANE_SURFACE_STREET, lambda rng, d: {}, lane_changes=False),
     "u-turn": KindSpec(UTurnEnv, MapKind.LANE_SURFACE_STREET, lambda rng, d: {}),
     "racetrack": KindSpec(
         RacetrackEnv,
