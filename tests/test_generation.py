@@ -81,8 +81,19 @@ def test_mismatched_resume_and_bad_kinds_are_refused(tmp_path) -> None:
     doc = json.loads(manifest.read_text())
     assert doc["generator_version"] == 3
     manifest.write_text(json.dumps({k: v for k, v in doc.items() if k != "generator_version"}))
-    with pytest.raises(ValueError, match="version 1 of the highway generator, this is version 2"):
+    with pytest.raises(ValueError, match="version 1 of the highway generator, this is version 3"):
         generate(GenerationConfig("highway", 1, seed=0, kinds=("two-way",)), tmp_path, progress=False)
+    # shards without a manifest (settings unknown), or files this run would not write: never mixed in
+    manifest.unlink()
+    with pytest.raises(ValueError, match="holds scene shards but no manifest.json"):
+        generate(GenerationConfig("highway", 1, seed=0, kinds=("two-way",)), tmp_path, progress=False)
+    (tmp_path / "sumo-00000.scn.npz").write_bytes((tmp_path / "highway-00000.scn.npz").read_bytes())
+    with pytest.raises(
+        ValueError, match=r"holds scene files this run would not write \(sumo-00000.scn.npz\)"
+    ):
+        generate(GenerationConfig("highway", 1, seed=0, kinds=("two-way",)), tmp_path, progress=False)
+    (tmp_path / "sumo-00000.scn.npz").unlink()
+    manifest.write_text(json.dumps(doc))
     with pytest.raises(ValueError, match=r"unknown highway scene kinds \['parking'\]"):
         generate(GenerationConfig("highway", 1, kinds=("parking",)), tmp_path / "x", progress=False)
     with pytest.raises(ValueError, match="unknown scene source 'carla'"):

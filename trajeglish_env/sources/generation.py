@@ -128,6 +128,20 @@ def _check_manifest(out: Path, config: GenerationConfig) -> None:
     want = asdict(config)
     want["kinds"] = list(config.kinds)
     generator = int(getattr(load_source(config.source), "GENERATOR_VERSION", 1))
+    ours = {shard_path(out, config, k).name for k in range(config.num_shards)}
+    foreign = sorted(f.name for f in out.glob(f"*{SUFFIX}") if f.name not in ours)
+    if foreign:
+        raise ValueError(
+            f"{out}: holds scene files this run would not write ({', '.join(foreign[:3])}"
+            f"{', ...' if len(foreign) > 3 else ''}): another source's, another --scenes-per-shard's or "
+            "another tool's; refusing to mix them. Use another --out directory."
+        )
+    if not manifest.is_file() and any(out.glob(f"*{SUFFIX}")):
+        raise ValueError(
+            f"{out}: holds scene shards but no {MANIFEST} (made by an older version or another tool, or its "
+            "manifest was deleted): their settings are unknown, so they are not resumed. Use another --out "
+            "directory."
+        )
     if manifest.is_file():
         have = _read_manifest(manifest)
         if have.get("config") != want:
