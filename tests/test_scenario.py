@@ -139,3 +139,38 @@ def test_with_agents_keeps_sdc_and_remaps_indices(straight_scene: Scenario) -> N
     assert sub.kind[2] == AgentKind.CYCLIST
     with pytest.raises(ScenarioError, match="sdc"):
         straight_scene.with_agents(np.array([1, 2]))
+
+
+def test_from_arrays_checks_the_raw_values_before_casting() -> None:
+    """A kind of 256 became 0 and 1.7 became 1, a validity of 0.5 True, an sdc of 1.5 agent 1, a polyline
+    kind of 257 a freeway lane, and [P, 3] points were reshaped into other points, all silently."""
+    xyh, valid, size = np.zeros((2, 5, 3)), np.ones((2, 5), bool), np.ones((2, 2))
+    cases = (
+        ({"kind": np.array([0, 256])}, r"kind: expected whole numbers in \[0, 2\], got .*256"),
+        ({"kind": np.array([0.0, 1.7])}, r"kind: expected whole numbers in \[0, 2\], got .*1.7"),
+        ({"kind": [0, 1], "valid": np.full((2, 5), 0.5)}, "valid: expected booleans"),
+        ({"kind": [0, 1], "sdc": 1.5}, r"sdc: expected whole numbers >= 0, got .*1.5"),
+        (
+            {"kind": [0, 1], "polylines": [np.zeros((3, 3))], "polyline_kinds": [1]},
+            r"polylines\[0\]: expected",
+        ),
+        (
+            {"kind": [0, 1], "polylines": [np.zeros((3, 2))], "polyline_kinds": [257]},
+            "polyline_kinds: expected",
+        ),
+    )
+    for kw, message in cases:
+        args = {"xyh": xyh, "valid": kw.pop("valid", valid), "size": size, "current_index": 1}
+        with pytest.raises(ScenarioError, match=message):
+            Scenario.from_arrays(**args, **kw)
+    ok = Scenario.from_arrays(
+        xyh,
+        valid.astype(int),
+        size,
+        np.array([0, 1], np.int64),
+        sdc=np.int64(1),
+        polylines=[np.zeros(2), np.zeros((3, 2))],
+        polyline_kinds=[1, 2],
+        current_index=1,
+    )
+    assert ok.sdc == 1 and ok.valid.dtype == bool and ok.num_polylines == 2

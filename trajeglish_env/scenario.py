@@ -134,7 +134,20 @@ class Scenario:
         polyline_ids: list[int] | np.ndarray | None = None,
         **metadata: object,
     ) -> Scenario:
-        """Build and validate a Scenario from plain arrays and a list of polylines (how users bring data)."""
+        """Build and validate a Scenario from plain arrays and a list of polylines (how users bring data).
+        The raw values are checked before they are cast (a kind of 256 or 1.7, a validity of 0.5, an sdc of
+        1.5 or a polyline of [P, 3] points would otherwise turn silently into other values)."""
+        _check_whole("kind", kind, 0, max(AgentKind))
+        _check_whole("polyline_kinds", [] if polyline_kinds is None else polyline_kinds, 0, max(MapKind))
+        _check_whole("sdc", sdc, 0, None)
+        raw_valid = np.asarray(valid)
+        if raw_valid.dtype != bool and not np.isin(raw_valid, (0, 1)).all():
+            raise ScenarioError("valid: expected booleans (or 0 / 1), got other values")
+        for k, line in enumerate([] if polylines is None else polylines):
+            if np.shape(line) != (2,) and (np.ndim(line) != 2 or np.shape(line)[1] != 2):
+                raise ScenarioError(
+                    f"polylines[{k}]: expected [P, 2] points (x, y; a point: [2]); got {np.shape(line)}"
+                )
         polylines = (
             [] if polylines is None else [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in polylines]
         )
@@ -154,7 +167,7 @@ class Scenario:
         n = np.asarray(xyh).shape[0] if np.ndim(xyh) == 3 else 0
         scenario = cls(
             xyh=np.asarray(xyh, dtype=np.float64),
-            valid=np.asarray(valid, dtype=bool),
+            valid=raw_valid.astype(bool),
             size=np.asarray(size, dtype=np.float64),
             kind=np.asarray(kind, dtype=np.int8),
             track_id=np.arange(n, dtype=np.int64)
@@ -438,3 +451,19 @@ def scene_kind(scene: Scenario) -> str:
         if words and len(words) < len(parts) - 1:
             return f"{scene.source}/{'-'.join(words)}"
     return scene.source
+
+
+def _check_whole(field: str, values: object, low: int, high: int | None) -> None:
+    """A ScenarioError unless every one of ``values`` is a whole number in ``[low, high]`` (no bools)."""
+    array = np.asarray(values)
+    if array.size == 0:
+        return
+    if array.dtype == bool or not np.issubdtype(array.dtype, np.number):
+        raise ScenarioError(f"{field}: expected whole numbers, got {array.dtype} values")
+    bad = ~np.isfinite(array.astype(np.float64)) | (array != np.round(array)) | (array < low)
+    if high is not None:
+        bad |= array > high
+    if bad.any():
+        first = array.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]]
+        rng = f"in [{low}, {high}]" if high is not None else f">= {low}"
+        raise ScenarioError(f"{field}: expected whole numbers {rng}, got {first!r}")
