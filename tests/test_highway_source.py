@@ -283,3 +283,15 @@ def test_two_way_traffic_keeps_its_lanes() -> None:
             ahead = np.cos(xyh[:, 2]) > 0  # driving the forward way: the right lane (y = -4); else y = 0
             lane_y = np.where(ahead, -4.0, 0.0)
             assert np.abs(xyh[:, 1] - lane_y).max() < 0.5, (seed, i)
+
+
+def test_the_bundled_two_way_scenes_keep_their_lanes() -> None:
+    """The shipped bundle (the envs' default scenes) held two two-way scenes of the old generator, whose
+    sdc drove in the oncoming lane: an ego following its route learned to."""
+    from trajeglish_env.env.scenes import load_bundle
+
+    bundle = load_bundle()
+    two_way = [bundle.get(k) for k in range(len(bundle)) if "two-way" in bundle.get(k).scenario_id]
+    assert len(two_way) == 2
+    for sc in two_way:
+        assert np.abs(sc.xyh[sc.sdc, sc.valid[sc.sdc], 1] + 4.0).max() < 0.5
