@@ -108,7 +108,9 @@ def test_collision_curves_by_scene_kind(scenes) -> None:
 
 
 def test_evaluation_table_and_partial_control(tmp_path, scenes) -> None:
-    save_scenarios(tmp_path / "held.scn.npz", scenes)
+    # a merge scene beside a two-way one: the untrained model collides unguarded (two-way traffic that
+    # keeps its lanes, generator 3, leaves it nothing to hit in two scenes of them)
+    save_scenarios(tmp_path / "held.scn.npz", [generate_scene("merge", seed=3), scenes[1]])
     ckpt = tiny_checkpoint()
     cfg = EvalConfig(rollouts=2, scenes=2, temperatures=(1.0, 0.5))
     result = evaluate(tmp_path, {"tiny": ckpt}, cfg, tmp_path / "eval", partial="tiny", progress=False)
