@@ -267,3 +267,23 @@ def test_a_legend_names_the_colours_the_picture_uses(straight_scene: Scenario) -
     plain = SceneRenderer(straight_scene, config=RenderConfig(200, 200))
     assert plain.ax.get_legend() is None
     plain.close()
+
+
+def test_human_mode_without_a_display_says_no_window_shows(monkeypatch) -> None:
+    """On a headless machine SDL fell back to its offscreen driver silently: no window, no word."""
+    from helpers import bundle_scene
+
+    from trajeglish_env.render import EpisodeRenderer
+
+    monkeypatch.delenv("SDL_VIDEODRIVER", raising=False)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    sc = bundle_scene("highway-roundabout-999000")
+    external = np.zeros(sc.num_agents, bool)
+    external[sc.sdc] = True
+    er = EpisodeRenderer(sc, sc.xyh, sc.valid, external, ~external, size=64, radius=20.0)
+    try:
+        with pytest.warns(UserWarning, match="no display was found"):
+            er.show(er.frame(sc.current_index))
+    finally:
+        er.close()

@@ -10,6 +10,7 @@ Traffic signals are lamps at their stop points, red / amber / green by their sta
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -432,6 +433,13 @@ class EpisodeRenderer:
             pygame.init()
             self._window = pygame.display.set_mode((frame.shape[1], frame.shape[0]))
             pygame.display.set_caption("trajeglish_env")
+            driver = pygame.display.get_driver()
+            if driver in ("offscreen", "dummy") and not os.environ.get("SDL_VIDEODRIVER"):
+                warnings.warn(
+                    f"render_mode='human': no display was found (SDL's {driver!r} driver), so no window "
+                    "shows; use render_mode='rgb_array' (or save_video) on a machine without a screen",
+                    stacklevel=3,
+                )
         pygame.event.pump()
         surface = pygame.surfarray.make_surface(np.ascontiguousarray(frame.transpose(1, 0, 2)))
         self._window.blit(surface, (0, 0))
