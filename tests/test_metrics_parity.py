@@ -158,3 +158,18 @@ def test_spot_feature_values_of_object_1675(womd):
     ade = displacement_errors(scene, xyz[1:])
     np.testing.assert_allclose(ade[0], [5.46256, 2.62914, 0.70294, 0.62576], atol=1e-4)
     np.testing.assert_allclose([ade.mean(1).min(), ade.mean(1).max()], [2.08469, 3.05072], atol=1e-4)
+
+
+def test_the_2024_era_config_is_named_and_scored_as_that_years_code(womd) -> None:
+    """`--metrics 2024` is the 2024 weights under today's official code (time to collision of vehicles
+    only); the 2024 leaderboard's own scores need that year's code: `--metrics 2024-era`."""
+    from trajeglish_env.cli import build_parser
+
+    scenario, details, rollouts = womd
+    scores = score_rollouts(
+        scenario, rollouts.xyh, rollouts.object_id, "2024-era", rollouts_z=rollouts.z, details=details
+    )
+    assert scores.config == "2024-era"
+    _assert_matches(scores, {"time_to_collision": 0.783677, "metametric": 0.231282, "interactive": 0.256241})
+    args = build_parser().parse_args(["score-submission", "x", "--data", "d", "--metrics", "2024-era"])
+    assert args.metrics == "2024-era"

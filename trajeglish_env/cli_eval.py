@@ -236,7 +236,13 @@ def add_eval_commands(add: AddCommand) -> None:
     )
     p.add_argument("--top-p", type=probability, default=1.0)
     add_dtype_args(p)
-    p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
+    p.add_argument(
+        "--metrics",
+        choices=("2024", "2024-era", "2025"),
+        default="2025",
+        help="WOSAC config: 2025, 2024 (its weights under the current official code), or 2024-era (as "
+        "the 2024 leaderboard scored: time to collision of every evaluated object, not vehicles only)",
+    )
     p.add_argument(
         "--processes",
         type=POSITIVE,

@@ -138,5 +138,11 @@ def add_womd_commands(add: AddCommand) -> None:
     )
     p.add_argument("submission", help="a .binproto shard, a .tar.gz of shards or a directory of shards")
     p.add_argument("--data", nargs="+", required=True, help="the converted scenario shards (convert-womd)")
-    p.add_argument("--metrics", choices=("2024", "2025"), default="2025")
+    p.add_argument(
+        "--metrics",
+        choices=("2024", "2024-era", "2025"),
+        default="2025",
+        help="WOSAC config: 2025, 2024 (its weights under the current official code), or 2024-era (as "
+        "the 2024 leaderboard scored: time to collision of every evaluated object, not vehicles only)",
+    )
     p.add_argument("--out", help="also write every scenario's scores to this JSON file")

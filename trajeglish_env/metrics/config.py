@@ -125,11 +125,15 @@ CONFIG_2024 = replace(
     traffic_light_violation=_bernoulli(0.0),
 )
 
-CONFIGS: dict[str, MetricsConfig] = {"2024": CONFIG_2024, "2025": CONFIG_2025}
+# the 2024 challenge as its leaderboard scored it: the code of that year took the time to collision of every
+# evaluated object, the current code of vehicles only (docs/wosac_metrics.md §3.4)
+CONFIG_2024_ERA = replace(CONFIG_2024, name="2024-era", ttc_vehicles_only=False)
+
+CONFIGS: dict[str, MetricsConfig] = {"2024": CONFIG_2024, "2024-era": CONFIG_2024_ERA, "2025": CONFIG_2025}
 
 
 def get_config(config: str | MetricsConfig) -> MetricsConfig:
-    """A config by name ("2024" or "2025"), or the given :class:`MetricsConfig` itself."""
+    """A config by name ("2024", "2024-era" or "2025"), or the given :class:`MetricsConfig` itself."""
     if isinstance(config, MetricsConfig):
         return config
     if config not in CONFIGS:
