@@ -492,3 +492,19 @@ def test_the_first_slot_plays_the_users_npc_object_and_an_uncopyable_one_is_shar
         batch = BatchedEgoEnv(2, small_scenes(), npc=Locked(), max_cycles=3)
         batch.reset(seed=0)
     batch.close()
+
+
+def test_the_ego_env_takes_every_form_of_one_random_agent() -> None:
+    """`RandomAgents(1, with_sdc=True)` (the sdc) and `RandomAgents(1, at_most=True)` mean one agent, yet
+    EgoEnv refused them."""
+    from trajeglish_env.env import EgoEnv, RandomAgents
+
+    for external in (RandomAgents(1, with_sdc=True), RandomAgents(1, at_most=True)):
+        env = EgoEnv(small_scenes(), npc="idm", external=external, max_cycles=3)
+        _, info = env.reset(seed=0)
+        assert info["agent"] and np.isfinite(env.step(np.zeros(2, np.float32))[1])
+    sdc = EgoEnv(small_scenes(), npc="idm", external=RandomAgents(1, with_sdc=True), max_cycles=3)
+    sdc.reset(seed=0)
+    assert sdc.aec.sim.external_index.tolist() == [sdc.aec.scenario.sdc]
+    with pytest.raises(ValueError, match="EgoEnv controls exactly one agent"):
+        EgoEnv(small_scenes(), npc="idm", external=RandomAgents(2))

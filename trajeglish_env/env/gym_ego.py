@@ -89,7 +89,12 @@ class EgoEnv(gymnasium.Env):
 def check_single(config: EnvConfig) -> None:
     """EgoEnv drives exactly one external agent."""
     ext = config.external
-    single = ext == "sdc" or (isinstance(ext, tuple) and len(ext) == 1) or ext == RandomAgents(1)
+    # RandomAgents(1) in any form: one drawn agent, the sdc (with_sdc), or at most one (at_most)
+    single = (
+        ext == "sdc"
+        or (isinstance(ext, tuple) and len(ext) == 1)
+        or (isinstance(ext, RandomAgents) and ext.k == 1)
+    )
     if not single:
         raise ValueError(
             "EgoEnv controls exactly one agent: external must be 'sdc', one track id or "
