@@ -230,6 +230,11 @@ def test_training_with_the_colliding_mass_term(
         TrainConfig(collision_weight=-1.0)
     with pytest.raises(ValueError, match="collision_horizon must be >= 1 step, got 0"):
         TrainConfig(collision_horizon=0)
+    # a horizon or the rolled-out-only flag without the term did nothing, silently
+    with pytest.raises(ValueError, match="collision_horizon needs collision_weight > 0"):
+        TrainConfig(collision_horizon=3)
+    with pytest.raises(ValueError, match="collision_rolled_out_only needs collision_weight > 0"):
+        TrainConfig(collision_rolled_out_only=True)
 
 
 def follow_window(gap: float, ahead_speed: float, steps: int) -> tuple[np.ndarray, ...]:

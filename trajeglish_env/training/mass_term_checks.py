@@ -37,3 +37,9 @@ def check_mass_terms(config: Any) -> None:
         raise ValueError("TrainConfig.offroad_horizon needs offroad_weight > 0 (the term it widens)")
     if not config.collision_horizon >= 1:
         raise ValueError(f"TrainConfig.collision_horizon must be >= 1 step, got {config.collision_horizon}")
+    if config.collision_horizon > 1 and not config.collision_weight:  # accepted with no effect before
+        raise ValueError("TrainConfig.collision_horizon needs collision_weight > 0 (the term it widens)")
+    if config.collision_rolled_out_only and not config.collision_weight:
+        raise ValueError(
+            "TrainConfig.collision_rolled_out_only needs collision_weight > 0 (the term it limits)"
+        )
