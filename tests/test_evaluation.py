@@ -26,6 +26,7 @@ from trajeglish_env.metrics import score_rollouts
 from trajeglish_env.metrics.features import prepare_scene
 from trajeglish_env.metrics.traffic_lights import red_light_violations
 from trajeglish_env.scenario import AgentKind
+from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.sources.highway import generate_scene
 from trajeglish_env.tokenizer.vocabulary import load_default_tokenizer
@@ -291,3 +292,18 @@ def test_a_parked_agents_jump_is_no_red_light_run(monkeypatch) -> None:
     # positions: the current step, then the 80 future ones (future step g at index g + 1)
     away = ~seen["valid"][0, 0]
     assert away[41:52].all() and away.sum() == 11  # the 10 parked steps and the first one back
+
+
+def test_a_scenes_rollouts_do_not_depend_on_the_other_scenes_selected(scenes) -> None:
+    """Each scene draws with a seed of the run's seed and its scenario id, as export-submission does: the
+    same scene at another place in the selection (another `--data` order, `--scenes N`) scores the same;
+    it drew with ``seed + position`` before, so reordering the data re-drew every scene."""
+    from trajeglish_env.evaluation import _score_scene, model_method
+
+    method = model_method(tiny_checkpoint(), SamplingConfig(temperature=1.0, guard=False))
+    cfg = EvalConfig(rollouts=2, scenes=2, seed=4)
+    first, later = (_score_scene(scenes[1], k, method, cfg, None) for k in (0, 5))
+    assert first[1].metametric == later[1].metametric
+    np.testing.assert_array_equal(first[2], later[2])
+    other = _score_scene(scenes[1], 0, method, EvalConfig(rollouts=2, scenes=2, seed=5), None)
+    assert other[1].metametric != first[1].metametric  # the run's seed still matters

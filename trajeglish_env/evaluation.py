@@ -54,6 +54,7 @@ from trajeglish_env.sampler.guard_signals import SceneSignals
 from trajeglish_env.scenario import AgentKind, Scenario, scene_kind
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.standing import standing_counts, standing_table
+from trajeglish_env.submission_export import scenario_seed
 from trajeglish_env.training.dataset import SceneStore
 
 
@@ -62,7 +63,8 @@ class EvalConfig:
     """What to evaluate: scenes, rollouts per scene, the model's ``sampling`` (the env's NPC defaults
     unless changed) at each of ``temperatures`` (default: the sampling's own) and each of ``guards``
     (guarded sampling off and on; the partial-control experiment keeps ``sampling.guard``), metrics and
-    seed."""
+    seed (a scene's rollouts draw with ``submission_export.scenario_seed(seed, scenario_id)``: they do not
+    depend on which other scenes are selected, or in what order)."""
 
     rollouts: int = 8
     scenes: int = 16  # evenly spaced over the data (so every source and kind is represented)
@@ -233,7 +235,7 @@ def _score_scene(
 ) -> tuple[int, RealismScores, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(index, scores, collision curve, speeds, accelerations, red-light runs, collision kinds, standing
     counts) of one method on scene ``k``."""
-    fut, z = _split(method(scene, config.rollouts, config.seed + k))
+    fut, z = _split(method(scene, config.rollouts, scenario_seed(config.seed, scene.scenario_id)))
     ids = scene.track_id[simulated(scene)]
     detail = details[k] if details is not None else None
     scores = score_rollouts(scene, fut, ids, config.metrics, rollouts_z=z, details=detail)
@@ -287,7 +289,11 @@ def partial_control(
                 horizon(scene),
                 controlled,
                 priority=priority,
-                config=replace(config.sampling, temperature=config.temperatures[0], seed=config.seed + k),
+                config=replace(
+                    config.sampling,
+                    temperature=config.temperatures[0],
+                    seed=scenario_seed(config.seed, scene.scenario_id),
+                ),
                 processes=config.rollout_processes,
             )
             fut = slice(scene.current_index + 1, scene.num_steps)

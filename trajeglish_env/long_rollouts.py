@@ -26,6 +26,7 @@ from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.rollouts import rollout
 from trajeglish_env.scenario import AgentKind, Scenario
 from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.submission_export import scenario_seed
 
 EVENTS = ("collision", "offroad")
 
@@ -119,8 +120,9 @@ def long_rollout_rates(
     for guard in config.guards:
         total: dict[str, np.ndarray] = {}
         desc = f"long rollouts ({'guard' if guard else 'no guard'})"
-        for k, scene in enumerate(tqdm(scenes, disable=not progress, file=sys.stderr, desc=desc)):
-            sampling = replace(config.sampling, guard=guard, seed=config.seed + k)
+        for scene in tqdm(scenes, disable=not progress, file=sys.stderr, desc=desc):
+            seed = scenario_seed(config.seed, scene.scenario_id)  # the scene's own, as evaluate's
+            sampling = replace(config.sampling, guard=guard, seed=seed)
             for name, value in scene_counts(ckpt, scene, config, sampling).items():
                 total[name] = total.get(name, 0) + value
         split = int(round(config.split_s))
