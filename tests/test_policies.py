@@ -173,3 +173,53 @@ def test_a_random_policy_played_again_plays_the_same_episode() -> None:
         runs[0] == runs[1] == runs[2] == play_episode(env, RandomPolicy(seed=0), seed=0, options={"scene": 0})
     )
     assert play_episode(env, RandomPolicy(seed=1), seed=0, options={"scene": 0}).returns != runs[0].returns
+
+
+def test_the_idm_ego_pulls_away_from_a_stop_beside_its_curving_path() -> None:
+    """A roundabout where the IDM ego stopped 0.15-0.2 m beside its path with the road ahead free: its
+    throttle came from the target's distance ahead in the car's frame, and the next centimetre of a
+    curving path lay behind its nose, so it stood for the last 59 steps (8 m driven); the throttle is
+    IDM's own acceleration now."""
+    import trajeglish_env
+    from trajeglish_env.sources.highway import generate_scene
+
+    env = trajeglish_env.env(scenes=[generate_scene("roundabout", seed=512415398)], npc="idm")
+    env.reset(seed=0)
+    policy = IDMPolicy()
+    policy.reset(env, env.agents[0])
+    standing = 0
+    for agent in env.agent_iter():
+        obs, _, done, cut, info = env.last()
+        if done or cut:
+            env.step(None)
+            continue
+        env.step(policy.act(env, agent, obs))
+        standing += env.unwrapped.sim.kin.speed[env.unwrapped.agent_index(agent)] < 0.05
+    assert standing == 0 and info["progress_m"] > 30.0
+
+
+def test_one_idm_policy_drives_two_envs_at_once_as_it_drives_one() -> None:
+    """The controller kept one episode's state: driving two envs in lockstep rebuilt it at every switch
+    and both egos left the road (53 m driven against 151 m); its state is per env now, and it pickles
+    without the simulation it last drove (437 KB before, with IDM NPCs)."""
+    import pickle
+
+    import trajeglish_env
+
+    def drive(envs: list, policy: IDMPolicy) -> list[float]:
+        for k, env in enumerate(envs):
+            env.reset(seed=k, options={"scene": 0})
+        policy.reset(envs[0], envs[0].agents[0])
+        while any(env.agents for env in envs):
+            for env in envs:
+                if not env.agents:
+                    continue
+                obs, _, done, cut, _ = env.last()
+                env.step(None if done or cut else policy.act(env, env.agent_selection, obs))
+        return [float(env.unwrapped.sim.progress[0]) for env in envs]
+
+    alone = drive([trajeglish_env.env(npc="idm")], IDMPolicy())
+    shared = IDMPolicy()
+    together = drive([trajeglish_env.env(npc="idm") for _ in range(2)], shared)
+    assert together == pytest.approx([alone[0]] * 2) and alone[0] > 100.0
+    assert len(pickle.dumps(shared)) < 1000
