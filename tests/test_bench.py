@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import types
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -330,3 +331,70 @@ def test_env_section_also_runs_the_default_npcs_split_over_processes(monkeypatch
     calls.clear()
     run_suite(replace(config, split=False), progress=False)
     assert all(c[2] == 1 for c in calls)
+
+
+def test_the_highway_env_baseline_times_its_steps_not_its_resets(monkeypatch: pytest.MonkeyPatch) -> None:
+    """intersection-v0's idling ego ends about 4 episodes in 300 steps; their resets (1 s of its 10) were
+    timed with the steps, while the Trajeglish runs time steps only: every ratio read 1.06-1.21x high."""
+    import highway_env.envs.intersection_env as intersection
+
+    class SlowResets:
+        def __init__(self, config: dict) -> None:
+            self.road = types.SimpleNamespace(vehicles=[0] * 10)
+            self.n = 0
+
+        def reset(self, seed: int = 0) -> None:
+            time.sleep(0.05)
+
+        def step(self, action: int) -> tuple:
+            self.n += 1
+            return None, 0.0, self.n % 2 == 0, False, {}  # an episode ends every other step
+
+    monkeypatch.setattr(intersection, "IntersectionEnv", SlowResets)
+    out = measure.highway_env_speed(vehicles=10, steps=20)
+    assert out["steps_per_s"] > 2000 and out["mean_vehicles"] == 10.0  # 10 resets would make it < 40
+
+
+def test_an_env_run_ends_when_the_bench_is_killed() -> None:
+    """A bench killed by SIGKILL left its env run going (re-parented, up to 32 rounds), competing with the
+    next measurement; the run now gets SIGTERM when its bench dies."""
+    import signal
+    import subprocess
+    import sys
+
+    child = (
+        "import sys, time; import trajeglish_env.benchmark.measure as m; "
+        "m.env_speed = lambda **k: time.sleep(60); sys.argv = ['worker', '{}']; "
+        "from trajeglish_env.benchmark import worker; print('ready', flush=True); worker.main()"
+    )
+    bench = (
+        "import subprocess, sys, time; "
+        f"p = subprocess.Popen([sys.executable, '-c', {child!r}]); print(p.pid, flush=True); time.sleep(60)"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", bench], stdout=subprocess.PIPE, text=True)
+    run = int(parent.stdout.readline())  # type: ignore[union-attr]
+    assert parent.stdout.readline().strip() == "ready"  # type: ignore[union-attr]
+    time.sleep(0.5)  # the run has armed its signal
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+
+    def alive() -> bool:
+        try:
+            state = Path(f"/proc/{run}/status").read_text()
+        except FileNotFoundError:
+            return False
+        return "\nState:\tZ" not in state
+
+    deadline = time.monotonic() + 10
+    while alive() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not alive()
+
+
+def test_bench_refuses_a_missing_womd_file_and_too_many_agents_before_timing(capsys) -> None:
+    """A --womd path the user typed was skipped with exit 0; --agents beyond the bundled scenes failed in
+    the env worker after 35 s of highway-env timing, as a double traceback."""
+    assert main(["bench", "--sections", "womd", "--womd", "/nonexistent.tfrecord", "--quick"]) == 2
+    assert "--womd /nonexistent.tfrecord: no such WOMD scenario file" in capsys.readouterr().err
+    assert main(["bench", "--sections", "env", "--agents", "200", "--quick", "--batches", "1"]) == 2
+    assert "--agents 200: no bundled scene has 200 agents" in capsys.readouterr().err

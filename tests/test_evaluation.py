@@ -25,8 +25,8 @@ from trajeglish_env.evaluation import (
 from trajeglish_env.metrics import score_rollouts
 from trajeglish_env.metrics.features import prepare_scene
 from trajeglish_env.metrics.traffic_lights import red_light_violations
-from trajeglish_env.scenario import AgentKind
 from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.scenario import AgentKind
 from trajeglish_env.scenario_io import save_scenarios
 from trajeglish_env.sources.highway import generate_scene
 from trajeglish_env.tokenizer.vocabulary import load_default_tokenizer

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 from typing import Any
 
 from trajeglish_env.benchmark.suite import SECTIONS, BenchConfig
@@ -25,6 +26,17 @@ def cmd_bench(args: argparse.Namespace) -> dict[str, Any]:
     if args.threads != "auto" and not (args.threads.isdigit() and int(args.threads) >= 1):
         raise ValueError(f"--threads must be 'auto' or a positive integer, got {args.threads!r}")
     threads = args.threads if args.threads == "auto" else int(args.threads)
+    if args.womd is not None and not Path(args.womd).is_file():  # a file the user named must be there
+        raise FileNotFoundError(f"--womd {args.womd}: no such WOMD scenario file")
+    if {"env", "busy"} & set(args.sections):
+        from trajeglish_env.benchmark.workloads import benchmark_scenes
+
+        try:  # before any timing: the env runs would fail in their worker after it
+            benchmark_scenes(args.agents)
+        except ValueError as err:
+            raise ValueError(
+                f"--agents {args.agents}: {err} (the env runs cut bundled scenes to it)"
+            ) from None
     config = BenchConfig(
         batches=tuple(args.batches or (QUICK_BATCHES if args.quick else FULL_BATCHES)),
         agents=args.agents,
@@ -81,13 +93,19 @@ def add_bench_command(add: AddCommand) -> None:
         "%(default)s s; one window cycle of a single scene lasts about 0.3 s)",
     )
     p.add_argument("--threads", default="auto", help="torch threads of the batched env (or 'auto')")
-    p.add_argument("--cache-dtype", choices=("bfloat16", "float32"), default="bfloat16")
+    p.add_argument(
+        "--cache-dtype",
+        choices=("bfloat16", "float32"),
+        default="bfloat16",
+        help="decoder cache dtype of the env and busy runs (the rollout, womd and aec runs: the defaults)",
+    )
     p.add_argument(
         "--compute-dtype",
         choices=COMPUTE_DTYPES,
         default="auto",
-        help="dtype the NPC model's linear layers multiply in (auto: bfloat16 for batches of 2 rows or more "
-        "where the CPU has it natively)",
+        help="dtype the NPC model's linear layers multiply in, in the env and busy runs (auto: bfloat16 "
+        "for batches of 2 rows or more where the CPU has it natively; the rollout, womd and aec runs: the "
+        "defaults)",
     )
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS, help="what to measure")
     p.add_argument("--quick", action="store_true", help="tiny workloads (a smoke run)")

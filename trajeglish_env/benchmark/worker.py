@@ -4,11 +4,17 @@ SPEC a JSON object of :func:`trajeglish_env.benchmark.measure.env_speed` argumen
 from __future__ import annotations
 
 import json
+import os
 import sys
 
 
 def main() -> None:
     from trajeglish_env.benchmark.measure import env_speed
+    from trajeglish_env.worker_pool import die_with_parent
+
+    die_with_parent(
+        os.getppid()
+    )  # a bench killed by SIGKILL takes its run along (it ran on, up to 32 rounds)
 
     spec = json.loads(sys.argv[1])
     print(json.dumps(env_speed(**spec)))
