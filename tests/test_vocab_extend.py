@@ -244,3 +244,21 @@ def test_extend_command_writes_the_vocabulary_and_compares_on_held_out_scenes(
     assert MotionVocabulary.load(out).equals(extended)  # deterministic: the fixture's, byte for byte
     assert main(["tokenizer", "extend", "--out", str(out), "--size", "384"]) == 2
     assert "an extension needs more than the base's 384 templates" in capsys.readouterr().err
+
+
+def test_extend_refuses_to_write_over_the_shipped_assets_or_its_base(tmp_path, capsys) -> None:
+    """docs/vocabulary.md's example wrote `--reading-out trajeglish_env/assets/trajeglish_small.pt`: 65 s
+    later the shipped model was replaced (same weights, another sha256, provenance rewritten)."""
+    from trajeglish_env.checkpoint import pretrained_path
+    from trajeglish_env.cli import main
+
+    shipped = pretrained_path()
+    before = shipped.stat().st_mtime_ns
+    args = ["tokenizer", "extend", "--size", "400", "--out", str(tmp_path / "v.npz")]
+    assert main([*args, "--reading-out", str(shipped)]) == 2
+    assert "refusing to write into the package's shipped assets" in capsys.readouterr().err
+    assert main(["tokenizer", "extend", "--size", "400", "--out", str(shipped.parent / "v.npz")]) == 2
+    base = tmp_path / "base.pt"
+    assert main([*args, "--base", str(base), "--reading-out", str(base)]) == 2
+    assert "that is --base itself" in capsys.readouterr().err
+    assert shipped.stat().st_mtime_ns == before and not (shipped.parent / "v.npz").exists()

@@ -47,12 +47,23 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
 def cmd_tokenizer_extend(args: argparse.Namespace) -> dict[str, Any]:
     from pathlib import Path
 
-    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained, save_checkpoint
+    from trajeglish_env.checkpoint import load_checkpoint, load_pretrained, pretrained_path, save_checkpoint
     from trajeglish_env.checkpoint_reading import drawn_base, reading_extension
     from trajeglish_env.tokenizer.extend import extend_vocabulary, extension_report
     from trajeglish_env.tokenizer.fit import evaluate_vocabulary_file
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
+    assets = pretrained_path().parent.resolve()
+    for flag, path in (("--out", args.out), ("--reading-out", args.reading_out)):
+        if path is None:
+            continue
+        if Path(path).resolve().parent == assets:  # the docs' old example rewrote the shipped model
+            raise ValueError(
+                f"{flag} {path}: refusing to write into the package's shipped assets ({assets}); write it "
+                "elsewhere (to ship it, copy it there on purpose)"
+            )
+        if args.base != "shipped" and Path(path).resolve() == Path(args.base).resolve():
+            raise ValueError(f"{flag} {path}: that is --base itself; write the extension to another file")
     model = None  # the checkpoint to extend, drawn tokens only (a reading extension's base)
     if args.base == "shipped":
         model = drawn_base(load_pretrained())
