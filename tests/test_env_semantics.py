@@ -10,9 +10,11 @@ import pytest
 import torch
 from helpers import MERGE, bundle_scene, small_scenes, straight_road_scene, tiny, tiny_checkpoint
 
+import trajeglish_env
 import trajeglish_env.sampler.engine as engine_module
 from trajeglish_env.checkpoint import Checkpoint, CheckpointError
 from trajeglish_env.env import (
+    EgoEnv,
     EnvConfig,
     ObservationConfig,
     RandomAgents,
@@ -22,6 +24,7 @@ from trajeglish_env.env import (
     raw_env,
 )
 from trajeglish_env.env.observations import EGO_FEATURES, NEIGHBOUR_FEATURES
+from trajeglish_env.env.vector import BatchedEgoEnv
 from trajeglish_env.geometry import to_local
 from trajeglish_env.sampler.config import SamplingConfig
 
@@ -508,3 +511,36 @@ def test_the_ego_env_takes_every_form_of_one_random_agent() -> None:
     assert sdc.aec.sim.external_index.tolist() == [sdc.aec.scenario.sdc]
     with pytest.raises(ValueError, match="EgoEnv controls exactly one agent"):
         EgoEnv(small_scenes(), npc="idm", external=RandomAgents(2))
+
+
+def test_a_named_scene_plays_the_episode_its_seed_plays_when_it_draws_that_scene() -> None:
+    """Naming the scene a seed draws replays that episode (the scene draw was skipped when a scene was
+    named, which shifted the episode's generator: other NPC draws); numpy integer seeds are seeds."""
+
+    def play(env, **kwargs) -> np.ndarray:
+        env.reset(**kwargs)
+        for _ in range(12):
+            done = env.terminations[env.agent_selection] or env.truncations[env.agent_selection]
+            env.step(None if done else np.zeros(2, np.float32))
+        return env.unwrapped.sim.driver.xyh.copy()
+
+    env = trajeglish_env.env(scenes=small_scenes()[:3], npc=TrajeglishNPC(tiny()))
+    drawn = play(env, seed=5)
+    scene = env.unwrapped.scenario.scenario_id
+    assert np.array_equal(play(env, seed=5, options={"scene": scene}), drawn)
+    assert np.array_equal(play(env, seed=np.int64(5)), drawn)
+    ego = EgoEnv(scenes=small_scenes()[:3], npc=TrajeglishNPC(tiny()))
+    assert np.array_equal(ego.reset(seed=np.int64(2))[0], ego.reset(seed=2)[0])
+
+
+def test_a_refused_batched_reset_restarts_no_scene() -> None:
+    """`BatchedEgoEnv(2).reset(seed=[5, -1])` restarted scene 0 with seed 5, then refused scene 1 with a
+    Gymnasium error that named no scene."""
+    batch = BatchedEgoEnv(2, scenes=small_scenes()[:3], npc="idm")
+    batch.reset(seed=0)
+    batch.step(np.zeros((2, 2), np.float32))
+    before = [s.t for s in batch.core.batch.sims]
+    with pytest.raises(ValueError, match="scene 1's seed must be a non-negative integer"):
+        batch.reset(seed=[5, -1])
+    assert [s.t for s in batch.core.batch.sims] == before
+    batch.reset(seed=[np.int64(5), 6])

@@ -20,13 +20,18 @@ __all__ = ["EgoVectorEnv", "ParallelBatchAPI", "check_scene_actions", "scene_see
 
 
 def scene_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
-    """Per-scene seeds as Gymnasium's vector envs derive them (``seed + i``, or a list of n seeds)."""
+    """Per-scene seeds as Gymnasium's vector envs derive them (``seed + i``, or a list of n seeds), each a
+    non-negative integer or None; checked before any scene restarts (a refused reset changes nothing)."""
     if seed is None or isinstance(seed, (int, np.integer)):
-        return [None if seed is None else int(seed) + i for i in range(n)]
-    seeds = list(seed)
+        seeds: list[Any] = [None if seed is None else int(seed) + i for i in range(n)]
+    else:
+        seeds = list(seed)
     if len(seeds) != n:
         raise ValueError(f"reset: expected {n} seeds (one per scene), got {len(seeds)}")
-    return seeds
+    for i, s in enumerate(seeds):
+        if s is not None and (isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0):
+            raise ValueError(f"reset: scene {i}'s seed must be a non-negative integer or None, got {s!r}")
+    return [None if s is None else int(s) for s in seeds]
 
 
 def check_scene_actions(

@@ -4,6 +4,7 @@ exactly what a separate env reset with the same seed plays."""
 
 from __future__ import annotations
 
+import numbers
 import warnings
 from typing import Any
 
@@ -24,7 +25,8 @@ class EpisodeStream:
         self.np_random, _ = seeding.np_random(None)
 
     def next(self, seed: int | None, options: dict[str, Any] | None) -> tuple[Scenario, np.random.Generator]:
-        """The next episode's scenario and random generator (``options["scene"]``: index or scenario_id).
+        """The next episode's scenario and random generator (``options["scene"]``: index or scenario_id; the
+        episode a seed plays on a scene is the same whether the scene is named or drawn).
         Other keys are allowed, as PettingZoo's and Gymnasium's conventions (and their API tests) want, but
         each is named in a warning: a misspelt ``"scene"`` must not pass unnoticed."""
         unknown = sorted(str(k) for k in (options or {}) if k not in RESET_OPTIONS)
@@ -36,9 +38,11 @@ class EpisodeStream:
                 stacklevel=3,
             )
         if seed is not None:
+            if isinstance(seed, numbers.Integral) and not isinstance(seed, bool):
+                seed = int(seed)  # numpy integers, as the batched envs take them
             self.np_random, _ = seeding.np_random(seed)
-        index = scene_index((options or {}).get("scene"), self.scenes)
-        if index is None:
-            index = int(self.np_random.integers(len(self.scenes)))
+        chosen = scene_index((options or {}).get("scene"), self.scenes)
+        drawn = int(self.np_random.integers(len(self.scenes)))  # drawn either way: a named scene plays
+        index = drawn if chosen is None else chosen  # the episode the seed plays when it draws that scene
         scenario = self.scenes.get(index)
         return scenario, np.random.default_rng(int(self.np_random.integers(2**63 - 1)))

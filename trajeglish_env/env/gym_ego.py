@@ -47,6 +47,8 @@ class EgoEnv(gymnasium.Env):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Start an episode (``options["scene"]`` picks the scene); info: the step's keys (zeros now), the
         ego's name and the scene's id."""
+        if isinstance(seed, np.integer):
+            seed = int(seed)  # numpy integers, as the batched envs take them
         super().reset(seed=seed)
         self.aec.reset(seed=seed, options=options)
         self.agent = self.aec.agents[0]
