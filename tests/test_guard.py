@@ -62,8 +62,9 @@ def test_masks_are_the_envs_rules_over_every_candidate(name: str) -> None:
     external = np.zeros(n, bool)
     external[scene.sdc] = True
     active = scene.valid[:, scene.current_index]
-    config = SamplingConfig(guard=True, seed=3, guard_road_ahead=0.0)  # one-step masks (the road ahead:
-    engine = RolloutEngine(tiny(), scene, 1, 5, active & ~external, external, config=config)  # its own file)
+    # one-step masks (the road ahead: its own file; the speed-change rule: the next test)
+    config = SamplingConfig(guard=True, seed=3, guard_road_ahead=0.0, guard_step_change=0.0)
+    engine = RolloutEngine(tiny(), scene, 1, 5, active & ~external, external, config=config)
     for _ in range(2):  # play two steps, then stop mid-step: the sdc has moved, the NPCs have not
         while (agent := engine.advance()) is not None:
             engine.supply(agent, scene.xyh[agent, engine.t + 1])
@@ -84,6 +85,58 @@ def test_masks_are_the_envs_rules_over_every_candidate(name: str) -> None:
         assert np.array_equal(off[i], want_off), f"agent {agent}: off-road differs"
         masked += [want_collide.sum(), want_off.sum()]
     assert masked.sum() > 50  # the scene really has candidates to mask
+
+
+def forward_steps(mxyh: np.ndarray) -> np.ndarray:
+    """``[..., T-1]`` the forward distance of each move of model states ``mxyh [..., T, 3]``, in the frame
+    of the state it starts from."""
+    d = np.diff(mxyh[..., :2], axis=-2)
+    return d[..., 0] * np.cos(mxyh[..., :-1, 2]) + d[..., 1] * np.sin(mxyh[..., :-1, 2])
+
+
+def test_the_speed_change_rule_masks_steps_that_differ_from_the_last_by_more_than_the_limit() -> None:
+    """Brute force over every candidate: a vehicle's candidate whose forward step differs from its last
+    move by more than ``guard_step_change`` m is masked (cyclists: half of it; pedestrians never), and
+    nothing else is (no obstacle or road is near: the rule alone)."""
+    scene = straight_road_scene(8, 40)
+    active = scene.valid[:, scene.current_index]
+    config = SamplingConfig(guard=True, seed=3, guard_step_change=0.7)
+    engine = RolloutEngine(tiny(), scene, 1, 5, active, config=config)
+    engine.run()
+    geometry = engine.guard.geometry
+    agents = np.flatnonzero(active)
+    t = engine.current + 2
+    pairs = geometry.pairs(engine, np.zeros(len(agents), np.int64), agents, np.full(len(agents), t))
+    v = engine.vocab.size
+    every = np.broadcast_to(np.arange(v), (len(agents), v))
+    got = geometry.jumps(pairs, np.arange(len(agents)), every)
+    last = forward_steps(engine.mxyh[0, agents, t - 1 : t + 1])[:, 0]
+    for i, agent in enumerate(agents):
+        limit = {AgentKind.VEHICLE: 0.7, AgentKind.CYCLIST: 0.35}.get(AgentKind(scene.kind[agent]), np.inf)
+        want = np.abs(engine.vocab.templates[scene.kind[agent], :, 0] - last[i]) > limit
+        assert np.array_equal(got[i], want), agent
+    assert got.sum() > 100  # most templates of a moving car are out of reach in one step
+    with pytest.raises(ValueError, match="guard_step_change must be >= 0"):
+        SamplingConfig(guard_step_change=-1.0)
+
+
+def test_guarded_vehicles_never_change_speed_beyond_the_limit() -> None:
+    """An untrained model's vehicles jump between any speeds from step to step; guarded, no vehicle's
+    forward step changes by more than ``guard_step_change`` (0.5 m) in a step while no rule gives way."""
+    sc = bundle_scene("highway-highway-999000")
+    active = sc.valid[:, sc.current_index].copy()
+    change = {}
+    for guard in (False, True):
+        config = SamplingConfig(temperature=1.0, guard=guard, seed=1)
+        engine = RolloutEngine(tiny(), sc, 2, 12, active, config=config)
+        engine.run()
+        vehicles = np.flatnonzero(active & (sc.kind == AgentKind.VEHICLE))
+        steps = forward_steps(engine.mxyh[:, vehicles, engine.current - 1 :])
+        change[guard] = np.abs(np.diff(steps, axis=-1)).max()
+    stats = engine.guard.stats
+    assert change[False] > 2.0
+    assert stats.step_fallback == stats.edge_fallback == stats.plain_fallback == 0
+    assert change[True] <= 0.5 + 1e-9
 
 
 def new_events(engine: RolloutEngine) -> tuple[int, int]:
@@ -211,37 +264,53 @@ class FixedMasks:
 
     road_ahead = 0.0
 
-    def __init__(self, collide: np.ndarray, off: np.ndarray, escape: np.ndarray | None = None):
+    def __init__(
+        self,
+        collide: np.ndarray,
+        off: np.ndarray,
+        escape: np.ndarray | None = None,
+        jump: np.ndarray | None = None,
+    ):
         self.collide, self.off = collide, off
         self.escape = np.zeros_like(collide) if escape is None else escape
+        self.jump = np.zeros_like(collide) if jump is None else jump
 
     def blocked(self, pairs: object, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return self.collide[sel] | self.escape[sel], self.off[sel]
+        return self.collide[sel] | self.escape[sel], self.off[sel] | self.jump[sel]
 
     def blocked_parts(
         self, pairs: object, sel: np.ndarray, tokens: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self.collide[sel], self.escape[sel], self.off[sel]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return self.collide[sel], self.escape[sel], self.off[sel], self.jump[sel]
+
+    def step_changes(self, pairs: object, sel: np.ndarray, tokens: np.ndarray) -> np.ndarray:
+        return np.where(self.jump[sel], 2.0 + np.arange(tokens.shape[1]) / 100, 0.0)
 
 
-def test_fallbacks_drop_the_road_rule_then_the_guard() -> None:
+def test_fallbacks_widen_the_speed_rule_then_drop_the_road_rule_then_the_guard() -> None:
     v, n = 12, 400
     logits = torch.randn(n, v, generator=torch.Generator().manual_seed(0)) * 2
     uniform = np.random.default_rng(0).random(n)
     first_half = np.arange(v) < v // 2
     collide = np.zeros((n, v), bool)
     off = np.zeros((n, v), bool)
-    collide[0::3], off[0::3] = True, True  # everything masked: drawn unguarded
-    collide[1::3], off[1::3] = first_half, ~first_half  # only the road rule left: dropped, collisions stay
-    collide[2::3], off[2::3] = first_half, np.arange(v) == v - 1  # allowed: the second half but the last
-    guard = guard_module.SamplingGuard(FixedMasks(collide, off))  # type: ignore[arg-type]
+    collide[0::4], off[0::4] = True, True  # everything masked: drawn unguarded
+    collide[1::4], off[1::4] = first_half, ~first_half  # only the road rule left: dropped, collisions stay
+    collide[2::4], off[2::4] = first_half, np.arange(v) == v - 1  # allowed: the second half but the last
+    collide[3::4], off[3::4] = collide[2::4], off[2::4]
+    jump = np.zeros((n, v), bool)
+    jump[1::4] = True  # the speed rule widened leaves nothing either: the road rule goes next
+    jump[3::4] = np.arange(v) >= v // 2  # every candidate left jumps: the gentlest of them is kept
+    guard = guard_module.SamplingGuard(FixedMasks(collide, off, jump=jump))  # type: ignore[arg-type]
     tokens = guard._full_draw(None, np.arange(n), logits, 1.0, 1.0, uniform)  # type: ignore[arg-type]
     plain = guard_module.sample_with_uniform(logits, 1.0, 1.0, uniform)
-    assert np.array_equal(tokens[0::3], plain[0::3])
-    assert (tokens[1::3] >= v // 2).all() and (tokens[2::3] >= v // 2).all() and (tokens[2::3] < v - 1).all()
-    assert guard.stats.plain_fallback == len(tokens[0::3]) and guard.stats.edge_fallback == len(tokens[1::3])
-    allowed = (plain[2::3] >= v // 2) & (plain[2::3] < v - 1)
-    same = (tokens[2::3] == plain[2::3])[allowed].mean()  # 0.72: one number per draw keeps most tokens
+    assert np.array_equal(tokens[0::4], plain[0::4])
+    assert (tokens[1::4] >= v // 2).all() and (tokens[2::4] >= v // 2).all() and (tokens[2::4] < v - 1).all()
+    assert (tokens[3::4] == v // 2).all()  # the smallest speed change (FixedMasks: 2 + token / 100)
+    assert guard.stats.plain_fallback == len(tokens[0::4]) and guard.stats.edge_fallback == len(tokens[1::4])
+    assert guard.stats.step_fallback == len(tokens[3::4])
+    allowed = (plain[2::4] >= v // 2) & (plain[2::4] < v - 1)
+    same = (tokens[2::4] == plain[2::4])[allowed].mean()  # 0.72: one number per draw keeps most tokens
     assert 0.5 < same < 1.0 and 0.3 < allowed.mean() < 0.7
 
 
@@ -301,15 +370,21 @@ def test_an_agent_driven_into_moves_out_of_the_way_with_guard_escape_when_it_act
     struck = {}
     for place, priority in (("first", [-1.0, 0.0]), ("last", [1.0, 0.0])):
         for escape in (False, True):
-            # the one-step road rule: the road ahead keeps the untrained sdc out of the logged car's way
+            # the one-step road rule: the road ahead keeps the untrained sdc out of the logged car's way;
+            # the escape rule alone (the speed rule would change the untrained model's draws)
             config = SamplingConfig(
-                temperature=1.0, guard=True, guard_escape=escape, seed=2, guard_road_ahead=0.0
+                temperature=1.0,
+                guard=True,
+                guard_escape=escape,
+                seed=2,
+                guard_road_ahead=0.0,
+                guard_step_change=0.0,
             )
             engine = RolloutEngine(tiny(), sc, 16, 15, controlled, config=config, priority=np.array(priority))
             engine.run()
             hit, at_fault = collisions_by_fault(engine.xyh, engine.valid, sc.size, 0, sc.current_index)
             struck[place, escape] = int(hit.sum())
-            assert not at_fault.any()
+            assert not at_fault.any(), (place, escape)
     # acting last, the guard sees the logged car's move and escapes it; acting first, the order hides it
     assert struck["last", False] >= 10 and struck["last", True] <= 2, struck
     assert struck["first", False] >= 10 and struck["first", True] >= 10, struck

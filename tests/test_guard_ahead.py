@@ -141,9 +141,9 @@ class _ReachMask:
 
     def blocked_parts(
         self, pairs: object, sel: np.ndarray, tokens: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         hit = self.mask[sel[:, None], tokens]
-        return hit, np.zeros_like(hit), np.zeros_like(hit)
+        return hit, np.zeros_like(hit), np.zeros_like(hit), np.zeros_like(hit)
 
     def reach(
         self, pairs: object, sel: np.ndarray, tokens: np.ndarray, allowed: np.ndarray

@@ -59,9 +59,8 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
             top_p=args.top_p,
             cache_dtype=args.cache_dtype,
             compute_dtype=args.compute_dtype,
-            guard_green=not args.no_green_rule,
-            guard_road_ahead=args.road_ahead,
             subsets=args.subsets,
+            **guard_rules(args, args.guard != "off"),
         ),
         metrics=args.metrics,
         seed=args.seed,
@@ -160,22 +159,16 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
     scene = scene_at(args.scenario, args.index)
     ckpt = next(iter(checkpoints([args.ckpt] if args.ckpt else None).values()))
     horizon = args.horizon or scene.num_steps - scene.current_index - 1
-    res = rollout(
-        ckpt,
-        scene,
-        1,
-        horizon,
-        config=SamplingConfig(
-            args.temperature,
-            args.top_p,
-            args.cache_dtype,
-            seed=args.seed,
-            compute_dtype=args.compute_dtype,
-            guard=args.guard == "on",
-            guard_green=not args.no_green_rule,
-            guard_road_ahead=args.road_ahead,
-        ),
+    sampling = SamplingConfig(
+        args.temperature,
+        args.top_p,
+        args.cache_dtype,
+        seed=args.seed,
+        compute_dtype=args.compute_dtype,
+        guard=args.guard == "on",
+        **guard_rules(args, args.guard == "on"),
     )
+    res = rollout(ckpt, scene, 1, horizon, config=sampling)
     guard = args.guard == "on"
     out = save_render(
         scene,
@@ -193,22 +186,55 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
         "agents": scene.num_agents,
         "horizon": horizon,
         "guard": guard,
-        "green_rule": (not args.no_green_rule) if guard else None,  # guard settings: None without it
-        "road_ahead": args.road_ahead if guard else None,
+        "green_rule": sampling.guard_green if guard else None,  # guard settings: None without it
+        "road_ahead": sampling.guard_road_ahead if guard else None,
+        "step_change": sampling.guard_step_change if guard else None,
         "out": str(out),
     }
 
 
-def add_road_ahead_arg(p: argparse.ArgumentParser) -> None:
-    """``--road-ahead M``: the guard's road-ahead distance (``SamplingConfig.guard_road_ahead``)."""
+def add_guard_rule_args(p: argparse.ArgumentParser, green_help: str) -> None:
+    """The guard's rules: ``--no-green-rule``, ``--road-ahead M`` and ``--step-change M`` (read by
+    :func:`guard_rules`)."""
+    p.add_argument("--no-green-rule", action="store_true", help=green_help)
     p.add_argument(
         "--road-ahead",
         type=non_negative_float,
-        default=SamplingConfig.guard_road_ahead,
         metavar="M",
         help="metres of each candidate's kept-up motion the guard checks against the road edges "
-        "(SamplingConfig.guard_road_ahead; 0: the one-step road rule alone; default: the env's)",
+        f"(SamplingConfig.guard_road_ahead; 0: the one-step road rule alone; default: the env's, "
+        f"{SamplingConfig.guard_road_ahead:g})",
     )
+    p.add_argument(
+        "--step-change",
+        type=non_negative_float,
+        metavar="M",
+        help="metres by which a guarded vehicle's forward step may change from its last one (SamplingConfig."
+        f"guard_step_change; cyclists half; 0: no speed-change rule; default: the env's, "
+        f"{SamplingConfig.guard_step_change:g})",
+    )
+
+
+def guard_rules(args: argparse.Namespace, guard: bool) -> dict[str, Any]:
+    """The :class:`SamplingConfig` fields of the guard's rule flags; a rule flag given where no method is
+    guarded is refused (it would change nothing)."""
+    given = [
+        flag
+        for flag, value in (
+            ("--no-green-rule", args.no_green_rule),
+            ("--road-ahead", args.road_ahead is not None),
+            ("--step-change", args.step_change is not None),
+        )
+        if value
+    ]
+    if given and not guard:
+        raise ValueError(f"{', '.join(given)}: the guard's rules, but --guard off samples without the guard")
+    default = SamplingConfig()
+    return {
+        "guard_green": not args.no_green_rule,
+        "guard_road_ahead": default.guard_road_ahead if args.road_ahead is None else args.road_ahead,
+        "guard_step_change": default.guard_step_change if args.step_change is None else args.step_change,
+    }
 
 
 def add_eval_commands(add: AddCommand) -> None:
@@ -255,12 +281,7 @@ def add_eval_commands(add: AddCommand) -> None:
         default="both",
         help="guarded sampling: methods NAME@T=t (off) and NAME+guard@T=t (on); default: both",
     )
-    p.add_argument(
-        "--no-green-rule",
-        action="store_true",
-        help="guarded methods without the green-light rule (SamplingConfig.guard_green=False)",
-    )
-    add_road_ahead_arg(p)
+    add_guard_rule_args(p, "guarded methods without the green-light rule (SamplingConfig.guard_green=False)")
     p.add_argument(
         "--subsets",
         choices=SUBSET_RULES,
@@ -321,8 +342,7 @@ def add_eval_commands(add: AddCommand) -> None:
     p.add_argument("--follow-sdc", action="store_true")
     p.add_argument("--legend", action="store_true", help="a key of the colours in the lower left corner")
     p.add_argument("--guard", choices=("on", "off"), default="on", help="guarded sampling (default: on)")
-    p.add_argument("--no-green-rule", action="store_true", help="the guard without its green-light rule")
-    add_road_ahead_arg(p)
+    add_guard_rule_args(p, "the guard without its green-light rule")
     add_map_coverage_command(add)
     add_scorecard_command(add)
 

@@ -110,6 +110,7 @@ class BatchEngine(WindowedRows):
                     config.guard_green,
                     config.guard_escape,
                     config.guard_road_ahead,
+                    config.guard_step_change,
                 )
             )
             self.with_edges = True

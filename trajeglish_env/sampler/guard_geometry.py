@@ -35,7 +35,9 @@ class Pairs:
     ``near_size [n,K,2]``, ``near_real [n,K]`` and ``near_escape [n,K]`` (those that moved into its
     current box, kept only to be escaped: ``SamplingConfig.guard_escape``); its road ``edges``; ``red [n]``
     vehicles and cyclists with a red light within reach, ``depart [n]`` those the green rule applies to (a
-    green light ahead, the way clear), and the ``signals`` of their rows."""
+    green light ahead, the way clear), the ``signals`` of their rows, and ``pace [n]`` the forward distance of
+    each agent's last move (its model states at ``t - 1`` and ``t``), NaN where the speed-change rule does not
+    apply (a pedestrian, no state at ``t - 1``, the rule off)."""
 
     rows: np.ndarray
     agents: np.ndarray
@@ -52,6 +54,7 @@ class Pairs:
     red: np.ndarray
     depart: np.ndarray
     signals: dict[int, SceneSignals]
+    pace: np.ndarray
 
     @property
     def guarded(self) -> np.ndarray:
@@ -59,6 +62,11 @@ class Pairs:
         light, a green one)."""
         return self.near_real.any(axis=1) | self.edges.road | self.red | self.depart
 
+
+# Share of ``guard_step_change`` a class's forward step may change by from one step to the next: vehicles
+# all of it, cyclists half (their tokenized logs change by at most 0.3 m, vehicles' 0.8 m on WOMD), not
+# pedestrians (they turn on the spot and step back).
+STEP_CHANGE_SHARE = {AgentKind.VEHICLE: 1.0, AgentKind.PEDESTRIAN: np.inf, AgentKind.CYCLIST: 0.5}
 
 # Metres between a rider's front and the box ahead of it under which the green rule does not push it on
 # (SUMO's standstill gap, minGap); boxes whose centres lie within the widths' half sum plus CLEAR_SIDE m of
@@ -88,8 +96,9 @@ class GuardGeometry:
     """Obstacles and road edges of the sampled pairs of an engine's rows (``templates [classes,V,3]``:
     the motion tokens; ``road_margin``: how far a candidate corner may lie beyond a road edge;
     ``green_rule``: whether riders at a green light with the way clear must move; ``road_ahead``: metres
-    of each candidate's kept-up motion checked against the road edges, 0 for none), with each row-agent's
-    road-edge list kept between steps."""
+    of each candidate's kept-up motion checked against the road edges, 0 for none; ``step_change``: metres
+    by which a vehicle's forward step may change from its last one, :data:`STEP_CHANGE_SHARE` of it for
+    the other classes, 0 for no such rule), with each row-agent's road-edge list kept between steps."""
 
     def __init__(
         self,
@@ -98,6 +107,7 @@ class GuardGeometry:
         green_rule: bool = True,
         escape: bool = False,
         road_ahead: float = 0.0,
+        step_change: float = 0.0,
     ):
         self.templates = np.asarray(templates, dtype=np.float64)
         self.road_margin = float(road_margin)
@@ -105,6 +115,8 @@ class GuardGeometry:
         self.escape = bool(escape)
         self.road_ahead = float(road_ahead)
         self.move = np.hypot(self.templates[..., 0], self.templates[..., 1]).max(axis=1)  # per class
+        share = np.array([STEP_CHANGE_SHARE[AgentKind(k)] for k in range(len(self.templates))])
+        self.step_change = share * float(step_change) if step_change > 0 else np.full(len(share), np.inf)
         self._columns = PaddedRows(0.0, last=True)
         self._links = PaddedRows(-1, last=True)
         self._cells = EdgeCells()
@@ -136,7 +148,42 @@ class GuardGeometry:
             depart &= way_clear(origin, size, *near) & ~tangled
         else:
             depart[:] = False
-        return Pairs(rr, who, tt, origin, size, kind, extent, *near, escape, edges, red, depart, signals)
+        pace = self._pace(rs, rr, who, tt, origin, kind)
+        return Pairs(
+            rr, who, tt, origin, size, kind, extent, *near, escape, edges, red, depart, signals, pace
+        )
+
+    def _pace(
+        self,
+        rs: RowStates,
+        rr: np.ndarray,
+        who: np.ndarray,
+        tt: np.ndarray,
+        origin: np.ndarray,
+        kind: np.ndarray,
+    ) -> np.ndarray:
+        """``[n]`` the forward distance of each agent's move from its model state at ``t - 1`` to ``origin``
+        (in the frame of the first), NaN where the speed-change rule does not apply to it."""
+        before = np.maximum(tt - 1, 0)
+        known = (tt >= 1) & rs.valid[rr, who, before] & np.isfinite(self.step_change[kind])
+        prev = rs.mxyh[rr, who, before]
+        d = origin[:, :2] - prev[:, :2]
+        forward = d[:, 0] * np.cos(prev[:, 2]) + d[:, 1] * np.sin(prev[:, 2])
+        return np.where(known, forward, np.nan)
+
+    def step_changes(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> np.ndarray:
+        """``[m,c]`` how far (m) the forward step of candidates ``tokens [m,c]`` of pairs ``sel [m]`` differs
+        from the agent's last one, in units of its class's limit (0 where the rule does not apply)."""
+        kind = p.kind[sel]
+        step = self.templates[kind[:, None], tokens, 0]
+        change = np.abs(step - p.pace[sel][:, None]) / self.step_change[kind][:, None]
+        return np.nan_to_num(change, nan=0.0)
+
+    def jumps(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> np.ndarray:
+        """``[m,c]`` candidates ``tokens [m,c]`` of pairs ``sel [m]`` whose forward step differs from the
+        agent's last one by more than its class's speed-change limit (a car stopping dead from 20 m/s in
+        one step, or jumping from 10 to 29 m/s and back)."""
+        return self.step_changes(p, sel, tokens) > 1.0
 
     def _lights(
         self,
@@ -218,9 +265,10 @@ class GuardGeometry:
     def blocked(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For pairs ``sel [m]`` and their candidate ``tokens [m,c]``: which would overlap an obstacle, and
         which would break a map rule ``[m,c]`` (take the vehicle off the road where the road-edge rule
-        applies, across the stop line of a red light on its lane, or leave it standing at a green one)."""
-        collide, escape, off = self.blocked_parts(p, sel, tokens)
-        return collide | escape, off
+        applies, across the stop line of a red light on its lane, leave it standing at a green one, or change
+        its speed more than a step allows: :meth:`jumps`)."""
+        collide, escape, off, jump = self.blocked_parts(p, sel, tokens)
+        return collide | escape, off | jump
 
     def reach(
         self, p: Pairs, sel: np.ndarray, tokens: np.ndarray, allowed: np.ndarray
@@ -237,9 +285,9 @@ class GuardGeometry:
 
     def blocked_parts(
         self, p: Pairs, sel: np.ndarray, tokens: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`blocked` with the overlaps split ``[m,c]``: with an obstacle to avoid, with one only to
-        escape (``Pairs.near_escape``); and the map rules."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`blocked` split ``[m,c]``: overlaps with an obstacle to avoid, with one only to escape
+        (``Pairs.near_escape``); the map rules; the speed-change rule (:meth:`jumps`)."""
         kind, size = p.kind[sel], p.size[sel]
         cand = to_global(p.origin[sel][:, None], self.templates[kind[:, None], tokens])  # [m,c,3]
         collide, escape = np.zeros(tokens.shape, bool), np.zeros(tokens.shape, bool)
@@ -269,7 +317,7 @@ class GuardGeometry:
         go = p.depart[sel]
         if go.any():
             off[go] |= self.templates[kind[go, None], tokens[go], 0] < DEPART_STEP
-        return collide, escape, off
+        return collide, escape, off, self.jumps(p, sel, tokens)
 
 
 def _by_scene(signals: dict[int, SceneSignals], rows: list[int]) -> list[tuple[SceneSignals, list[int]]]:
