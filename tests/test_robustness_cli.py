@@ -87,6 +87,16 @@ CASES = [
         "{not_ckpt}: not a readable checkpoint (not written by trajeglish, truncated or corrupt?): ",
     ),
     (
+        "evaluate-two-unnamed-checkpoints",  # the second replaced the first, silently
+        ["evaluate", "--data", "{tmp}/data", "--ckpt", "shipped", "--ckpt", "shipped", "--out", "{tmp}/ev"],
+        "--ckpt shipped: the name 'trajeglish' is taken by --ckpt shipped; name each one",
+    ),
+    (
+        "evaluate-unknown-partial",  # a KeyError traceback after every method had run
+        ["evaluate", "--data", "{tmp}/data", "--partial", "nope", "--out", "{tmp}/ev"],
+        "--partial nope: expected one of the checkpoints ['trajeglish']",
+    ),
+    (
         "rollout-top-p-2",
         ["rollout", "--scenario", "{shard}", "--top-p", "2", "--out", "{tmp}/r.gif"],
         "argument --top-p: expected a number in (0, 1], got '2'",

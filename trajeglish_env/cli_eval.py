@@ -31,11 +31,17 @@ def checkpoints(items: list[str] | None) -> dict[str, Any]:
     shipped pretrained model."""
     from trajeglish_env.checkpoint import load_named, load_pretrained
 
-    ckpts = {}
+    ckpts, given = {}, {}
     for item in items or []:
         name, _, path = item.rpartition("=")
         ckpt = load_named(path)
-        ckpts[name or ckpt.config.variant.value] = ckpt
+        name = name or ckpt.config.variant.value
+        if name in ckpts:  # the second replaced the first, silently
+            raise ValueError(
+                f"--ckpt {item}: the name {name!r} is taken by --ckpt {given[name]}; name each one "
+                f"(--ckpt A=FILE --ckpt B=FILE)"
+            )
+        ckpts[name], given[name] = ckpt, item
     return ckpts or {"trajeglish": load_pretrained()}
 
 
@@ -49,6 +55,8 @@ def cmd_evaluate(args: argparse.Namespace) -> dict[str, Any]:
     ranks = init_ranks(device)
     # with --submission the checkpoints are evaluated only when named
     ckpts = {} if args.submission and not args.ckpt else checkpoints(args.ckpt)
+    if args.partial and args.partial not in ckpts:  # it failed after every method had run
+        raise ValueError(f"--partial {args.partial}: expected one of the checkpoints {sorted(ckpts)}")
     for ckpt in ckpts.values():
         ckpt.model.to(device)
     config = EvalConfig(
