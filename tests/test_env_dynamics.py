@@ -309,3 +309,26 @@ def test_a_walker_or_cyclist_steering_hard_stays_where_its_tokens_follow() -> No
         engine, i, t = raw.batch.rows.engine, raw.agent_index(agent), raw.sim.t
         gap = np.linalg.norm(engine.mxyh[0, i, : t + 1, :2] - engine.xyh[0, i, : t + 1, :2], axis=-1)
         assert gap.max() < 0.2, (agent, gap.max())
+
+
+def test_one_jerky_delta_step_costs_at_most_the_comfort_cap() -> None:
+    """The comfort term reads a step's change of displacement as acceleration: a `delta` step from 1 m to
+    5 m ahead read 400 m/s^2 and cost -0.66, more than half a collision; capped at 3 units (-0.015)."""
+    from trajeglish_env.env.config import RewardConfig
+    from trajeglish_env.env.rewards import step_reward
+
+    config = RewardConfig()
+    out = step_reward(
+        config,
+        np.zeros(3),
+        np.full(3, 50.0),
+        np.zeros(3, bool),
+        np.zeros(3, bool),
+        np.zeros(3, bool),
+        np.array([400.0, 6.0, 0.0]),  # a jerk, full braking, nothing
+        np.array([0.0, 8.0, 0.0]),
+    )
+    np.testing.assert_allclose(out.discomfort, [3.0, 1.0 + 5.0 / 3.0, 0.0])  # continuous actions: below it
+    np.testing.assert_allclose(out.reward, [-0.015, -0.005 * 8.0 / 3.0, 0.0])
+    with pytest.raises(ValueError, match="comfort_cap must be >= 0"):
+        RewardConfig(comfort_cap=-1.0)

@@ -175,7 +175,8 @@ def test_reset_infos_hold_the_step_info_keys() -> None:
     e.reset(seed=0)
     *_, info = e.last()
     assert info == {
-        "collision": False, "offroad": False, "goal": False, "progress_m": 0.0, "route_fraction": 0.0,
+        "collision": False, "offroad": False, "goal": False, "has_goal": True, "progress_m": 0.0,
+        "route_fraction": 0.0,
         "collision_steps": 0, "offroad_steps": 0, "goal_reached": False,
     }  # fmt: skip
     e.step(e.action_space(e.agent_selection).sample())

@@ -223,3 +223,25 @@ def test_one_idm_policy_drives_two_envs_at_once_as_it_drives_one() -> None:
     together = drive([trajeglish_env.env(npc="idm") for _ in range(2)], shared)
     assert together == pytest.approx([alone[0]] * 2) and alone[0] > 100.0
     assert len(pickle.dumps(shared)) < 1000
+
+
+def test_an_ego_parked_in_the_log_is_named_and_not_counted_as_missing_its_goal() -> None:
+    """The shared WOMD scene's sdc is parked (a 0 m route): its info read route_fraction 0 while its
+    observation read 1, nothing said it had no reward to earn, and the goal rate counted it as a failure
+    (replaying every agent's log: goal rate 0.40, 28 of 50 agents with no goal)."""
+    from helpers import womd_tfrecord
+
+    import trajeglish_env
+    from policies import ReplayPolicy, play_episode, summarize
+    from trajeglish_env.sources.womd import read_womd
+
+    scene = next(read_womd(womd_tfrecord()))
+    with pytest.warns(UserWarning, match=r"external agent\(s\) vehicle_2406 move less than .* no goal"):
+        env = trajeglish_env.env(scenes=[scene], npc="replay", max_cycles=5)
+        env.reset(seed=0)
+    obs, *_, info = env.last()
+    assert info["has_goal"] is False and info["route_fraction"] == 1.0 == obs[5]
+    result = play_episode(env, ReplayPolicy(), seed=0)
+    assert result.has_goal == {"vehicle_2406": False}
+    summary = summarize([result])
+    assert summary["agents_with_goal"] == 0.0 and np.isnan(summary["goal_rate"])

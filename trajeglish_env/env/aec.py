@@ -36,7 +36,8 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
     steering), ``delta`` Box (dx, dy, dh) or ``token`` Discrete(V), see :mod:`trajeglish_env.env.actions`.
     Rewards, terminations (collision, off-road, end of route) and truncation (``max_cycles``) are computed
     at the end of every timestep; ``infos[agent]`` holds ``collision``, ``offroad``, ``goal`` (this
-    step), ``progress_m``, ``route_fraction``, ``collision_steps``, ``offroad_steps`` and ``goal_reached``
+    step), ``has_goal``, ``progress_m``, ``route_fraction``, ``collision_steps``, ``offroad_steps`` and
+    ``goal_reached``
     (so far). A finished agent leaves the scene at the next step.
     """
 

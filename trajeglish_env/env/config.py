@@ -134,7 +134,10 @@ class RewardConfig:
     collision / offroad: added once, when it happens (off-road: a vehicle's box corner more than
     ``offroad_margin`` m beyond a road edge; logged roundabout turns cut up to ~1 m); comfort:
     ``comfort`` x (longitudinal and lateral acceleration beyond ``comfort_accel`` m/s^2, in units of
-    ``comfort_accel``); goal: added once, when the end of the route (within ``goal_tolerance`` m) is
+    ``comfort_accel``, at most ``comfort_cap`` of them a step: the most a ``continuous`` action reaches is
+    about 2.8, while ``delta`` and ``token`` steps read 3 cm of tracking jitter as 3 m/s^2 and a jerky step as
+    hundreds, more than a collision's penalty); goal: added once, when the end of the route (within
+    ``goal_tolerance`` m) is
     first reached (``info["goal"]`` says whether the agent is there this step). Routes shorter than
     ``min_route_length`` m (agents parked in the log) have no goal. Bad values (a non-finite weight, a
     non-positive ``comfort_accel``, a negative margin or tolerance) are refused, naming the field.
@@ -145,6 +148,7 @@ class RewardConfig:
     offroad: float = -1.0
     comfort: float = -0.005
     comfort_accel: float = 3.0
+    comfort_cap: float = 3.0
     offroad_margin: float = OFFROAD_MARGIN
     goal: float = 0.0
     goal_tolerance: float = 2.0
@@ -164,6 +168,10 @@ class RewardConfig:
         if self.comfort_accel <= 0:
             raise ValueError(
                 f"RewardConfig.comfort_accel must be > 0 (rewards divide by it), got {self.comfort_accel}"
+            )
+        if self.comfort_cap < 0:
+            raise ValueError(
+                f"RewardConfig.comfort_cap must be >= 0 (units of comfort_accel), got {self.comfort_cap}"
             )
         for name in ("offroad_margin", "goal_tolerance", "min_route_length"):
             if getattr(self, name) < 0:

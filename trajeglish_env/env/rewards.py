@@ -62,7 +62,7 @@ def step_reward(
     excess = np.maximum(np.abs(accel_long) - config.comfort_accel, 0.0) + np.maximum(
         np.abs(accel_lat) - config.comfort_accel, 0.0
     )
-    discomfort = excess / config.comfort_accel
+    discomfort = np.minimum(excess / config.comfort_accel, config.comfort_cap)
     reward = (
         config.progress * progress / np.maximum(route_length, 10.0)
         + config.collision * collision

@@ -4,6 +4,7 @@ simulations (one per scene row) together with the NPC driver; the AEC env is a b
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -189,6 +190,16 @@ class Simulation:
         self.last_offroad = np.zeros(len(ext), dtype=bool)
         self.goal_paid = np.zeros(len(ext), dtype=bool)  # the goal reward is paid once per episode
         self.has_goal = self.routes.length >= config.reward.min_route_length
+        if not self.has_goal.all():  # nothing to drive for: their reward is the penalties alone
+            names = [agent_name(scenario.kind[a], scenario.track_id[a]) for a in ext[~self.has_goal]]
+            shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+            warnings.warn(
+                f"scene {scenario.scenario_id!r}: external agent(s) {shown} move less than "
+                f"RewardConfig.min_route_length ({config.reward.min_route_length:g} m) in the log: no goal, "
+                "no progress to earn, only penalties (infos 'has_goal' False)",
+                UserWarning,
+                stacklevel=2,
+            )
         self.observer = make_observer(config.observation, scenario, config.obs)
         self.edges = road_edges(scenario)
         edge_columns, edge_links = edge_rows(self.edges)
@@ -270,15 +281,19 @@ class Simulation:
     def agent_info(
         self, a: int, collision: bool = False, offroad: bool = False, goal: bool = False
     ) -> dict[str, Any]:
-        """External agent ``a``'s info: this step's flags, its progress so far and whether it has reached
-        its goal at some step (at reset: no flags, no progress, the same keys as after a step)."""
+        """External agent ``a``'s info: this step's flags, whether its route has a goal, its progress so
+        far and whether it has reached its goal at some step (at reset: no flags, no progress, the same
+        keys as after a step)."""
         row = self.route_row[a]
+        has_goal = bool(self.has_goal[row])
+        done = min(float(self.progress[row] / max(self.routes.length[row], 1e-6)), 1.0) if has_goal else 1.0
         return {
             "collision": collision,
             "offroad": offroad,
             "goal": goal,
+            "has_goal": has_goal,  # a route of min_route_length m or more (one parked in the log has none)
             "progress_m": float(self.progress[row]),
-            "route_fraction": float(self.progress[row] / max(self.routes.length[row], 1e-6)),
+            "route_fraction": done,  # as the observation reads it: 1 on a route with no goal
             "collision_steps": int(self.collision_steps[row]),
             "offroad_steps": int(self.offroad_steps[row]),
             "goal_reached": bool(self.goal_paid[row]),
