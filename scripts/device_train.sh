@@ -154,10 +154,13 @@ cpu) export CUDA_VISIBLE_DEVICES="" ;;
 *) die "DEVICE=$DEVICE: expected cuda or cpu" ;;
 esac
 
+STALE=0
+[ ! -d "$WORK/data" ] || STALE=1 # scenes of an earlier job: generate resumes them or refuses to mix
 mkdir -p "$OUT" "$WORK"
 LOG=$WORK/log.txt
 : >"$LOG"
 exec > >(tee -a "$LOG") 2>&1
+[ "$STALE" = 0 ] || echo "device_train: WORK=$WORK holds scenes of an earlier job (reused where they match; scenes of another generator version are refused and stop the job): set WORK to a fresh folder to start clean" >&2
 export PYTHONUNBUFFERED=1 PYGAME_HIDE_SUPPORT_PROMPT=1
 export PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}"
 say "job: DEVICE=$DEVICE MINUTES=$MINUTES SCENES=$SCENES OUT=$OUT WORK=$WORK RUN_IN=${RUN_IN:-none} DATA_IN=${DATA_IN:-none} INIT=${INIT:-none}"
@@ -345,8 +348,11 @@ VAL_SCENES=${VAL_SCENES:-$(calc "int(($SCENES / 20 < 8) ? 8 : (($SCENES / 20 > 6
 gen() { # source scenes seed out workers seconds [kinds]: finished shards stay when the time is up
     local rc=0 kinds=()
     [ -z "${7:-}" ] || kinds=(--kinds "$7")
+    mkdir -p "$(dirname "$4")"
     timeout --kill-after=15 "$6" "$PYTHON" -m trajeglish_env.cli generate --quiet --source "$1" \
-        --scenes "$2" --seed "$3" --out "$4" --workers "$5" "${kinds[@]}" >/dev/null || rc=$?
+        --scenes "$2" --seed "$3" --out "$4" --workers "$5" "${kinds[@]}" >/dev/null 2>"$4.err" || rc=$?
+    cat "$4.err" >&2
+    ! grep -q "refusing" "$4.err" || die "generate --source $1 --out $4 refused its folder (see $LOG)"
     [ "$rc" = 0 ] || [ "$rc" = 124 ] || die "generate --source $1 --out $4 failed (exit code $rc)"
     [ "$rc" = 0 ] || say "$(basename "$4"): time is up after $6 s; keeping the finished shards"
 }

@@ -439,3 +439,15 @@ def test_the_gpu_bench_job_also_times_the_scenes_split_over_workers(tmp_path: Pa
     assert result["env"]["trajeglish_guard"]["8"]["processes"] == 1
     split = result["env"]["trajeglish_guard_split"]["8"]
     assert split["processes"] == 2 and split["agent_steps_per_s"] > 0
+
+
+def test_scenes_an_earlier_job_left_in_work_that_generate_refuses_stop_the_job(tmp_path: Path) -> None:
+    """A WORK folder holding another generator version's scenes (the default /tmp/trajeglish_device of an
+    earlier job): generate refused it, the refusal could come after the time limit, and the job trained on
+    whatever was left, reporting success. It stops now, and the log says WORK held an earlier job's scenes."""
+    stale = tmp_path / "work-stale" / "data" / "val-highway-s7-n2"
+    stale.mkdir(parents=True)
+    (stale / "other.scn.npz").write_bytes(b"from an earlier job")
+    done = _job(tmp_path, "stale", VAL_SCENES="2", VAL_SEED="7", DATA_IN="")
+    assert done.returncode != 0 and "refused its folder" in done.stdout
+    assert "holds scenes of an earlier job" in done.stdout
