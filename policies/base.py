@@ -6,8 +6,9 @@ A policy is asked for one agent's action at that agent's turn in the AEC loop::
         def reset(self, env, agent: str) -> None: ...          # a new episode (optional state)
         def act(self, env, agent: str, observation) -> action: ...
 
-``env`` is the (wrapped) AEC env; rule-based policies read the simulation through ``env.unwrapped``
-(``scenario``, ``sim.view()``, ``agent_index(agent)``, ``action_towards(agent, target_state)``).
+``env`` is the (wrapped) AEC env, or an ``EgoEnv`` (``Ego-v0``; ``agent``: its ``env.agent``); rule-based
+policies read the simulation through ``env.unwrapped`` (``scenario``, ``sim.view()``, ``agent_index(agent)``,
+``action_towards(agent, target_state)``).
 """
 
 from __future__ import annotations
@@ -55,7 +56,8 @@ class RandomPolicy:
     def reset(self, env: Any, agent: str) -> None:
         """Prepare for a new episode of ``agent``: its draws follow this policy's seed, the agent's name and
         the episode's seed (the same episode whatever the object played before)."""
-        space = copy.deepcopy(env.action_space(agent))
+        space = env.action_space(agent) if callable(env.action_space) else env.action_space  # an EgoEnv's
+        space = copy.deepcopy(space)
         episode = int(getattr(env.unwrapped.sim, "seed", 0))
         seq = np.random.SeedSequence([self.seed, zlib.crc32(agent.encode()), episode])
         space.seed(int(seq.generate_state(1)[0]))

@@ -545,3 +545,12 @@ def test_a_refused_batched_reset_restarts_no_scene() -> None:
         batch.reset(seed=[5, -1])
     assert [s.t for s in batch.core.batch.sims] == before
     batch.reset(seed=[np.int64(5), 6])
+
+
+def test_a_scenario_given_as_the_scene_option_is_named_by_its_id() -> None:
+    """`reset(options={"scene": scenario})` put the Scenario's whole repr (11,320 characters) in the error."""
+    env = raw_env(small_scenes()[:2], npc="replay")
+    scene = small_scenes()[1]
+    with pytest.raises(TypeError, match="got the Scenario .* itself: pass options=") as err:
+        env.reset(seed=0, options={"scene": scene})
+    assert len(str(err.value)) < 400

@@ -245,3 +245,25 @@ def test_an_ego_parked_in_the_log_is_named_and_not_counted_as_missing_its_goal()
     assert result.has_goal == {"vehicle_2406": False}
     summary = summarize([result])
     assert summary["agents_with_goal"] == 0.0 and np.isnan(summary["goal_rate"])
+
+
+@pytest.mark.parametrize("make", [IDMPolicy, ReplayPolicy, RandomPolicy])
+def test_the_policies_drive_the_ego_of_a_gymnasium_ego_env(make) -> None:
+    """`IDMPolicy().act(EgoEnv(...), ...)` failed with "'EgoEnv' object has no attribute 'sim'" and
+    RandomPolicy called the Box it got as env.action_space; a policy drives an EgoEnv's ego now, as
+    the AEC env's (IDM: the same episode)."""
+    from trajeglish_env.env import EgoEnv
+
+    ego = EgoEnv(small_scenes()[:2], npc="idm", max_cycles=15)
+    obs, _ = ego.reset(seed=3)
+    policy = make()
+    policy.reset(ego, ego.agent)
+    done = cut = False
+    while not (done or cut):
+        action = policy.act(ego, ego.agent, obs)
+        assert ego.action_space.contains(action)
+        obs, _, done, cut, info = ego.step(action)
+    if make is IDMPolicy:
+        env = raw_env(small_scenes()[:2], npc="idm", max_cycles=15)
+        result = play_episode(env, IDMPolicy(), seed=3)
+        assert info["progress_m"] == pytest.approx(result.progress_m[info["agent"]])

@@ -79,6 +79,31 @@ class EgoEnv(gymnasium.Env):
             self._info(),
         )
 
+    # what rule-based and learned ego policies (policies/) read of an AEC env, read through to it: a policy
+    # given this env drives its ego as it drives the AEC env's (it failed on 'EgoEnv' has no 'sim')
+    @property
+    def sim(self) -> Any:
+        """The AEC env's simulation."""
+        return self.aec.unwrapped.sim
+
+    @property
+    def scenario(self) -> Any:
+        """The episode's scene."""
+        return self.aec.unwrapped.scenario
+
+    @property
+    def config(self) -> Any:
+        """The env's :class:`~trajeglish_env.env.config.EnvConfig`."""
+        return self.aec.unwrapped.config
+
+    def agent_index(self, agent: str) -> int:
+        """See :meth:`raw_env.agent_index`."""
+        return int(self.aec.unwrapped.agent_index(agent))
+
+    def action_towards(self, agent: str, target: np.ndarray) -> np.ndarray | int:
+        """See :meth:`raw_env.action_towards`."""
+        return self.aec.unwrapped.action_towards(agent, target)
+
     def render(self) -> np.ndarray | None:
         """See :meth:`raw_env.render`."""
         return self.aec.render()
