@@ -248,8 +248,8 @@ def scene_index(option: object, scenes: SceneSet) -> int | None:
     if isinstance(option, Scenario):  # its repr is the whole scene (11,000 characters): name it by its id
         raise TypeError(
             f"reset options: 'scene' must be a scene index (int) or a scenario_id (str), got the Scenario "
-            f"{option.scenario_id!r} itself: pass options={{'scene': {option.scenario_id!r}}} (a scene of the "
-            "env's scene set), or build the env with scenes=[scenario]"
+            f"{option.scenario_id!r} itself: pass options={{'scene': {option.scenario_id!r}}} (a scene of "
+            "the env's scene set), or build the env with scenes=[scenario]"
         )
     if isinstance(option, (bool, np.bool_)) or not isinstance(option, (int, np.integer)):
         shown = repr(option)
