@@ -12,9 +12,10 @@ import numpy as np
 class VehicleLimits:
     """Kinematic bicycle limits of the ``continuous`` action: action[0] in [-1, 1] maps to
     [-max_brake, max_accel] m/s^2 (linearly on each side of 0), action[1] to the front-wheel angle in
-    [-s, s] with s = min(max_steer, atan(max_lateral_accel x wheelbase / v^2)) at speed v (tyre grip:
-    full steering is a turn at ``max_lateral_accel`` at most); the speed stays in [0, max_speed] m/s (no
-    reversing); the wheelbase is ``wheelbase_ratio`` times the agent's length."""
+    [-s, s] with s = min(max_steer, atan(max_lateral_accel x wheelbase / v^2)) at speed v, the speed before
+    the step (tyre grip: full steering is a turn at ``max_lateral_accel`` at most at that speed; speeding
+    up under full steering ends a step a little above it, 8.5 m/s^2 for a car); the speed stays in
+    [0, max_speed] m/s (no reversing); the wheelbase is ``wheelbase_ratio`` times the agent's length."""
 
     max_accel: float = 4.0
     max_brake: float = 6.0
