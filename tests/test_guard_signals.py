@@ -4,6 +4,8 @@ had to drop its map rules, and queues stopped at red set off at green."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from helpers import tiny
@@ -231,3 +233,26 @@ def test_rows_of_signalized_scenes_equal_their_solo_runs(grid_scenes: list[Scena
         n = grid_scenes[i].num_agents
         assert np.array_equal(batch.tokens[row, :n], solo.tokens[0, :n]), f"row {row}"
     assert batch.guard.stats.masked > 0
+
+
+def test_green_rule_makes_a_creeping_rider_speed_up_to_the_departure_pace(
+    grid_scenes: list[Scenario],
+) -> None:
+    """A rider creeping at a green light (0.3-0.4 m/s, the look audit's SUMO cyclist) met the rule by
+    creeping and stood in the junction once its front was 0.5 m past the line, its queue behind it: under
+    1.5 m/s every candidate that does not add DEPART_GAIN m to its last step is masked, so it reaches the
+    line at pace."""
+    from trajeglish_env.sampler.guard_signals import DEPART_GAIN, DEPART_PACE, DEPART_STEP
+
+    engine, riders, pairs = _green_pairs(grid_scenes)
+    geometry, v = engine.guard.geometry, engine.vocab.size
+    go = np.flatnonzero(pairs.depart & ~pairs.red)
+    assert len(go)
+    every = np.broadcast_to(np.arange(v), (len(go), v))
+    for creep in (0.0, 0.035, 0.149):  # standing, creeping at 0.35 m/s, nearly at the pace
+        pairs = dataclasses.replace(pairs, pace=np.full(len(pairs.pace), creep))
+        _, off = geometry.blocked(pairs, go, every)
+        step = geometry.templates[pairs.kind[go, None], every, 0]
+        need = min(max(creep + DEPART_GAIN, DEPART_STEP), DEPART_PACE)
+        assert (off | (step >= need - 1e-12)).all()  # every slower candidate is masked
+        assert (~off & (step >= need)).any()  # faster ones remain (where the road allows them)

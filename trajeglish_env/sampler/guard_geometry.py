@@ -22,7 +22,13 @@ from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.sampler.guard_ahead import AHEAD_MIN_MOVE, road_reach
 from trajeglish_env.sampler.guard_edges import RoadView, road_view
-from trajeglish_env.sampler.guard_signals import DEPART_STEP, SceneSignals, SignalCache
+from trajeglish_env.sampler.guard_signals import (
+    DEPART_GAIN,
+    DEPART_PACE,
+    DEPART_STEP,
+    SceneSignals,
+    SignalCache,
+)
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.scenario import AgentKind
 
@@ -36,8 +42,8 @@ class Pairs:
     current box, kept only to be escaped: ``SamplingConfig.guard_escape``); its road ``edges``; ``red [n]``
     vehicles and cyclists with a red light within reach, ``depart [n]`` those the green rule applies to (a
     green light ahead, the way clear), the ``signals`` of their rows, and ``pace [n]`` the forward distance of
-    each agent's last move (its model states at ``t - 1`` and ``t``), NaN where the speed-change rule does not
-    apply (a pedestrian, no state at ``t - 1``, the rule off)."""
+    each agent's last move (its model states at ``t - 1`` and ``t``), NaN for pedestrians and where there is
+    no state at ``t - 1``."""
 
     rows: np.ndarray
     agents: np.ndarray
@@ -162,10 +168,11 @@ class GuardGeometry:
         origin: np.ndarray,
         kind: np.ndarray,
     ) -> np.ndarray:
-        """``[n]`` the forward distance of each agent's move from its model state at ``t - 1`` to ``origin``
-        (in the frame of the first), NaN where the speed-change rule does not apply to it."""
+        """``[n]`` the forward distance of each vehicle's and cyclist's move from its model state at ``t - 1``
+        to ``origin`` (in the frame of the first), NaN for pedestrians and where there is no state at
+        ``t - 1``."""
         before = np.maximum(tt - 1, 0)
-        known = (tt >= 1) & rs.valid[rr, who, before] & np.isfinite(self.step_change[kind])
+        known = (tt >= 1) & rs.valid[rr, who, before] & (kind != AgentKind.PEDESTRIAN)
         prev = rs.mxyh[rr, who, before]
         d = origin[:, :2] - prev[:, :2]
         forward = d[:, 0] * np.cos(prev[:, 2]) + d[:, 1] * np.sin(prev[:, 2])
@@ -315,8 +322,12 @@ class GuardGeometry:
             near = ss.near_red(p.origin[pick, :2], p.t[pick], p.extent[pick])
             off[q] |= ss.violations(p.origin[pick, :2], cand[q, :, :2], p.t[pick], near)
         go = p.depart[sel]
-        if go.any():
-            off[go] |= self.templates[kind[go, None], tokens[go], 0] < DEPART_STEP
+        if go.any():  # standing or creeping: the step must grow by DEPART_GAIN a step up to DEPART_PACE
+            pace = p.pace[sel[go]]
+            need = np.where(
+                np.isnan(pace), DEPART_STEP, np.clip(pace + DEPART_GAIN, DEPART_STEP, DEPART_PACE)
+            )
+            off[go] |= self.templates[kind[go, None], tokens[go], 0] < need[:, None]
         return collide, escape, off, self.jumps(p, sel, tokens)
 
 
