@@ -287,3 +287,17 @@ def test_human_mode_without_a_display_says_no_window_shows(monkeypatch) -> None:
             er.show(er.frame(sc.current_index))
     finally:
         er.close()
+
+
+def test_env_frames_carry_the_legend_when_asked() -> None:
+    """The env's frames never had a key of the colours (which one is the ego: red); `render_legend=True`."""
+    import trajeglish_env
+
+    frames = []
+    for legend in (False, True):
+        env = trajeglish_env.env(npc="idm", render_mode="rgb_array", render_legend=legend)
+        env.reset(seed=0)
+        frames.append(env.render())
+    assert frames[0].shape == frames[1].shape and (frames[0] != frames[1]).any()
+    with pytest.raises(TypeError, match="render_legend must be a bool"):
+        trajeglish_env.env(render_legend="yes")

@@ -407,9 +407,12 @@ class EpisodeRenderer:
         npc: np.ndarray,
         size: int = 480,
         radius: float = 40.0,
+        legend: bool = False,
     ):
         colors = role_colors(scenario, external, npc)
-        config = RenderConfig(width_px=size, height_px=size, view_radius=radius, follow_sdc=True)
+        config = RenderConfig(
+            width_px=size, height_px=size, view_radius=radius, follow_sdc=True, legend=legend
+        )
         self.renderer = SceneRenderer(scenario, xyh=xyh, valid=valid, colors=colors, config=config)
         # the view follows the external agents in order (the next one when an episode ends), else the sdc
         order = np.flatnonzero(external)
@@ -458,8 +461,8 @@ class LiveRenderer:
     """The :class:`EpisodeRenderer` of whatever simulation runs in one env slot: made on first use, made
     anew for a new episode or when the engine grows its arrays (so it never draws from stale ones)."""
 
-    def __init__(self, size: int, radius: float):
-        self.size, self.radius = size, radius
+    def __init__(self, size: int, radius: float, legend: bool = False):
+        self.size, self.radius, self.legend = size, radius, legend
         self._renderer: EpisodeRenderer | None = None
         self._source: tuple[object, np.ndarray] | None = None
 
@@ -480,6 +483,7 @@ class LiveRenderer:
                 sim.policy_driven,  # type: ignore[attr-defined]
                 size=self.size,
                 radius=self.radius,
+                legend=self.legend,
             )
             self._source = (sim, xyh)
         assert self._renderer is not None

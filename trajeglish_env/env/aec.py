@@ -226,7 +226,9 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         if self._renderer is None:
             from trajeglish_env.render import LiveRenderer
 
-            self._renderer = LiveRenderer(self.config.render_size, self.config.render_radius)
+            self._renderer = LiveRenderer(
+                self.config.render_size, self.config.render_radius, self.config.render_legend
+            )
         return self._renderer
 
     def close(self) -> None:

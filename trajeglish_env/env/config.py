@@ -193,6 +193,8 @@ class EnvConfig:
       (:class:`trajeglish_env.env.npc.NPCPolicy`).
     action / observation: one of :data:`ACTION_TYPES` / :data:`OBSERVATION_TYPES`.
     max_cycles: steps per episode (None: the rest of the scene's log).
+    render_size / render_radius / render_legend: rendered frames' pixels, the metres they show around the
+      followed agent, and whether each carries the key of the colours (which agent is yours).
     torch_threads: torch intra-op threads while the env runs the model (1: small decoding calls are far
       faster single-threaded, and vectorized envs get one thread per worker); the caller's count is back
       after every env call; None leaves torch alone.
@@ -209,6 +211,7 @@ class EnvConfig:
     max_cycles: int | None = None
     render_size: int = 480
     render_radius: float = 40.0
+    render_legend: bool = False
     torch_threads: int | str | None = 1
 
     def __post_init__(self) -> None:
@@ -257,6 +260,8 @@ class EnvConfig:
             if not isinstance(cycles, numbers.Integral) or isinstance(cycles, bool) or cycles < 1:
                 raise ValueError(f"EnvConfig.max_cycles must be a positive integer or None, got {cycles!r}")
             object.__setattr__(self, "max_cycles", int(cycles))
+        if not isinstance(self.render_legend, bool):
+            raise TypeError(f"EnvConfig.render_legend must be a bool, got {self.render_legend!r}")
         if self.render_size < 16 or not self.render_radius > 0:
             raise ValueError("EnvConfig.render_size must be >= 16 pixels and render_radius > 0 m")
         threads = self.torch_threads

@@ -95,8 +95,12 @@ class BatchCore:
         if not self.renderers:
             from trajeglish_env.render import LiveRenderer
 
-            size, radius = self.config.render_size, self.config.render_radius
-            self.renderers = [LiveRenderer(size, radius) for _ in range(self.num_envs)]
+            size, radius, legend = (
+                self.config.render_size,
+                self.config.render_radius,
+                self.config.render_legend,
+            )
+            self.renderers = [LiveRenderer(size, radius, legend) for _ in range(self.num_envs)]
         sim = self.batch.sims[scene]
         return None if sim is None else self.renderers[scene].of(sim).frame(sim.t)
 
