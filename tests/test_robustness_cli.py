@@ -97,6 +97,11 @@ CASES = [
         "--partial nope: expected one of the checkpoints ['trajeglish']",
     ),
     (
+        "curves-text-suffix",  # a PNG was written into c.txt
+        ["curves", "{tmp}/run", "--out", "{tmp}/c.txt"],
+        "--out {tmp}/c.txt: expected a .png, .pdf or .svg picture",
+    ),
+    (
         "rollout-top-p-2",
         ["rollout", "--scenario", "{shard}", "--top-p", "2", "--out", "{tmp}/r.gif"],
         "argument --top-p: expected a number in (0, 1], got '2'",

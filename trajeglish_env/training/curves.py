@@ -42,7 +42,10 @@ def read_metrics(run: str | os.PathLike[str]) -> list[dict[str, float]]:
 
 def plot_runs(runs: dict[str, str | os.PathLike[str]], out: str | os.PathLike[str]) -> dict[str, Any]:
     """Validation NLL against step for several runs in one picture (e.g. the variants of the ablation);
-    returns each run's last validation NLL and the picture's path."""
+    returns each run's last validation NLL and the picture's path (a .png, .pdf or .svg file, in the format
+    its suffix names; another suffix is refused before any plotting: a .txt got a PNG)."""
+    if Path(out).suffix.lower() not in (".png", ".pdf", ".svg"):
+        raise ValueError(f"--out {out}: expected a .png, .pdf or .svg picture (the suffix sets the format)")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -61,7 +64,7 @@ def plot_runs(runs: dict[str, str | os.PathLike[str]], out: str | os.PathLike[st
     ax.legend()
     fig.tight_layout()
     with atomic_path(Path(out)) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
+        fig.savefig(tmp, format=Path(out).suffix.lower()[1:], dpi=110)
     plt.close(fig)
     return {"plot": str(out), "last_val_nll": last}
 
