@@ -121,6 +121,7 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 10
     assert printed["complete"] is True and written == printed
     assert written["config"]["batches"] == [1, 8]  # --quick without --batches: a smoke run's batch sizes
+    assert written["quick_overrides"]["env_steps"] == 3  # what the quick runs use (config: what was asked)
     assert written["metrics"]["8_evaluated"]["seconds"] > 0 and written["ratios"] == {}
     training = written["training"]  # train's default precision beside float32 (schema 8)
     assert training["precision"] == str(step_dtype("auto", torch.device("cpu"), 128)).removeprefix("torch.")

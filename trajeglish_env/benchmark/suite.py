@@ -156,6 +156,14 @@ def run_suite(
         "machine": measure.machine(),
         "config": asdict(config),
     }
+    if q:  # what the quick runs really use (config keeps what was asked for)
+        result["quick_overrides"] = {
+            "env_steps": 3,
+            "replay_steps": 3,
+            "env_min_seconds": 0.0,
+            "highway_steps": 60,
+            "rollouts": 2,
+        }
     start = time.perf_counter()
     for name, job in tqdm(jobs, desc="bench", unit="run", disable=not progress, file=sys.stderr):
         value = job()
