@@ -413,7 +413,9 @@ def test_an_external_agent_driving_into_an_npc_keeps_its_collision() -> None:
     collision the env must report to the ego's policy."""
     sc = closing_in_scene()
     controlled, external = np.array([True, False]), np.array([False, True])
-    config = SamplingConfig(temperature=1.0, guard=True, seed=2, guard_road_ahead=0.0)  # as above
+    config = SamplingConfig(  # as above
+        temperature=1.0, guard=True, seed=2, guard_road_ahead=0.0, guard_step_change=0.0
+    )
     priority = np.array([1.0, 0.0])  # the ego moves first: the NPC's guard sees it drive into its box
     engine = RolloutEngine(
         tiny(), sc, 16, 15, controlled, external=external, config=config, priority=priority

@@ -22,7 +22,8 @@ def _run(
     live = sc.valid[:, sc.current_index]
     ext = np.zeros(sc.num_agents, bool) if external is None else external
     road = {} if ahead is None else {"guard_road_ahead": ahead}
-    cfg = SamplingConfig(seed=5, guard=guard, intra_step=mode, **road)
+    # the untrained model's draws: the speed-change rule would mask them down to a few tokens (its own test)
+    cfg = SamplingConfig(seed=5, guard=guard, intra_step=mode, guard_step_change=0.0, **road)
     eng = RolloutEngine(tiny_checkpoint(), sc, rollouts, horizon, live & ~ext, external=ext, config=cfg)
     while eng.stepping.any():
         agent = eng.advance()
@@ -81,7 +82,14 @@ def test_parallel_decoding_equals_sequential_with_a_logged_agent_closing_in() ->
         tokens = {}
         for mode in ("sequential", "parallel"):
             # the one-step road rule: the road ahead keeps the untrained sdc out of the logged car's way
-            cfg = SamplingConfig(temperature=1.0, seed=2, guard=True, intra_step=mode, guard_road_ahead=0.0)
+            cfg = SamplingConfig(
+                temperature=1.0,
+                seed=2,
+                guard=True,
+                intra_step=mode,
+                guard_road_ahead=0.0,
+                guard_step_change=0.0,  # the untrained car ahead slows at random (the collision to test)
+            )
             priority = np.array([first, 0.0, -2.0])  # agent 2 acts first: the parallel call drafts it
             eng = RolloutEngine(tiny_checkpoint(), sc, 16, 15, controlled, config=cfg, priority=priority)
             eng.run()

@@ -139,7 +139,11 @@ def test_one_sampling_default_for_env_cli_policies_and_evaluate() -> None:
     assert evaluate.cache_dtype == rollout.cache_dtype == env_default.cache_dtype
     assert evaluate.top_p == rollout.top_p == env_default.top_p
     assert (not evaluate.no_green_rule) == env_default.guard_green  # the green rule is on by default
-    assert evaluate.road_ahead == rollout.road_ahead == env_default.guard_road_ahead == 5.0
+    from trajeglish_env.cli_eval import guard_rules
+
+    rules = {"guard_green": True, "guard_road_ahead": 5.0, "guard_step_change": env_default.guard_step_change}
+    assert guard_rules(evaluate, True) == guard_rules(rollout, True) == rules
+    assert env_default.guard_road_ahead == 5.0 and env_default.guard_step_change == 0.5
     assert evaluate.subsets == env_default.subsets
     assert TrajeglishPolicy.__init__.__defaults__ == (None, None)  # None: SamplingConfig()
 
