@@ -154,29 +154,17 @@ class GuardGeometry:
             depart &= way_clear(origin, size, *near) & ~tangled
         else:
             depart[:] = False
-        pace = self._pace(rs, rr, who, tt, origin, kind)
-        return Pairs(
-            rr, who, tt, origin, size, kind, extent, *near, escape, edges, red, depart, signals, pace
-        )
-
-    def _pace(
-        self,
-        rs: RowStates,
-        rr: np.ndarray,
-        who: np.ndarray,
-        tt: np.ndarray,
-        origin: np.ndarray,
-        kind: np.ndarray,
-    ) -> np.ndarray:
-        """``[n]`` the forward distance of each vehicle's and cyclist's move from its model state at ``t - 1``
-        to ``origin`` (in the frame of the first), NaN for pedestrians and where there is no state at
-        ``t - 1``."""
+        # the forward distance of each vehicle's and cyclist's last move, model states t - 1 to t (in the
+        # frame of the first); NaN for pedestrians and where there is no state at t - 1
         before = np.maximum(tt - 1, 0)
-        known = (tt >= 1) & rs.valid[rr, who, before] & (kind != AgentKind.PEDESTRIAN)
         prev = rs.mxyh[rr, who, before]
         d = origin[:, :2] - prev[:, :2]
         forward = d[:, 0] * np.cos(prev[:, 2]) + d[:, 1] * np.sin(prev[:, 2])
-        return np.where(known, forward, np.nan)
+        known = (tt >= 1) & rs.valid[rr, who, before] & (kind != AgentKind.PEDESTRIAN)
+        pace = np.where(known, forward, np.nan)
+        return Pairs(
+            rr, who, tt, origin, size, kind, extent, *near, escape, edges, red, depart, signals, pace
+        )
 
     def step_changes(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> np.ndarray:
         """``[m,c]`` how far (m) the forward step of candidates ``tokens [m,c]`` of pairs ``sel [m]`` differs
