@@ -69,9 +69,11 @@ class SceneSignals:
         d = np.hypot(stop[..., 0] - origin[:, None, 0], stop[..., 1] - origin[:, None, 1])
         return self.fences.red[g] & (d <= (reach + SIGNAL_SLACK)[:, None])
 
-    def green_ahead(self, origin: np.ndarray, length: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """``[m]`` riders at ``origin [m, 3]`` (box ``length [m]``, step ``t [m]``) with a signal green at
-        ``t + 1`` ahead on their lane and no red one there (a lane's connections may differ)."""
+    def _ahead_on_lane(
+        self, origin: np.ndarray, length: np.ndarray, t: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The steps ``g [m]`` (``t + 1``), the distance ``[m, L]`` from the front of each rider at ``origin
+        [m, 3]`` (box ``length [m]``) to each stop point, and which stop points lie ahead on its lane."""
         g = np.minimum(t + 1, self.fences.red.shape[0] - 1)
         stop, direction = self.signals.stop[g], self.fences.direction[g]  # [m, L, 2]
         c, s = np.cos(origin[:, 2])[:, None], np.sin(origin[:, 2])[:, None]
@@ -84,8 +86,22 @@ class SceneSignals:
             & (np.abs(dy * c - dx * s) < DEPART_LATERAL)
             & ((direction[..., 0] * c + direction[..., 1] * s) / norm > DEPART_ALIGN)
         )
+        return g, ahead, on_lane
+
+    def green_ahead(self, origin: np.ndarray, length: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``[m]`` riders at ``origin [m, 3]`` (box ``length [m]``, step ``t [m]``) with a signal green at
+        ``t + 1`` ahead on their lane and no red one there (a lane's connections may differ)."""
+        g, _, on_lane = self._ahead_on_lane(origin, length, t)
         go = np.isin(self.signals.state[g], GO_STATES) & on_lane
         return go.any(axis=1) & ~(self.fences.red[g] & on_lane).any(axis=1)
+
+    def red_gap(self, origin: np.ndarray, length: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``[m]`` metres from the front of each rider at ``origin [m, 3]`` (box ``length [m]``, step ``t
+        [m]``) to the nearest stop point of a signal red at ``t + 1`` ahead on its lane (up to
+        :data:`DEPART_REACH` m; inf where none): where a rule-based driver (IDM) stops."""
+        g, ahead, on_lane = self._ahead_on_lane(origin, length, t)
+        red = self.fences.red[g] & on_lane & (ahead >= 0)
+        return np.where(red, ahead, np.inf).min(axis=1, initial=np.inf)
 
     def violations(self, origin: np.ndarray, cand: np.ndarray, t: np.ndarray, near: np.ndarray) -> np.ndarray:
         """``[m, c]`` which candidates ``cand [m, c, 2]`` of vehicles at ``origin [m, 2]`` (step ``t [m]``)
