@@ -222,3 +222,11 @@ def test_a_ranks_own_error_is_named_and_stdout_keeps_one_object(capsys, monkeypa
     out, err = capsys.readouterr()
     assert json.loads(out)["type"] == "FileNotFoundError"
     assert err.startswith("trajeglish train: error: /nonexistent")
+
+
+def test_a_demo_of_an_unknown_scene_names_the_flag_and_makes_no_folder(tmp_path: Path, capsys) -> None:
+    """`demo --scene nope` made its --out folder before refusing; `--scene 999` did not name the flag."""
+    for scene in ("nope", "999"):
+        assert _run(["demo", "--scene", scene, "--out", str(tmp_path / "d")]) == 2
+        assert f"--scene {scene}: " in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()

@@ -312,7 +312,7 @@ def add_eval_commands(add: AddCommand) -> None:
         "reactivity: an ego brakes hard to a stop in front of following NPCs; how often is it rear-ended?",
     )
     p.add_argument("--npc", nargs="+", choices=BRAKE_NPCS, default=list(BRAKE_NPCS[:4]), help="NPC policies")
-    p.add_argument("--episodes", type=int, default=22, help="episodes per NPC policy")
+    p.add_argument("--episodes", type=POSITIVE, default=22, help="episodes per NPC policy")
     p.add_argument("--steps", type=int, default=60, help="steps per episode")
     p.add_argument("--max-gap", type=float, default=25.0, help="followers at most this far behind (m)")
     p.add_argument("--data", nargs="+", help="scene directories or files (default: the bundled scenes)")

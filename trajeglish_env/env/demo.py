@@ -44,7 +44,14 @@ def run_demo(
     video_format: str = "gif",
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Play one episode and write ``out/demo.<format>``; returns the episode's metrics."""
+    """Play one episode and write ``out/demo.<format>``; returns the episode's metrics (a scene the
+    bundle lacks is refused before ``out`` is made, naming ``--scene``)."""
+    from trajeglish_env.env.scenes import scene_index, scene_set
+
+    try:
+        scene_index(int(scene) if scene.isdigit() else scene, scene_set(None))
+    except (KeyError, ValueError) as exc:
+        raise ValueError(f"--scene {scene}: {exc}") from None
     out.mkdir(parents=True, exist_ok=True)
     try:
         env = raw_env(
