@@ -197,3 +197,20 @@ def test_evaluate_takes_the_shipped_model_by_name(monkeypatch) -> None:
     assert got.keys() == want.keys() and all(torch.equal(got[k].cpu(), want[k]) for k in want)
     with pytest.raises(CheckpointError, match="no/such.pt: no such checkpoint file"):
         evaluate_with(monkeypatch, "--ckpt", "x=no/such.pt")
+
+
+def test_the_package_version_is_pyprojects_and_the_cli_prints_it(capsys) -> None:
+    """A release bumps one number: pyproject's version is the package's ``__version__`` (pip keeps an
+    installed wheel of the same version, so an unbumped release is silently not installed)."""
+    import tomllib
+
+    import trajeglish_env
+    from trajeglish_env.cli import main
+
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]
+    assert project["version"] == trajeglish_env.__version__
+    with pytest.raises(SystemExit) as exited:
+        main(["--version"])
+    assert (
+        exited.value.code == 0 and capsys.readouterr().out.strip() == f"trajeglish_env {project['version']}"
+    )

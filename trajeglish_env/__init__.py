@@ -3,7 +3,7 @@
 from trajeglish_env.scenario import AgentKind, MapKind, Scenario, ScenarioError, SignalState
 from trajeglish_env.scenario_io import load_scenario, load_scenarios, save_scenario, save_scenarios
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"  # = pyproject.toml's version (tests/test_structure.py); bumped with every release
 
 # Heavy parts (torch, PettingZoo) load on first use. ``trajeglish_env.env`` is the environment subpackage
 # and is callable: ``trajeglish_env.env(...)`` builds the wrapped AEC env (PettingZoo's ``env()``).

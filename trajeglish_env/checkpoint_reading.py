@@ -115,6 +115,6 @@ def fine_tune_note(name: str, ckpt: Checkpoint) -> str:
         f"train: --init {name} reads {v} tokens and draws {d}: this run learns to draw all {v} (its NLL "
         f"counts {v}-way targets, about {math.log(v / d):.2f} nats above the same quality over {d}); to "
         f"train the drawn model alone pass --vocab with its {d}-token vocabulary (the shipped one: "
-        "trajeglish_env/assets/tokenizer_v384.npz), then extend it again (tokenizer extend --base "
+        "--vocab shipped), then extend it again (tokenizer extend --base "
         f"RUN/model.pt --size {v} --out V.npz --reading-out FILE)"
     )

@@ -129,7 +129,10 @@ def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from trajeglish_env import __version__
+
     parser = ArgParser(prog="trajeglish", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"trajeglish_env {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     def add(name: str, handler: Handler, help_text: str, parent: Any = sub) -> argparse.ArgumentParser:

@@ -75,10 +75,13 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.checkpoint_reading import fine_tune_note, is_reading, training_start
     from trajeglish_env.distributed import init_ranks, rank_device
     from trajeglish_env.model.config import preset
-    from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+    from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
     from trajeglish_env.training.train import train
 
-    vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
+    if args.vocab == "shipped":  # the package's own 384-token vocabulary, wherever it is installed
+        vocabulary = load_default_tokenizer()
+    else:
+        vocabulary = MotionVocabulary.load(args.vocab) if args.vocab else None
     init = load_named(args.init) if args.init else None
     last = Path(args.out) / "last.pt"  # a resumed run goes on with its own model and vocabulary
     own = args.resume and last.is_file() and not (args.preset or args.variant or args.vocab)
@@ -151,7 +154,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         choices=("trajeglish", "no-intra", "marginal", "no-map"),
         help="model variant (default: trajeglish, or --init's)",
     )
-    p.add_argument("--vocab", help="vocabulary file (default: the shipped 384-token vocabulary, or --init's)")
+    p.add_argument(
+        "--vocab",
+        help="vocabulary file, or 'shipped' for the shipped 384-token vocabulary (default: it, or --init's)",
+    )
     p.add_argument(
         "--init",
         help="start from this trained checkpoint, or 'shipped' for the shipped model (fine-tuning; same "
