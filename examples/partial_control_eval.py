@@ -21,6 +21,11 @@ from trajeglish_env.env.scenes import load_bundle
 EGOS = {"replay": ReplayPolicy, "idm": IDMPolicy, "constant_velocity": ConstantVelocityPolicy}
 
 
+def _or_nan(value: float | None) -> float:
+    """A summary's mean, NaN where it is undefined (None: no agent with a goal)."""
+    return float("nan") if value is None else value
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -56,7 +61,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for name, m in results.items():
             print(
                 f"{name:>24} {m['collision_rate']:9.2f} {m['offroad_rate']:8.2f} "
-                f"{m['mean_progress_m']:10.1f} {m['mean_route_fraction']:6.2f}"
+                f"{m['mean_progress_m']:10.1f} {_or_nan(m['mean_route_fraction']):6.2f}"
             )
     return results
 

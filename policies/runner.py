@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -30,7 +29,7 @@ class EpisodeResult:
     goal: dict[str, bool]
     progress_m: dict[str, float]
     route_fraction: dict[str, float]
-    video: Path | None = field(default=None)
+    video: str | None = field(default=None)  # the video's path (a string: the result writes as JSON)
     has_goal: dict[str, bool] = field(default_factory=dict)
 
 
@@ -65,10 +64,18 @@ def policy_for(policies: PolicyMap, agent: str) -> Policy:
     if isinstance(policies, Policy) and not isinstance(policies, type):
         return policies
     if callable(policies) and not isinstance(policies, type):
-        made = policies(agent)
+        name = getattr(policies, "__name__", type(policies).__name__)
+        try:
+            made = policies(agent)
+        except Exception as exc:  # a function observation -> action, fed the agent's name
+            raise TypeError(
+                f"policies: {name} was called with the agent name {agent!r} (as a factory agent -> Policy) "
+                f"and raised {type(exc).__name__}: {exc}; a function observation -> action is not a policy; "
+                f"expected {POLICY_FORMS}, e.g. FunctionPolicy(my_function)"
+            ) from exc
         if isinstance(made, np.ndarray) or np.isscalar(made) or made is None:
             raise TypeError(
-                f"policies: {getattr(policies, '__name__', type(policies).__name__)} was called with the "
+                f"policies: {name} was called with the "
                 f"agent name {agent!r} and returned {type(made).__name__}, not a Policy: a function "
                 f"observation -> action is not a policy; expected {POLICY_FORMS}, e.g. "
                 "FunctionPolicy(my_function)"
@@ -84,7 +91,12 @@ def play_episode(
     options: dict[str, Any] | None = None,
     video: str | os.PathLike[str] | None = None,
 ) -> EpisodeResult:
-    """Reset ``env`` and play one AEC episode to the end; optionally write its video (GIF/MP4)."""
+    """Reset ``env`` and play one AEC episode to the end; optionally write its video (GIF/MP4: the path is
+    checked before the episode plays)."""
+    if video is not None:
+        from trajeglish_env.render import check_output
+
+        check_output(video, (".gif", ".mp4"))
     env.reset(seed=seed, options=options)
     raw = env.unwrapped
     chosen: dict[str, Policy] = {}
@@ -113,15 +125,16 @@ def play_episode(
         goal={a: bool(i.get("goal_reached") or i.get("goal")) for a, i in infos.items()},
         progress_m={a: float(i.get("progress_m", 0.0)) for a, i in infos.items()},
         route_fraction={a: float(i.get("route_fraction", 0.0)) for a, i in infos.items()},
-        video=path,
+        video=None if path is None else str(path),
         has_goal={a: bool(i.get("has_goal", True)) for a, i in infos.items()},
     )
 
 
-def summarize(results: list[EpisodeResult]) -> dict[str, float]:
+def summarize(results: list[EpisodeResult]) -> dict[str, float | None]:
     """Rates and means over every (episode, external agent) pair; the goal rate and route fraction over
     the pairs whose route has a goal (a parked agent's counted as a failure: replaying the shared WOMD
-    scene's log read a goal rate of 0.40), ``agents_with_goal`` of them."""
+    scene's log read a goal rate of 0.40), ``agents_with_goal`` of them (None where no agent has a goal:
+    the result writes as strict JSON)."""
 
     def values(name: str, goal_only: bool = False) -> np.ndarray:
         return np.array(
@@ -134,8 +147,8 @@ def summarize(results: list[EpisodeResult]) -> dict[str, float]:
             dtype=np.float64,
         )
 
-    def mean(x: np.ndarray) -> float:
-        return float(x.mean()) if len(x) else float("nan")
+    def mean(x: np.ndarray) -> float | None:
+        return float(x.mean()) if len(x) else None
 
     if not results:
         raise ValueError("summarize: no episodes")
@@ -155,7 +168,7 @@ def summarize(results: list[EpisodeResult]) -> dict[str, float]:
 
 def evaluate(
     env: Any, policies: PolicyMap, episodes: int, seed: int = 0, scenes: list[Any] | None = None
-) -> dict[str, float]:
+) -> dict[str, float | None]:
     """Play ``episodes`` episodes (seeds ``seed, seed + 1, ...``; scene ``scenes[k % len(scenes)]`` when
     given, else the env's choice) and summarise them."""
     results = []

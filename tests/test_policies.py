@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
+
 import numpy as np
 import pytest
 from helpers import MERGE, bundle_scene, small_scenes, tiny
@@ -244,7 +247,10 @@ def test_an_ego_parked_in_the_log_is_named_and_not_counted_as_missing_its_goal()
     result = play_episode(env, ReplayPolicy(), seed=0)
     assert result.has_goal == {"vehicle_2406": False}
     summary = summarize([result])
-    assert summary["agents_with_goal"] == 0.0 and np.isnan(summary["goal_rate"])
+    assert summary["agents_with_goal"] == 0.0 and summary["goal_rate"] is None  # no goal: undefined
+    assert summary["mean_route_fraction"] is None
+    json.loads(json.dumps(summary, allow_nan=False))  # strict JSON, as the result of play_episode
+    json.loads(json.dumps(dataclasses.asdict(result), allow_nan=False))
 
 
 @pytest.mark.parametrize("make", [IDMPolicy, ReplayPolicy, RandomPolicy])
@@ -267,3 +273,18 @@ def test_the_policies_drive_the_ego_of_a_gymnasium_ego_env(make) -> None:
         env = raw_env(small_scenes()[:2], npc="idm", max_cycles=15)
         result = play_episode(env, IDMPolicy(), seed=3)
         assert info["progress_m"] == pytest.approx(result.progress_m[info["agent"]])
+
+
+def test_a_function_given_as_policies_and_a_bad_video_path_fail_before_the_episode(tmp_path) -> None:
+    """A plain function observation -> action passed as ``policies`` is called as a factory with the agent
+    name: its error is named as that (it was an IndexError from inside the function); a video path of the
+    wrong kind is refused before the episode plays (it was refused after the whole episode)."""
+    env = raw_env(small_scenes()[:1], max_cycles=3)
+
+    def lane_keeper(observation):
+        return np.array([observation[0] * 0.0, 0.0])
+
+    with pytest.raises(TypeError, match="lane_keeper was called with the agent name .* FunctionPolicy"):
+        play_episode(env, lane_keeper, seed=0)
+    with pytest.raises(ValueError, match=r"x\.avi: expected a \.gif or \.mp4 output path"):
+        play_episode(env, ReplayPolicy(), seed=0, video=tmp_path / "x.avi")
