@@ -51,10 +51,9 @@ from trajeglish_env.metrics.traffic_lights import red_light_violations
 from trajeglish_env.sampler import rollout
 from trajeglish_env.sampler.config import DEFAULT_TEMPERATURE, SamplingConfig
 from trajeglish_env.sampler.guard_signals import SceneSignals
-from trajeglish_env.scenario import AgentKind, Scenario, scene_kind
+from trajeglish_env.scenario import AgentKind, Scenario, scenario_seed, scene_kind
 from trajeglish_env.scenario_io import atomic_path
 from trajeglish_env.standing import standing_counts, standing_table
-from trajeglish_env.submission_export import scenario_seed
 from trajeglish_env.training.dataset import SceneStore
 
 
@@ -63,7 +62,7 @@ class EvalConfig:
     """What to evaluate: scenes, rollouts per scene, the model's ``sampling`` (the env's NPC defaults
     unless changed) at each of ``temperatures`` (default: the sampling's own) and each of ``guards``
     (guarded sampling off and on; the partial-control experiment keeps ``sampling.guard``), metrics and
-    seed (a scene's rollouts draw with ``submission_export.scenario_seed(seed, scenario_id)``: they do not
+    seed (a scene's rollouts draw with ``scenario.scenario_seed(seed, scenario_id)``: they do not
     depend on which other scenes are selected, or in what order)."""
 
     rollouts: int = 8

@@ -24,9 +24,8 @@ from trajeglish_env.geometry import box_corners
 from trajeglish_env.metrics.road_edges import RoadEdges, signed_distance_to_road_edges
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.rollouts import rollout
-from trajeglish_env.scenario import AgentKind, Scenario
+from trajeglish_env.scenario import AgentKind, Scenario, scenario_seed
 from trajeglish_env.scenario_io import atomic_path
-from trajeglish_env.submission_export import scenario_seed
 
 EVENTS = ("collision", "offroad")
 

@@ -7,6 +7,7 @@ Every source (highway-env, SUMO, WOMD, user arrays) produces a :class:`Scenario`
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 from dataclasses import dataclass, field, fields, replace
 from enum import IntEnum
@@ -467,3 +468,10 @@ def _check_whole(field: str, values: object, low: int, high: int | None) -> None
         first = array.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]]
         rng = f"in [{low}, {high}]" if high is not None else f">= {low}"
         raise ScenarioError(f"{field}: expected whole numbers {rng}, got {first!r}")
+
+
+def scenario_seed(seed: int, scenario_id: str) -> int:
+    """The seed one scenario draws with in a run of seed ``seed``: a function of the two only, so a scene's
+    rollouts or episode do not depend on which other scenes share the run, nor on their order."""
+    digest = hashlib.sha256(f"{seed}/{scenario_id}".encode()).digest()
+    return int.from_bytes(digest[:8], "little") >> 1

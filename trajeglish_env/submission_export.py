@@ -40,7 +40,7 @@ from trajeglish_env.metrics.log_details_io import details_path, load_log_details
 from trajeglish_env.metrics.submission import SubmissionMetadata, SubmittedRollouts, encode_scenario
 from trajeglish_env.sampler import rollout
 from trajeglish_env.sampler.config import SamplingConfig
-from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario import Scenario, scenario_seed
 from trajeglish_env.scenario_io import (
     atomic_path,
     load_scenarios,
@@ -86,12 +86,6 @@ class ExportConfig:
             raise ValueError(
                 f"ExportConfig: processes must be a positive int or 'auto', got {self.processes!r}"
             )
-
-
-def scenario_seed(seed: int, scenario_id: str) -> int:
-    """The sampling seed of one scenario: a function of the run's seed and the scenario id only."""
-    digest = hashlib.sha256(f"{seed}/{scenario_id}".encode()).digest()
-    return int.from_bytes(digest[:8], "little") >> 1
 
 
 def sim_agents(scene: Scenario) -> np.ndarray:

@@ -1,6 +1,8 @@
 """One env slot's stream of episodes: Gymnasium-style seeding, the scene of each episode (the ``scene``
 reset option or a draw) and each episode's own random generator, so that a scene of a batched env plays
-exactly what a separate env reset with the same seed plays."""
+exactly what a separate env reset with the same seed plays. A seeded reset's episode depends on the seed and
+the scene's id only (:func:`~trajeglish_env.scenario.scenario_seed`): the same in an env holding that scene
+alone as in one holding it among others."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import numpy as np
 from gymnasium.utils import seeding
 
 from trajeglish_env.env.scenes import SceneSet, scene_index
-from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario import Scenario, scenario_seed
 
 RESET_OPTIONS = ("scene",)  # the keys reset(options=...) reads
 
@@ -45,4 +47,6 @@ class EpisodeStream:
         drawn = int(self.np_random.integers(len(self.scenes)))  # drawn either way: a named scene plays
         index = drawn if chosen is None else chosen  # the episode the seed plays when it draws that scene
         scenario = self.scenes.get(index)
-        return scenario, np.random.default_rng(int(self.np_random.integers(2**63 - 1)))
+        follow_on = int(self.np_random.integers(2**63 - 1))  # autoresets go on with the stream
+        own = follow_on if seed is None else scenario_seed(seed, scenario.scenario_id)
+        return scenario, np.random.default_rng(own)
