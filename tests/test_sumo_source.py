@@ -547,3 +547,17 @@ def test_a_partial_shard_holds_the_first_scenes_of_the_full_one(tmp_path: Path) 
     full = sumo.generate_shard(("grid",), 0, 0, 4, capacity=4)
     assert [s.scenario_id for s in short] == [s.scenario_id for s in full[:2]]
     assert all(a.equals(b) for a, b in zip(short, full, strict=False))
+
+
+def test_generate_reports_the_scenes_of_each_network_kind() -> None:
+    """A SUMO shard is one network of one kind: a run of fewer shards than kinds lacks some, which
+    ``generate`` reports (``kind_scenes``) and warns about, instead of listing every requested kind."""
+    from trajeglish_env.sources import highway
+    from trajeglish_env.sources.generation import GenerationConfig, _kind_scenes
+
+    small = GenerationConfig("sumo", 6, 3, ("grid", "spider", "random"))
+    counts = _kind_scenes(sumo, small)
+    assert sum(counts.values()) == 6 and sorted(counts.values()) == [0, 0, 6]  # one shard, one kind
+    spread = _kind_scenes(sumo, GenerationConfig("sumo", 6, 3, ("grid", "spider", "random"), 1))
+    assert sum(spread.values()) == 6 and sum(v > 0 for v in spread.values()) >= 2
+    assert _kind_scenes(highway, GenerationConfig("highway", 6, 3, ("merge",))) is None  # a kind per scene

@@ -14,11 +14,12 @@ import json
 import os
 import sys
 import time
+import warnings
 import zipfile
 from concurrent.futures import FIRST_COMPLETED, wait
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 from tqdm import tqdm
 
@@ -193,6 +194,17 @@ def generate(
     check = getattr(source, "check_available", None)
     if check is not None:  # e.g. SUMO not installed: said before any folder is made
         check()
+    kind_scenes = _kind_scenes(source, config)
+    idle = [k for k, n in (kind_scenes or {}).items() if n == 0]
+    if idle and ranks.main:
+        warnings.warn(
+            f"--kinds: {', '.join(idle)} get no scene: each {config.source} shard of "
+            f"{config.scenes_per_shard} scenes is one network of one kind, drawn per shard, and "
+            f"{config.scenes} scenes make {config.num_shards} shard(s) ({kind_scenes}); ask for more scenes "
+            "or pass a smaller --scenes-per-shard",
+            UserWarning,
+            stacklevel=2,
+        )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if ranks.main:
@@ -240,6 +252,7 @@ def generate(
         "seed": config.seed,
         "scenes": config.scenes,
         "shards": config.num_shards,
+        "kind_scenes": kind_scenes,  # scenes per kind where a shard is one kind (SUMO), else None
         "generated": generated,
         "resumed_from": done_before,
         "seconds": round(elapsed, 3),
@@ -247,6 +260,17 @@ def generate(
         "workers": workers,
         "processes": ranks.world,
     }
+
+
+def _kind_scenes(source: Any, config: GenerationConfig) -> dict[str, int] | None:
+    """Scenes of each kind where a source draws one kind per shard (its ``shard_kind``), else None."""
+    shard_kind = getattr(source, "shard_kind", None)
+    if shard_kind is None:
+        return None
+    counts = dict.fromkeys(config.kinds, 0)
+    for i in range(config.num_shards):
+        counts[shard_kind(config.kinds, config.seed, i)] += config.shard_count(i)
+    return counts
 
 
 def scene_seed(seed: int, shard_index: int, slot: int) -> int:

@@ -81,6 +81,11 @@ def shard_network_kind(kinds: tuple[str, ...], seed: int, shard_index: int) -> t
     return kind, sim_seed
 
 
+def shard_kind(kinds: tuple[str, ...], seed: int, shard_index: int) -> str:
+    """The network kind of shard ``shard_index`` (one simulation, one kind: ``generate`` reports them)."""
+    return shard_network_kind(tuple(kinds), seed, shard_index)[0]
+
+
 def simulate_shard(
     kinds: tuple[str, ...], seed: int, shard_index: int, count: int, config: SumoSceneConfig = DEFAULT_CONFIG
 ) -> SumoRun:
