@@ -516,7 +516,8 @@ def test_the_ego_env_takes_every_form_of_one_random_agent() -> None:
 
 def test_a_named_scene_plays_the_episode_its_seed_plays_when_it_draws_that_scene() -> None:
     """Naming the scene a seed draws replays that episode (the scene draw was skipped when a scene was
-    named, which shifted the episode's generator: other NPC draws); numpy integer seeds are seeds."""
+    named, which shifted the episode's generator: other NPC draws), in any env holding that scene;
+    numpy integer seeds are seeds."""
 
     def play(env, **kwargs) -> np.ndarray:
         env.reset(**kwargs)
@@ -530,6 +531,12 @@ def test_a_named_scene_plays_the_episode_its_seed_plays_when_it_draws_that_scene
     scene = env.unwrapped.scenario.scenario_id
     assert np.array_equal(play(env, seed=5, options={"scene": scene}), drawn)
     assert np.array_equal(play(env, seed=np.int64(5)), drawn)
+    # an env holding that scene alone plays the same episode (a one-scene env drew nothing for the scene:
+    # its NPCs drew other numbers; the ego audit of stop 82), and so does one holding it among others
+    one = next(s for s in small_scenes()[:3] if s.scenario_id == scene)
+    assert np.array_equal(play(trajeglish_env.env(scenes=[one], npc=TrajeglishNPC(tiny())), seed=5), drawn)
+    more = trajeglish_env.env(scenes=[*small_scenes(), one][::-1], npc=TrajeglishNPC(tiny()))
+    assert np.array_equal(play(more, seed=5, options={"scene": scene}), drawn)
     ego = EgoEnv(scenes=small_scenes()[:3], npc=TrajeglishNPC(tiny()))
     assert np.array_equal(ego.reset(seed=np.int64(2))[0], ego.reset(seed=2)[0])
 
