@@ -235,6 +235,8 @@ def test_bad_inputs_are_refused_with_clear_errors(tmp_path: object) -> None:
         tok.step(n)
     with pytest.raises(ValueError, match=r"action 1.5 \(float\) is not an integer scalar; expected an int"):
         tok.step(1.5)
+    with pytest.raises(ValueError, match=r"action True \(bool\) is not an integer scalar"):
+        tok.step(True)  # was taken as token 1
     with pytest.raises(ValueError, match=r"array\(\[3\]\) \(ndarray of shape \(1,\)\) is not an integer"):
         tok.step(np.array([3]))
     with pytest.raises(ValueError, match="is complex; expected real numbers"):

@@ -365,8 +365,12 @@ def test_batched_envs_refuse_bad_inputs() -> None:
     with pytest.raises(ValueError, match="expected 2 seeds"):
         venv.reset(seed=[1, 2, 3])
     venv.reset(seed=0)
-    with pytest.raises(ValueError, match="expected 2 actions"):
+    with pytest.raises(ValueError, match=r"expected actions of shape \(2, 2\) .*got \(3, 2\)"):
         venv.step(np.zeros((3, 2), np.float32))
+    with pytest.raises(ValueError, match=r"expected actions of shape \(2, 2\) .*got \(2,\)"):
+        venv.step(np.zeros(2, np.float32))  # one action for the batch, read as a scalar per scene
+    with pytest.raises(ValueError, match=r"step: scene 1 \(.*\): agent .*must be a finite array"):
+        venv.step(np.array([[0.0, 0.0], [np.nan, 0.0]], np.float32))  # the scene is named
     # a bad action of the second scene: refused before the first scene's action is applied
     before = [venv.core.sim(i).driver.xyh.copy() for i in range(2)]
     with pytest.raises(ValueError, match=f"agent {venv.envs[1].agent}: action .* outside the action space"):

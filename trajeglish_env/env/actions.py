@@ -50,7 +50,8 @@ def named_action_space(action_type: str, vocab_size: int, agent: str) -> spaces.
 def check_action(space: spaces.Space, action: object, agent: str) -> np.ndarray | int:
     """``action`` as an array (Box) or int (Discrete); a ValueError naming the agent if it is outside."""
     if isinstance(space, spaces.Discrete):
-        ok = isinstance(action, (int, np.integer)) or (
+        ok = isinstance(action, (int, np.integer)) and not isinstance(action, (bool, np.bool_))
+        ok = ok or (
             isinstance(action, np.ndarray) and action.shape == () and np.issubdtype(action.dtype, np.integer)
         )
         if not ok:

@@ -51,9 +51,12 @@ def check_scene_actions(
         given = actions[i]
         if names:
             missing = [a for a in names if a not in given]
+            unknown = sorted(
+                map(str, set(given) - set(names) - set(episode_agents[i] if episode_agents else ()))
+            )
             if missing:
-                raise KeyError(f"step: scene {i} has no action for agent(s) {missing}")
-            unknown = sorted(set(given) - set(names) - set(episode_agents[i] if episode_agents else ()))
+                also = f"; actions were given for {unknown}, which are no agents of it" if unknown else ""
+                raise KeyError(f"step: scene {i} has no action for agent(s) {missing}{also}")
             if unknown:
                 raise KeyError(
                     f"step: scene {i} has no live agent(s) {unknown}; its agents are {list(names)}"

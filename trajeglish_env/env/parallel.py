@@ -38,10 +38,13 @@ class SceneAwareParallelEnv(aec_to_parallel_wrapper):
                 f"{aec.agents}"
             )
         missing = [a for a in aec.agents if a not in actions]
-        if missing:
-            raise KeyError(f"step: no action for agent(s) {missing}")
         # actions for agents of the episode that have finished are ignored, as PettingZoo's own wrapper does
-        unknown = sorted(set(actions) - set(aec.agents) - set(aec.possible_agents))
+        unknown = sorted(map(str, set(actions) - set(aec.agents) - set(aec.possible_agents)))
+        if missing:
+            also = (
+                f"; actions were given for {unknown}, which are no agents of the episode" if unknown else ""
+            )
+            raise KeyError(f"step: no action for agent(s) {missing}{also}")
         if unknown:
             raise KeyError(f"step: no live agent(s) {unknown}; the agents are {aec.agents}")
         for agent in aec.agents:

@@ -245,14 +245,22 @@ class BatchedEgoEnv(EgoVectorEnv):
         """Step every scene; per scene ``(obs, reward, terminated, truncated, info, final)`` where a
         finished scene has been reset (``obs``/``info`` of the new episode) and ``final`` holds the last
         ``(obs, info)`` of the old one (None otherwise)."""
-        if len(actions) != self.num_envs:
-            raise ValueError(f"step: expected {self.num_envs} actions (one per scene), got {len(actions)}")
+        expected = (self.num_envs, *(self.single_action_space.shape or ()))
+        shape = getattr(actions, "shape", None)
+        if len(actions) != self.num_envs or (shape is not None and tuple(shape) != expected):
+            got = tuple(shape) if shape is not None else f"{len(actions)} actions"
+            raise ValueError(
+                f"step: expected actions of shape {expected} (one per scene, each in "
+                f"{self.single_action_space}), got {got}"
+            )
         if not all(self.agents):
             raise RuntimeError("call reset() before step()")
-        values = [
-            check_action(self.single_action_space, a, name)
-            for a, name in zip(actions, self.agents, strict=True)
-        ]
+        values = []
+        for i, (a, name) in enumerate(zip(actions, self.agents, strict=True)):
+            try:
+                values.append(check_action(self.single_action_space, a, name))
+            except ValueError as exc:  # every highway-env scene has a vehicle_0: name the scene too
+                raise ValueError(f"step: scene {i} ({self.core.sim(i).sc.scenario_id}): {exc}") from None
         scenes = range(self.num_envs)
         batch = self.core.batch
         batch.play(scenes, self.egos, values)
