@@ -4,7 +4,11 @@ Partial-control evaluation replays every agent but one from the log; the replaye
 many of the controlled agent's collisions are theirs. At each rollout's first collision, an agent whose
 new box overlaps the controlled agent's box of the step before moved into it (as does one that only just
 appeared there); the controlled agent is at fault when it overlaps any other agent, i.e. one that was
-elsewhere: it moved into them, or both moved into the same free spot.
+elsewhere: it moved into them, or both moved into the same free spot. "Struck" (not at fault) therefore
+says that every agent it overlaps moved into its previous box; the controlled agent may have moved into
+theirs too (both driving into each other counts as struck: a turning sdc met by a logged car holding 8 m/s,
+the ego-evaluation audit of stop 82), so ``at_fault_rate`` is a lower bound of the collisions the
+controlled agent had a part in.
 """
 
 from __future__ import annotations
