@@ -97,3 +97,27 @@ def test_brake_test_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     far = ["brake-test", "--npc", "idm", "--data", str(tmp_path), "--max-gap", "1", "--json", "--quiet"]
     assert main(far) == 2  # no follower that near: a one-line error
     assert "no scene has a vehicle" in json.loads(capsys.readouterr().out.splitlines()[0])["error"]
+
+
+def test_guarded_followers_brake_in_time_instead_of_stopping_dead() -> None:
+    """The collision rule alone let a guarded follower hold its speed to the last step and stop in 0.1 s
+    (the ego-evaluation audit: -186 m/s^2; here a median of 71 over 8 episodes, every one beyond the grip
+    limit); the following rule (SamplingConfig.guard_follow_decel) brakes it in time, as IDM does."""
+    scenes = [bundle_scene("highway-exit-999001")]
+
+    def run(decel: float) -> dict:
+        config = BrakeTestConfig(
+            npcs=("trajeglish+guard", "idm"),
+            episodes=8,
+            steps=45,
+            sampling=SamplingConfig(guard_follow_decel=decel),
+        )
+        return brake_test(scenes, config, None, None, progress=False)["npcs"]
+
+    ruled, unruled = run(4.0), run(0.0)
+    assert unruled["trajeglish+guard"]["harsh_braking_rate"] >= 0.75
+    assert unruled["trajeglish+guard"]["median_peak_braking_mps2"] > 30
+    guarded = ruled["trajeglish+guard"]
+    assert guarded["rear_end_rate"] == 0.0 and guarded["harsh_braking_rate"] <= 0.25
+    assert guarded["median_peak_braking_mps2"] < 9.5
+    assert ruled["idm"]["harsh_braking_rate"] == 0.0 and ruled["idm"]["max_peak_braking_mps2"] < 5

@@ -129,14 +129,15 @@ def test_rollout_and_nll_commands_with_the_shipped_model(tmp_path, capsys) -> No
     with pytest.raises(SystemExit) as exited:  # a one-line usage error, not a traceback
         main([*args, "--road-ahead", "-1"])
     assert exited.value.code == 2 and "--road-ahead" in capsys.readouterr().err
-    assert shown["step_change"] == 0.5
+    assert shown["step_change"] == 0.5 and shown["stall_steps"] == 10
+    assert main([*args, "--stall-steps", "0"]) == 0 and _json(capsys)["stall_steps"] == 0
     # a guard rule with the guard off changed nothing, silently: refused, naming the flags
     assert main([*args, "--guard", "off", "--no-green-rule", "--step-change", "1"]) == 2
     assert "--no-green-rule, --step-change: the guard's rules, but --guard off" in capsys.readouterr().err
     assert main([*args, "--guard", "off"]) == 0  # the model alone
     alone = _json(capsys)
     assert not alone["guard"] and alone["green_rule"] is None and alone["road_ahead"] is None
-    assert alone["step_change"] is None  # guard settings
+    assert alone["step_change"] is None and alone["stall_steps"] is None  # guard settings
     # a picture shows where the rollout ends, not the logged current step: guard on and off differ there
     pictures = [tmp_path / "on.png", tmp_path / "off.png"]
     for picture, guard in zip(pictures, ("on", "off"), strict=True):

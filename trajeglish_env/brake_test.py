@@ -8,6 +8,11 @@ so that NPCs see its move), with the continuous action [-1, 0] (full braking, no
 it stops and holds. An episode is a rear-end when the box of an agent behind the ego and heading its way
 (within 45 degrees) overlaps the ego's. Every NPC policy plays the same episodes: when there are fewer
 candidates than episodes, they are played again with other seeds.
+
+No rear-end is not enough: a follower that holds its speed to the last step and then stops in 0.1 s never
+hits the ego but is no driver (guarded NPCs did, at up to -186 m/s^2, before the guard's following rule).
+So each episode also records the follower's hardest braking (m/s^2, over one step) and its smallest gap to
+the ego, and each policy the share of episodes whose follower brakes harder than :data:`HARSH_BRAKING`.
 """
 
 from __future__ import annotations
@@ -33,6 +38,8 @@ NPCS = ("trajeglish", "trajeglish+guard", "idm", "replay", "constant_velocity")
 SAME_LANE = 1.0  # m: the follower's centre within this of the ego's axis
 SAME_WAY = 0.35  # rad: the follower's heading within this of the ego's
 BEHIND_WAY = np.pi / 4  # rad: an agent hitting the ego from behind heads its way within this
+# m/s^2: braking harder than this over a step is beyond any car's grip (the env's limit: 8.5 m/s^2)
+HARSH_BRAKING = 10.0
 
 
 @dataclass(frozen=True)
@@ -134,10 +141,17 @@ def play(candidate: Candidate, npc: Any, steps: int, seed: int) -> dict[str, Any
     ego = env.aec.agent_index(env.agent)
     brake = np.array([-1.0, 0.0], np.float32)
     hit, collided = None, False
+    follower = candidate.follower
+    speeds, gaps = [candidate.follower_speed], [candidate.gap]
     for k in range(steps):
         _, _, terminated, truncated, info = env.step(brake)
         collided |= bool(info.get("collision", False))
         view = env.aec.sim.view()
+        now, before = view.xyh[:, view.t], view.xyh[:, view.t - 1]
+        if view.valid[follower, view.t] and view.valid[follower, view.t - 1]:
+            speeds.append(float(np.hypot(*(now[follower, :2] - before[follower, :2]))) / sc.dt)
+            along = to_local(now[ego], now[follower][None])[0, 0]
+            gaps.append(float(-along - (sc.size[ego, 0] + sc.size[follower, 0]) / 2))
         if rear_ended(view.xyh[:, view.t], view.valid[:, view.t], sc.size, ego):
             hit = k + 1
             break
@@ -155,6 +169,8 @@ def play(candidate: Candidate, npc: Any, steps: int, seed: int) -> dict[str, Any
         "rear_end": hit is not None,
         "rear_end_step": hit,
         "collision": collided or hit is not None,
+        "follower_peak_braking_mps2": round(float(max(0.0, -np.diff(speeds).min(initial=0.0)) / sc.dt), 2),
+        "follower_min_gap_m": round(min(gaps), 2),
     }
 
 
@@ -199,6 +215,13 @@ def brake_test(
             "rear_ends": sum(r["rear_end"] for r in runs),
             "rear_end_rate": round(float(np.mean([r["rear_end"] for r in runs])), 4),
             "collision_rate": round(float(np.mean([r["collision"] for r in runs])), 4),
+            "harsh_braking_rate": round(
+                float(np.mean([r["follower_peak_braking_mps2"] > HARSH_BRAKING for r in runs])), 4
+            ),
+            "median_peak_braking_mps2": round(
+                float(np.median([r["follower_peak_braking_mps2"] for r in runs])), 2
+            ),
+            "max_peak_braking_mps2": round(max(r["follower_peak_braking_mps2"] for r in runs), 2),
         }
     bar.close()
     result: dict[str, Any] = {
@@ -220,12 +243,17 @@ def markdown_table(result: dict[str, Any]) -> str:
         f"Brake test: {result['episodes']} episodes of {result['steps']} steps per NPC policy "
         f"({result['candidates']} egos with a follower in {result['scenes']} scenes)",
         "",
-        "| NPCs | rear-end rate | rear-ends | ego collision rate |",
-        "|---|---|---|---|",
+        "| NPCs | rear-end rate | rear-ends | ego collision rate | follower braking > "
+        f"{HARSH_BRAKING:g} m/s^2 | follower peak braking, median / max (m/s^2) |",
+        "|---|---|---|---|---|---|",
     ]
     for name, s in result["npcs"].items():
         counts = f"{s['rear_ends']}/{s['episodes']}"
-        lines.append(f"| {name} | {s['rear_end_rate']:.3f} | {counts} | {s['collision_rate']:.3f} |")
+        braking = f"{s['median_peak_braking_mps2']:.1f} / {s['max_peak_braking_mps2']:.1f}"
+        lines.append(
+            f"| {name} | {s['rear_end_rate']:.3f} | {counts} | {s['collision_rate']:.3f} | "
+            f"{s['harsh_braking_rate']:.3f} | {braking} |"
+        )
     return "\n".join(lines) + "\n"
 
 

@@ -197,14 +197,23 @@ def cmd_rollout(args: argparse.Namespace) -> dict[str, Any]:
         "green_rule": sampling.guard_green if guard else None,  # guard settings: None without it
         "road_ahead": sampling.guard_road_ahead if guard else None,
         "step_change": sampling.guard_step_change if guard else None,
+        "stall_steps": sampling.guard_stall_steps if guard else None,
+        "wrong_way_rule": sampling.guard_wrong_way if guard else None,
+        "follow_decel": sampling.guard_follow_decel if guard else None,
         "out": str(out),
     }
 
 
 def add_guard_rule_args(p: argparse.ArgumentParser, green_help: str) -> None:
-    """The guard's rules: ``--no-green-rule``, ``--road-ahead M`` and ``--step-change M`` (read by
-    :func:`guard_rules`)."""
+    """The guard's rules: ``--no-green-rule``, ``--no-wrong-way-rule``, ``--road-ahead M``, ``--step-change
+    M``, ``--stall-steps S`` and ``--follow-decel A`` (read by :func:`guard_rules`)."""
     p.add_argument("--no-green-rule", action="store_true", help=green_help)
+    p.add_argument(
+        "--no-wrong-way-rule",
+        action="store_true",
+        help="guarded vehicles may turn or drive onto a lane against every lane there "
+        "(SamplingConfig.guard_wrong_way=False)",
+    )
     p.add_argument(
         "--road-ahead",
         type=non_negative_float,
@@ -221,6 +230,22 @@ def add_guard_rule_args(p: argparse.ArgumentParser, green_help: str) -> None:
         f"guard_step_change; cyclists half; 0: no speed-change rule; default: the env's, "
         f"{SamplingConfig.guard_step_change:g})",
     )
+    p.add_argument(
+        "--stall-steps",
+        type=NON_NEGATIVE,
+        metavar="S",
+        help="steps a guarded vehicle or cyclist that drove may stand with the way clear before it must set "
+        "off (SamplingConfig.guard_stall_steps; 0: no stall rule; default: the env's, "
+        f"{SamplingConfig.guard_stall_steps})",
+    )
+    p.add_argument(
+        "--follow-decel",
+        type=non_negative_float,
+        metavar="A",
+        help="deceleration (m/s^2) at which a guarded vehicle or cyclist must still be able to stop "
+        "behind the box ahead (SamplingConfig.guard_follow_decel; 0: no following rule; default: the env's, "
+        f"{SamplingConfig.guard_follow_decel:g})",
+    )
 
 
 def guard_rules(args: argparse.Namespace, guard: bool) -> dict[str, Any]:
@@ -230,8 +255,11 @@ def guard_rules(args: argparse.Namespace, guard: bool) -> dict[str, Any]:
         flag
         for flag, value in (
             ("--no-green-rule", args.no_green_rule),
+            ("--no-wrong-way-rule", args.no_wrong_way_rule),
             ("--road-ahead", args.road_ahead is not None),
             ("--step-change", args.step_change is not None),
+            ("--stall-steps", args.stall_steps is not None),
+            ("--follow-decel", args.follow_decel is not None),
         )
         if value
     ]
@@ -240,8 +268,11 @@ def guard_rules(args: argparse.Namespace, guard: bool) -> dict[str, Any]:
     default = SamplingConfig()
     return {
         "guard_green": not args.no_green_rule,
+        "guard_wrong_way": not args.no_wrong_way_rule,
         "guard_road_ahead": default.guard_road_ahead if args.road_ahead is None else args.road_ahead,
         "guard_step_change": default.guard_step_change if args.step_change is None else args.step_change,
+        "guard_stall_steps": default.guard_stall_steps if args.stall_steps is None else args.stall_steps,
+        "guard_follow_decel": default.guard_follow_decel if args.follow_decel is None else args.follow_decel,
     }
 
 

@@ -27,6 +27,14 @@ GUARD_ROAD_AHEAD = 5.0
 # in 0.1 s; tokenized logged vehicles change by up to 0.4 m on highway-env, 0.3 m on SUMO, 0.55 m in 99.9 %
 # of WOMD steps; cyclists half); 0: no speed-change rule.
 GUARD_STEP_CHANGE = 0.5
+# Steps a guarded vehicle or cyclist that drove may stand with the way clear before it must set off
+# (:mod:`~trajeglish_env.sampler.guard_stall`; 1 s: development scenes stood least at 10 of 10, 20 and
+# none, realism alike);
+# 0: no stall rule.
+GUARD_STALL_STEPS = 10
+# Deceleration (m/s^2) at which a guarded vehicle or cyclist must still be able to stop behind the box ahead
+# (:mod:`~trajeglish_env.sampler.guard_follow`); 0: no following rule.
+GUARD_FOLLOW_DECEL = 4.0
 # How the agents of a step are decoded (see :mod:`~trajeglish_env.sampler.parallel`): "parallel" (fixed-point
 # iteration over a whole run of agents per model call) or "sequential" (one model call per sampled agent).
 INTRA_STEP_MODES = ("parallel", "sequential")
@@ -67,7 +75,16 @@ class SamplingConfig:
     green light on its lane, the way ahead clear, may not stand still (the model reads no signals, so
     without it a queue stopped at red stays stopped at green); with ``guard_step_change`` > 0 (default
     :data:`GUARD_STEP_CHANGE` m) a vehicle's candidates whose forward step differs from its last one by
-    more than that (cyclists: half) are masked, so a redraw never stops a car dead from speed. An agent
+    more than that (cyclists: half) are masked, so a redraw never stops a car dead from speed; with
+    ``guard_stall_steps`` > 0 (default :data:`GUARD_STALL_STEPS`) a vehicle or cyclist that drove, then
+    stood that many steps, and has the way clear must set off at pace (:mod:`~trajeglish_env.sampler.
+    guard_stall`: the model, reading its own standstill, keeps a car stopped for good); with
+    ``guard_wrong_way`` (default on) a vehicle may not turn or drive onto a lane against every lane there
+    (:mod:`~trajeglish_env.sampler.lane_directions`: the masks of the other rules left it swerving into the
+    oncoming lane); with ``guard_follow_decel`` > 0 (default :data:`GUARD_FOLLOW_DECEL` m/s^2) a vehicle or
+    cyclist may not go faster than lets it stop behind the box ahead braking at that
+    (:mod:`~trajeglish_env.sampler.guard_follow`: the collision rule alone let a follower hold its speed to
+    the last step, then stop from 19 m/s in 0.1 s). An agent
     whose box overlaps the current box
     already is left out (no move undoes that overlap); with ``guard_escape`` (default on) one that *moved*
     into it in this step (a logged agent driving into the box, the guard's remaining collisions in partial
@@ -103,13 +120,16 @@ class SamplingConfig:
     guard_escape: bool = True
     guard_road_ahead: float = GUARD_ROAD_AHEAD
     guard_step_change: float = GUARD_STEP_CHANGE
+    guard_stall_steps: int = GUARD_STALL_STEPS
+    guard_wrong_way: bool = True
+    guard_follow_decel: float = GUARD_FOLLOW_DECEL
     intra_step: str = "parallel"
     compute_dtype: str = "auto"
 
     def __post_init__(self) -> None:
         if not isinstance(self.guard, bool):
             raise TypeError(f"SamplingConfig.guard must be a bool, got {self.guard!r}")
-        for name in ("guard_green", "guard_escape"):
+        for name in ("guard_green", "guard_escape", "guard_wrong_way"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"SamplingConfig.{name} must be a bool, got {getattr(self, name)!r}")
         if not (self.guard_road_ahead >= 0):
@@ -117,6 +137,17 @@ class SamplingConfig:
         if not (self.guard_step_change >= 0):
             raise ValueError(
                 f"SamplingConfig.guard_step_change must be >= 0 (m), got {self.guard_step_change}"
+            )
+        stall = self.guard_stall_steps
+        if isinstance(stall, bool) or not isinstance(stall, int) or stall < 0:
+            raise ValueError(
+                "SamplingConfig.guard_stall_steps must be an int >= 0 (steps; 0: no stall rule), "
+                f"got {stall!r}"
+            )
+        if not (self.guard_follow_decel >= 0):
+            raise ValueError(
+                f"SamplingConfig.guard_follow_decel must be >= 0 (m/s^2; 0: no following rule), "
+                f"got {self.guard_follow_decel}"
             )
         if not (self.guard_road_margin >= 0):
             raise ValueError(

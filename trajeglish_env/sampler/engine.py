@@ -111,6 +111,9 @@ class BatchEngine(WindowedRows):
                     config.guard_escape,
                     config.guard_road_ahead,
                     config.guard_step_change,
+                    config.guard_stall_steps,
+                    config.guard_wrong_way,
+                    config.guard_follow_decel,
                 )
             )
             self.with_edges = True

@@ -13,6 +13,7 @@ the rows sampled with it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -22,13 +23,10 @@ from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.sampler.guard_ahead import AHEAD_MIN_MOVE, road_reach
 from trajeglish_env.sampler.guard_edges import RoadView, road_view
-from trajeglish_env.sampler.guard_signals import (
-    DEPART_GAIN,
-    DEPART_PACE,
-    DEPART_STEP,
-    SceneSignals,
-    SignalCache,
-)
+from trajeglish_env.sampler.guard_follow import FOLLOW_SLACK, STEP_SECONDS, follow_caps
+from trajeglish_env.sampler.guard_signals import SceneSignals, SignalCache
+from trajeglish_env.sampler.guard_stall import departure_need, stall_candidates, stalled
+from trajeglish_env.sampler.lane_directions import LaneCache, LaneDirections
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.scenario import AgentKind
 
@@ -41,9 +39,13 @@ class Pairs:
     ``near_size [n,K,2]``, ``near_real [n,K]`` and ``near_escape [n,K]`` (those that moved into its
     current box, kept only to be escaped: ``SamplingConfig.guard_escape``); its road ``edges``; ``red [n]``
     vehicles and cyclists with a red light within reach, ``depart [n]`` those the green rule applies to (a
-    green light ahead, the way clear), the ``signals`` of their rows, and ``pace [n]`` the forward distance of
+    green light ahead, the way clear), the ``signals`` of their rows, ``pace [n]`` the forward distance of
     each agent's last move (its model states at ``t - 1`` and ``t``), NaN for pedestrians and where there is
-    no state at ``t - 1``."""
+    no state at ``t - 1``, ``stall [n]`` those the stall rule pushes on
+    (:mod:`~trajeglish_env.sampler.guard_stall`), and ``keep_way [n]`` the vehicles the wrong-way rule
+    keeps from turning against the lanes (in rows with ``lanes``, not against them already), and
+    ``follow_cap [n]`` the longest forward step the following rule allows each (inf: none;
+    :mod:`~trajeglish_env.sampler.guard_follow`)."""
 
     rows: np.ndarray
     agents: np.ndarray
@@ -61,13 +63,20 @@ class Pairs:
     depart: np.ndarray
     signals: dict[int, SceneSignals]
     pace: np.ndarray
+    stall: np.ndarray
+    keep_way: np.ndarray
+    lanes: dict[int, LaneDirections]
+    follow_cap: np.ndarray
 
     @property
     def guarded(self) -> np.ndarray:
         """``[n]`` pairs some candidate of which could be masked (an obstacle near, a road edge, a red
-        light, a green one)."""
-        return self.near_real.any(axis=1) | self.edges.road | self.red | self.depart
+        light, a green one, a stall to end, lanes to keep the way of)."""
+        guarded = self.near_real.any(axis=1) | self.edges.road | self.red | self.depart | self.stall
+        return guarded | self.keep_way | np.isfinite(self.follow_cap)
 
+
+T = TypeVar("T")
 
 # Share of ``guard_step_change`` a class's forward step may change by from one step to the next: vehicles
 # all of it, cyclists half (their tokenized logs change by at most 0.3 m, vehicles' 0.8 m on WOMD), not
@@ -104,7 +113,11 @@ class GuardGeometry:
     ``green_rule``: whether riders at a green light with the way clear must move; ``road_ahead``: metres
     of each candidate's kept-up motion checked against the road edges, 0 for none; ``step_change``: metres
     by which a vehicle's forward step may change from its last one, :data:`STEP_CHANGE_SHARE` of it for
-    the other classes, 0 for no such rule), with each row-agent's road-edge list kept between steps."""
+    the other classes, 0 for no such rule; ``stall_steps``: steps a rider that drove may stand with the way
+    clear before it must set off, 0 for no such rule; ``wrong_way``: whether a vehicle on a lane may not
+    turn against every lane there, :mod:`~trajeglish_env.sampler.lane_directions`; ``follow_decel``: the
+    deceleration (m/s^2) at which a vehicle or cyclist must still be able to stop behind the box ahead, 0 for
+    no such rule), with each row-agent's road-edge list kept between steps."""
 
     def __init__(
         self,
@@ -114,6 +127,9 @@ class GuardGeometry:
         escape: bool = False,
         road_ahead: float = 0.0,
         step_change: float = 0.0,
+        stall_steps: int = 0,
+        wrong_way: bool = False,
+        follow_decel: float = 0.0,
     ):
         self.templates = np.asarray(templates, dtype=np.float64)
         self.road_margin = float(road_margin)
@@ -123,6 +139,10 @@ class GuardGeometry:
         self.move = np.hypot(self.templates[..., 0], self.templates[..., 1]).max(axis=1)  # per class
         share = np.array([STEP_CHANGE_SHARE[AgentKind(k)] for k in range(len(self.templates))])
         self.step_change = share * float(step_change) if step_change > 0 else np.full(len(share), np.inf)
+        self.stall_steps = int(stall_steps)
+        self.wrong_way = bool(wrong_way)
+        self.follow_decel = float(follow_decel)
+        self._lanes = LaneCache()
         self._columns = PaddedRows(0.0, last=True)
         self._links = PaddedRows(-1, last=True)
         self._cells = EdgeCells()
@@ -140,7 +160,8 @@ class GuardGeometry:
         which agents moved before each pair and their next states (default: as the rows say)."""
         origin, size, kind = rs.mxyh[rr, who, tt], rs.size[rr, who], rs.kind[rr, who]
         extent = self.move[kind] + half_diagonal(size)  # candidate corners lie within this of the origin
-        *near, escape, tangled = self._neighbours(rs, rr, who, tt, origin, size, extent, view)
+        latest = _latest(rs, rr, who, tt, view)
+        *near, escape, tangled = self._neighbours(rs, rr, who, tt, origin, size, extent, latest)
         padded = (
             self._columns.sync(rs.edges, lambda e: e[0]),  # type: ignore[index]
             self._links.sync(rs.edges, lambda e: e[1]),  # type: ignore[index]
@@ -150,8 +171,9 @@ class GuardGeometry:
         wheeled = kind != AgentKind.PEDESTRIAN  # cyclists keep to the road as vehicles do
         edges = road_view(self._cells, rs, rr, origin, corners, extent, wheeled, padded, self.road_margin)
         red, depart, signals = self._lights(rs, rr, tt, origin, size, extent, wheeled)
-        if self.green_rule and depart.any():  # one overlapping another box already is not pushed on
-            depart &= way_clear(origin, size, *near) & ~tangled
+        clear = way_clear(origin, size, *near) & ~tangled  # one overlapping another box already is not pushed
+        if self.green_rule:
+            depart &= clear
         else:
             depart[:] = False
         # the forward distance of each vehicle's and cyclist's last move, model states t - 1 to t (in the
@@ -162,9 +184,48 @@ class GuardGeometry:
         forward = d[:, 0] * np.cos(prev[:, 2]) + d[:, 1] * np.sin(prev[:, 2])
         known = (tt >= 1) & rs.valid[rr, who, before] & (kind != AgentKind.PEDESTRIAN)
         pace = np.where(known, forward, np.nan)
+        cap = np.full(len(rr), np.inf)
+        if self.follow_decel > 0 and wheeled.any():
+            q = np.flatnonzero(wheeled)
+            turn = np.where(known, np.angle(np.exp(1j * (origin[:, 2] - prev[:, 2]))), 0.0)
+            state, present, velocity, moved = latest
+            present = present[q].copy()
+            present[np.arange(len(q)), who[q]] = False
+            ahead = (state[q], rs.size[rr[q]], present, velocity[q] / STEP_SECONDS)
+            riders = rs.kind[rr[q]] != AgentKind.PEDESTRIAN
+            cap[q] = follow_caps(origin[q], size[q], pace[q], turn[q], *ahead, riders, self.follow_decel)
+        stall = np.zeros(len(rr), bool)
+        if self.stall_steps > 0:  # the history is read only where the rule may apply
+            q = np.flatnonzero(stall_candidates(pace, clear) & ~red & ~depart)
+            if len(q):
+                hist = rs.mxyh[rr[q], who[q]], rs.valid[rr[q], who[q]]
+                stall[q] = stalled(*hist, tt[q], self.stall_steps)
+        keep_way, lanes = self._lane_rule(rs, rr, origin, kind)
         return Pairs(
-            rr, who, tt, origin, size, kind, extent, *near, escape, edges, red, depart, signals, pace
+            *(rr, who, tt, origin, size, kind, extent, *near, escape, edges, red, depart, signals, pace),
+            *(stall, keep_way, lanes, cap),
         )
+
+    def _lane_rule(
+        self, rs: RowStates, rr: np.ndarray, origin: np.ndarray, kind: np.ndarray
+    ) -> tuple[np.ndarray, dict[int, LaneDirections]]:
+        """``[n]`` the vehicles the wrong-way rule applies to (in a row whose map has lanes, and not against
+        them already: a car parked against the traffic, or one overtaking in the oncoming lane, is left
+        alone; one in a junction, where no lane may be near, is not: it may not leave it into a lane the
+        wrong way), and the lane directions of their rows."""
+        keep, lanes = np.zeros(len(rr), bool), {}
+        if not self.wrong_way:
+            return keep, lanes
+        vehicles = kind == AgentKind.VEHICLE
+        for row in np.unique(rr[vehicles]).tolist():
+            sc = rs.scenes[row]
+            ld = None if sc is None else self._lanes.get(sc)
+            if ld is not None:
+                lanes[row] = ld
+        for ld, rows in _by_scene(lanes, list(lanes)):
+            q = np.flatnonzero(vehicles & np.isin(rr, rows))
+            keep[q] = ~ld.against(origin[q])  # off the lanes too: a junction is no way into the oncoming lane
+        return keep, lanes
 
     def step_changes(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> np.ndarray:
         """``[m,c]`` how far (m) the forward step of candidates ``tokens [m,c]`` of pairs ``sel [m]`` differs
@@ -213,20 +274,17 @@ class GuardGeometry:
         origin: np.ndarray,
         size: np.ndarray,
         extent: np.ndarray,
-        view: tuple[np.ndarray, np.ndarray] | None,
+        latest: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The boxes a candidate could overlap: the next state of each agent of the row that has moved in
         this step, the current one of each that has not, within reach of some candidate; agents the
         agent's box overlaps already are left out (no move can undo that overlap), but with ``escape`` one
         that *moved* into it in this step, not an external one, stays, flagged ``[n,K]`` (moving on may
-        escape it); ``[n]`` says which agents overlap one."""
+        escape it); ``[n]`` says which agents overlap one. ``latest``: :func:`_latest`."""
         n = len(rr)
-        t1 = tt + 1
-        now, valid_now, valid_after = rs.xyh[rr, :, tt], rs.valid[rr, :, tt], rs.valid[rr, :, t1]
-        moved, after = (rs.guard_moved(rr, who, tt), rs.xyh[rr, :, t1]) if view is None else view
-        state, present, _ = latest_states(
-            now, after, now, valid_now, valid_after, np.zeros_like(valid_now), moved, np.ones((n, 1))
-        )
+        valid_now, valid_after = rs.valid[rr, :, tt], rs.valid[rr, :, tt + 1]
+        now = rs.xyh[rr, :, tt]
+        state, present, _, moved = latest
         sizes = rs.size[rr]
         d = np.hypot(state[..., 0] - origin[:, None, 0], state[..., 1] - origin[:, None, 1])
         near = present & (d < extent[:, None] + half_diagonal(sizes))
@@ -282,7 +340,7 @@ class GuardGeometry:
         self, p: Pairs, sel: np.ndarray, tokens: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`blocked` split ``[m,c]``: overlaps with an obstacle to avoid, with one only to escape
-        (``Pairs.near_escape``); the map rules; the speed-change rule (:meth:`jumps`)."""
+        (``Pairs.near_escape``); the map rules; the speed-change rule (:meth:`jumps`) with the stall rule."""
         kind, size = p.kind[sel], p.size[sel]
         cand = to_global(p.origin[sel][:, None], self.templates[kind[:, None], tokens])  # [m,c,3]
         collide, escape = np.zeros(tokens.shape, bool), np.zeros(tokens.shape, bool)
@@ -309,20 +367,53 @@ class GuardGeometry:
             pick = sel[q]
             near = ss.near_red(p.origin[pick, :2], p.t[pick], p.extent[pick])
             off[q] |= ss.violations(p.origin[pick, :2], cand[q, :, :2], p.t[pick], near)
+        cap = p.follow_cap[sel]
+        follow = np.isfinite(cap)
+        if follow.any():  # no faster than lets it stop behind the box ahead
+            step = self.templates[kind[follow, None], tokens[follow], 0]
+            off[follow] |= step > cap[follow, None] + FOLLOW_SLACK
+        way = p.keep_way[sel]
+        for ld, rows in _by_scene(p.lanes, np.unique(p.rows[sel][way]).tolist()):  # one pass per scene
+            q = np.flatnonzero(way & np.isin(p.rows[sel], rows))
+            off[q] |= ld.against(cand[q])
         go = p.depart[sel]
         if go.any():  # standing or creeping: the step must grow by DEPART_GAIN a step up to DEPART_PACE
-            pace = p.pace[sel[go]]
-            need = np.where(
-                np.isnan(pace), DEPART_STEP, np.clip(pace + DEPART_GAIN, DEPART_STEP, DEPART_PACE)
-            )
+            need = departure_need(p.pace[sel[go]])
             off[go] |= self.templates[kind[go, None], tokens[go], 0] < need[:, None]
-        return collide, escape, off, self.jumps(p, sel, tokens)
+        jump = self.jumps(p, sel, tokens)
+        stall = p.stall[sel]
+        if stall.any():  # the stall rule's mask is the green rule's, widened with the speed-change rule
+            need = departure_need(p.pace[sel[stall]])
+            jump[stall] |= self.templates[kind[stall, None], tokens[stall], 0] < need[:, None]
+        return collide, escape, off, jump
 
 
-def _by_scene(signals: dict[int, SceneSignals], rows: list[int]) -> list[tuple[SceneSignals, list[int]]]:
-    """``rows`` grouped by the signals they hold (``signals``: per row; rows of one scene share them)."""
-    groups: dict[int, tuple[SceneSignals, list[int]]] = {}
+def _latest(
+    rs: RowStates,
+    rr: np.ndarray,
+    who: np.ndarray,
+    tt: np.ndarray,
+    view: tuple[np.ndarray, np.ndarray] | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every agent of rows ``rr`` as the guard of agents ``who`` at steps ``tt`` sees it: its latest decided
+    state ``[n,N,3]`` (the next one where it moved this step), presence ``[n,N]``, velocity ``[n,N,2]`` (m a
+    step, over the step that led there) and whether it moved ``[n,N]``; ``view``: which agents moved and
+    their next states (default: as the rows say)."""
+    t1, t0 = tt + 1, np.maximum(tt - 1, 0)
+    now, valid_now, valid_after = rs.xyh[rr, :, tt], rs.valid[rr, :, tt], rs.valid[rr, :, t1]
+    moved, after = (rs.guard_moved(rr, who, tt), rs.xyh[rr, :, t1]) if view is None else view
+    before, valid_before = rs.xyh[rr, :, t0], rs.valid[rr, :, t0] & (tt >= 1)[:, None]
+    state, present, velocity = latest_states(
+        now, after, before, valid_now, valid_after, valid_before, moved, np.ones((len(rr), 1))
+    )
+    return state, present, velocity, moved
+
+
+def _by_scene(per_row: dict[int, T], rows: list[int]) -> list[tuple[T, list[int]]]:
+    """``rows`` grouped by what they hold (``per_row``: a scene's signals or lanes per row; rows of one scene
+    share them)."""
+    groups: dict[int, tuple[T, list[int]]] = {}
     for row in rows:
-        ss = signals[row]
+        ss = per_row[row]
         groups.setdefault(id(ss), (ss, []))[1].append(row)
     return list(groups.values())
