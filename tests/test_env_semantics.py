@@ -563,3 +563,27 @@ def test_a_scenario_given_as_the_scene_option_is_named_by_its_id() -> None:
     with pytest.raises(TypeError, match="got the Scenario .* itself: pass options=") as err:
         env.reset(seed=0, options={"scene": scene})
     assert len(str(err.value)) < 400
+
+
+def test_a_custom_npc_returning_nan_is_named_and_save_scenarios_names_swapped_arguments(tmp_path) -> None:
+    """A custom NPC returning NaN got "must return finite next states [11,3] ... got (11, 3) / (11,)": the
+    shapes it printed matched and it named no agent; save_scenarios with its arguments swapped failed with
+    an AttributeError from inside (the RL audit of stop 82)."""
+    from trajeglish_env import save_scenarios
+    from trajeglish_env.env import EgoEnv, ReplayNPC
+
+    class Broken(ReplayNPC):
+        def act(self, view, agents):
+            nxt, ok = super().act(view, agents)
+            nxt = np.array(nxt, dtype=np.float64)
+            nxt[0, 0] = np.nan
+            return nxt, ok
+
+    env = EgoEnv(small_scenes()[:1], npc=Broken(), max_cycles=3)
+    env.reset(seed=0)
+    with pytest.raises(
+        ValueError, match=r"Broken.act returned a non-finite next state \[nan, .* for \w+_\d+ at step"
+    ):
+        env.step(np.zeros(2, np.float32))
+    with pytest.raises(TypeError, match=r"got list and str \(swapped\?\)"):
+        save_scenarios(small_scenes()[:1], str(tmp_path / "x.scn.npz"))

@@ -235,3 +235,19 @@ def test_real_sample_gzip_and_a_corrupt_middle_record(tmp_path: Path, record: by
 def test_ragged_real_track_names_its_id(record: bytes):
     with pytest.raises(WomdFormatError, match=r"track 2406 \(index 82\) has 90 states; the others have 91"):
         parse_scenario(_modified(record, lambda p: p.tracks[82].states.pop()), origin="here")
+
+
+def test_external_agents_that_start_off_the_road_or_overlapping_are_named_at_reset() -> None:
+    """Under external="all" 7 of the shared scene's 50 agents lost their episode at step 1 with a -1 they
+    could do nothing about, unnamed (5 parked vehicles off the road, 2 pedestrians overlapping): a reset
+    names them, as it names agents without a goal."""
+    import trajeglish_env
+    from trajeglish_env.sources.womd import read_womd
+
+    sc = next(iter(read_womd(womd_tfrecord())))
+    env = trajeglish_env.env(scenes=[sc], npc="replay", external="all")
+    with pytest.warns(UserWarning) as caught:
+        env.reset(seed=0)
+    said = " ".join(str(w.message) for w in caught)
+    assert "pedestrian_2313, pedestrian_2320 start overlapping another agent" in said
+    assert "vehicle_1594, vehicle_1602, vehicle_1610, vehicle_1611, vehicle_1663 start off the road" in said

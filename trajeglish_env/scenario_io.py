@@ -59,6 +59,17 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 def save_scenarios(path: str | os.PathLike[str], scenarios: Sequence[Scenario]) -> Path:
     """Validate and write ``scenarios`` to ``path`` atomically; returns the path."""
+    if not isinstance(path, (str, os.PathLike)) or isinstance(scenarios, (str, os.PathLike, Scenario)):
+        raise TypeError(
+            f"save_scenarios(path, scenarios): expected a file path and a list of Scenario objects, got "
+            f"{type(path).__name__} and {type(scenarios).__name__}"
+            + (" (swapped?)" if isinstance(scenarios, (str, os.PathLike)) else "")
+        )
+    bad = [i for i, sc in enumerate(scenarios) if not isinstance(sc, Scenario)]
+    if bad:
+        raise TypeError(
+            f"save_scenarios: scenarios[{bad[0]}] is a {type(scenarios[bad[0]]).__name__}, not a Scenario"
+        )
     arrays: dict[str, np.ndarray] = {
         "__format__": np.array(FORMAT_NAME),
         "__version__": np.array(FORMAT_VERSION),

@@ -21,7 +21,7 @@ import numpy as np
 
 from trajeglish_env.env.npc import NPCPolicy
 from trajeglish_env.env.world import WorldView
-from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario import Scenario, agent_name
 
 Waiting = tuple[np.ndarray, np.ndarray]  # (rows, agents): one external agent per row whose state is needed
 
@@ -159,10 +159,18 @@ class OrderedDriver:
             )
             nxt, ok = self.policy.act(view, group)
             nxt, ok = np.asarray(nxt, dtype=np.float64), np.asarray(ok, dtype=bool)
-            if nxt.shape != (len(group), 3) or ok.shape != (len(group),) or not np.isfinite(nxt[ok]).all():
+            name = type(self.policy).__name__
+            if nxt.shape != (len(group), 3) or ok.shape != (len(group),):
                 raise ValueError(
-                    f"NPC policy {type(self.policy).__name__}.act must return finite next states "
-                    f"[{len(group)},3] and validity [{len(group)}], got {nxt.shape} / {ok.shape}"
+                    f"NPC policy {name}.act must return next states [{len(group)},3] and validity "
+                    f"[{len(group)}], got {nxt.shape} / {ok.shape} (step {self._t})"
+                )
+            bad = np.flatnonzero(ok & ~np.isfinite(nxt).all(axis=1))
+            if len(bad):
+                who = agent_name(self.scenario.kind[group[bad[0]]], self.scenario.track_id[group[bad[0]]])
+                raise ValueError(
+                    f"NPC policy {name}.act returned a non-finite next state {nxt[bad[0]].tolist()} for "
+                    f"{who} at step {self._t} ({len(bad)} agent(s)); states marked valid must be finite"
                 )
             self.xyh[group, self._t + 1] = np.where(ok[:, None], nxt, 0.0)
             self.valid[group, self._t + 1] = ok

@@ -17,7 +17,7 @@ from trajeglish_env.env.config import EnvConfig, RandomAgents, TrajeglishNPC
 from trajeglish_env.env.drivers import RowView
 from trajeglish_env.env.lane_routes import extended_routes
 from trajeglish_env.env.observations import make_observer
-from trajeglish_env.env.rewards import StepOutcome, step_reward
+from trajeglish_env.env.rewards import StepOutcome, collisions, offroad, step_reward
 from trajeglish_env.env.routes import logged_paths
 from trajeglish_env.env.scene_state import Kinematics, SceneState
 from trajeglish_env.env.world import WorldView
@@ -202,6 +202,7 @@ class Simulation:
             )
         self.observer = make_observer(config.observation, scenario, config.obs)
         self.edges = road_edges(scenario)
+        _warn_bad_starts(scenario, ext, self.edges, config.reward.offroad_margin)
         edge_columns, edge_links = edge_rows(self.edges)
         self.state = SceneState(
             row=row,
@@ -404,3 +405,23 @@ def apply_actions(
             v_next[i],
         )
     return nxt
+
+
+def _warn_bad_starts(scenario: Scenario, ext: np.ndarray, edges: Any, margin: float) -> None:
+    """Name the external agents whose episode is lost before they act: overlapping another agent, or a
+    vehicle off the road, at the current step (WOMD's parked cars and crowded pedestrians: 7 of the shared
+    scene's 50 agents under ``external="all"``), as a reset names those without a goal."""
+    cur = scenario.current_index
+    xyh, valid = scenario.xyh[:, cur], scenario.valid[:, cur]
+    hit = collisions(xyh, valid, scenario.size, ext)
+    off = offroad(xyh[ext], scenario.size[ext], scenario.kind[ext], edges, margin)
+    for flags, what in ((hit, "overlapping another agent"), (off, f"off the road (more than {margin:g} m)")):
+        if flags.any():
+            names = [agent_name(scenario.kind[a], scenario.track_id[a]) for a in ext[flags]]
+            shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+            warnings.warn(
+                f"scene {scenario.scenario_id!r}: external agent(s) {shown} start {what}: their first step "
+                "already counts it (a penalty, the episode ended under the default RewardConfig)",
+                UserWarning,
+                stacklevel=3,
+            )
