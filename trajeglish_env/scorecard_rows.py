@@ -159,6 +159,17 @@ def target_rows(parts: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
                     r["rear_end_rate"] <= idm + 0.05 if name == "trajeglish+guard" else None,
                 )
             )
+        guarded = npcs["trajeglish+guard"]
+        if "harsh_braking_rate" in guarded:  # parts of stop 82 on: how the followers stop, not only whether
+            rows.append(
+                _row(
+                    "brake test: guarded followers braking harder than 10 m/s^2 (median peak braking)",
+                    f"{guarded['harsh_braking_rate']:.3f} ({guarded['median_peak_braking_mps2']:.1f} m/s^2; "
+                    f"IDM {npcs['idm']['median_peak_braking_mps2']:.1f})",
+                    CONTEXT,
+                    None,
+                )
+            )
     if "long" in parts:
         long = parts["long"]
         for event in ("collision", "offroad"):
