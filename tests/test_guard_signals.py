@@ -65,7 +65,15 @@ def test_guarded_vehicles_and_cyclists_stop_at_red(grid_scenes: list[Scenario]) 
         riders = sc.kind != AgentKind.PEDESTRIAN
         cur = sc.current_index
         for guard in (False, True):
-            config = SamplingConfig(temperature=1.0, guard=guard, seed=1)
+            # the untrained model's erratic motion: the signal rules alone (the newer rules add fallbacks)
+            config = SamplingConfig(
+                temperature=1.0,
+                guard=guard,
+                seed=1,
+                guard_wrong_way=False,
+                guard_follow_decel=0.0,
+                guard_stall_steps=0,
+            )
             engine = RolloutEngine(tiny(), sc, 2, 30, active, config=config)
             engine.run()
             xy, valid = engine.xyh[:, :, cur : cur + 31, :2], engine.valid[:, :, cur : cur + 31]

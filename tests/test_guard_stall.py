@@ -131,3 +131,13 @@ def test_the_demo_npc_that_stood_at_the_crossing_sets_off() -> None:
     dt = 0.1
     assert stuck[2, 40:].sum() * dt < 1.0  # stood (or crept under a metre) for the last 4 s
     assert pushed[2, 35:40].max() < 0.5 and pushed[2, 40:].sum() * dt > 5.0  # stood, then drove on
+
+
+def test_only_a_frozen_rider_is_pushed() -> None:
+    """The rule pushes a stalled rider only where the model gives moving less than FROZEN_MASS (the demo's
+    NPC: 0.000); one the model means to set off keeps its own timing."""
+    from trajeglish_env.sampler.guard_stall import FROZEN_MASS, frozen
+
+    moving = np.array([[False, True, True], [False, True, True]])
+    probs = np.array([[1.0 - FROZEN_MASS / 2, FROZEN_MASS / 4, FROZEN_MASS / 4], [0.5, 0.25, 0.25]])
+    assert frozen(probs, moving).tolist() == [True, False]

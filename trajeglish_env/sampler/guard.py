@@ -43,6 +43,7 @@ the draw itself too (the reference the tests compare with)."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +51,8 @@ import torch
 
 from trajeglish_env.sampler.guard_ahead import AHEAD_CHECKS, ahead_masks, ahead_of_all
 from trajeglish_env.sampler.guard_geometry import GuardGeometry, Pairs
+from trajeglish_env.sampler.guard_signals import DEPART_STEP
+from trajeglish_env.sampler.guard_stall import frozen
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.sampler.sampling import (
     draw_tables,
@@ -123,6 +126,8 @@ class SamplingGuard:
         else:
             tokens = sample_from_probs(token_probs(logits, temperature), top_p, uniform)
         pairs = self.geometry.pairs(rs, rows, agents, t, view)
+        if pairs.stall.any():  # a stalled rider is pushed only where the model has frozen
+            pairs = self._frozen_stalls(pairs, logits, temperature, probs)
         every = np.arange(len(rows))  # a draw that jumps in speed is guarded with nothing else near
         guarded = np.flatnonzero(pairs.guarded | self.geometry.jumps(pairs, every, tokens[:, None])[:, 0])
         self.stats.sampled += len(rows)
@@ -167,6 +172,25 @@ class SamplingGuard:
         self.stats.full += len(rest)
         self.stats.masked += int((chosen != plain).sum())
         return tokens
+
+    def _frozen_stalls(
+        self, pairs: Pairs, logits: torch.Tensor, temperature: float, probs: torch.Tensor | None
+    ) -> Pairs:
+        """``pairs`` whose stall flags of standing riders hold only where the model's probability of moving
+        is under :data:`~trajeglish_env.sampler.guard_stall.FROZEN_MASS` (a rider already departing keeps
+        its flag through the departure)."""
+        q = np.flatnonzero(pairs.stall & ~(pairs.pace >= DEPART_STEP))
+        if not len(q):
+            return pairs
+        at = torch.from_numpy(q)
+        if temperature <= 0:  # the argmax: all the mass on one token
+            p = torch.nn.functional.one_hot(logits[at].argmax(-1), logits.shape[1]).double()
+        else:
+            p = probs[at] if probs is not None else token_probs(logits[at], temperature)
+        step = self.geometry.templates[pairs.kind[q, None], np.arange(logits.shape[1])[None], 0]
+        stall = pairs.stall.copy()
+        stall[q] = frozen(p.numpy(), step >= DEPART_STEP)
+        return dataclasses.replace(pairs, stall=stall)
 
     def _draw_allowed(self, pairs: Pairs, sel: np.ndarray, draw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For pairs ``sel [m]`` and the model's draws ``draw [m]``: ``[m]`` draws every rule allows for sure

@@ -24,10 +24,11 @@ from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.sampler.guard_ahead import AHEAD_MIN_MOVE, road_reach
 from trajeglish_env.sampler.guard_edges import RoadView, road_view
 from trajeglish_env.sampler.guard_follow import FOLLOW_SLACK, STEP_SECONDS, follow_caps
-from trajeglish_env.sampler.guard_signals import SceneSignals, SignalCache
+from trajeglish_env.sampler.guard_signals import SceneSignals
 from trajeglish_env.sampler.guard_stall import departure_need, stall_candidates, stalled
-from trajeglish_env.sampler.lane_directions import LaneCache, LaneDirections
+from trajeglish_env.sampler.lane_directions import MAX_SCENES, LaneDirections
 from trajeglish_env.sampler.rows import RowStates
+from trajeglish_env.sampler.scene_cache import SceneCache
 from trajeglish_env.scenario import AgentKind
 
 
@@ -142,11 +143,11 @@ class GuardGeometry:
         self.stall_steps = int(stall_steps)
         self.wrong_way = bool(wrong_way)
         self.follow_decel = float(follow_decel)
-        self._lanes = LaneCache()
+        self._lanes = SceneCache(LaneDirections.of, MAX_SCENES)
         self._columns = PaddedRows(0.0, last=True)
         self._links = PaddedRows(-1, last=True)
         self._cells = EdgeCells()
-        self._signals = SignalCache()
+        self._signals = SceneCache(SceneSignals.of, 256)
 
     def pairs(
         self,

@@ -117,18 +117,3 @@ class SceneSignals:
         if len(i):
             out[i, k] = on_signal_lane(self.signals, f, cand[i, k], crossed[i, k])
         return out
-
-
-class SignalCache:
-    """The :class:`SceneSignals` of each scene object an engine's rows hold (built once per scene)."""
-
-    def __init__(self) -> None:
-        self._hits: dict[int, tuple[Scenario, SceneSignals | None]] = {}
-
-    def get(self, sc: Scenario) -> SceneSignals | None:
-        hit = self._hits.get(id(sc))
-        if hit is None or hit[0] is not sc:
-            if len(self._hits) > 256:
-                self._hits.clear()
-            hit = self._hits[id(sc)] = (sc, SceneSignals.of(sc))
-        return hit[1]

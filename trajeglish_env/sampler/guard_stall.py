@@ -5,6 +5,8 @@ still for at least that many steps, and now has the way clear (no box within
 under the green rule, which governs stop lines) must set off at pace: as under the green rule, its
 candidates moving less than :data:`DEPART_STEP`, or less than :data:`DEPART_GAIN` more than its last step,
 are masked until it moves :data:`DEPART_PACE` m a step (1.5 m/s) or :data:`RELEASE_STEPS` steps have passed.
+A rider is pushed only while the model itself gives moving less than :data:`FROZEN_MASS` (it has frozen);
+once pushed, it stays under the rule through its departure.
 
 Why: once a guarded vehicle stands (the guard slowed it for a crossing car, the model stopped it), the model
 reads its own standstill and keeps drawing standstills, the way ahead clear or not (in ``make demo``'s
@@ -23,6 +25,11 @@ from trajeglish_env.sampler.guard_signals import DEPART_GAIN, DEPART_PACE, DEPAR
 RELEASE_STEPS = 20
 # Metres a step above which an agent drives (the env's and the metrics' standing speed, 0.5 m/s).
 DROVE_MOVE = 0.05
+# The model's probability of a moving token under which a stalled rider is pushed: the demo's stalled NPC
+# had 0.000 (the model copying its own standstill); a rider waiting for a gap at a junction, which the model
+# means to set off some time, keeps its own timing (pushing every one cost 40 % more model calls on the
+# bundled SUMO scenes, each push a redraw, and set riders creeping into busy junctions).
+FROZEN_MASS = 0.02
 
 
 def stall_candidates(pace: np.ndarray, clear: np.ndarray) -> np.ndarray:
@@ -58,3 +65,9 @@ def departure_need(pace: np.ndarray) -> np.ndarray:
     ``pace [m]`` (NaN: none known): :data:`DEPART_GAIN` more than its last one, at least :data:`DEPART_STEP`,
     at most :data:`DEPART_PACE` (the green rule's mask)."""
     return np.where(np.isnan(pace), DEPART_STEP, np.clip(pace + DEPART_GAIN, DEPART_STEP, DEPART_PACE))
+
+
+def frozen(probs: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """``[m]`` riders whose probabilities ``probs [m,V]`` (the draw's) put less than :data:`FROZEN_MASS` on
+    their moving tokens ``moving [m,V]``: the model has stopped meaning to move."""
+    return (probs * moving).sum(axis=1) < FROZEN_MASS

@@ -21,7 +21,7 @@ LANE_REACH = 1.0  # metres from a lane centre line within which a box centre is 
 DIRECTION_BINS = 32  # lane directions are kept in bins of 11.25 degrees
 AGAINST = np.deg2rad(120.0)  # a heading farther than this from every near lane's direction is against them
 MAX_CELLS = 1 << 23  # cells per map at most (larger cells on a larger map: 32 MB of masks)
-MAX_SCENES = 64  # scenes whose grids a LaneCache keeps (a WOMD map's: 0.7 MB)
+MAX_SCENES = 64  # scenes whose grids the guard keeps (a WOMD map's: 0.7 MB)
 VEHICLE_LANES = frozenset({MapKind.LANE_UNDEFINED, MapKind.LANE_FREEWAY, MapKind.LANE_SURFACE_STREET})
 
 
@@ -115,18 +115,3 @@ class LaneDirections:
         every lane there."""
         bits = self.lane_bits(xyh[..., :2])
         return (bits != 0) & ((bits & AGREE[direction_bin(xyh[..., 2])]) == 0)
-
-
-class LaneCache:
-    """The :class:`LaneDirections` of each scene object an engine's rows hold (built once per scene)."""
-
-    def __init__(self) -> None:
-        self._hits: dict[int, tuple[Scenario, LaneDirections | None]] = {}
-
-    def get(self, sc: Scenario) -> LaneDirections | None:
-        hit = self._hits.get(id(sc))
-        if hit is None or hit[0] is not sc:
-            if len(self._hits) > MAX_SCENES:
-                self._hits.clear()
-            hit = self._hits[id(sc)] = (sc, LaneDirections.of(sc))
-        return hit[1]
