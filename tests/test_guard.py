@@ -62,8 +62,17 @@ def test_masks_are_the_envs_rules_over_every_candidate(name: str) -> None:
     external = np.zeros(n, bool)
     external[scene.sdc] = True
     active = scene.valid[:, scene.current_index]
-    # one-step masks (the road ahead: its own file; the speed-change rule: the next test)
-    config = SamplingConfig(guard=True, seed=3, guard_road_ahead=0.0, guard_step_change=0.0)
+    # one-step masks (the road ahead: its own file; the speed-change rule: the next test; the stall,
+    # following and wrong-way rules: tests/test_guard_stall.py, test_brake_test.py, test_lane_directions.py)
+    config = SamplingConfig(
+        guard=True,
+        seed=3,
+        guard_road_ahead=0.0,
+        guard_step_change=0.0,
+        guard_stall_steps=0,
+        guard_follow_decel=0.0,
+        guard_wrong_way=False,
+    )
     engine = RolloutEngine(tiny(), scene, 1, 5, active & ~external, external, config=config)
     for _ in range(2):  # play two steps, then stop mid-step: the sdc has moved, the NPCs have not
         while (agent := engine.advance()) is not None:

@@ -141,8 +141,16 @@ def test_one_sampling_default_for_env_cli_policies_and_evaluate() -> None:
     assert (not evaluate.no_green_rule) == env_default.guard_green  # the green rule is on by default
     from trajeglish_env.cli_eval import guard_rules
 
-    rules = {"guard_green": True, "guard_road_ahead": 5.0, "guard_step_change": env_default.guard_step_change}
+    rules = {
+        "guard_green": True,
+        "guard_wrong_way": True,
+        "guard_road_ahead": 5.0,
+        "guard_step_change": env_default.guard_step_change,
+        "guard_stall_steps": env_default.guard_stall_steps,
+        "guard_follow_decel": env_default.guard_follow_decel,
+    }
     assert guard_rules(evaluate, True) == guard_rules(rollout, True) == rules
+    assert rules == {k: getattr(env_default, k) for k in rules}  # the CLI's defaults are the env's
     assert env_default.guard_road_ahead == 5.0 and env_default.guard_step_change == 0.5
     assert evaluate.subsets == env_default.subsets
     assert TrajeglishPolicy.__init__.__defaults__ == (None, None)  # None: SamplingConfig()
