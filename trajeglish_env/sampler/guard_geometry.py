@@ -43,8 +43,8 @@ class Pairs:
     green light ahead, the way clear), the ``signals`` of their rows, ``pace [n]`` the forward distance of
     each agent's last move (its model states at ``t - 1`` and ``t``), NaN for pedestrians and where there is
     no state at ``t - 1``, ``stall [n]`` those the stall rule pushes on
-    (:mod:`~trajeglish_env.sampler.guard_stall`), and ``keep_way [n]`` the vehicles the wrong-way rule
-    keeps from turning against the lanes (in rows with ``lanes``, not against them already), and
+    (:mod:`~trajeglish_env.sampler.guard_stall`), ``keep_way [n]`` the vehicles the wrong-way rule keeps
+    from turning against the lanes (in rows with ``lanes``, not against them already), and
     ``follow_cap [n]`` the longest forward step the following rule allows each (inf: none;
     :mod:`~trajeglish_env.sampler.guard_follow`)."""
 
@@ -115,10 +115,10 @@ class GuardGeometry:
     of each candidate's kept-up motion checked against the road edges, 0 for none; ``step_change``: metres
     by which a vehicle's forward step may change from its last one, :data:`STEP_CHANGE_SHARE` of it for
     the other classes, 0 for no such rule; ``stall_steps``: steps a rider that drove may stand with the way
-    clear before it must set off, 0 for no such rule; ``wrong_way``: whether a vehicle on a lane may not
-    turn against every lane there, :mod:`~trajeglish_env.sampler.lane_directions`; ``follow_decel``: the
-    deceleration (m/s^2) at which a vehicle or cyclist must still be able to stop behind the box ahead, 0 for
-    no such rule), with each row-agent's road-edge list kept between steps."""
+    clear before it must set off, 0 for no such rule; ``wrong_way``: whether a vehicle may not turn or
+    drive onto a lane against every lane there, :mod:`~trajeglish_env.sampler.lane_directions`;
+    ``follow_decel``: the deceleration (m/s^2) at which a vehicle or cyclist must still be able to stop
+    behind the box ahead, 0 for no such rule), with each row-agent's road-edge list kept between steps."""
 
     def __init__(
         self,
