@@ -25,6 +25,7 @@ from trajeglish_env.sampler.guard_ahead import (
     ahead_of_all,
     kept_up,
 )
+from trajeglish_env.sampler.guard_geometry import GuardGeometry
 from trajeglish_env.scenario import AgentKind
 
 
@@ -239,3 +240,32 @@ def test_with_the_road_ahead_racetrack_vehicles_keep_moving_and_on_the_road() ->
     after, off_after = _standing_and_off_road(5.0)
     assert off_before == off_after == 0
     assert before > 0.005 and after < before / 2  # 0.0089 -> 0.0 with the shipped model
+
+
+def test_road_answers_do_not_depend_on_what_was_measured_before() -> None:
+    """The road rule's masks over every candidate are the same from a fresh guard, from one whose road-edge
+    cells earlier queries computed (a vehicle whose whole reach, its kept-up motion included, is in safe cells
+    is left unchecked: no candidate of it is masked either way), and from one answering again from its
+    per-agent memory (parallel decoding asks several times a step)."""
+    engine, vehicles = _racetrack_engine(6.0)
+    used = engine.guard.geometry
+    rows, t = np.zeros(len(vehicles), np.int64), np.full(len(vehicles), engine.t)
+    every = np.broadcast_to(np.arange(engine.vocab.size), (len(vehicles), engine.vocab.size))
+
+    def masks(geometry: GuardGeometry) -> tuple[np.ndarray, ...]:
+        pairs = geometry.pairs(engine, rows, vehicles, t)
+        sel = np.arange(len(vehicles))
+        collide, off = geometry.blocked(pairs, sel, every)
+        reach, look = geometry.reach(pairs, sel, every, ~(collide | off))
+        return collide, off, ahead_of_all(reach, look), pairs.edges.limit[pairs.edges.road]
+
+    def fresh() -> GuardGeometry:
+        return GuardGeometry.of(engine.vocab.templates, engine.config)
+
+    want = masks(fresh())
+    assert want[1].sum() > 0 and want[2].sum() > 50, (want[1].sum(), want[2].sum())
+    warm_cells = fresh()
+    warm_cells._cells = used._cells  # blocks computed over the steps played
+    for got in (masks(warm_cells), masks(used), masks(used)):
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)

@@ -20,6 +20,7 @@ their neighbours (which give the sign beyond a segment's end): the sign is then 
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -108,12 +109,16 @@ def lipschitz(columns: np.ndarray) -> np.ndarray:
     return np.sqrt(1 + (float(Z_STRETCH) * dz) ** 2 * inverse)
 
 
+_EPOCHS = itertools.count()
+
+
 class EdgeCells:
     """The cells of every map queried so far (keyed by the identity of its road-edge ``columns``): a block
     table per map (-1: not computed) pointing into cell arrays shared by all maps, so that points of many
     maps are answered in one vectorized pass."""
 
     def __init__(self) -> None:
+        self.epoch = next(_EPOCHS)  # new at every reset: map indices of another epoch name other maps
         self.maps: list[MapGrid] = []
         self.keys: dict[int, int] = {}
         self.table = np.zeros(0, np.int64)  # per block of every map: its slot in the cell arrays, or -1

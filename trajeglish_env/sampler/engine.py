@@ -46,6 +46,7 @@ from trajeglish_env.sampler.parallel import (
     accepted,
     coupled_drafts,
     drafted_next_step,
+    guard_drafts,
     guard_view,
     kept_every_draft,
     look_ahead_pays,
@@ -103,19 +104,7 @@ class BatchEngine(WindowedRows):
             from trajeglish_env.sampler.guard import SamplingGuard
             from trajeglish_env.sampler.guard_geometry import GuardGeometry
 
-            self.guard = SamplingGuard(
-                GuardGeometry(
-                    self.vocab.templates,
-                    config.guard_road_margin,
-                    config.guard_green,
-                    config.guard_escape,
-                    config.guard_road_ahead,
-                    config.guard_step_change,
-                    config.guard_stall_steps,
-                    config.guard_wrong_way,
-                    config.guard_follow_decel,
-                )
-            )
+            self.guard = SamplingGuard(GuardGeometry.of(self.vocab.templates, config))
             self.with_edges = True
         self._slot = np.zeros(self.B, dtype=np.int64)  # per row: next slot of that rank to decode
         self.model_calls = 0  # decoding calls made (a measure of the cost of a step)
@@ -169,6 +158,8 @@ class BatchEngine(WindowedRows):
                 self._draft = np.where(
                     ahead >= 0, ahead, np.where(coupled >= 0, coupled, previous_tokens(self))
                 )
+                if self.guard is not None:  # drafts the guard changes as it will change the draws
+                    self._guard_drafts(stepping, ahead >= 0, coupled >= 0)
                 self._ahead = np.full((self.B, self.N), -1)
                 self._ahead_rank = np.full((self.B, self.N), np.iinfo(np.int64).max)
         A = self.cfg.max_agents
@@ -305,25 +296,29 @@ class BatchEngine(WindowedRows):
         else:
             tok = sample_with_uniform(logits, temperature, top_p, u)
         if self.guard is not None:
-            # guarding only changes a draw now and then: guard the pairs up to each row's first unguarded
-            # draw that differs from its draft (the later ones are decoded again anyway)
-            check = np.flatnonzero(cc <= accepted(rr, cc, tok, drafts, self.B)[rr])
-            view = guard_view(self, rr[check], who[check], drafts[check])
-            sel = torch.from_numpy(check)
-            drawn = None if tables is None else (tables[0][sel], tables[1][sel])
-            tok[check] = self.guard.sample(
-                self, logits[sel], rr[check], who[check], tt[check], u[check], temperature, top_p, view, drawn
-            )
-            rr_c, cc_c, tok_c, drafts_c = rr[check], cc[check], tok[check], drafts[check]
-        else:
-            rr_c, cc_c, tok_c, drafts_c = rr, cc, tok, drafts
-        last = accepted(rr_c, cc_c, tok_c, drafts_c, self.B)
+            # every pair is guarded: the drafts are guarded draws (parallel.guard_drafts), and the pairs
+            # after a row's first miss are drafted anew from guarded draws (unguarded ones miss where the
+            # guard acts)
+            view = guard_view(self, rr, who, drafts)
+            tok = self.guard.sample(self, logits, rr, who, tt, u, temperature, top_p, view, tables)
+        last = accepted(rr, cc, tok, drafts, self.B)
         self._draft[rr, who] = tok
         keep = cc <= last[rr]
         self._finish(rr[keep], who[keep], tt[keep], tok[keep])
         self._keep_logits(rr[keep], who[keep], tt[keep], logits[torch.from_numpy(np.flatnonzero(keep))])
-        whole = kept_every_draft(rr, rr_c, tok_c, drafts_c, self.B) | (last < 0)
+        whole = kept_every_draft(rr, rr, tok, drafts, self.B) | (last < 0)
         return np.where(whole, count, last + 1)
+
+    def _guard_drafts(self, stepping: np.ndarray, from_ahead: np.ndarray, coupled: np.ndarray) -> None:
+        """:func:`~trajeglish_env.sampler.parallel.guard_drafts` of the drafts drawn from logits: the
+        look-ahead's (``from_ahead [B,N]``), else the step before's (``coupled [B,N]``)."""
+        if self._drawn_logits.shape[:2] != (self.B, self.N):
+            return
+        logits = np.where(from_ahead[..., None], self._ahead_logits, self._drawn_logits)
+        config = self.config
+        assert self.guard is not None
+        has = from_ahead | coupled
+        guard_drafts(self, self.guard, stepping, logits, has, config.temperature, config.top_p)
 
     def _draw_ahead(self, w: Window, hidden: torch.Tensor, where: np.ndarray, slots: np.ndarray) -> None:
         """Draw next-step drafts (unguarded, each with its own number of the next step) for the controlled
@@ -342,7 +337,10 @@ class BatchEngine(WindowedRows):
         logits = self.model.class_logits_by_kind(hidden[sel], self.kind[rr, who]).cpu()
         u = counter_uniform(self.seed[rr], t1, who)
         config = self.config
-        self._ahead[rr, who] = draft_draws(logits.float().numpy(), config.temperature, config.top_p, u)
+        drawn = logits.float().numpy()
+        self._logit_buffers(drawn.shape[1])
+        self._ahead_logits[rr, who] = drawn  # kept for the guard (parallel.guard_drafts)
+        self._ahead[rr, who] = draft_draws(drawn, config.temperature, config.top_p, u)
         self._ahead_rank[rr, who] = self._rank[rr]
 
     def _read_span(self, wanted: np.ndarray, n: int) -> tuple[int, int]:
@@ -357,11 +355,17 @@ class BatchEngine(WindowedRows):
     def _keep_logits(self, rr: np.ndarray, who: np.ndarray, tt: np.ndarray, logits: torch.Tensor) -> None:
         """Keep the class logits ``[n,V]`` that agents ``who`` of rows ``rr`` drew their tokens of steps
         ``tt`` from: the next step drafts from them (:func:`~.parallel.coupled_drafts`)."""
-        if self._drawn_logits.shape[:2] != (self.B, self.N) or self._drawn_logits.shape[2] != logits.shape[1]:
-            self._drawn_logits = np.zeros((self.B, self.N, logits.shape[1]), np.float32)
-            self._drawn_at = np.full((self.B, self.N), -1, np.int64)
+        self._logit_buffers(logits.shape[1])
         self._drawn_logits[rr, who] = logits.numpy()
         self._drawn_at[rr, who] = tt
+
+    def _logit_buffers(self, classes: int) -> None:
+        """Size the kept class logits (``[B,N,classes]``: those drawn from, those the look-ahead drew
+        from) to the rows' agents (cleared when they grow)."""
+        if self._drawn_logits.shape != (self.B, self.N, classes):
+            self._drawn_logits = np.zeros((self.B, self.N, classes), np.float32)
+            self._ahead_logits = np.zeros_like(self._drawn_logits)
+            self._drawn_at = np.full((self.B, self.N), -1, np.int64)
 
     def _coupled_drafts(self) -> np.ndarray:
         """:func:`~trajeglish_env.sampler.parallel.coupled_drafts` of the kept logits."""

@@ -53,27 +53,28 @@ def road_view(
     cells: EdgeCells,
     rs: RowStates,
     rr: np.ndarray,
-    origin: np.ndarray,
-    corners: np.ndarray,
-    extent: np.ndarray,
-    vehicle: np.ndarray,
     padded: tuple[np.ndarray, np.ndarray, np.ndarray],
     margin: float,
 ) -> RoadView:
-    """The road edges of pairs (of rows ``rr`` at ``origin [n,3]``, their boxes there ``corners [n,4,2]``,
-    their candidates' corners within ``extent [n]``; ``vehicle [n]``) given the rows' padded road edges
-    ``padded = (columns, links, count)``: the rule applies to a vehicle unless every cell within reach of
-    its candidates is safe; a candidate corner may lie ``margin`` m beyond a road edge, or as far as the
-    vehicle's box lies already if that is farther (a vehicle off the road may not go farther off)."""
+    """The road edges of pairs of rows ``rr`` given the rows' padded road edges ``padded = (columns, links,
+    count)``, the rule applying to none of them yet (:func:`road_rule` says to which)."""
     n = len(rr)
     maps = cells.map_ids(rs.edges)[rr]
-    road, limit = np.zeros(n, bool), np.full(n, float(margin))
-    view = RoadView(road, limit, maps, rr, cells, padded)
-    v = np.flatnonzero(vehicle & (maps >= 0))
-    if not len(v):
-        return view
-    c = v[~cells.all_safe(maps[v], origin[v, :2], extent[v])]
+    return RoadView(np.zeros(n, bool), np.full(n, float(margin)), maps, rr, cells, padded)
+
+
+def road_rule(
+    view: RoadView, sel: np.ndarray, origin: np.ndarray, corners: np.ndarray, extent: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """For vehicles ``sel [m]`` on a map (at ``origin [m,3]``, their boxes there ``corners [m,4,2]``, their
+    candidates' corners, and those of their kept-up motion, within ``extent [m]``): ``[m]`` whether the rule
+    applies (unless every cell within reach is safe) and ``[m]`` how far beyond a road edge a candidate
+    corner may then lie: the view's margin, or as far as the vehicle's box lies already if that is farther
+    (a vehicle off the road may not go farther off). Where every cell within reach is safe, no candidate is
+    masked either way, so the answer does not depend on which cells earlier queries computed."""
+    road = ~view.cells.all_safe(view.maps[sel], origin[:, :2], extent)
+    limit = view.limit[sel].copy()
+    c = np.flatnonzero(road)
     if len(c):
-        road[c] = True
-        limit[c] = np.maximum(limit[c], view.excess(c, corners[c][:, None])[:, 0])
-    return view
+        limit[c] = np.maximum(limit[c], view.excess(sel[c], corners[c][:, None])[:, 0])
+    return road, limit

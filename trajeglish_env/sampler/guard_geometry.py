@@ -21,8 +21,10 @@ from trajeglish_env.batch_geometry import PaddedRows, latest_states, nearest_fir
 from trajeglish_env.edge_cells import EdgeCells
 from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
-from trajeglish_env.sampler.guard_ahead import AHEAD_MIN_MOVE, road_reach
-from trajeglish_env.sampler.guard_edges import RoadView, road_view
+from trajeglish_env.sampler.candidate_memo import CandidateMemo, memo_keys
+from trajeglish_env.sampler.config import SamplingConfig
+from trajeglish_env.sampler.guard_ahead import AHEAD_CHECKS, AHEAD_MIN_MOVE, road_reach
+from trajeglish_env.sampler.guard_edges import RoadView, road_rule, road_view
 from trajeglish_env.sampler.guard_follow import FOLLOW_SLACK, STEP_SECONDS, follow_caps
 from trajeglish_env.sampler.guard_signals import SceneSignals
 from trajeglish_env.sampler.guard_stall import departure_need, stall_candidates, stalled
@@ -46,7 +48,8 @@ class Pairs:
     (:mod:`~trajeglish_env.sampler.guard_stall`), ``keep_way [n]`` the vehicles the wrong-way rule keeps
     from turning against the lanes (in rows with ``lanes``, not against them already), and
     ``follow_cap [n]`` the longest forward step the following rule allows each (inf: none;
-    :mod:`~trajeglish_env.sampler.guard_follow`)."""
+    :mod:`~trajeglish_env.sampler.guard_follow`); ``memo_keys [n,8]`` what its road-edge answers depend on
+    (:mod:`~trajeglish_env.sampler.candidate_memo`)."""
 
     rows: np.ndarray
     agents: np.ndarray
@@ -68,6 +71,7 @@ class Pairs:
     keep_way: np.ndarray
     lanes: dict[int, LaneDirections]
     follow_cap: np.ndarray
+    memo_keys: np.ndarray
 
     @property
     def guarded(self) -> np.ndarray:
@@ -148,6 +152,17 @@ class GuardGeometry:
         self._links = PaddedRows(-1, last=True)
         self._cells = EdgeCells()
         self._signals = SceneCache(SceneSignals.of, 256)
+        # road-edge answers per row-agent: the rule's (applies, limit), candidates' excess, their reach
+        self._road_memo, self._excess_memo, self._reach_memo = (CandidateMemo() for _ in range(3))
+
+    @classmethod
+    def of(cls, templates: np.ndarray, config: SamplingConfig) -> GuardGeometry:
+        """The geometry of the guard rules ``config`` sets, for the motion tokens ``templates``."""
+        return cls(
+            *(templates, config.guard_road_margin, config.guard_green, config.guard_escape),
+            *(config.guard_road_ahead, config.guard_step_change, config.guard_stall_steps),
+            *(config.guard_wrong_way, config.guard_follow_decel),
+        )
 
     def pairs(
         self,
@@ -168,9 +183,10 @@ class GuardGeometry:
             self._links.sync(rs.edges, lambda e: e[1]),  # type: ignore[index]
             np.array([e[0].shape[1] for e in rs.edges]),
         )
-        corners = box_corners(origin, size)
         wheeled = kind != AgentKind.PEDESTRIAN  # cyclists keep to the road as vehicles do
-        edges = road_view(self._cells, rs, rr, origin, corners, extent, wheeled, padded, self.road_margin)
+        edges = road_view(self._cells, rs, rr, padded, self.road_margin)
+        keys = memo_keys(origin, size, kind, edges.maps, self._cells.epoch)
+        self._road_rule(edges, rr, who, origin, size, kind, keys, wheeled & (edges.maps >= 0))
         red, depart, signals = self._lights(rs, rr, tt, origin, size, extent, wheeled)
         clear = way_clear(origin, size, *near) & ~tangled  # one overlapping another box already is not pushed
         if self.green_rule:
@@ -204,8 +220,41 @@ class GuardGeometry:
         keep_way, lanes = self._lane_rule(rs, rr, origin, kind)
         return Pairs(
             *(rr, who, tt, origin, size, kind, extent, *near, escape, edges, red, depart, signals, pace),
-            *(stall, keep_way, lanes, cap),
+            *(stall, keep_way, lanes, cap, keys),
         )
+
+    def _road_rule(
+        self,
+        edges: RoadView,
+        rr: np.ndarray,
+        who: np.ndarray,
+        origin: np.ndarray,
+        size: np.ndarray,
+        kind: np.ndarray,
+        keys: np.ndarray,
+        on_map: np.ndarray,
+    ) -> None:
+        """Fill ``edges``' rule flags and limits of the vehicles and cyclists ``on_map [n]``
+        (:func:`~trajeglish_env.sampler.guard_edges.road_rule`, remembered per row-agent): within reach of
+        their candidates' corners, and of their kept-up motion's, the road must be safe to leave them
+        unchecked."""
+        v = np.flatnonzero(on_map)
+        if not len(v):
+            return
+        reach = np.maximum(self.move[kind[v]], self.road_ahead) + half_diagonal(size[v])
+
+        def measure(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+            q = np.unique(i)
+            road, limit = road_rule(
+                edges, v[q], origin[v[q]], box_corners(origin[v[q]], size[v[q]]), reach[q]
+            )
+            answers = np.zeros((len(v), 2))
+            answers[q, 0], answers[q, 1] = road, limit
+            return answers[i, j]
+
+        entries = np.broadcast_to(np.arange(2), (len(v), 2))
+        got = self._road_memo.lookup(rr[v], who[v], keys[v], entries, np.ones((len(v), 2), bool), measure, 2)
+        edges.road[v], edges.limit[v] = got[:, 0] > 0, got[:, 1]
 
     def _lane_rule(
         self, rs: RowStates, rr: np.ndarray, origin: np.ndarray, kind: np.ndarray
@@ -334,8 +383,37 @@ class GuardGeometry:
         look = allowed & p.edges.road[sel][:, None] & (np.hypot(step[..., 0], step[..., 1]) >= AHEAD_MIN_MOVE)
         if self.road_ahead <= 0:
             look[:] = False
-        reach = road_reach(p.edges, sel, p.origin[sel], p.size[sel], step, self.road_ahead, look)
+        reach = np.full(look.shape, AHEAD_CHECKS, np.int64)
+        if not look.any():
+            return reach, look
+
+        def measure(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+            pick = sel[i]
+            every = np.ones((len(i), 1), bool)
+            return road_reach(
+                p.edges, pick, p.origin[pick], p.size[pick], step[i, j][:, None], self.road_ahead, every
+            )[:, 0]
+
+        width = self.templates.shape[1]
+        got = self._reach_memo.lookup(
+            p.rows[sel], p.agents[sel], p.memo_keys[sel], tokens, look, measure, width
+        )
+        reach[look] = got[look].astype(np.int64)
         return reach, look
+
+    def _excess(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray, cand: np.ndarray) -> np.ndarray:
+        """``[m,c]`` how far the most off-road corner of each candidate box (tokens ``[m,c]`` of pairs ``sel
+        [m]``, poses ``cand [m,c,3]``) lies beyond a road edge (:meth:`RoadView.excess`, remembered)."""
+
+        def measure(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+            corners = box_corners(cand[i, j], p.size[sel[i]])[:, None]
+            return p.edges.excess(sel[i], corners)[:, 0]
+
+        want = np.ones(tokens.shape, bool)
+        width = self.templates.shape[1]
+        return self._excess_memo.lookup(
+            p.rows[sel], p.agents[sel], p.memo_keys[sel], tokens, want, measure, width
+        )
 
     def blocked_parts(
         self, p: Pairs, sel: np.ndarray, tokens: np.ndarray
@@ -359,9 +437,7 @@ class GuardGeometry:
         off = np.zeros(tokens.shape, bool)
         q = np.flatnonzero(p.edges.road[sel])
         if len(q):
-            pick = sel[q]
-            corners = box_corners(cand[q], size[q][:, None])
-            off[q] = p.edges.beyond(pick, corners)
+            off[q] = self._excess(p, sel[q], tokens[q], cand[q]) > p.edges.limit[sel[q]][:, None]
         red = p.red[sel]
         for ss, rows in _by_scene(p.signals, np.unique(p.rows[sel][red]).tolist()):  # one pass per scene
             q = np.flatnonzero(red & np.isin(p.rows[sel], rows))

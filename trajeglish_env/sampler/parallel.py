@@ -30,19 +30,30 @@ the drafts hold they are the states sequential decoding reads there, and a look-
 
 Guarded sampling (:mod:`~trajeglish_env.sampler.guard`) reads, for each agent, the next states of the
 agents that moved before it: in a parallel call those are the drafted states of its predecessors in the
-run, which :func:`guard_view` supplies per agent.
+run, which :func:`guard_view` supplies per agent. A draft drawn from the model alone misses wherever the
+guard changes the draw (a stalled car pushed off, a follower capped, a wrong-way turn masked), and each miss
+cuts the run short: so the drafts a step starts from are guarded too (:func:`guard_drafts`: the guard applied
+to the logits each draft was drawn from, with the drafted states of the agents before it), and a call guards
+every pair it samples, so that the pairs after a miss are drafted anew from guarded draws. On the bench's
+four SUMO scenes with every guard rule on, this took a step from 1.88 model calls to 1.14.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
 from trajeglish_env.geometry import to_global
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.sampler.sampling import counter_uniform, draft_draws
+
+if TYPE_CHECKING:
+    from trajeglish_env.sampler.guard import SamplingGuard
 
 # The look-ahead's budget of positions (stepping rows x agent slots) for subsets whose every slot is an agent
 # to draft; a subset with fewer gets that share of it (:func:`look_ahead_pays`).
@@ -187,3 +198,39 @@ def accepted(rr: np.ndarray, cc: np.ndarray, tokens: np.ndarray, draft: np.ndarr
     first_miss = np.full(rows, np.iinfo(np.int64).max)
     np.minimum.at(first_miss, rr[differ], cc[differ])
     return np.where(first_miss < np.iinfo(np.int64).max, first_miss, last)
+
+
+def guard_drafts(
+    rs: RowStates,
+    guard: SamplingGuard,
+    stepping: np.ndarray,
+    logits: np.ndarray,
+    has_logits: np.ndarray,
+    temperature: float,
+    top_p: float,
+) -> None:
+    """Guard the drafts ``rs._draft [B,N]`` of the step the ``stepping [B]`` rows begin: each draft drawn
+    from class logits ``logits [B,N,V]`` (``has_logits [B,N]``: those with them; the others keep theirs)
+    becomes the guard's draw from those logits at the agent's number of this step, the agents before it in
+    the acting order counting as moved to their drafted states. Only the drafts change (the guard's
+    counters do not), so what is sampled stays exact whatever they are."""
+    draft = rs._draft
+    assert draft is not None
+    t = np.minimum(rs.now, rs.T - 2)
+    r_ix = np.arange(rs.B)[:, None]
+    todo = stepping[:, None] & rs.row_controlled & (draft >= 0)
+    todo &= ~rs.known[r_ix, :, t[:, None]][:, 0] & rs.valid[r_ix, :, t[:, None]][:, 0]
+    pick = todo & has_logits
+    if not pick.any():
+        return
+    rr, aa = np.nonzero(todo)  # every drafted agent of the step, in acting order per row (guard_view)
+    order = np.lexsort((rs.acting_rank[rr, aa], rr))
+    rr, aa = rr[order], aa[order]
+    moved, after = guard_view(rs, rr, aa, draft[rr, aa])
+    sel = np.flatnonzero(pick[rr, aa])
+    rr, aa = rr[sel], aa[sel]
+    u = counter_uniform(rs.seed[rr], rs.now[rr], aa)
+    counters = dataclasses.replace(guard.stats)
+    lg = torch.from_numpy(logits[rr, aa])
+    draft[rr, aa] = guard.sample(rs, lg, rr, aa, rs.now[rr], u, temperature, top_p, (moved[sel], after[sel]))
+    guard.stats = counters

@@ -77,6 +77,7 @@ class RowStates:
         # [B,N,V] the class logits each agent's last token was drawn from in parallel, and [B,N] its step
         self._drawn_logits = np.zeros((0, 0, 0), np.float32)
         self._drawn_at = np.zeros((0, 0), np.int64)
+        self._ahead_logits = np.zeros((0, 0, 0), np.float32)  # [B,N,V] those the look-ahead drew from
 
     def _allocate(self, n: int, t: int) -> None:
         """Grow the per-row arrays to ``n`` agents and ``t`` steps (padding: absent, decided)."""
