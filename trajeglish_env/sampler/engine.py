@@ -43,6 +43,7 @@ from trajeglish_env.model.config import Variant
 from trajeglish_env.model.layers import MIN_GEMM_ROWS, linear_compute
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.parallel import (
+    GUARD_DRAFTS_MAX_ROWS,
     accepted,
     coupled_drafts,
     drafted_next_step,
@@ -158,8 +159,8 @@ class BatchEngine(WindowedRows):
                 self._draft = np.where(
                     ahead >= 0, ahead, np.where(coupled >= 0, coupled, previous_tokens(self))
                 )
-                if self.guard is not None:  # drafts the guard changes as it will change the draws
-                    self._guard_drafts(stepping, ahead >= 0, coupled >= 0)
+                if self.guard is not None and stepping.sum() <= GUARD_DRAFTS_MAX_ROWS:
+                    self._guard_drafts(stepping, ahead >= 0, coupled >= 0)  # drafts as the guard draws
                 self._ahead = np.full((self.B, self.N), -1)
                 self._ahead_rank = np.full((self.B, self.N), np.iinfo(np.int64).max)
         A = self.cfg.max_agents
