@@ -59,9 +59,9 @@ if TYPE_CHECKING:
 # Stepping rows up to which the drafts a step starts from are guarded (:func:`guard_drafts`). A guarded
 # draft saves a call only where every row's drafts hold, and costs a guard pass over every agent: measured
 # with one thread (stop 83, the env's 24-agent scenes, alternately with and without it), the AEC env 11 %
-# faster with it, B = 8 15 %, B = 32 6 % slower, B = 128 even; 32 rollouts of the 50-agent WOMD scene 3 %
-# slower.
-GUARD_DRAFTS_MAX_ROWS = 16
+# faster with it, B = 8 15 %, B = 32 6 % slower, B = 128 even; 16 and 32 rollouts of the 50-agent WOMD
+# scene 3 % slower.
+GUARD_DRAFTS_MAX_ROWS = 8
 
 # The look-ahead's budget of positions (stepping rows x agent slots) for subsets whose every slot is an agent
 # to draft; a subset with fewer gets that share of it (:func:`look_ahead_pays`).
