@@ -10,7 +10,16 @@ import numpy as np
 import pytest
 from helpers import bundle_scene, queue_scene, tiny
 
-from trajeglish_env.brake_test import NPCS, BrakeTestConfig, brake_test, followers, npc_spec, rear_ended
+from trajeglish_env.brake_test import (
+    NPCS,
+    SMOOTH_STEPS,
+    BrakeTestConfig,
+    brake_test,
+    followers,
+    npc_spec,
+    peak_braking,
+    rear_ended,
+)
 from trajeglish_env.cli import main
 from trajeglish_env.cli_eval import BRAKE_NPCS
 from trajeglish_env.sampler.config import SamplingConfig
@@ -121,3 +130,17 @@ def test_guarded_followers_brake_in_time_instead_of_stopping_dead() -> None:
     assert guarded["rear_end_rate"] == 0.0 and guarded["harsh_braking_rate"] <= 0.25
     assert guarded["median_peak_braking_mps2"] < 9.5
     assert ruled["idm"]["harsh_braking_rate"] == 0.0 and ruled["idm"]["max_peak_braking_mps2"] < 5
+    # over 0.5 s (past the tokens' speed levels): 5.1 m/s^2 for the guarded followers, 3.2 for IDM's, 17.0
+    # without the following rule
+    assert guarded["harsh_braking_05s_rate"] == 0.0 and guarded["median_peak_braking_05s_mps2"] < 7
+    assert unruled["trajeglish+guard"]["harsh_braking_05s_rate"] >= 0.75
+
+
+def test_peak_braking_over_one_step_and_over_half_a_second() -> None:
+    """A guarded follower's speeds from a development brake test (token levels): one skipped level reads
+    10.2 m/s^2 over a step, 2.9 over the 0.5 s around it."""
+    speeds = np.array([5.15, 4.64, 5.12, 4.09, 4.09, 4.09, 3.69, 3.69, 3.69, 3.27])
+    assert peak_braking(speeds, 0.1, 1) == pytest.approx(10.3)
+    assert peak_braking(speeds, 0.1, SMOOTH_STEPS) == pytest.approx((5.12 - 3.69) / 0.5)
+    assert peak_braking(speeds[:3], 0.1, SMOOTH_STEPS) == pytest.approx((5.15 - 5.12) / 0.2)
+    assert peak_braking(np.array([3.0, 4.0]), 0.1, 1) == 0.0 and peak_braking(speeds[:1], 0.1, 1) == 0.0

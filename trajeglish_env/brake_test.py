@@ -11,8 +11,10 @@ candidates than episodes, they are played again with other seeds.
 
 No rear-end is not enough: a follower that holds its speed to the last step and then stops in 0.1 s never
 hits the ego but is no driver (guarded NPCs did, at up to -186 m/s^2, before the guard's following rule).
-So each episode also records the follower's hardest braking (m/s^2, over one step) and its smallest gap to
-the ego, and each policy the share of episodes whose follower brakes harder than :data:`HARSH_BRAKING`.
+So each episode also records the follower's hardest braking (m/s^2, over one step, and averaged over
+:data:`SMOOTH_STEPS` steps: a token follower's one-step figure carries the tokens' speed levels) and its
+smallest gap to the ego, and each policy the share of episodes whose follower brakes harder than
+:data:`HARSH_BRAKING` (over one step, and over 0.5 s).
 """
 
 from __future__ import annotations
@@ -40,6 +42,11 @@ SAME_WAY = 0.35  # rad: the follower's heading within this of the ego's
 BEHIND_WAY = np.pi / 4  # rad: an agent hitting the ego from behind heads its way within this
 # m/s^2: braking harder than this over a step is beyond any car's grip (the env's limit: 8.5 m/s^2)
 HARSH_BRAKING = 10.0
+# steps (0.5 s) over which braking is also averaged: the motion tokens' speeds come in levels about 0.4-0.6
+# m/s apart at 3-5 m/s (the shipped vocabulary), so a token follower's one-step braking reads 4-6 m/s^2 at
+# any change of level and 10 where it skips one (a guarded follower: 5.12 -> 4.09 m/s, 10.2 m/s^2 in 0.1 s,
+# 2.9 m/s^2 over the 0.5 s around it); IDM's speed changes continuously
+SMOOTH_STEPS = 5
 
 
 @dataclass(frozen=True)
@@ -103,6 +110,15 @@ def followers(scene: Scenario, max_gap: float, min_speed: float) -> list[Candida
         j = int(np.argmin(np.where(follows[i], gap[i], np.inf)))
         out.append(Candidate(scene, int(i), j, float(gap[i, j]), float(speed[i]), float(speed[j])))
     return out
+
+
+def peak_braking(speeds: np.ndarray, dt: float, steps: int) -> float:
+    """The hardest braking (m/s^2, >= 0) of a speed series ``speeds [T]`` (m/s, ``dt`` s apart) averaged
+    over ``steps`` steps (the whole series where it is shorter)."""
+    k = min(steps, len(speeds) - 1)
+    if k < 1:
+        return 0.0
+    return float(max(0.0, (speeds[:-k] - speeds[k:]).max()) / (k * dt))
 
 
 def rear_ended(xyh: np.ndarray, present: np.ndarray, size: np.ndarray, ego: int) -> bool:
@@ -169,7 +185,8 @@ def play(candidate: Candidate, npc: Any, steps: int, seed: int) -> dict[str, Any
         "rear_end": hit is not None,
         "rear_end_step": hit,
         "collision": collided or hit is not None,
-        "follower_peak_braking_mps2": round(float(max(0.0, -np.diff(speeds).min(initial=0.0)) / sc.dt), 2),
+        "follower_peak_braking_mps2": round(peak_braking(np.array(speeds), sc.dt, 1), 2),
+        "follower_peak_braking_05s_mps2": round(peak_braking(np.array(speeds), sc.dt, SMOOTH_STEPS), 2),
         "follower_min_gap_m": round(min(gaps), 2),
     }
 
@@ -222,6 +239,12 @@ def brake_test(
                 float(np.median([r["follower_peak_braking_mps2"] for r in runs])), 2
             ),
             "max_peak_braking_mps2": round(max(r["follower_peak_braking_mps2"] for r in runs), 2),
+            "harsh_braking_05s_rate": round(
+                float(np.mean([r["follower_peak_braking_05s_mps2"] > HARSH_BRAKING for r in runs])), 4
+            ),
+            "median_peak_braking_05s_mps2": round(
+                float(np.median([r["follower_peak_braking_05s_mps2"] for r in runs])), 2
+            ),
         }
     bar.close()
     result: dict[str, Any] = {
@@ -244,15 +267,17 @@ def markdown_table(result: dict[str, Any]) -> str:
         f"({result['candidates']} egos with a follower in {result['scenes']} scenes)",
         "",
         "| NPCs | rear-end rate | rear-ends | ego collision rate | follower braking > "
-        f"{HARSH_BRAKING:g} m/s^2 | follower peak braking, median / max (m/s^2) |",
-        "|---|---|---|---|---|---|",
+        f"{HARSH_BRAKING:g} m/s^2 in 0.1 s / 0.5 s | follower peak braking in 0.1 s, median / max | "
+        "in 0.5 s, median (m/s^2) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, s in result["npcs"].items():
         counts = f"{s['rear_ends']}/{s['episodes']}"
         braking = f"{s['median_peak_braking_mps2']:.1f} / {s['max_peak_braking_mps2']:.1f}"
+        harsh = f"{s['harsh_braking_rate']:.3f} / {s['harsh_braking_05s_rate']:.3f}"
         lines.append(
             f"| {name} | {s['rear_end_rate']:.3f} | {counts} | {s['collision_rate']:.3f} | "
-            f"{s['harsh_braking_rate']:.3f} | {braking} |"
+            f"{harsh} | {braking} | {s['median_peak_braking_05s_mps2']:.1f} |"
         )
     return "\n".join(lines) + "\n"
 

@@ -170,6 +170,16 @@ def target_rows(parts: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
                     None,
                 )
             )
+        if "harsh_braking_05s_rate" in guarded:  # parts of stop 83 on: over 0.5 s, past the tokens' levels
+            rows.append(
+                _row(
+                    "brake test: guarded followers braking harder than 10 m/s^2 over 0.5 s (median peak)",
+                    f"{guarded['harsh_braking_05s_rate']:.3f} ({guarded['median_peak_braking_05s_mps2']:.1f} "
+                    f"m/s^2; IDM {npcs['idm']['median_peak_braking_05s_mps2']:.1f})",
+                    CONTEXT,
+                    None,
+                )
+            )
     if "long" in parts:
         long = parts["long"]
         for event in ("collision", "offroad"):
