@@ -269,15 +269,21 @@ class BatchEngine(WindowedRows):
         hidden = self.model.decode_at(w.cache, w.agents, carried, own, start, extent, view, read)
         self.model_calls += 1
         self.look_ahead_calls += int(ahead.any())
-        if ahead.any():
-            self._draw_ahead(w, hidden, decoded & ~inside, slots)
-        if not todo.any():
-            return count
         rr, cc = np.nonzero(todo)
         who = w.slots[rr, slots[rr, cc]]
-        rows_t = torch.from_numpy(rr).to(self.device)
-        cols_t = torch.from_numpy(cc).to(self.device)
-        logits = self.model.class_logits_by_kind(hidden[rows_t, cols_t], self.kind[rr, who]).cpu()
+        # the look-ahead's pairs and this step's take their class logits from one pass of the head
+        none = (rr[:0],) * 4
+        a_rr, a_cc, a_who, t1 = self._ahead_pairs(w, decoded & ~inside, slots) if ahead.any() else none
+        if not len(rr) + len(a_rr):
+            return count
+        at = tuple(torch.from_numpy(np.r_[a, b]).to(self.device) for a, b in ((a_rr, rr), (a_cc, cc)))
+        kinds = self.kind[np.r_[a_rr, rr], np.r_[a_who, who]]
+        both = self.model.class_logits_by_kind(hidden[at], kinds).cpu()
+        if len(a_rr):
+            self._draw_ahead(both[: len(a_rr)], a_rr, a_who, t1)
+        if not todo.any():
+            return count
+        logits = both[len(a_rr) :]
         tt = self.now[rr]
         u = counter_uniform(self.seed[rr], tt, who)
         temperature, top_p = self.config.temperature, self.config.top_p
@@ -321,21 +327,23 @@ class BatchEngine(WindowedRows):
         has = from_ahead | coupled
         guard_drafts(self, self.guard, stepping, logits, has, config.temperature, config.top_p)
 
-    def _draw_ahead(self, w: Window, hidden: torch.Tensor, where: np.ndarray, slots: np.ndarray) -> None:
-        """Draw next-step drafts (unguarded, each with its own number of the next step) for the controlled
-        agents at the look-ahead positions ``where [B,n]``; a later call of the same context redraws them
-        (from better inputs), a later context keeps those of an earlier one (where the agent acts)."""
+    def _ahead_pairs(
+        self, w: Window, where: np.ndarray, slots: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The pairs ``(rows, offsets, agents, next steps)`` of the look-ahead positions ``where [B,n]`` whose
+        next-step drafts are drawn: the controlled agents acting in the next step (a later call of the same
+        context redraws them from better inputs; a later context keeps those of an earlier one)."""
         rr, cc = np.nonzero(where & (np.take_along_axis(w.slots, slots, 1) >= 0))
         who = w.slots[rr, slots[rr, cc]]
         t1 = self.now[rr] + 1
         pick = self.row_controlled[rr, who] & (self._ahead_rank[rr, who] >= self._rank[rr])
         pick &= t1 < self.end[rr]
         pick &= ~self.known[rr, who, np.minimum(t1, self.T - 2)]
-        rr, cc, who, t1 = rr[pick], cc[pick], who[pick], t1[pick]
-        if not len(rr):
-            return
-        sel = (torch.from_numpy(rr).to(self.device), torch.from_numpy(cc).to(self.device))
-        logits = self.model.class_logits_by_kind(hidden[sel], self.kind[rr, who]).cpu()
+        return rr[pick], cc[pick], who[pick], t1[pick]
+
+    def _draw_ahead(self, logits: torch.Tensor, rr: np.ndarray, who: np.ndarray, t1: np.ndarray) -> None:
+        """Draw next-step drafts (unguarded, each with its own number of the next step) of the look-ahead's
+        pairs (:meth:`_ahead_pairs`) from their class ``logits [n,V]``."""
         u = counter_uniform(self.seed[rr], t1, who)
         config = self.config
         drawn = logits.float().numpy()
