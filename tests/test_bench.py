@@ -172,7 +172,8 @@ def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> Non
     )
     # the AEC env (the lead API) on the four bundled 24-agent scenes, one timestep an env step (schema 9)
     aec = result["aec"]
-    assert aec["api"] == "aec" and aec["agents"] == 24 and aec["torch_threads"] == 1
+    assert aec["api"] == "aec" and aec["agents"] == 24
+    assert 1 <= aec["torch_threads"] <= min(2, usable_cores())  # "auto": one until a look finds free cores
     assert [r["scenario_id"] for r in aec["scenes"]] == [s.scenario_id for s in benchmark_scenes(24)]
     assert all(
         r["timed_steps"] == 3 and r["agents"] == 24 and r["env_steps_per_s"] > 0 for r in aec["scenes"]
@@ -203,7 +204,8 @@ def test_womd_section_times_the_shared_scenario_with_all_its_agents() -> None:
     else:
         assert split == {"skipped": "one core"}
     e = w["env"]
-    assert e["api"] == "aec" and e["agents"] == present and e["timed_steps"] == 3 and e["torch_threads"] == 1
+    assert e["api"] == "aec" and e["agents"] == present and e["timed_steps"] == 3
+    assert 1 <= e["torch_threads"] <= min(2, usable_cores())
     assert e["env_steps_per_s"] > 0 and e["agent_steps_per_s"] == pytest.approx(
         e["env_steps_per_s"] * present, rel=0.01
     )

@@ -386,7 +386,7 @@ def test_batched_envs_refuse_bad_inputs() -> None:
         penv.step([{}, {}])
     with pytest.raises(ValueError, match="out of range"):
         penv.reset_scenes([2])
-    assert auto_threads(1) == 1 and auto_threads(128) >= 1
+    assert auto_threads(1, cores=2) == 2 and auto_threads(1, cores=1) == 1 and auto_threads(128) >= 1
     assert len(load_bundle()) == 20
 
 

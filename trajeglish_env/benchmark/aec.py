@@ -21,7 +21,7 @@ def present_agents(scene: Scenario) -> int:
 
 def aec_env_speed(scene: Scenario, steps: int, warmup: int) -> dict[str, Any]:
     """Env steps/s of the AEC env on ``scene`` at its default settings (shipped model, default sampling,
-    one torch thread), the sdc external and replaying its log; episodes never end early. Times
+    ``torch_threads="auto"``: ``torch_threads`` reports its count at the end), the sdc external and replaying its log; episodes never end early. Times
     ``env.step`` over ``steps`` timesteps after ``warmup`` untimed ones (the actions are computed
     outside the timed region); ``setup_seconds``: building the env and its reset."""
     import torch
@@ -67,8 +67,8 @@ def aec_env_speed(scene: Scenario, steps: int, warmup: int) -> dict[str, Any]:
 def aec_scenes_speed(agents: int = 24, steps: int = AEC_STEPS, warmup: int = AEC_WARMUP) -> dict[str, Any]:
     """:func:`aec_env_speed` on every bundled scene cut to ``agents`` agents (the sdc and its nearest
     neighbours, as the batched env runs use): ``env_steps_per_s`` over all their timed steps,
-    ``agent_steps_per_s`` at ``agents`` agents, and each scene's run (``scenes``). One torch thread, as
-    the env sets; the caller's thread count is restored afterwards."""
+    ``agent_steps_per_s`` at ``agents`` agents, and each scene's run (``scenes``). The env's default thread
+    setting; the caller's thread count is restored afterwards."""
     import torch
 
     from trajeglish_env.benchmark.workloads import benchmark_scenes

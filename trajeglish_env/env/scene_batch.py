@@ -194,6 +194,8 @@ class SceneBatch:
         """Let the NPCs act until every stepping scene waits for a live external agent: ``(scenes,
         agents)``, one per waiting scene; None once the step is complete in every scene. Retired external
         agents are taken out of the scene when their turn comes."""
+        if self.threads is not None:  # every stepping API comes here (the AEC env's steps too)
+            self.threads.tick()
         with self.torch_threads():
             while True:
                 waiting = self.rows.advance()
@@ -223,8 +225,6 @@ class SceneBatch:
     def play(self, scenes: Sequence[int], agents: Sequence[int], actions: Sequence[Any]) -> None:
         """Finish the current step of every stepping scene, each external agent acting with its action from
         ``actions`` (validated; one per live external agent of those scenes) when its turn comes."""
-        if self.threads is not None:
-            self.threads.tick()
         sims = [self.sim(s) for s in scenes]
         nxt = apply_actions(sims, agents, actions) if len(scenes) else np.zeros((0, 3))
         n = max((s.sc.num_agents for s in self.sims if s is not None), default=0)

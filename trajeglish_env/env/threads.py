@@ -1,6 +1,7 @@
-"""Torch threads of a batch of scenes: ``"auto"`` uses several for big batches on an idle machine and
-one as soon as other processes compete for the cores (multi-threaded small decoding calls spin-wait and
-collapse on a shared machine: measured 4-9x slower than one thread with one other busy process).
+"""Torch threads of a batch of scenes: ``"auto"`` uses several on an idle machine and one as soon as other
+processes compete for the cores (multi-threaded small decoding calls spin-wait and collapse on a shared
+machine: measured 4-9x slower than one thread with one other busy process). It starts on one thread and
+adds the others only once a look at the machine finds the cores free, so a busy machine never sees them.
 
 The thread count never changes a sampled token (tested), so it may change between steps. An env applies its
 count only while it runs the model (:func:`torch_threads_scope`): the caller's own torch work (a learner in
@@ -32,11 +33,9 @@ FIRST_CHECK_S = 0.25
 
 
 def auto_threads(num_scenes: int, cores: int | None = None) -> int:
-    """Threads for a batch on an idle machine: 1 for up to 3 scenes (small calls are fastest
-    single-threaded), at least 2 from 4 scenes on (4 scenes in bfloat16 gain +24 % from a second core),
-    one per 4 scenes beyond 8, up to the usable cores."""
-    if num_scenes < 4:
-        return 1
+    """Threads for a batch on an idle machine: 2 up to 8 scenes (a single env's call decodes about 48
+    positions, its step's and the look-ahead's: one scene +8-11 % on a second core, 3 scenes +16 %; 4 scenes
+    in bfloat16 +24 %), one per 4 scenes beyond 8, up to the usable cores."""
     return max(1, min(cores or usable_cores(), max(2, num_scenes // 4)))
 
 
@@ -61,15 +60,16 @@ def torch_threads_scope(threads: int | None) -> Iterator[None]:
 
 class AdaptiveThreads:
     """The ``"auto"`` policy: :func:`auto_threads` threads while the cores are free for this process,
-    fewer (down to one) while other processes keep them busy; checked :data:`FIRST_CHECK_S` seconds after
-    it starts, then every ``every_s`` seconds of stepping, from the machine's CPU time minus this
-    process's own. It decides ``threads``; the env applies it in a :func:`torch_threads_scope`."""
+    fewer (down to one) while other processes keep them busy; one until the first check, due
+    :data:`FIRST_CHECK_S` seconds after it starts, then checked every ``every_s`` seconds of stepping,
+    from the machine's CPU time minus this process's own. It decides ``threads``; the env applies it in a
+    :func:`torch_threads_scope`."""
 
     def __init__(self, num_scenes: int, every_s: float = CHECK_EVERY_S):
         self.cores = usable_cores()
         self.wanted = auto_threads(num_scenes, self.cores)
         self.every_s = every_s
-        self.threads = self.wanted
+        self.threads = 1  # more only once a look finds the cores free (a busy machine never sees them)
         self._mark = (time.perf_counter(), cpu_seconds())
         self._interval = min(FIRST_CHECK_S, every_s)
 
