@@ -21,9 +21,10 @@ def present_agents(scene: Scenario) -> int:
 
 def aec_env_speed(scene: Scenario, steps: int, warmup: int) -> dict[str, Any]:
     """Env steps/s of the AEC env on ``scene`` at its default settings (shipped model, default sampling,
-    ``torch_threads="auto"``: ``torch_threads`` reports its count at the end), the sdc external and replaying its log; episodes never end early. Times
-    ``env.step`` over ``steps`` timesteps after ``warmup`` untimed ones (the actions are computed
-    outside the timed region); ``setup_seconds``: building the env and its reset."""
+    ``torch_threads="auto"``: ``torch_threads`` reports its count at the end), the sdc external and
+    replaying its log; episodes never end early. Times ``env.step`` over ``steps`` timesteps after
+    ``warmup`` untimed ones (the actions are computed outside the timed region); ``setup_seconds``:
+    building the env and its reset."""
     import torch
 
     from trajeglish_env.benchmark.measure import log_action
