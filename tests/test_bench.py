@@ -118,7 +118,7 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(args) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 10
+    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 11
     assert printed["complete"] is True and written == printed
     assert written["config"]["batches"] == [1, 8]  # --quick without --batches: a smoke run's batch sizes
     assert written["quick_overrides"]["env_steps"] == 3  # what the quick runs use (config: what was asked)
@@ -291,17 +291,29 @@ def test_busy_section_of_the_suite_runs_the_env_job_at_auto_threads(monkeypatch:
         rate = 50.0 if len(calls) % 2 else 45.0
         return lambda: {"agent_steps_per_s": rate, "torch_threads": 1, "processes": 1}
 
+    aec_calls: list[bool] = []
+
+    def aec(quick: bool) -> dict[str, object]:
+        aec_calls.append(quick)
+        return {"agent_steps_per_s": 1200.0 if len(aec_calls) % 2 else 1080.0, "torch_threads": 2}
+
     monkeypatch.setattr(suite, "_env_job", env_job)
+    monkeypatch.setattr(suite, "_aec", aec)
     config = BenchConfig(sections=("busy",), batches=(1, 8, 32), quick=True, torch_threads=2)
     result = run_suite(config, progress=False)
     assert calls == [("auto", "trajeglish_guard", 1, True, 1)] * 2  # quick: B = 1 only; default NPCs
-    assert result["busy"]["1"]["busy_to_idle"] == 0.9 and result["ratios"] == {"busy_B1_to_idle": 0.9}
-    assert any(line.startswith("busy machine B=   1: 50.0") for line in summary_lines(result))
+    assert result["busy"]["1"]["busy_to_idle"] == 0.9
+    # the AEC env (the lead API, at its default threads) idle and then beside the busy process
+    assert aec_calls == [True, True] and result["busy"]["aec"]["busy_to_idle"] == 0.9
+    assert result["ratios"] == {"busy_B1_to_idle": 0.9, "busy_aec_to_idle": 0.9}
+    lines = summary_lines(result)
+    assert any(line.startswith("busy machine B=   1: 50.0") for line in lines)
+    assert any(line.startswith("busy machine AEC env: 1200.0") for line in lines)
     calls.clear()
     full = run_suite(replace(config, quick=False), progress=False)
     # B = 8 is also run with its scenes split over worker processes (B = 1 cannot split)
     assert [(c[2], c[4]) for c in calls] == [(1, 1), (1, 1), (8, 1), (8, 1), (8, "auto"), (8, "auto")]
-    assert list(full["busy"]) == ["1", "8", "8_split"] and "busy_B8_split_to_idle" in full["ratios"]
+    assert list(full["busy"]) == ["1", "8", "8_split", "aec"] and "busy_B8_split_to_idle" in full["ratios"]
     calls.clear()
     run_suite(replace(config, quick=False, split=False), progress=False)
     assert [c[4] for c in calls] == [1] * 4

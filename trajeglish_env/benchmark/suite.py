@@ -25,8 +25,8 @@ from typing import Any
 # 2: env figures over a whole window cycle; highway-env measured before and after; 3: guarded sampling's
 # env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section; 4: the womd and busy
 # sections and their ratios; 5: split env runs (env.<npc>_split, busy "<B>_split") and env runs' processes;
-# 6: ``complete`` (False in the documents written after each run while the suite goes on)
-SCHEMA_VERSION = 10
+# 6: ``complete`` (False in the documents written after each run while the suite goes on); 11: busy "aec"
+SCHEMA_VERSION = 11
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "womd", "env", "busy")
 
 
@@ -299,15 +299,19 @@ def split_batches(batches: tuple[int, ...]) -> tuple[int, ...]:
 def _busy(config: BenchConfig) -> dict[str, Any]:
     """The busy section: the batched env with the env's default NPCs (default sampling) at the default
     thread setting, idle and beside one busy process, through the env worker process; with ``split``, also
-    its scenes over ``processes="auto"`` worker processes (keys ``"{B}_split"``)."""
+    its scenes over ``processes="auto"`` worker processes (keys ``"{B}_split"``); and the AEC env (key
+    ``"aec"``: :func:`_aec`, which takes a second core only once it finds one free)."""
     from trajeglish_env.benchmark.busy import busy_batches, busy_section
 
     npc, auto = default_npc(), replace(config, torch_threads="auto")
     batches = busy_batches(config.batches, config.quick)
     out = busy_section(batches, lambda b: _env_job(auto, npc, b)())
-    if config.split and "skipped" not in out:
+    if "skipped" in out:
+        return out
+    if config.split:
         split = busy_section(split_batches(batches), lambda b: _env_job(auto, npc, b, "auto")())
         out.update({f"{b}_split": run for b, run in split.items() if b != "skipped"})
+    out["aec"] = busy_section((1,), lambda _: _aec(config.quick))["1"]
     return out
 
 
@@ -364,7 +368,7 @@ def ratios(result: dict[str, Any]) -> dict[str, Any]:
         out["womd_env_to_highway_env"] = womd
     for b, run in result.get("busy", {}).items():
         if isinstance(run, dict):
-            out[f"busy_B{b}_to_idle"] = run["busy_to_idle"]
+            out["busy_aec_to_idle" if b == "aec" else f"busy_B{b}_to_idle"] = run["busy_to_idle"]
     return out
 
 
@@ -457,7 +461,8 @@ def _busy_lines(result: dict[str, Any]) -> list[str]:
     if "skipped" in busy:
         return [f"busy: skipped ({busy['skipped']})"]
     return [
-        f"busy machine B={b:>4}: {run['idle_agent_steps_per_s']} agent-steps/s idle, "
+        f"busy machine {'AEC env' if b == 'aec' else f'B={b:>4}'}: {run['idle_agent_steps_per_s']} "
+        "agent-steps/s idle, "
         f"{run['busy_agent_steps_per_s']} beside one busy process ({run['busy_to_idle']}x; "
         f"{_parallelism(run['idle'])} -> {_parallelism(run['busy'])})"
         for b, run in busy.items()
