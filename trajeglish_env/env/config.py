@@ -197,7 +197,7 @@ class EnvConfig:
       followed agent, and whether each carries the key of the colours (which agent is yours).
     torch_threads: torch intra-op threads while the env runs the model: ``"auto"`` (default,
       :class:`~trajeglish_env.env.threads.AdaptiveThreads`) starts on one and takes a second core once a
-      look at the machine finds it free (a step's call decodes about 48 positions: +8-11 % on two cores),
+      look at the machine finds it free (a step's call decodes about 48 positions: +8-16 % on two cores),
       back to one while other processes keep the cores busy; an int fixes the count; the caller's count is
       back after every env call; None leaves torch alone.
     """

@@ -18,8 +18,8 @@ class EgoEnv(gymnasium.Env):
 
     Observation, action and reward are those of that agent in the AEC env; ``terminated`` on collision,
     off-road or the end of its route, ``truncated`` at ``max_cycles``. Spawn-safe under SubprocVecEnv (the
-    env runs its model calls on one torch thread, the caller's count holding outside them; see
-    EnvConfig.torch_threads).
+    env runs its model calls at ``torch_threads="auto"``: one thread, a second only where a look finds a core
+    free of the other workers, the caller's count holding outside them; see EnvConfig.torch_threads).
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}

@@ -34,7 +34,7 @@ FIRST_CHECK_S = 0.25
 
 def auto_threads(num_scenes: int, cores: int | None = None) -> int:
     """Threads for a batch on an idle machine: 2 up to 8 scenes (a single env's call decodes about 48
-    positions, its step's and the look-ahead's: one scene +8-11 % on a second core, 3 scenes +16 %; 4 scenes
+    positions, its step's and the look-ahead's: one scene +8-16 % on a second core, 3 scenes +16 %; 4 scenes
     in bfloat16 +24 %), one per 4 scenes beyond 8, up to the usable cores."""
     return max(1, min(cores or usable_cores(), max(2, num_scenes // 4)))
 
