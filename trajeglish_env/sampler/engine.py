@@ -149,6 +149,9 @@ class BatchEngine(WindowedRows):
             if rebuild.any():
                 self._build_windows(np.flatnonzero(rebuild))
             self._in_step = True
+            drafts_guarded = stepping.sum() <= GUARD_DRAFTS_MAX_ROWS and self.config.intra_step == "parallel"
+            if self.guard is not None:
+                self.guard.geometry.forget_step(remember=drafts_guarded)
             self._rank = np.zeros(self.B, dtype=np.int64)
             self._ahead_ok = (-1, False)
             self._slot = np.where(self.num_subsets > 0, 0, self.cfg.max_agents)
@@ -159,7 +162,7 @@ class BatchEngine(WindowedRows):
                 self._draft = np.where(
                     ahead >= 0, ahead, np.where(coupled >= 0, coupled, previous_tokens(self))
                 )
-                if self.guard is not None and stepping.sum() <= GUARD_DRAFTS_MAX_ROWS:
+                if self.guard is not None and drafts_guarded:
                     self._guard_drafts(stepping, ahead >= 0, coupled >= 0)  # drafts as the guard draws
                 self._ahead = np.full((self.B, self.N), -1)
                 self._ahead_rank = np.full((self.B, self.N), np.iinfo(np.int64).max)

@@ -53,6 +53,7 @@ from trajeglish_env.sampler.guard_ahead import AHEAD_CHECKS, ahead_masks, ahead_
 from trajeglish_env.sampler.guard_geometry import GuardGeometry, Pairs
 from trajeglish_env.sampler.guard_signals import DEPART_STEP
 from trajeglish_env.sampler.guard_stall import frozen
+from trajeglish_env.sampler.pair_memo import StepDraws
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.sampler.sampling import (
     draw_tables,
@@ -96,6 +97,7 @@ class SamplingGuard:
 
     geometry: GuardGeometry
     stats: GuardStats = field(default_factory=GuardStats)
+    draws: StepDraws = field(default_factory=StepDraws)
 
     def sample(
         self,
@@ -125,14 +127,20 @@ class SamplingGuard:
             tokens = sample_from_cdf(cdf, uniform)
         else:
             tokens = sample_from_probs(token_probs(logits, temperature), top_p, uniform)
-        pairs = self.geometry.pairs(rs, rows, agents, t, view)
+        pairs, hits = self.geometry.recall(rs, rows, agents, t, view)
+        # a pair seen from the same view earlier in the step keeps a draw that stood then (not a stalled
+        # rider: whether its stall rule holds reads the logits)
+        stood = self.draws.kept(rows, agents, tokens, hits & ~pairs.stall)
         if pairs.stall.any():  # a stalled rider is pushed only where the model has frozen
             pairs = self._frozen_stalls(pairs, logits, temperature, probs)
         every = np.arange(len(rows))  # a draw that jumps in speed is guarded with nothing else near
-        guarded = np.flatnonzero(pairs.guarded | self.geometry.jumps(pairs, every, tokens[:, None])[:, 0])
+        flagged = pairs.guarded | self.geometry.jumps(pairs, every, tokens[:, None])[:, 0]
+        guarded = np.flatnonzero(flagged & ~stood)
         self.stats.sampled += len(rows)
-        self.stats.guarded += len(guarded)
+        self.stats.guarded += int(flagged.sum())
+        shape = (rs.B, rs.N)
         if not len(guarded):
+            self.draws.record(rows, agents, tokens, ~flagged | stood, shape)
             return tokens
         plain = tokens[guarded]
         sub = logits[torch.from_numpy(guarded)]
@@ -146,6 +154,8 @@ class SamplingGuard:
         beat = np.full(len(guarded), -2)  # a redraw stands where a checked candidate reaches farther
         if keep and passes:  # the draw itself first: most draws break no rule
             done, beat = self._draw_allowed(pairs, guarded, plain)
+        stood[guarded] = done
+        self.draws.record(rows, agents, tokens, ~flagged | stood, shape)
         for k in passes:
             rest = np.flatnonzero(~done)
             if not len(rest):

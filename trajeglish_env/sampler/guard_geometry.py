@@ -29,6 +29,7 @@ from trajeglish_env.sampler.guard_follow import FOLLOW_SLACK, STEP_SECONDS, foll
 from trajeglish_env.sampler.guard_signals import SceneSignals
 from trajeglish_env.sampler.guard_stall import departure_need, stall_candidates, stalled
 from trajeglish_env.sampler.lane_directions import MAX_SCENES, LaneDirections
+from trajeglish_env.sampler.pair_memo import StepPairs, stack_pairs, take_pairs, view_key
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.sampler.scene_cache import SceneCache
 from trajeglish_env.scenario import AgentKind
@@ -154,6 +155,14 @@ class GuardGeometry:
         self._signals = SceneCache(SceneSignals.of, 256)
         # road-edge answers per row-agent: the rule's (applies, limit), candidates' excess, their reach
         self._road_memo, self._excess_memo, self._reach_memo = (CandidateMemo() for _ in range(3))
+        self._step_pairs = StepPairs()  # this step's pairs, for a later call with the same views
+
+    def forget_step(self, remember: bool) -> None:
+        """A step begins: the pairs kept from the last one are not read again; ``remember``: whether this
+        step's calls keep theirs for the calls after them (:mod:`~trajeglish_env.sampler.pair_memo`: they
+        pay where the step's drafts are guarded first, whose views the model's call mostly shares)."""
+        self._step_pairs.clear()
+        self._step_pairs.active = remember
 
     @classmethod
     def of(cls, templates: np.ndarray, config: SamplingConfig) -> GuardGeometry:
@@ -174,6 +183,50 @@ class GuardGeometry:
     ) -> Pairs:
         """The guard's view of agents ``who`` of rows ``rr`` about to be sampled at steps ``tt``; ``view``:
         which agents moved before each pair and their next states (default: as the rows say)."""
+        return self.recall(rs, rr, who, tt, view)[0]
+
+    def recall(
+        self,
+        rs: RowStates,
+        rr: np.ndarray,
+        who: np.ndarray,
+        tt: np.ndarray,
+        view: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[Pairs, np.ndarray]:
+        """:meth:`pairs`, and ``[n]`` which of them an earlier call of this step computed from the same
+        view (taken from it: :mod:`~trajeglish_env.sampler.pair_memo`, the same numbers). Without a view
+        (or while the memory is off, :meth:`forget_step`) nothing is kept or taken."""
+        n = len(rr)
+        if view is None or not self._step_pairs.active:
+            return self._fresh_pairs(rs, rr, who, tt, view), np.zeros(n, bool)
+        key = view_key(view[0], view[1], rs.valid[rr, :, tt + 1])
+        shape, epoch = (rs.B, rs.N), self._cells.epoch
+        at = self._step_pairs.match(rr, who, tt, key, shape, epoch)
+        hits = at >= 0
+        new, kept = np.flatnonzero(~hits), np.flatnonzero(hits)
+        pairs: Pairs
+        if not len(kept):
+            pairs = self._fresh_pairs(rs, rr, who, tt, view)
+        else:
+            assert self._step_pairs.pairs is not None
+            old = take_pairs(self._step_pairs.pairs, at[kept])
+            if not len(new):
+                pairs = old
+            else:
+                fresh = self._fresh_pairs(rs, rr[new], who[new], tt[new], (view[0][new], view[1][new]))
+                pairs = stack_pairs([(old, kept), (fresh, new)], n)
+        self._step_pairs.record(pairs, key, shape, epoch)
+        return pairs, hits
+
+    def _fresh_pairs(
+        self,
+        rs: RowStates,
+        rr: np.ndarray,
+        who: np.ndarray,
+        tt: np.ndarray,
+        view: tuple[np.ndarray, np.ndarray] | None,
+    ) -> Pairs:
+        """:meth:`pairs` computed anew."""
         origin, size, kind = rs.mxyh[rr, who, tt], rs.size[rr, who], rs.kind[rr, who]
         extent = self.move[kind] + half_diagonal(size)  # candidate corners lie within this of the origin
         latest = _latest(rs, rr, who, tt, view)
