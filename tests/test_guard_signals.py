@@ -101,7 +101,7 @@ def _set_off(sc: Scenario) -> list[tuple[int, int]]:
 def test_logged_vehicles_the_green_rule_would_push_all_set_off(grid_scenes: list[Scenario]) -> None:
     """The rule's premise on SUMO's own drivers: every logged vehicle standing still behind a green line on
     its lane with the way clear sets off within 3 s; the others standing still mostly do not."""
-    from trajeglish_env.sampler.guard_geometry import way_clear
+    from trajeglish_env.sampler.guard_stall import way_clear
 
     pushed, moved, others, others_moved, turned = 0, 0, 0, 0, 0
     for sc in grid_scenes:
@@ -137,7 +137,7 @@ def test_logged_vehicles_the_green_rule_would_push_all_set_off(grid_scenes: list
 
 
 def test_way_clear_sees_only_the_box_ahead_in_the_lane() -> None:
-    from trajeglish_env.sampler.guard_geometry import CLEAR_GAP, way_clear
+    from trajeglish_env.sampler.guard_stall import CLEAR_GAP, way_clear
 
     origin = np.zeros((5, 3))
     size = np.tile([4.5, 2.0], (5, 1))

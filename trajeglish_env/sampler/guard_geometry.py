@@ -13,11 +13,12 @@ the rows sampled with it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import TypeVar
 
 import numpy as np
 
-from trajeglish_env.batch_geometry import PaddedRows, latest_states, nearest_first
+from trajeglish_env.batch_geometry import PaddedRows, nearest_first
 from trajeglish_env.edge_cells import EdgeCells
 from trajeglish_env.geometry import box_corners, to_global
 from trajeglish_env.metrics.boxes import box_collisions
@@ -27,9 +28,9 @@ from trajeglish_env.sampler.guard_ahead import AHEAD_CHECKS, AHEAD_MIN_MOVE, roa
 from trajeglish_env.sampler.guard_edges import RoadView, road_rule, road_view
 from trajeglish_env.sampler.guard_follow import FOLLOW_SLACK, STEP_SECONDS, follow_caps
 from trajeglish_env.sampler.guard_signals import SceneSignals
-from trajeglish_env.sampler.guard_stall import departure_need, stall_candidates, stalled
+from trajeglish_env.sampler.guard_stall import departure_need, stall_candidates, stalled, way_clear
 from trajeglish_env.sampler.lane_directions import MAX_SCENES, LaneDirections
-from trajeglish_env.sampler.pair_memo import StepPairs, stack_pairs, take_pairs, view_key
+from trajeglish_env.sampler.pair_memo import StepPairs, seen_states, view_key
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.sampler.scene_cache import SceneCache
 from trajeglish_env.scenario import AgentKind
@@ -89,28 +90,10 @@ T = TypeVar("T")
 # pedestrians (they turn on the spot and step back).
 STEP_CHANGE_SHARE = {AgentKind.VEHICLE: 1.0, AgentKind.PEDESTRIAN: np.inf, AgentKind.CYCLIST: 0.5}
 
-# Metres between a rider's front and the box ahead of it under which the green rule does not push it on
-# (SUMO's standstill gap, minGap); boxes whose centres lie within the widths' half sum plus CLEAR_SIDE m of
-# its centre line count as ahead.
-CLEAR_GAP, CLEAR_SIDE = 2.5, 0.25
-
 
 def half_diagonal(size: np.ndarray) -> np.ndarray:
     """Radius ``[...]`` of the circle around a box of ``size [...,2]``."""
     return np.hypot(size[..., 0], size[..., 1]) / 2
-
-
-def way_clear(
-    origin: np.ndarray, size: np.ndarray, near_xyh: np.ndarray, near_size: np.ndarray, near_real: np.ndarray
-) -> np.ndarray:
-    """``[n]`` no obstacle ``near_xyh [n,K,3]`` (``near_size``, ``near_real [n,K]``) within
-    :data:`CLEAR_GAP` m ahead of the front of the box at ``origin [n,3]`` (``size [n,2]``), in its lane."""
-    c, s = np.cos(origin[:, 2])[:, None], np.sin(origin[:, 2])[:, None]
-    dx, dy = near_xyh[..., 0] - origin[:, None, 0], near_xyh[..., 1] - origin[:, None, 1]
-    along, across = dx * c + dy * s, np.abs(dy * c - dx * s)
-    ahead = (along > 0) & (along < (size[:, 0, None] + near_size[..., 0]) / 2 + CLEAR_GAP)
-    beside = across < (size[:, 1, None] + near_size[..., 1]) / 2 + CLEAR_SIDE
-    return ~(near_real & ahead & beside).any(axis=1)
 
 
 class GuardGeometry:
@@ -196,27 +179,11 @@ class GuardGeometry:
         """:meth:`pairs`, and ``[n]`` which of them an earlier call of this step computed from the same
         view (taken from it: :mod:`~trajeglish_env.sampler.pair_memo`, the same numbers). Without a view
         (or while the memory is off, :meth:`forget_step`) nothing is kept or taken."""
-        n = len(rr)
         if view is None or not self._step_pairs.active:
-            return self._fresh_pairs(rs, rr, who, tt, view), np.zeros(n, bool)
+            return self._fresh_pairs(rs, rr, who, tt, view), np.zeros(len(rr), bool)
         key = view_key(view[0], view[1], rs.valid[rr, :, tt + 1])
         shape, epoch = (rs.B, rs.N), self._cells.epoch
-        at = self._step_pairs.match(rr, who, tt, key, shape, epoch)
-        hits = at >= 0
-        new, kept = np.flatnonzero(~hits), np.flatnonzero(hits)
-        pairs: Pairs
-        if not len(kept):
-            pairs = self._fresh_pairs(rs, rr, who, tt, view)
-        else:
-            assert self._step_pairs.pairs is not None
-            old = take_pairs(self._step_pairs.pairs, at[kept])
-            if not len(new):
-                pairs = old
-            else:
-                fresh = self._fresh_pairs(rs, rr[new], who[new], tt[new], (view[0][new], view[1][new]))
-                pairs = stack_pairs([(old, kept), (fresh, new)], n)
-        self._step_pairs.record(pairs, key, shape, epoch)
-        return pairs, hits
+        return self._step_pairs.recall(rr, who, tt, view, key, shape, epoch, partial(self._fresh_pairs, rs))
 
     def _fresh_pairs(
         self,
@@ -229,7 +196,7 @@ class GuardGeometry:
         """:meth:`pairs` computed anew."""
         origin, size, kind = rs.mxyh[rr, who, tt], rs.size[rr, who], rs.kind[rr, who]
         extent = self.move[kind] + half_diagonal(size)  # candidate corners lie within this of the origin
-        latest = _latest(rs, rr, who, tt, view)
+        latest = seen_states(rs, rr, who, tt, view)
         *near, escape, tangled = self._neighbours(rs, rr, who, tt, origin, size, extent, latest)
         padded = (
             self._columns.sync(rs.edges, lambda e: e[0]),  # type: ignore[index]
@@ -383,7 +350,8 @@ class GuardGeometry:
         this step, the current one of each that has not, within reach of some candidate; agents the
         agent's box overlaps already are left out (no move can undo that overlap), but with ``escape`` one
         that *moved* into it in this step, not an external one, stays, flagged ``[n,K]`` (moving on may
-        escape it); ``[n]`` says which agents overlap one. ``latest``: :func:`_latest`."""
+        escape it); ``[n]`` says which agents overlap one. ``latest``:
+        :func:`~trajeglish_env.sampler.pair_memo.seen_states`."""
         n = len(rr)
         valid_now, valid_after = rs.valid[rr, :, tt], rs.valid[rr, :, tt + 1]
         now = rs.xyh[rr, :, tt]
@@ -516,27 +484,6 @@ class GuardGeometry:
             need = departure_need(p.pace[sel[stall]])
             jump[stall] |= self.templates[kind[stall, None], tokens[stall], 0] < need[:, None]
         return collide, escape, off, jump
-
-
-def _latest(
-    rs: RowStates,
-    rr: np.ndarray,
-    who: np.ndarray,
-    tt: np.ndarray,
-    view: tuple[np.ndarray, np.ndarray] | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every agent of rows ``rr`` as the guard of agents ``who`` at steps ``tt`` sees it: its latest decided
-    state ``[n,N,3]`` (the next one where it moved this step), presence ``[n,N]``, velocity ``[n,N,2]`` (m a
-    step, over the step that led there) and whether it moved ``[n,N]``; ``view``: which agents moved and
-    their next states (default: as the rows say)."""
-    t1, t0 = tt + 1, np.maximum(tt - 1, 0)
-    now, valid_now, valid_after = rs.xyh[rr, :, tt], rs.valid[rr, :, tt], rs.valid[rr, :, t1]
-    moved, after = (rs.guard_moved(rr, who, tt), rs.xyh[rr, :, t1]) if view is None else view
-    before, valid_before = rs.xyh[rr, :, t0], rs.valid[rr, :, t0] & (tt >= 1)[:, None]
-    state, present, velocity = latest_states(
-        now, after, before, valid_now, valid_after, valid_before, moved, np.ones((len(rr), 1))
-    )
-    return state, present, velocity, moved
 
 
 def _by_scene(per_row: dict[int, T], rows: list[int]) -> list[tuple[T, list[int]]]:

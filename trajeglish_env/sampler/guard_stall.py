@@ -1,7 +1,7 @@
 """The stall rule of guarded sampling (``SamplingConfig.guard_stall_steps``), masked with the speed-change
 rule (and widened with it first when nothing else is left): a vehicle or cyclist that drove, then stood
 still for at least that many steps, and now has the way clear (no box within
-:data:`~trajeglish_env.sampler.guard_geometry.CLEAR_GAP` m ahead in its lane, no red light within reach, not
+:data:`CLEAR_GAP` m ahead in its lane, no red light within reach, not
 under the green rule, which governs stop lines) must set off at pace: as under the green rule, its
 candidates moving less than :data:`DEPART_STEP`, or less than :data:`DEPART_GAIN` more than its last step,
 are masked until it moves :data:`DEPART_PACE` m a step (1.5 m/s) or :data:`RELEASE_STEPS` steps have passed.
@@ -70,3 +70,22 @@ def frozen(probs: np.ndarray, moving: np.ndarray) -> np.ndarray:
     """``[m]`` riders whose probabilities ``probs [m,V]`` (the draw's) put less than :data:`FROZEN_MASS` on
     their moving tokens ``moving [m,V]``: the model has stopped meaning to move."""
     return (probs * moving).sum(axis=1) < FROZEN_MASS
+
+
+# Metres between a rider's front and the box ahead of it under which the green rule does not push it on
+# (SUMO's standstill gap, minGap); boxes whose centres lie within the widths' half sum plus CLEAR_SIDE m of
+# its centre line count as ahead.
+CLEAR_GAP, CLEAR_SIDE = 2.5, 0.25
+
+
+def way_clear(
+    origin: np.ndarray, size: np.ndarray, near_xyh: np.ndarray, near_size: np.ndarray, near_real: np.ndarray
+) -> np.ndarray:
+    """``[n]`` no obstacle ``near_xyh [n,K,3]`` (``near_size``, ``near_real [n,K]``) within
+    :data:`CLEAR_GAP` m ahead of the front of the box at ``origin [n,3]`` (``size [n,2]``), in its lane."""
+    c, s = np.cos(origin[:, 2])[:, None], np.sin(origin[:, 2])[:, None]
+    dx, dy = near_xyh[..., 0] - origin[:, None, 0], near_xyh[..., 1] - origin[:, None, 1]
+    along, across = dx * c + dy * s, np.abs(dy * c - dx * s)
+    ahead = (along > 0) & (along < (size[:, 0, None] + near_size[..., 0]) / 2 + CLEAR_GAP)
+    beside = across < (size[:, 1, None] + near_size[..., 1]) / 2 + CLEAR_SIDE
+    return ~(near_real & ahead & beside).any(axis=1)

@@ -14,12 +14,16 @@ started anew never reads the rows of another scene."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from trajeglish_env.batch_geometry import latest_states
+
 if TYPE_CHECKING:
     from trajeglish_env.sampler.guard_geometry import Pairs
+    from trajeglish_env.sampler.rows import RowStates
 
 # Pairs fields with one row per pair, and those of the near obstacles ``[n,K,...]`` (padded with these
 # values where another call found fewer: ``near_real`` False keeps a padded obstacle out of every rule)
@@ -51,6 +55,27 @@ def view_key(
     step ``[n,N]``."""
     seen = moved & valid_after
     return moved, np.where(seen[..., None], after, 0.0), valid_after
+
+
+def seen_states(
+    rs: RowStates,
+    rr: np.ndarray,
+    who: np.ndarray,
+    tt: np.ndarray,
+    view: tuple[np.ndarray, np.ndarray] | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every agent of rows ``rr`` as the guard of agents ``who`` at steps ``tt`` sees it: its latest decided
+    state ``[n,N,3]`` (the next one where it moved this step), presence ``[n,N]``, velocity ``[n,N,2]`` (m a
+    step, over the step that led there) and whether it moved ``[n,N]``; ``view``: which agents moved and
+    their next states (default: as the rows say)."""
+    t1, t0 = tt + 1, np.maximum(tt - 1, 0)
+    now, valid_now, valid_after = rs.xyh[rr, :, tt], rs.valid[rr, :, tt], rs.valid[rr, :, t1]
+    moved, after = (rs.guard_moved(rr, who, tt), rs.xyh[rr, :, t1]) if view is None else view
+    before, valid_before = rs.xyh[rr, :, t0], rs.valid[rr, :, t0] & (tt >= 1)[:, None]
+    state, present, velocity = latest_states(
+        now, after, before, valid_now, valid_after, valid_before, moved, np.ones((len(rr), 1))
+    )
+    return state, present, velocity, moved
 
 
 def stack_pairs(parts: list[tuple[Pairs, np.ndarray]], n: int) -> Pairs:
@@ -123,6 +148,35 @@ class StepPairs:
         else:
             self.slot.fill(-1)
         self.slot[pairs.rows, pairs.agents] = np.arange(len(pairs.rows))
+
+    def recall(
+        self,
+        rr: np.ndarray,
+        who: np.ndarray,
+        tt: np.ndarray,
+        view: tuple[np.ndarray, np.ndarray],
+        key: tuple[np.ndarray, np.ndarray, np.ndarray],
+        shape: tuple[int, int],
+        epoch: int,
+        fresh: Callable[..., Pairs],
+    ) -> tuple[Pairs, np.ndarray]:
+        """The pairs ``(rr, who)`` at steps ``tt`` seen from ``view`` (its :func:`view_key` ``key``): those
+        kept with the same view taken, the others computed by ``fresh(rr, who, tt, view)``; then kept in turn.
+        Returns them and ``[n]`` which were taken."""
+        at = self.match(rr, who, tt, key, shape, epoch)
+        hits = at >= 0
+        new, kept = np.flatnonzero(~hits), np.flatnonzero(hits)
+        if not len(kept):
+            pairs = fresh(rr, who, tt, view)
+        else:
+            assert self.pairs is not None
+            old = take_pairs(self.pairs, at[kept])
+            pairs = old
+            if len(new):
+                part = fresh(rr[new], who[new], tt[new], (view[0][new], view[1][new]))
+                pairs = stack_pairs([(old, kept), (part, new)], len(rr))
+        self.record(pairs, key, shape, epoch)
+        return pairs, hits
 
     def match(
         self,
