@@ -139,9 +139,9 @@ def test_the_env_sets_its_threads_only_while_it_runs_the_model(monkeypatch) -> N
         batch = batched_ego_env(4, scenes=[bundle_scene("highway-exit-999001")], processes=1, **tiny_kwargs())
         batch.reset(seed=0)
         batch.step(np.zeros((4, 2), np.float32))
-        assert torch.get_num_threads() == 3 and set(seen) == {
-            batch.core.batch.threads.threads
-        }  # the auto policy's count
+        # the auto policy's counts: it starts on one and may take the second core once a look (0.25 s in)
+        # finds it free, which a loaded machine can reach within these few steps
+        assert torch.get_num_threads() == 3 and seen and set(seen) <= {1, min(2, usable_cores())}
         batch.close()
     finally:
         torch.set_num_threads(before)
