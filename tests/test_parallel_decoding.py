@@ -309,3 +309,22 @@ def test_guarded_drafts_keep_a_step_at_about_one_call_where_the_guard_acts() -> 
     np.testing.assert_array_equal(out["parallel"][0], out["sequential"][0])
     assert out["sequential"][2] >= 30  # the guard changed draws
     assert out["parallel"][1] <= 40 * 1.25, out["parallel"][1]
+
+
+def test_coupled_drafts_are_drawn_only_where_wanted_and_unchanged_there() -> None:
+    """A step's drafts come from the look-ahead where it drafted; the coupled drafts (from the logits of the
+    step before) are drawn only for the other agents, each from its own logits and number, so asking for
+    fewer changes none of them."""
+    from types import SimpleNamespace
+
+    from trajeglish_env.sampler.parallel import coupled_drafts
+
+    rng = np.random.default_rng(3)
+    rs = SimpleNamespace(B=2, N=5, now=np.array([4, 7]), seed=np.array([11, 12]))
+    logits = rng.normal(size=(2, 5, 64)).astype(np.float32)
+    drawn_at = np.array([[3, 3, 2, 3, -1], [6, 6, 6, 6, 6]])
+    every = coupled_drafts(rs, logits.copy(), drawn_at, 0.75, 1.0)  # type: ignore[arg-type]
+    assert (every[0, [2, 4]] == -1).all() and (every[0, [0, 1, 3]] >= 0).all() and (every[1] >= 0).all()
+    wanted = rng.random((2, 5)) < 0.5
+    some = coupled_drafts(rs, logits.copy(), drawn_at, 0.75, 1.0, wanted)  # type: ignore[arg-type]
+    np.testing.assert_array_equal(some, np.where(wanted, every, -1))

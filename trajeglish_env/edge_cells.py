@@ -23,10 +23,12 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 
 from trajeglish_env.batch_geometry import nearest_segments, selection_d2, signed_distances_to
+from trajeglish_env.geometry import box_corners
 from trajeglish_env.metrics.road_edges import Z_STRETCH
 
 CELL = 0.5  # metres: a cell's side
@@ -110,6 +112,18 @@ def lipschitz(columns: np.ndarray) -> np.ndarray:
 
 
 _EPOCHS = itertools.count()
+_KERNELS: list[ModuleType | None] = []
+
+
+def compiled() -> ModuleType | None:
+    """The compiled queries (:mod:`~trajeglish_env.road_kernels`), imported on first use (numba takes a
+    third of a second to import), or None where numba is missing or switched off."""
+    if not _KERNELS:
+        from trajeglish_env import road_kernels
+
+        _KERNELS.append(road_kernels)
+    kernels = _KERNELS[0]
+    return kernels if kernels is not None and kernels.AVAILABLE else None
 
 
 class EdgeCells:
@@ -289,6 +303,62 @@ class EdgeCells:
         """``[P]`` the reference's signed distance (float32) of ``points [P,2]`` of batch rows ``rows [P]``
         (maps ``maps [P]``; the rows' padded road edges ``padded = (columns [B,7,S], links [B,3,S], count
         [B])``), or -inf where the point's cell is safe (the distance is then <= 0)."""
+        kernels = compiled()
+        if kernels is None or not len(points):
+            return self._signed(maps, rows, points, padded)
+        out, status = np.empty(len(points), np.float32), np.zeros(len(points), np.int8)
+        xy = points[:, 0], points[:, 1]
+        kernels.signed_points(*xy, maps, rows, self._grid(), *padded[:2], out, status)
+        left = np.flatnonzero(status)
+        if len(left):  # blocks not computed yet, points outside the grid
+            out[left] = self._signed(maps[left], rows[left], points[left], padded)
+        return out
+
+    def box_excess(
+        self,
+        maps: np.ndarray,
+        rows: np.ndarray,
+        xyh: np.ndarray,
+        size: np.ndarray,
+        padded: tuple[np.ndarray, np.ndarray, np.ndarray],
+    ) -> np.ndarray:
+        """``[P]`` how far the most off-road corner of each box ``xyh [P,3]`` of ``size [P,2]`` lies beyond a
+        road edge (:meth:`signed` of its corners, the largest; -inf where all lie in safe cells)."""
+        kernels = compiled()
+        if kernels is None or not len(xyh):
+            return self._box_excess(maps, rows, xyh, size, padded)
+        out, status = np.empty(len(xyh), np.float32), np.zeros(len(xyh), np.int8)
+        kernels.box_excess(xyh, size, maps, rows, self._grid(), *padded[:2], out, status)
+        left = np.flatnonzero(status)
+        if len(left):
+            out[left] = self._box_excess(maps[left], rows[left], xyh[left], size[left], padded)
+        return out
+
+    def _box_excess(
+        self,
+        maps: np.ndarray,
+        rows: np.ndarray,
+        xyh: np.ndarray,
+        size: np.ndarray,
+        padded: tuple[np.ndarray, np.ndarray, np.ndarray],
+    ) -> np.ndarray:
+        """:meth:`box_excess` in NumPy."""
+        points = box_corners(xyh, size).reshape(-1, 2)
+        signed = self._signed(np.repeat(maps, 4), np.repeat(rows, 4), points, padded)
+        return signed.reshape(-1, 4).max(axis=-1)
+
+    def _grid(self) -> tuple[np.ndarray, ...]:
+        """The cell arrays the compiled queries read."""
+        return self.params, self.table, self.start, self.length, self.safe, self.flat
+
+    def _signed(
+        self,
+        maps: np.ndarray,
+        rows: np.ndarray,
+        points: np.ndarray,
+        padded: tuple[np.ndarray, np.ndarray, np.ndarray],
+    ) -> np.ndarray:
+        """:meth:`signed` in NumPy (computing the blocks the points fall in)."""
         columns, links, count = padded
         out = np.full(len(points), -np.inf, np.float32)
         cells = self.locate(maps, points)

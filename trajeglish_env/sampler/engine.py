@@ -158,7 +158,7 @@ class BatchEngine(WindowedRows):
             self._draft = None
             if self.config.intra_step == "parallel":  # drafts: the look-ahead of the last step, else repeats
                 ahead = self._ahead if self._ahead is not None else np.full((self.B, self.N), -1)
-                coupled = self._coupled_drafts()
+                coupled = self._coupled_drafts(ahead < 0)  # where the look-ahead drafted none
                 self._draft = np.where(
                     ahead >= 0, ahead, np.where(coupled >= 0, coupled, previous_tokens(self))
                 )
@@ -379,12 +379,13 @@ class BatchEngine(WindowedRows):
             self._ahead_logits = np.zeros_like(self._drawn_logits)
             self._drawn_at = np.full((self.B, self.N), -1, np.int64)
 
-    def _coupled_drafts(self) -> np.ndarray:
-        """:func:`~trajeglish_env.sampler.parallel.coupled_drafts` of the kept logits."""
+    def _coupled_drafts(self, wanted: np.ndarray) -> np.ndarray:
+        """:func:`~trajeglish_env.sampler.parallel.coupled_drafts` of the kept logits, where ``wanted``."""
         if self._drawn_at.shape != (self.B, self.N):
             return np.full((self.B, self.N), -1, np.int64)
         config = self.config
-        return coupled_drafts(self, self._drawn_logits, self._drawn_at, config.temperature, config.top_p)
+        logits, at = self._drawn_logits, self._drawn_at
+        return coupled_drafts(self, logits, at, config.temperature, config.top_p, wanted)
 
     def _finish(self, rr: np.ndarray, who: np.ndarray, tt: np.ndarray, tok: np.ndarray) -> None:
         """Record the drawn tokens ``tok`` of agents ``who`` of rows ``rr`` at steps ``tt`` and states."""

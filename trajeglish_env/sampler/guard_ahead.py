@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from trajeglish_env.geometry import box_corners, to_global
+from trajeglish_env.geometry import to_global
 from trajeglish_env.sampler.guard_edges import RoadView
 
 AHEAD_CHECKS = 2  # points of a candidate's kept-up arc checked, evenly spaced up to the set distance
@@ -68,7 +68,7 @@ def road_reach(
         return reach
     k = np.arange(1, AHEAD_CHECKS + 1)
     pose = kept_up(origin[i, None], step[i, j, None], distance * k / AHEAD_CHECKS)  # [n,J,3]
-    off = edges.beyond(sel[i], box_corners(pose, size[i, None]))  # [n,J]: one pass for every point
+    off = edges.beyond(sel[i], pose, size[i])  # [n,J]: one pass for every point
     reach[i, j] = np.where(off.any(axis=1), np.argmax(off, axis=1), AHEAD_CHECKS)
     return reach
 

@@ -33,20 +33,19 @@ class RoadView:
     cells: EdgeCells
     padded: tuple[np.ndarray, np.ndarray, np.ndarray]
 
-    def excess(self, sel: np.ndarray, corners: np.ndarray) -> np.ndarray:
-        """``[m,c]`` how far (m) the most off-road corner of each box ``corners [m,c,4,2]`` of pairs ``sel
-        [m]`` lies beyond a road edge (the env's signed distance; -inf where every corner lies in a safe
-        cell, i.e. on the road)."""
-        m, c = corners.shape[:2]
-        points = corners.reshape(m * c * 4, 2)
-        pick = np.repeat(sel, c * 4)
-        signed = self.cells.signed(self.maps[pick], self.rows[pick], points, self.padded)
-        return signed.reshape(m, c, 4).max(axis=-1)
+    def box_excess(self, sel: np.ndarray, xyh: np.ndarray, size: np.ndarray) -> np.ndarray:
+        """``[m,c]`` how far (m) the most off-road corner of each box ``xyh [m,c,3]`` of pairs ``sel [m]``
+        (sizes ``[m,2]``) lies beyond a road edge (the env's signed distance; -inf where every corner lies in
+        a safe cell, i.e. on the road)."""
+        m, c = xyh.shape[:2]
+        pick = np.repeat(sel, c)
+        boxes = xyh.reshape(m * c, 3), np.repeat(size, c, axis=0)
+        return self.cells.box_excess(self.maps[pick], self.rows[pick], *boxes, self.padded).reshape(m, c)
 
-    def beyond(self, sel: np.ndarray, corners: np.ndarray) -> np.ndarray:
-        """``[m,c]`` True where a candidate box (as in :meth:`excess`) has a corner more than its pair's
+    def beyond(self, sel: np.ndarray, xyh: np.ndarray, size: np.ndarray) -> np.ndarray:
+        """``[m,c]`` True where a candidate box (as in :meth:`box_excess`) has a corner more than its pair's
         ``limit`` beyond a road edge."""
-        return self.excess(sel, corners) > self.limit[sel][:, None]
+        return self.box_excess(sel, xyh, size) > self.limit[sel][:, None]
 
 
 def road_view(
@@ -64,9 +63,9 @@ def road_view(
 
 
 def road_rule(
-    view: RoadView, sel: np.ndarray, origin: np.ndarray, corners: np.ndarray, extent: np.ndarray
+    view: RoadView, sel: np.ndarray, origin: np.ndarray, size: np.ndarray, extent: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """For vehicles ``sel [m]`` on a map (at ``origin [m,3]``, their boxes there ``corners [m,4,2]``, their
+    """For vehicles ``sel [m]`` on a map (at ``origin [m,3]``, their boxes there of ``size [m,2]``, their
     candidates' corners, and those of their kept-up motion, within ``extent [m]``): ``[m]`` whether the rule
     applies (unless every cell within reach is safe) and ``[m]`` how far beyond a road edge a candidate
     corner may then lie: the view's margin, or as far as the vehicle's box lies already if that is farther
@@ -76,5 +75,5 @@ def road_rule(
     limit = view.limit[sel].copy()
     c = np.flatnonzero(road)
     if len(c):
-        limit[c] = np.maximum(limit[c], view.excess(sel[c], corners[c][:, None])[:, 0])
+        limit[c] = np.maximum(limit[c], view.box_excess(sel[c], origin[c][:, None], size[c])[:, 0])
     return road, limit

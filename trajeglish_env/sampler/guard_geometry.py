@@ -20,7 +20,7 @@ import numpy as np
 
 from trajeglish_env.batch_geometry import PaddedRows, nearest_first
 from trajeglish_env.edge_cells import EdgeCells
-from trajeglish_env.geometry import box_corners, to_global
+from trajeglish_env.geometry import to_global
 from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.sampler.candidate_memo import CandidateMemo, memo_keys
 from trajeglish_env.sampler.config import SamplingConfig
@@ -265,9 +265,7 @@ class GuardGeometry:
 
         def measure(i: np.ndarray, j: np.ndarray) -> np.ndarray:
             q = np.unique(i)
-            road, limit = road_rule(
-                edges, v[q], origin[v[q]], box_corners(origin[v[q]], size[v[q]]), reach[q]
-            )
+            road, limit = road_rule(edges, v[q], origin[v[q]], size[v[q]], reach[q])
             answers = np.zeros((len(v), 2))
             answers[q, 0], answers[q, 1] = road, limit
             return answers[i, j]
@@ -424,11 +422,10 @@ class GuardGeometry:
 
     def _excess(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray, cand: np.ndarray) -> np.ndarray:
         """``[m,c]`` how far the most off-road corner of each candidate box (tokens ``[m,c]`` of pairs ``sel
-        [m]``, poses ``cand [m,c,3]``) lies beyond a road edge (:meth:`RoadView.excess`, remembered)."""
+        [m]``, poses ``cand [m,c,3]``) lies beyond a road edge (:meth:`RoadView.box_excess`, remembered)."""
 
         def measure(i: np.ndarray, j: np.ndarray) -> np.ndarray:
-            corners = box_corners(cand[i, j], p.size[sel[i]])[:, None]
-            return p.edges.excess(sel[i], corners)[:, 0]
+            return p.edges.box_excess(sel[i], cand[i, j][:, None], p.size[sel[i]])[:, 0]
 
         want = np.ones(tokens.shape, bool)
         width = self.templates.shape[1]

@@ -78,13 +78,20 @@ def previous_tokens(rs: RowStates) -> np.ndarray:
 
 
 def coupled_drafts(
-    rs: RowStates, logits: np.ndarray, drawn_at: np.ndarray, temperature: float, top_p: float
+    rs: RowStates,
+    logits: np.ndarray,
+    drawn_at: np.ndarray,
+    temperature: float,
+    top_p: float,
+    wanted: np.ndarray | None = None,
 ) -> np.ndarray:
     """Drafts ``[B,N]`` for the step each row is at (-1: none): where an agent's token of the step before
     was drawn (in parallel) from class logits ``logits [B,N,V]`` (``drawn_at [B,N]``: the step of the
-    draw), the draw of those logits at its number of this step."""
+    draw), the draw of those logits at its number of this step; only where ``wanted [B,N]`` (default:
+    everywhere; each agent's draw reads its own logits and number only)."""
     out = np.full((rs.B, rs.N), -1, np.int64)
-    rr, aa = np.nonzero((drawn_at == (rs.now - 1)[:, None]) & (rs.now > 0)[:, None])
+    drawn = (drawn_at == (rs.now - 1)[:, None]) & (rs.now > 0)[:, None]
+    rr, aa = np.nonzero(drawn if wanted is None else drawn & wanted)
     if len(rr):
         u = counter_uniform(rs.seed[rr], rs.now[rr], aa)
         out[rr, aa] = draft_draws(logits[rr, aa], temperature, top_p, u)  # a copy: drawn in place

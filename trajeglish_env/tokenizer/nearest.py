@@ -148,7 +148,7 @@ def nearest_templates(
     retry: list[np.ndarray] = []
 
     def run(blocks: np.ndarray) -> None:
-        buffer = np.empty(block * table.size, dtype=np.float32)
+        buffer = np.empty(min(block, m) * table.size, dtype=np.float32)
         for b in blocks:
             rows = order[starts[b] : stops[b]]
             if hi[b] == lo[b]:
@@ -171,7 +171,7 @@ def nearest_templates(
             future.result()
     if retry:
         rows = np.concatenate(retry)
-        buffer = np.empty(block * table.size, dtype=np.float32)
+        buffer = np.empty(min(block, m) * table.size, dtype=np.float32)
         for start in range(0, len(rows), block):
             part = rows[start : start + block]
             index[part], dist[part] = _search(table, 0, table.size, local[part], size[part], buffer)

@@ -1,0 +1,177 @@
+"""Compiled road-edge queries (numba, when installed): the guard's hottest map arithmetic, number for number
+the NumPy code it stands in for.
+
+The guard asks the road-edge cells (:mod:`~trajeglish_env.edge_cells`) for the signed distance of a few
+dozen box corners at a time, a few times per pair of a step; in NumPy each ask is some fifty array calls
+whatever its size, so a small env spends its time in their overhead. A compiled loop answers a corner in
+well under a microsecond. It runs the very same float32 operations in the same order (IEEE arithmetic,
+no fused multiply-adds: numba's default), so every answer equals the NumPy path's
+(``tests/test_road_kernels.py`` compares them corner by corner on real maps). Without numba, or for
+corners the kernel leaves (a block of cells not computed yet, a point outside the map's grid), the NumPy
+path answers.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from trajeglish_env.metrics.road_edges import Z_STRETCH
+
+BLOCK = 16  # cells per block side: edge_cells.BLOCK (tests/test_road_kernels.py checks they agree)
+LEFT = 1  # status of a corner the kernel did not answer (block not computed, or outside the grid)
+STRETCH = np.float32(Z_STRETCH)
+
+
+def _load_numba() -> Any:
+    """numba, or None where it is missing or switched off (``TRAJEGLISH_NO_NUMBA=1``: the NumPy path)."""
+    if os.environ.get("TRAJEGLISH_NO_NUMBA", "") not in ("", "0"):
+        return None
+    try:
+        import numba
+    except ImportError:
+        return None
+    return numba
+
+
+_NUMBA = _load_numba()
+AVAILABLE = _NUMBA is not None
+
+
+def _jit(f: Callable[..., Any]) -> Callable[..., Any]:
+    """``f`` compiled (cached on disk) where numba is available; else ``f`` itself, never called."""
+    return _NUMBA.njit(cache=True, nogil=True)(f) if AVAILABLE else f
+
+
+@_jit
+def _signed_point(
+    px: float,
+    py: float,
+    m: int,
+    r: int,
+    params: np.ndarray,
+    table: np.ndarray,
+    start: np.ndarray,
+    length: np.ndarray,
+    safe: np.ndarray,
+    flat: np.ndarray,
+    columns: np.ndarray,
+    links: np.ndarray,
+) -> tuple[np.float32, bool]:  # pragma: no cover - compiled (its NumPy twin is EdgeCells._signed)
+    """The reference's signed distance (float32) of point ``(px, py)`` of batch row ``r`` on map ``m`` from
+    its cell's listed segments (-inf in a safe cell), and whether it was answered (False where its block is
+    not computed yet or it lies outside the grid)."""
+    f32 = np.float32
+    zero, one = f32(0.0), f32(1.0)
+    x0, y0, cell = params[m, 0], params[m, 1], params[m, 2]
+    nbx, nby, base = np.int64(params[m, 3]), np.int64(params[m, 4]), np.int64(params[m, 5])
+    ix = np.int64(np.floor((px - x0) / cell))
+    iy = np.int64(np.floor((py - y0) / cell))
+    bx, by = ix // BLOCK, iy // BLOCK
+    if ix < 0 or iy < 0 or bx >= nbx or by >= nby:
+        return f32(0.0), False
+    slot = table[base + by * nbx + bx]
+    if slot < 0:
+        return f32(0.0), False
+    c = slot * BLOCK * BLOCK + (iy % BLOCK) * BLOCK + ix % BLOCK
+    if safe[c]:
+        return f32(-np.inf), True
+    x, y = f32(px), f32(py)
+    # the nearest listed segment: the reference's selection distance, float32, first on ties (a flat
+    # segment's z term is +0, which changes no number: the NumPy path drops it on flat maps)
+    best, seg = f32(np.inf), -1
+    for q in range(start[c], start[c] + length[c]):
+        s = flat[q]
+        ux, uy = x - columns[r, 0, s], y - columns[r, 1, s]
+        dx, dy = columns[r, 3, s], columns[r, 4, s]
+        t = ux * dx
+        t += uy * dy
+        t *= columns[r, 6, s]
+        t = min(max(t, zero), one)
+        ux -= t * dx
+        uy -= t * dy
+        rz = STRETCH * (zero - columns[r, 2, s] - t * columns[r, 5, s])
+        d2 = ux * ux + uy * uy + rz * rz
+        if d2 < best:
+            best, seg = d2, s
+    if seg < 0:
+        return f32(0.0), False
+    # its signed distance, the sign beyond an end taken from the vertex shared with the neighbour
+    sx, sy, sdx, sdy = columns[r, 0, seg], columns[r, 1, seg], columns[r, 3, seg], columns[r, 4, seg]
+    ux, uy = x - sx, y - sy
+    length2 = sdx * sdx + sdy * sdy
+    tt = (ux * sdx + uy * sdy) / length2 if length2 > zero else zero
+    tc = min(max(tt, zero), one)
+    rx, ry = ux - tc * sdx, uy - tc * sdy
+    magnitude = np.sqrt(rx * rx + ry * ry)
+    sign = np.sign(ux * sdy - uy * sdx)
+    previous, following = links[r, 0, seg], links[r, 1, seg]
+    before = tt < zero and previous >= 0
+    if before or (tt > one and following >= 0):
+        other = previous if before else following
+        convex = (links[r, 2, seg] if before else links[r, 2, other]) > 0
+        ox, oy = x - columns[r, 0, other], y - columns[r, 1, other]
+        other_side = np.sign(ox * columns[r, 4, other] - oy * columns[r, 3, other])
+        sign = max(sign, other_side) if convex else min(sign, other_side)
+    return sign * magnitude, True
+
+
+@_jit
+def signed_points(
+    px: np.ndarray,
+    py: np.ndarray,
+    maps: np.ndarray,
+    rows: np.ndarray,
+    grid: tuple[np.ndarray, ...],
+    columns: np.ndarray,
+    links: np.ndarray,
+    out: np.ndarray,
+    status: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """``out [P]``: :func:`_signed_point` of points ``(px, py) [P]`` of rows ``rows`` on maps ``maps``
+    (``grid``: the cells' ``params, table, start, length, safe, flat``); ``status [P]`` LEFT where not
+    answered."""
+    params, table, start, length, safe, flat = grid
+    for i in range(px.shape[0]):
+        v, ok = _signed_point(
+            px[i], py[i], maps[i], rows[i], params, table, start, length, safe, flat, columns, links
+        )
+        out[i] = v
+        if not ok:
+            status[i] = LEFT
+
+
+@_jit
+def box_excess(
+    xyh: np.ndarray,
+    size: np.ndarray,
+    maps: np.ndarray,
+    rows: np.ndarray,
+    grid: tuple[np.ndarray, ...],
+    columns: np.ndarray,
+    links: np.ndarray,
+    out: np.ndarray,
+    status: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """``out [P]``: the largest :func:`_signed_point` of the corners of boxes ``xyh [P,3]`` of ``size [P,2]``
+    (:func:`~trajeglish_env.geometry.box_corners`, the same operations); ``status [P]`` LEFT where a corner
+    was not answered."""
+    params, table, start, length, safe, flat = grid
+    for i in range(xyh.shape[0]):
+        c, s = np.cos(xyh[i, 2]), np.sin(xyh[i, 2])
+        worst = np.float32(-np.inf)
+        for k in range(4):
+            lx = (0.5 if k < 2 else -0.5) * size[i, 0]
+            ly = (0.5 if k == 0 or k == 3 else -0.5) * size[i, 1]
+            x = xyh[i, 0] + c * lx - s * ly
+            y = xyh[i, 1] + s * lx + c * ly
+            v, ok = _signed_point(
+                x, y, maps[i], rows[i], params, table, start, length, safe, flat, columns, links
+            )
+            if not ok:
+                status[i] = LEFT
+            worst = max(worst, v)
+        out[i] = worst
