@@ -129,3 +129,27 @@ def test_an_environment_variable_switches_the_kernels_off() -> None:
     env = {**os.environ, "TRAJEGLISH_NO_NUMBA": "1"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_compiled_block_lists_equal_numpy_on_real_maps(kernels_switch) -> None:  # type: ignore[no-untyped-def]
+    """Every cell of the blocks a walk over each map touches: the same segments, counts and safe flags."""
+    edges, centres = _maps()
+    rng = np.random.default_rng(3)
+    cells = EdgeCells()
+    ids = cells.map_ids(edges)
+    kernels_switch(True)
+    compared = 0
+    for m, centre in zip(ids.tolist(), centres, strict=True):
+        grid = cells.maps[m]
+        for point in centre + rng.uniform(-60, 60, (12, 2)):
+            bx, by = (np.floor((point - [grid.x0, grid.y0]) / (grid.cell * edge_cells.BLOCK))).astype(int)
+            if not (0 <= bx < grid.nbx and 0 <= by < grid.nby):
+                continue
+            place = (grid.cell, grid.x0, grid.y0, int(bx), int(by))
+            got = road_kernels.block_lists(grid.wide, grid.slope, grid.links, *place)
+            want = edge_cells._block_lists(grid, int(bx), int(by))
+            for a, b in zip(got, want, strict=True):
+                np.testing.assert_array_equal(a, b)
+            compared += 1
+            assert want[0].sum() > 0
+    assert compared >= 30

@@ -111,6 +111,50 @@ def lipschitz(columns: np.ndarray) -> np.ndarray:
     return np.sqrt(1 + (float(Z_STRETCH) * dz) ** 2 * inverse)
 
 
+def _block_lists(grid: MapGrid, bx: int, by: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cells of block ``(bx, by)`` of ``grid``: how many segments each lists ``[cells]``, whether it is
+    safe ``[cells]``, and the segments ``[sum]`` cell by cell (row by row), each cell's ascending."""
+    side = grid.cell * BLOCK
+    columns, slope = grid.wide, grid.slope
+    cx0, cy0 = np.array([grid.x0 + (bx + 0.5) * side]), np.array([grid.y0 + (by + 0.5) * side])
+    near = _listed(columns, slope, cx0, cy0, side * np.sqrt(0.5))[0]
+    near = np.flatnonzero(near)
+    # sub-blocks of SUB x SUB cells, row by row
+    per = BLOCK // SUB
+    sy, sx = np.divmod(np.arange(per * per), per)
+    sub_side = grid.cell * SUB
+    sub = _listed(
+        columns[:, near],
+        slope[near],
+        grid.x0 + bx * side + (sx + 0.5) * sub_side,
+        grid.y0 + by * side + (sy + 0.5) * sub_side,
+        sub_side * np.sqrt(0.5),
+    )
+    width = max(int(sub.sum(axis=1).max()), 1)
+    order = np.argsort(~sub, axis=1, kind="stable")[:, :width]  # each sub-block's listed, ascending
+    real = np.take_along_axis(sub, order, 1)
+    jy, jx = np.divmod(np.arange(BLOCK * BLOCK), BLOCK)  # cell order of a slot: row by row
+    owner = (jy // SUB) * per + jx // SUB
+    index = near[order][owner]  # [cells, width] candidate segments of each cell
+    cx = grid.x0 + (bx * BLOCK + jx + 0.5) * grid.cell
+    cy = grid.y0 + (by * BLOCK + jy + 0.5) * grid.cell
+    r = grid.cell * np.sqrt(0.5)
+    cols = columns[:, index]  # [7, cells, width]
+    listed = _listed(cols, np.where(real[owner], slope[index], np.inf), cx, cy, r) & real[owner]
+    # safe: each cell's centre far enough on the road side of its listed segments and their neighbours
+    # (which give the sign beyond a segment's end), checked over the (cell, listed segment) pairs
+    at, j = np.nonzero(listed)
+    segment = index[at, j]
+    clear = -(r + SLACK)
+    ok = line_side(columns[:, segment][:, :, None], cx[at], cy[at])[:, 0] <= clear
+    for k in (0, 1):
+        other = grid.links[k, segment]
+        sides = line_side(columns[:, np.maximum(other, 0)][:, :, None], cx[at], cy[at])[:, 0]
+        ok &= (other < 0) | (sides <= clear)
+    safe = np.bincount(at[~ok], minlength=BLOCK * BLOCK) == 0
+    return listed.sum(axis=1), safe, segment
+
+
 _EPOCHS = itertools.count()
 _KERNELS: list[ModuleType | None] = []
 
@@ -202,49 +246,18 @@ class EdgeCells:
     def _compute_block(self, block: int) -> None:
         """Lists and safe flags of the cells of block ``block`` of the table (see the module docstring):
         the segments that can be nearest in the block, then in each SUB x SUB cells of it, then in each
-        cell (each level's bound drawn from the level above)."""
+        cell (each level's bound drawn from the level above); compiled where numba is available
+        (:func:`~trajeglish_env.road_kernels.block_lists`, the same lists)."""
         m = int(np.searchsorted(self.params[:, 5], block, side="right") - 1)
         grid = self.maps[m]
         local = block - grid.table
         bx, by = local % grid.nbx, local // grid.nbx
-        side = grid.cell * BLOCK
-        columns, slope = grid.wide, grid.slope
-        cx0, cy0 = np.array([grid.x0 + (bx + 0.5) * side]), np.array([grid.y0 + (by + 0.5) * side])
-        near = _listed(columns, slope, cx0, cy0, side * np.sqrt(0.5))[0]
-        near = np.flatnonzero(near)
-        # sub-blocks of SUB x SUB cells, row by row
-        per = BLOCK // SUB
-        sy, sx = np.divmod(np.arange(per * per), per)
-        sub_side = grid.cell * SUB
-        sub = _listed(
-            columns[:, near],
-            slope[near],
-            grid.x0 + bx * side + (sx + 0.5) * sub_side,
-            grid.y0 + by * side + (sy + 0.5) * sub_side,
-            sub_side * np.sqrt(0.5),
-        )
-        width = max(int(sub.sum(axis=1).max()), 1)
-        order = np.argsort(~sub, axis=1, kind="stable")[:, :width]  # each sub-block's listed, ascending
-        real = np.take_along_axis(sub, order, 1)
-        jy, jx = np.divmod(np.arange(BLOCK * BLOCK), BLOCK)  # cell order of a slot: row by row
-        owner = (jy // SUB) * per + jx // SUB
-        index = near[order][owner]  # [cells, width] candidate segments of each cell
-        cx = grid.x0 + (bx * BLOCK + jx + 0.5) * grid.cell
-        cy = grid.y0 + (by * BLOCK + jy + 0.5) * grid.cell
-        r = grid.cell * np.sqrt(0.5)
-        cols = columns[:, index]  # [7, cells, width]
-        listed = _listed(cols, np.where(real[owner], slope[index], np.inf), cx, cy, r) & real[owner]
-        # safe: each cell's centre far enough on the road side of its listed segments and their neighbours
-        # (which give the sign beyond a segment's end), checked over the (cell, listed segment) pairs
-        at, j = np.nonzero(listed)
-        segment = index[at, j]
-        clear = -(r + SLACK)
-        ok = line_side(columns[:, segment][:, :, None], cx[at], cy[at])[:, 0] <= clear
-        for k in (0, 1):
-            other = grid.links[k, segment]
-            sides = line_side(columns[:, np.maximum(other, 0)][:, :, None], cx[at], cy[at])[:, 0]
-            ok &= (other < 0) | (sides <= clear)
-        counts = listed.sum(axis=1)
+        kernels = compiled()
+        if kernels is None:
+            counts, safe, segment = _block_lists(grid, bx, by)
+        else:
+            place = (grid.cell, grid.x0, grid.y0, bx, by)
+            counts, safe, segment = kernels.block_lists(grid.wide, grid.slope, grid.links, *place)
         slot = self.slots
         if (slot + 1) * BLOCK * BLOCK > len(self.start):
             grow = max(64, slot) * BLOCK * BLOCK
@@ -255,7 +268,7 @@ class EdgeCells:
         cells = slice(slot * BLOCK * BLOCK, (slot + 1) * BLOCK * BLOCK)
         self.start[cells] = self.used + np.concatenate([[0], np.cumsum(counts)[:-1]])
         self.length[cells] = counts
-        self.safe[cells] = np.bincount(at[~ok], minlength=BLOCK * BLOCK) == 0
+        self.safe[cells] = safe
         self.block_safe[slot] = self.safe[cells].all()
         self._append(segment)  # row by row: each cell's segments, ascending
         self.table[block] = slot

@@ -24,6 +24,10 @@ from trajeglish_env.metrics.road_edges import Z_STRETCH
 BLOCK = 16  # cells per block side: edge_cells.BLOCK (tests/test_road_kernels.py checks they agree)
 LEFT = 1  # status of a corner the kernel did not answer (block not computed, or outside the grid)
 STRETCH = np.float32(Z_STRETCH)
+STRETCH64 = float(Z_STRETCH)  # the cells' bounds are drawn in float64
+SUB = 4  # edge_cells.SUB: cells per side of the sub-blocks a block's segments are narrowed down over
+CELL_SLACK = 0.1  # edge_cells.SLACK: metres to spare in the bounds
+HALF_ROOT = float(np.sqrt(0.5))  # a square's half-diagonal per side
 
 
 def _load_numba() -> Any:
@@ -175,3 +179,116 @@ def box_excess(
                 status[i] = LEFT
             worst = max(worst, v)
         out[i] = worst
+
+
+@_jit
+def _listed(
+    wide: np.ndarray,
+    slope: np.ndarray,
+    segments: np.ndarray,
+    real: np.ndarray,
+    x: float,
+    y: float,
+    radius: float,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled (its NumPy twin is edge_cells._listed)
+    """``out [k]``: which of ``segments [k]`` (columns ``wide [7,S]`` float64, Lipschitz constants ``slope``;
+    ``real [k]`` False: padding, never listed) can be the nearest one for some point within ``radius`` of
+    ``(x, y)``: the bound is the smallest selection distance plus slope times radius, a segment is listed
+    where its planar distance less the radius is within it (plus the slack)."""
+    bound = np.inf
+    for q in range(segments.shape[0]):
+        if not real[q]:
+            continue
+        s = segments[q]
+        ax, ay, az, dx, dy, dz, inverse = (
+            wide[0, s],
+            wide[1, s],
+            wide[2, s],
+            wide[3, s],
+            wide[4, s],
+            wide[5, s],
+            wide[6, s],
+        )
+        ux, uy = x - ax, y - ay
+        t = min(max((ux * dx + uy * dy) * inverse, 0.0), 1.0)
+        rx, ry, rz = ux - t * dx, uy - t * dy, STRETCH64 * (-az - t * dz)
+        bound = min(bound, np.sqrt(rx * rx + ry * ry + rz * rz) + slope[s] * radius)
+    for q in range(segments.shape[0]):
+        if not real[q]:
+            out[q] = False
+            continue
+        s = segments[q]
+        ax, ay, dx, dy = wide[0, s], wide[1, s], wide[3, s], wide[4, s]
+        ux, uy = x - ax, y - ay
+        length2 = dx * dx + dy * dy
+        t = min(max((ux * dx + uy * dy) / length2 if length2 > 0 else 0.0, 0.0), 1.0)
+        out[q] = np.hypot(ux - t * dx, uy - t * dy) - radius <= bound + CELL_SLACK
+
+
+@_jit
+def _line_side(wide: np.ndarray, s: int, x: float, y: float) -> float:  # pragma: no cover - compiled
+    """The signed distance of ``(x, y)`` to the line of segment ``s`` (edge_cells.line_side)."""
+    ax, ay, dx, dy = wide[0, s], wide[1, s], wide[3, s], wide[4, s]
+    length = np.hypot(dx, dy)
+    cross = (x - ax) * dy - (y - ay) * dx
+    return cross / length if length > 0 else np.inf
+
+
+@_jit
+def block_lists(
+    wide: np.ndarray,
+    slope: np.ndarray,
+    links: np.ndarray,
+    cell: float,
+    x0: float,
+    y0: float,
+    bx: int,
+    by: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """The lists of the BLOCK x BLOCK cells of block ``(bx, by)`` of a map (``EdgeCells._compute_block``,
+    the same three levels and numbers): ``counts [cells]``, ``safe [cells]`` and the segments ``[sum]``,
+    cell by cell (row by row), each cell's ascending."""
+    side = cell * BLOCK
+    segments = np.arange(wide.shape[1])
+    every = np.ones(wide.shape[1], np.bool_)
+    flags = np.empty(wide.shape[1], np.bool_)
+    _listed(
+        wide, slope, segments, every, x0 + (bx + 0.5) * side, y0 + (by + 0.5) * side, side * HALF_ROOT, flags
+    )
+    near = np.flatnonzero(flags)
+    per = BLOCK // SUB
+    sub_side = cell * SUB
+    sub = np.empty((per * per, near.shape[0]), np.bool_)
+    real = np.ones(near.shape[0], np.bool_)
+    for k in range(per * per):
+        sy, sx = k // per, k % per
+        cx, cy = x0 + bx * side + (sx + 0.5) * sub_side, y0 + by * side + (sy + 0.5) * sub_side
+        _listed(wide, slope, near, real, cx, cy, sub_side * HALF_ROOT, sub[k])
+    r = cell * HALF_ROOT
+    clear = -(r + CELL_SLACK)
+    counts = np.zeros(BLOCK * BLOCK, np.int64)
+    safe = np.ones(BLOCK * BLOCK, np.bool_)
+    found = np.empty(BLOCK * BLOCK * max(near.shape[0], 1), np.int64)
+    used = 0
+    flags = np.empty(near.shape[0], np.bool_)
+    for j in range(BLOCK * BLOCK):
+        jy, jx = j // BLOCK, j % BLOCK
+        owner = (jy // SUB) * per + jx // SUB
+        cx, cy = x0 + (bx * BLOCK + jx + 0.5) * cell, y0 + (by * BLOCK + jy + 0.5) * cell
+        _listed(wide, slope, near, sub[owner], cx, cy, r, flags)
+        for q in range(near.shape[0]):
+            if not flags[q]:
+                continue
+            s = near[q]
+            found[used] = s
+            used += 1
+            counts[j] += 1
+            ok = _line_side(wide, s, cx, cy) <= clear
+            for k in range(2):
+                other = links[k, s]
+                if other >= 0 and not _line_side(wide, other, cx, cy) <= clear:
+                    ok = False
+            if not ok:
+                safe[j] = False
+    return counts, safe, found[:used].copy()
