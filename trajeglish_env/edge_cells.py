@@ -23,11 +23,11 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
-from types import ModuleType
 
 import numpy as np
 
 from trajeglish_env.batch_geometry import nearest_segments, selection_d2, signed_distances_to
+from trajeglish_env.compiled import compiled
 from trajeglish_env.geometry import box_corners
 from trajeglish_env.metrics.road_edges import Z_STRETCH
 
@@ -156,18 +156,6 @@ def _block_lists(grid: MapGrid, bx: int, by: int) -> tuple[np.ndarray, np.ndarra
 
 
 _EPOCHS = itertools.count()
-_KERNELS: list[ModuleType | None] = []
-
-
-def compiled() -> ModuleType | None:
-    """The compiled queries (:mod:`~trajeglish_env.road_kernels`), imported on first use (numba takes a
-    third of a second to import), or None where numba is missing or switched off."""
-    if not _KERNELS:
-        from trajeglish_env import road_kernels
-
-        _KERNELS.append(road_kernels)
-    kernels = _KERNELS[0]
-    return kernels if kernels is not None and kernels.AVAILABLE else None
 
 
 class EdgeCells:
@@ -247,7 +235,7 @@ class EdgeCells:
         """Lists and safe flags of the cells of block ``block`` of the table (see the module docstring):
         the segments that can be nearest in the block, then in each SUB x SUB cells of it, then in each
         cell (each level's bound drawn from the level above); compiled where numba is available
-        (:func:`~trajeglish_env.road_kernels.block_lists`, the same lists)."""
+        (:func:`~trajeglish_env.guard_kernels.block_lists`, the same lists)."""
         m = int(np.searchsorted(self.params[:, 5], block, side="right") - 1)
         grid = self.maps[m]
         local = block - grid.table

@@ -19,9 +19,9 @@ from typing import TypeVar
 import numpy as np
 
 from trajeglish_env.batch_geometry import PaddedRows, nearest_first
+from trajeglish_env.compiled import overlaps
 from trajeglish_env.edge_cells import EdgeCells
 from trajeglish_env.geometry import to_global
-from trajeglish_env.metrics.boxes import box_collisions
 from trajeglish_env.sampler.candidate_memo import CandidateMemo, memo_keys
 from trajeglish_env.sampler.config import SamplingConfig
 from trajeglish_env.sampler.guard_ahead import AHEAD_CHECKS, AHEAD_MIN_MOVE, road_reach
@@ -362,7 +362,7 @@ class GuardGeometry:
         i, j = np.nonzero(near)
         escape = np.zeros_like(near)
         if len(i):
-            overlap = box_collisions(origin[i], size[i], state[i, j], sizes[i, j])
+            overlap = overlaps(origin[i], size[i], state[i, j], sizes[i, j])
             if self.escape:
                 # moved into it this step: there before and overlapping now, not then (a pair overlapping
                 # from the start, parked boxes of a log, stays tangled; so does one appearing on it); an
@@ -371,7 +371,7 @@ class GuardGeometry:
                     overlap & moved[i, j] & valid_now[i, j] & valid_after[i, j] & ~rs.row_external[rr[i], j]
                 )
                 q = np.flatnonzero(into)
-                before = box_collisions(origin[i[q]], size[i[q]], now[i[q], j[q]], sizes[i[q], j[q]])
+                before = overlaps(origin[i[q]], size[i[q]], now[i[q], j[q]], sizes[i[q], j[q]])
                 into[q[before]] = False
                 escape[i, j] = into
             near[i, j] = ~overlap | escape[i, j]
@@ -448,7 +448,7 @@ class GuardGeometry:
             limit = half_diagonal(size)[:, None] + half_diagonal(ns)  # [m,K]: circles apart, boxes apart
             i, v, k = np.nonzero(real[:, None] & (dx * dx + dy * dy < (limit * limit)[:, None]))
             if len(i):
-                hit = box_collisions(cand[i, v], size[i], nx[i, k], ns[i, k])
+                hit = overlaps(cand[i, v], size[i], nx[i, k], ns[i, k])
                 soft = p.near_escape[sel][i, k]
                 collide[i[hit & ~soft], v[hit & ~soft]] = True
                 escape[i[hit & soft], v[hit & soft]] = True

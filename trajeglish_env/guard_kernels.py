@@ -1,14 +1,16 @@
-"""Compiled road-edge queries (numba, when installed): the guard's hottest map arithmetic, number for number
-the NumPy code it stands in for.
+"""Compiled kernels of guarded sampling (numba, when installed): the road-edge queries and the box overlaps
+the guard asks most, number for number the NumPy code they stand in for.
 
 The guard asks the road-edge cells (:mod:`~trajeglish_env.edge_cells`) for the signed distance of a few
 dozen box corners at a time, a few times per pair of a step; in NumPy each ask is some fifty array calls
 whatever its size, so a small env spends its time in their overhead. A compiled loop answers a corner in
 well under a microsecond. It runs the very same float32 operations in the same order (IEEE arithmetic,
 no fused multiply-adds: numba's default), so every answer equals the NumPy path's
-(``tests/test_road_kernels.py`` compares them corner by corner on real maps). Without numba, or for
+(``tests/test_guard_kernels.py`` compares them corner by corner on real maps). Without numba, or for
 corners the kernel leaves (a block of cells not computed yet, a point outside the map's grid), the NumPy
-path answers.
+path answers. The boxes' overlap (:func:`box_overlaps`) is the separating-axis gap of
+:func:`~trajeglish_env.metrics.boxes.box_collisions`, in the same operations (sines and cosines from the
+same C library: NumPy's equal it here, checked by the tests).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numpy as np
 
 from trajeglish_env.metrics.road_edges import Z_STRETCH
 
-BLOCK = 16  # cells per block side: edge_cells.BLOCK (tests/test_road_kernels.py checks they agree)
+BLOCK = 16  # cells per block side: edge_cells.BLOCK (tests/test_guard_kernels.py checks they agree)
 LEFT = 1  # status of a corner the kernel did not answer (block not computed, or outside the grid)
 STRETCH = np.float32(Z_STRETCH)
 STRETCH64 = float(Z_STRETCH)  # the cells' bounds are drawn in float64
@@ -292,3 +294,26 @@ def block_lists(
             if not ok:
                 safe[j] = False
     return counts, safe, found[:used].copy()
+
+
+@_jit
+def box_overlaps(
+    a: np.ndarray, size_a: np.ndarray, b: np.ndarray, size_b: np.ndarray, out: np.ndarray
+) -> None:
+    """``out [n]``: where boxes ``a [n,3]`` (``size_a [n,2]``) and ``b [n,3]`` overlap
+    (:func:`~trajeglish_env.metrics.boxes.box_collisions` with sharp corners: the separating-axis gap, the
+    same operations)."""  # pragma: no cover - compiled
+    for i in range(a.shape[0]):
+        dx, dy = b[i, 0] - a[i, 0], b[i, 1] - a[i, 1]
+        cos_a, sin_a, cos_b, sin_b = np.cos(a[i, 2]), np.sin(a[i, 2]), np.cos(b[i, 2]), np.sin(b[i, 2])
+        c = cos_a * cos_b + sin_a * sin_b
+        s = cos_a * sin_b - sin_a * cos_b
+        ax, ay = cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx
+        bx, by = -(cos_b * dx + sin_b * dy), -(cos_b * dy - sin_b * dx)
+        la, wa, lb, wb = size_a[i, 0] / 2, size_a[i, 1] / 2, size_b[i, 0] / 2, size_b[i, 1] / 2
+        ac, as_ = np.abs(c), np.abs(s)
+        gap = np.maximum(
+            np.maximum(np.abs(ax) - la - (lb * ac + wb * as_), np.abs(ay) - wa - (lb * as_ + wb * ac)),
+            np.maximum(np.abs(bx) - lb - (la * ac + wa * as_), np.abs(by) - wb - (la * as_ + wa * ac)),
+        )
+        out[i] = gap < 0

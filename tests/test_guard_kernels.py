@@ -1,4 +1,4 @@
-"""The compiled road-edge queries (trajeglish_env/road_kernels.py): number for number the NumPy path's,
+"""The compiled road-edge queries (trajeglish_env/guard_kernels.py): number for number the NumPy path's,
 corner by corner and box by box on real maps (flat and raised), rows of several maps in one call, points
 in cells not computed yet and outside the grid; the guard samples the same tokens and counts the same with
 them and without them; ``TRAJEGLISH_NO_NUMBA=1`` switches them off."""
@@ -16,7 +16,7 @@ from helpers import bundle_scene, womd_tfrecord
 from test_edge_cells import tilted
 
 import trajeglish_env.edge_cells as edge_cells
-import trajeglish_env.road_kernels as road_kernels
+import trajeglish_env.guard_kernels as guard_kernels
 from trajeglish_env.batch_geometry import edge_rows, road_edges
 from trajeglish_env.edge_cells import EdgeCells
 from trajeglish_env.sources.womd import read_womd
@@ -25,10 +25,10 @@ from trajeglish_env.sources.womd import read_womd
 @pytest.fixture
 def kernels_switch(monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
     """Switches the compiled queries on or off for the test (numba must be installed: a dependency)."""
-    assert road_kernels.AVAILABLE, "numba is a dependency of trajeglish_env: install it (pip install numba)"
+    assert guard_kernels.AVAILABLE, "numba is a dependency of trajeglish_env: install it (pip install numba)"
 
     def switch(on: bool) -> None:
-        monkeypatch.setattr(road_kernels, "AVAILABLE", on)
+        monkeypatch.setattr(guard_kernels, "AVAILABLE", on)
 
     return switch
 
@@ -53,7 +53,7 @@ def _padded(edges: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.
 
 
 def test_the_kernels_read_the_cells_layout() -> None:
-    assert road_kernels.BLOCK == edge_cells.BLOCK
+    assert guard_kernels.BLOCK == edge_cells.BLOCK
 
 
 def test_compiled_corners_and_boxes_equal_numpy_on_real_maps(kernels_switch) -> None:  # type: ignore[no-untyped-def]
@@ -78,10 +78,10 @@ def test_compiled_corners_and_boxes_equal_numpy_on_real_maps(kernels_switch) -> 
     again = answers(fresh)  # from the computed cells: the kernels answer almost all of them themselves
     status, out = np.zeros(n, np.int8), np.empty(n, np.float32)
     maps = fresh.map_ids(edges)[rows]
-    road_kernels.signed_points(
+    guard_kernels.signed_points(
         points[:, 0], points[:, 1], maps, rows, fresh._grid(), *padded[:2], out, status
     )
-    assert (status == road_kernels.LEFT).sum() <= 40
+    assert (status == guard_kernels.LEFT).sum() <= 40
     kernels_switch(False)
     numpy_fresh = answers(EdgeCells())
     for got in (first, again):
@@ -100,7 +100,7 @@ def _guarded_tokens(kernels_switch, on: bool) -> tuple[np.ndarray, dict[str, int
 
     kernels_switch(on)
     calls = [0]
-    box_excess = road_kernels.box_excess
+    box_excess = guard_kernels.box_excess
 
     def counted(*args):  # type: ignore[no-untyped-def]
         calls[0] += 1
@@ -110,7 +110,7 @@ def _guarded_tokens(kernels_switch, on: bool) -> tuple[np.ndarray, dict[str, int
     live = sc.valid[:, sc.current_index]
     eng = RolloutEngine(load_pretrained(), sc, 1, 25, live, config=SamplingConfig(temperature=0.75))
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(road_kernels, "box_excess", counted)
+        mp.setattr(guard_kernels, "box_excess", counted)
         eng.run()
     assert eng.guard is not None
     assert (calls[0] > 50) == on  # the road-edge rule's boxes went through the kernels (or not)
@@ -125,7 +125,7 @@ def test_the_guard_samples_the_same_with_and_without_the_kernels(kernels_switch)
 
 
 def test_an_environment_variable_switches_the_kernels_off() -> None:
-    code = "import trajeglish_env.road_kernels as r, sys; print(r.AVAILABLE, 'numba' in sys.modules)"
+    code = "import trajeglish_env.guard_kernels as r, sys; print(r.AVAILABLE, 'numba' in sys.modules)"
     env = {**os.environ, "TRAJEGLISH_NO_NUMBA": "1"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
@@ -146,10 +146,34 @@ def test_compiled_block_lists_equal_numpy_on_real_maps(kernels_switch) -> None: 
             if not (0 <= bx < grid.nbx and 0 <= by < grid.nby):
                 continue
             place = (grid.cell, grid.x0, grid.y0, int(bx), int(by))
-            got = road_kernels.block_lists(grid.wide, grid.slope, grid.links, *place)
+            got = guard_kernels.block_lists(grid.wide, grid.slope, grid.links, *place)
             want = edge_cells._block_lists(grid, int(bx), int(by))
             for a, b in zip(got, want, strict=True):
                 np.testing.assert_array_equal(a, b)
             compared += 1
             assert want[0].sum() > 0
     assert compared >= 30
+
+
+def test_compiled_box_overlaps_equal_box_collisions(kernels_switch) -> None:  # type: ignore[no-untyped-def]
+    """Random boxes near one another, some sharing a centre, touching along an edge or turned by right
+    angles: the compiled verdicts are the metric's, box by box."""
+    from trajeglish_env.compiled import overlaps
+    from trajeglish_env.metrics.boxes import box_collisions
+
+    rng = np.random.default_rng(5)
+    n = 20000
+    a = np.column_stack([rng.uniform(-5, 5, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
+    b = np.column_stack([rng.uniform(-5, 5, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
+    size_a, size_b = rng.uniform(0.3, 6.0, (n, 2)), rng.uniform(0.3, 6.0, (n, 2))
+    b[:500] = a[:500]  # the same centre
+    b[500:1000] = a[500:1000] + [[0.0, 0.0, np.pi / 2]]
+    a[1000:1500, 2] = b[1000:1500, 2] = 0.0  # axis-aligned, touching end to end
+    b[1000:1500, :2] = a[1000:1500, :2] + np.column_stack(
+        [(size_a[1000:1500, 0] + size_b[1000:1500, 0]) / 2, 0 * a[1000:1500, 0]]
+    )
+    kernels_switch(True)
+    got = overlaps(a, size_a, b, size_b)
+    want = box_collisions(a, size_a, b, size_b)
+    np.testing.assert_array_equal(got, want)
+    assert 0.2 < want.mean() < 0.8 and not want[1000:1500].all()
