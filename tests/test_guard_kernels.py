@@ -78,9 +78,7 @@ def test_compiled_corners_and_boxes_equal_numpy_on_real_maps(kernels_switch) -> 
     again = answers(fresh)  # from the computed cells: the kernels answer almost all of them themselves
     status, out = np.zeros(n, np.int8), np.empty(n, np.float32)
     maps = fresh.map_ids(edges)[rows]
-    guard_kernels.signed_points(
-        points[:, 0], points[:, 1], maps, rows, fresh._grid(), *padded[:2], out, status
-    )
+    guard_kernels.signed_points(points, maps, rows, fresh._grid(), *padded[:2], out, status)
     assert (status == guard_kernels.LEFT).sum() <= 40
     kernels_switch(False)
     numpy_fresh = answers(EdgeCells())

@@ -21,7 +21,7 @@ their neighbours (which give the sign beyond a segment's end): the sign is then 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -304,16 +304,7 @@ class EdgeCells:
         """``[P]`` the reference's signed distance (float32) of ``points [P,2]`` of batch rows ``rows [P]``
         (maps ``maps [P]``; the rows' padded road edges ``padded = (columns [B,7,S], links [B,3,S], count
         [B])``), or -inf where the point's cell is safe (the distance is then <= 0)."""
-        kernels = compiled()
-        if kernels is None or not len(points):
-            return self._signed(maps, rows, points, padded)
-        out, status = np.empty(len(points), np.float32), np.zeros(len(points), np.int8)
-        xy = points[:, 0], points[:, 1]
-        kernels.signed_points(*xy, maps, rows, self._grid(), *padded[:2], out, status)
-        left = np.flatnonzero(status)
-        if len(left):  # blocks not computed yet, points outside the grid
-            out[left] = self._signed(maps[left], rows[left], points[left], padded)
-        return out
+        return self._compiled("signed_points", (points,), maps, rows, padded, self._signed)
 
     def box_excess(
         self,
@@ -325,14 +316,28 @@ class EdgeCells:
     ) -> np.ndarray:
         """``[P]`` how far the most off-road corner of each box ``xyh [P,3]`` of ``size [P,2]`` lies beyond a
         road edge (:meth:`signed` of its corners, the largest; -inf where all lie in safe cells)."""
+        return self._compiled("box_excess", (xyh, size), maps, rows, padded, self._box_excess)
+
+    def _compiled(
+        self,
+        kernel: str,
+        items: tuple[np.ndarray, ...],
+        maps: np.ndarray,
+        rows: np.ndarray,
+        padded: tuple[np.ndarray, np.ndarray, np.ndarray],
+        numpy_path: Callable[..., np.ndarray],
+    ) -> np.ndarray:
+        """``[P]`` the answers of :mod:`~trajeglish_env.guard_kernels`' ``kernel`` for ``items`` (arrays of
+        ``P`` rows) on ``maps``/``rows``; ``numpy_path(maps, rows, *items, padded)`` answers those it leaves
+        (blocks not computed yet, points outside the grid) and all of them without numba."""
         kernels = compiled()
-        if kernels is None or not len(xyh):
-            return self._box_excess(maps, rows, xyh, size, padded)
-        out, status = np.empty(len(xyh), np.float32), np.zeros(len(xyh), np.int8)
-        kernels.box_excess(xyh, size, maps, rows, self._grid(), *padded[:2], out, status)
+        if kernels is None or not len(maps):
+            return numpy_path(maps, rows, *items, padded)
+        out, status = np.empty(len(maps), np.float32), np.zeros(len(maps), np.int8)
+        getattr(kernels, kernel)(*items, maps, rows, self._grid(), *padded[:2], out, status)
         left = np.flatnonzero(status)
         if len(left):
-            out[left] = self._box_excess(maps[left], rows[left], xyh[left], size[left], padded)
+            out[left] = numpy_path(maps[left], rows[left], *(a[left] for a in items), padded)
         return out
 
     def _box_excess(

@@ -127,8 +127,7 @@ def _signed_point(
 
 @_jit
 def signed_points(
-    px: np.ndarray,
-    py: np.ndarray,
+    points: np.ndarray,
     maps: np.ndarray,
     rows: np.ndarray,
     grid: tuple[np.ndarray, ...],
@@ -137,13 +136,23 @@ def signed_points(
     out: np.ndarray,
     status: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """``out [P]``: :func:`_signed_point` of points ``(px, py) [P]`` of rows ``rows`` on maps ``maps``
-    (``grid``: the cells' ``params, table, start, length, safe, flat``); ``status [P]`` LEFT where not
-    answered."""
+    """``out [P]``: :func:`_signed_point` of ``points [P,2]`` of rows ``rows`` on maps ``maps`` (``grid``: the
+    cells' ``params, table, start, length, safe, flat``); ``status [P]`` LEFT where not answered."""
     params, table, start, length, safe, flat = grid
-    for i in range(px.shape[0]):
+    for i in range(points.shape[0]):
         v, ok = _signed_point(
-            px[i], py[i], maps[i], rows[i], params, table, start, length, safe, flat, columns, links
+            points[i, 0],
+            points[i, 1],
+            maps[i],
+            rows[i],
+            params,
+            table,
+            start,
+            length,
+            safe,
+            flat,
+            columns,
+            links,
         )
         out[i] = v
         if not ok:
