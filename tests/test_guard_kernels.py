@@ -52,10 +52,6 @@ def _padded(edges: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.
     return columns, links, np.array([c.shape[1] for c, _ in edges])
 
 
-def test_the_kernels_read_the_cells_layout() -> None:
-    assert guard_kernels.BLOCK == edge_cells.BLOCK
-
-
 def test_compiled_corners_and_boxes_equal_numpy_on_real_maps(kernels_switch) -> None:  # type: ignore[no-untyped-def]
     edges, centres = _maps()
     padded = _padded(edges)

@@ -21,14 +21,13 @@ from typing import Any
 
 import numpy as np
 
+from trajeglish_env.edge_cells import BLOCK, SUB
+from trajeglish_env.edge_cells import SLACK as CELL_SLACK
 from trajeglish_env.metrics.road_edges import Z_STRETCH
 
-BLOCK = 16  # cells per block side: edge_cells.BLOCK (tests/test_guard_kernels.py checks they agree)
 LEFT = 1  # status of a corner the kernel did not answer (block not computed, or outside the grid)
 STRETCH = np.float32(Z_STRETCH)
 STRETCH64 = float(Z_STRETCH)  # the cells' bounds are drawn in float64
-SUB = 4  # edge_cells.SUB: cells per side of the sub-blocks a block's segments are narrowed down over
-CELL_SLACK = 0.1  # edge_cells.SLACK: metres to spare in the bounds
 HALF_ROOT = float(np.sqrt(0.5))  # a square's half-diagonal per side
 
 
