@@ -118,7 +118,7 @@ def test_bench_config_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(args) == 0
     printed = json.loads(capsys.readouterr().out)
     written = json.loads(out.read_text())
-    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 11
+    assert printed["schema_version"] == written["schema_version"] == SCHEMA_VERSION == 12
     assert printed["complete"] is True and written == printed
     assert written["config"]["batches"] == [1, 8]  # --quick without --batches: a smoke run's batch sizes
     assert written["quick_overrides"]["env_steps"] == 3  # what the quick runs use (config: what was asked)
@@ -184,6 +184,15 @@ def test_env_section_of_the_suite_measures_highway_env_before_and_after() -> Non
     aec_ratio = aec["env_steps_per_s"] / result["highway_env"]["steps_per_s"]
     assert result["ratios"]["aec_env_to_highway_env"] == pytest.approx(aec_ratio, rel=1e-2)
     assert any(line.startswith("AEC env, 24 agents") for line in summary_lines(result))
+    # and in turn with intersection-v0, each AEC run against the runs beside it (schema 12)
+    turns = result["aec_interleaved"]
+    assert turns["rounds"] == 1 and len(turns["intersection_steps_per_s"]) == 2
+    inter, aec_rate = turns["intersection_steps_per_s"], turns["aec_env_steps_per_s"][0]
+    assert turns["ratios"] == [pytest.approx(aec_rate / ((inter[0] + inter[1]) / 2), abs=1e-3)]
+    assert (
+        result["ratios"]["aec_env_to_highway_env_interleaved"] == turns["median_ratio"] == turns["ratios"][0]
+    )
+    assert any(line.startswith("AEC env and intersection-v0 in turn") for line in summary_lines(result))
 
 
 # ------------------------------------------------------------------------------------- womd section

@@ -94,3 +94,29 @@ def aec_scenes_speed(agents: int = 24, steps: int = AEC_STEPS, warmup: int = AEC
         "agent_steps_per_s": round(rate * agents, 1),
         "scenes": runs,
     }
+
+
+def aec_interleaved(rounds: int, highway_steps: int, steps: int, warmup: int) -> dict[str, Any]:
+    """The AEC env (:func:`aec_scenes_speed`) and ``intersection-v0`` timed in turn, I, A, I, ..., A, I:
+    each AEC run's ratio to the mean of the two ``intersection-v0`` runs beside it, and the median of the
+    ``rounds`` ratios. The machine's speed wanders by more within a minute than the AEC env's gap to the
+    target (stop 87: a single pair of runs a minute apart gave 0.78x and 1.35x on the same code), so the
+    turns put both on the same minutes."""
+    import numpy as np
+
+    from trajeglish_env.benchmark.measure import highway_env_speed
+
+    inter = [highway_env_speed(40, highway_steps)["steps_per_s"]]
+    aec: list[float] = []
+    ratios: list[float] = []
+    for _ in range(rounds):
+        aec.append(aec_scenes_speed(24, steps, warmup)["env_steps_per_s"])
+        inter.append(highway_env_speed(40, highway_steps)["steps_per_s"])
+        ratios.append(aec[-1] / ((inter[-1] + inter[-2]) / 2))
+    return {
+        "rounds": rounds,
+        "intersection_steps_per_s": inter,
+        "aec_env_steps_per_s": aec,
+        "ratios": [round(r, 3) for r in ratios],
+        "median_ratio": round(float(np.median(ratios)), 3),
+    }

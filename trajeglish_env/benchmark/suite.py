@@ -25,8 +25,10 @@ from typing import Any
 # 2: env figures over a whole window cycle; highway-env measured before and after; 3: guarded sampling's
 # env runs (env.trajeglish_guard) and its cost (guard_cost), the rollout section; 4: the womd and busy
 # sections and their ratios; 5: split env runs (env.<npc>_split, busy "<B>_split") and env runs' processes;
-# 6: ``complete`` (False in the documents written after each run while the suite goes on); 11: busy "aec"
-SCHEMA_VERSION = 11
+# 6: ``complete`` (False in the documents written after each run while the suite goes on); 11: busy "aec";
+# 12: ``aec_interleaved``, the AEC env and intersection-v0 timed in turn
+SCHEMA_VERSION = 12
+AEC_ROUNDS = 3  # turns of the AEC env and intersection-v0 in the env section (schema 12)
 SECTIONS = ("tokenizer", "dataset", "training", "decoding", "rollout", "metrics", "womd", "env", "busy")
 
 
@@ -140,6 +142,7 @@ def run_suite(
         ]
         jobs += [(f"{name}/before", job) for name, job in baselines]
         jobs.append(("aec", lambda: _aec(q)))
+        jobs.append(("aec_interleaved", lambda: _aec_interleaved(q, hw_steps)))
         models = [name for name, guard in measure.GUARDED.items() if guard in config.guards]
         for npc in (*models, "replay"):
             for b in config.batches:
@@ -282,6 +285,15 @@ def _aec(quick: bool) -> dict[str, Any]:
     return aec_scenes_speed(24, QUICK_AEC_STEPS if quick else AEC_STEPS, 1 if quick else AEC_WARMUP)
 
 
+def _aec_interleaved(quick: bool, highway_steps: int) -> dict[str, Any]:
+    """The env section's AEC env and ``intersection-v0`` in turn (3 rounds; quick: 1 of 3 steps each)."""
+    from trajeglish_env.benchmark.aec import AEC_STEPS, AEC_WARMUP, QUICK_AEC_STEPS, aec_interleaved
+
+    if quick:
+        return aec_interleaved(1, highway_steps, QUICK_AEC_STEPS, 1)
+    return aec_interleaved(AEC_ROUNDS, highway_steps, AEC_STEPS, AEC_WARMUP)
+
+
 def default_npc() -> str:
     """The env run of the env's default NPCs (default sampling: guarded or not)."""
     from trajeglish_env.sampler.config import SamplingConfig
@@ -364,6 +376,8 @@ def ratios(result: dict[str, Any]) -> dict[str, Any]:
     base_steps = result.get("highway_env", {}).get("steps_per_s")
     if "aec" in result and base_steps:
         out["aec_env_to_highway_env"] = round(result["aec"]["env_steps_per_s"] / base_steps, 3)
+    if "aec_interleaved" in result:
+        out["aec_env_to_highway_env_interleaved"] = result["aec_interleaved"]["median_ratio"]
     if (womd := womd_ratio(result.get("womd", {}))) is not None:
         out["womd_env_to_highway_env"] = womd
     for b, run in result.get("busy", {}).items():
@@ -418,6 +432,12 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
             f"AEC env, {a['agents']} agents (sdc replays its log, {len(a['scenes'])} bundled scenes): "
             f"{a['env_steps_per_s']} steps/s "
             f"({result['ratios'].get('aec_env_to_highway_env')}x intersection-v0)"
+        )
+    if "aec_interleaved" in result:
+        t = result["aec_interleaved"]
+        lines.append(
+            f"AEC env and intersection-v0 in turn ({t['rounds']} rounds): {t['median_ratio']}x (median of "
+            f"{', '.join(str(r) for r in t['ratios'])})"
         )
     for npc, runs in result.get("env", {}).items():
         for b, run in runs.items():
