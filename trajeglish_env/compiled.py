@@ -1,4 +1,5 @@
-"""The guard's compiled kernels (:mod:`~trajeglish_env.guard_kernels`), imported on first use (numba takes a
+"""The guard's compiled kernels (:mod:`~trajeglish_env.guard_kernels`, :mod:`~trajeglish_env.pair_kernels`),
+imported on first use (numba takes a
 third of a second to import, which a user who never samples a guarded step should not pay), and the box
 overlaps the guard asks through them."""
 
@@ -11,6 +12,7 @@ import numpy as np
 from trajeglish_env.metrics.boxes import box_collisions
 
 _KERNELS: list[ModuleType] = []
+_PAIR_KERNELS: list[ModuleType] = []
 
 
 def compiled() -> ModuleType | None:
@@ -21,6 +23,18 @@ def compiled() -> ModuleType | None:
 
         _KERNELS.append(guard_kernels)
     return _KERNELS[0] if _KERNELS[0].AVAILABLE else None
+
+
+def pair_compiled() -> ModuleType | None:
+    """:mod:`~trajeglish_env.pair_kernels` (the guard's neighbours, following caps and stall history), or
+    None where the kernels are off (as :func:`compiled`)."""
+    if compiled() is None:
+        return None
+    if not _PAIR_KERNELS:
+        from trajeglish_env import pair_kernels
+
+        _PAIR_KERNELS.append(pair_kernels)
+    return _PAIR_KERNELS[0]
 
 
 def overlaps(xyh_a: np.ndarray, size_a: np.ndarray, xyh_b: np.ndarray, size_b: np.ndarray) -> np.ndarray:

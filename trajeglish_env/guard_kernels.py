@@ -305,6 +305,35 @@ def block_lists(
 
 
 @_jit
+def box_gap(
+    ax: float,
+    ay: float,
+    ah: float,
+    al: float,
+    aw: float,
+    bx: float,
+    by: float,
+    bh: float,
+    bl: float,
+    bw: float,
+) -> float:  # pragma: no cover - compiled
+    """The separating-axis gap of box ``(ax, ay, ah)`` (length ``al``, width ``aw``) and box ``(bx, by, bh)``
+    (:func:`~trajeglish_env.metrics.boxes.box_collisions`' operations): negative where they overlap."""
+    dx, dy = bx - ax, by - ay
+    cos_a, sin_a, cos_b, sin_b = np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh)
+    c = cos_a * cos_b + sin_a * sin_b
+    s = cos_a * sin_b - sin_a * cos_b
+    pax, pay = cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx
+    pbx, pby = -(cos_b * dx + sin_b * dy), -(cos_b * dy - sin_b * dx)
+    la, wa, lb, wb = al / 2, aw / 2, bl / 2, bw / 2
+    ac, as_ = np.abs(c), np.abs(s)
+    return np.maximum(
+        np.maximum(np.abs(pax) - la - (lb * ac + wb * as_), np.abs(pay) - wa - (lb * as_ + wb * ac)),
+        np.maximum(np.abs(pbx) - lb - (la * ac + wa * as_), np.abs(pby) - wb - (la * as_ + wa * ac)),
+    )
+
+
+@_jit
 def box_overlaps(
     a: np.ndarray, size_a: np.ndarray, b: np.ndarray, size_b: np.ndarray, out: np.ndarray
 ) -> None:
@@ -312,16 +341,5 @@ def box_overlaps(
     (:func:`~trajeglish_env.metrics.boxes.box_collisions` with sharp corners: the separating-axis gap, the
     same operations)."""  # pragma: no cover - compiled
     for i in range(a.shape[0]):
-        dx, dy = b[i, 0] - a[i, 0], b[i, 1] - a[i, 1]
-        cos_a, sin_a, cos_b, sin_b = np.cos(a[i, 2]), np.sin(a[i, 2]), np.cos(b[i, 2]), np.sin(b[i, 2])
-        c = cos_a * cos_b + sin_a * sin_b
-        s = cos_a * sin_b - sin_a * cos_b
-        ax, ay = cos_a * dx + sin_a * dy, cos_a * dy - sin_a * dx
-        bx, by = -(cos_b * dx + sin_b * dy), -(cos_b * dy - sin_b * dx)
-        la, wa, lb, wb = size_a[i, 0] / 2, size_a[i, 1] / 2, size_b[i, 0] / 2, size_b[i, 1] / 2
-        ac, as_ = np.abs(c), np.abs(s)
-        gap = np.maximum(
-            np.maximum(np.abs(ax) - la - (lb * ac + wb * as_), np.abs(ay) - wa - (lb * as_ + wb * ac)),
-            np.maximum(np.abs(bx) - lb - (la * ac + wa * as_), np.abs(by) - wb - (la * as_ + wa * ac)),
-        )
-        out[i] = gap < 0
+        ax, ay, ah, al, aw = a[i, 0], a[i, 1], a[i, 2], size_a[i, 0], size_a[i, 1]
+        out[i] = box_gap(ax, ay, ah, al, aw, b[i, 0], b[i, 1], b[i, 2], size_b[i, 0], size_b[i, 1]) < 0

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from trajeglish_env.compiled import pair_compiled
+
 STEP_SECONDS = 0.1  # the model's step: every scene source samples at 10 Hz (Scenario.dt)
 FOLLOW_GAP = 1.0  # metres a follower keeps behind the box ahead at a standstill (the collision rule: 0)
 FOLLOW_SIDE = 0.25  # metres beyond the half widths' sum within which a box counts as in the path
@@ -44,7 +46,13 @@ def follow_caps(
     last forward step ``pace [n]``, NaN unknown, last heading change ``turn [n]``) among the boxes at
     ``state [n,N,3]`` (``sizes [n,N,2]``, ``present [n,N]``, each rider's own box not present; ``riders
     [n,N]``: vehicles and cyclists) moving at ``velocity [n,N,2]`` m/s, braking at ``decel`` m/s^2; inf
-    where no box is followed."""
+    where no box is followed (compiled where numba is available: :mod:`~trajeglish_env.pair_kernels`)."""
+    kernels = pair_compiled()
+    if kernels is not None:
+        out = np.empty(len(origin))
+        floats = (np.ascontiguousarray(a, np.float64) for a in (origin, size, pace, turn, state, sizes))
+        kernels.follow_caps(*floats, present, np.ascontiguousarray(velocity, np.float64), riders, decel, out)
+        return out
     dt = STEP_SECONDS
     c, s = np.cos(origin[:, 2])[:, None], np.sin(origin[:, 2])[:, None]
     dx, dy = state[..., 0] - origin[:, None, 0], state[..., 1] - origin[:, None, 1]

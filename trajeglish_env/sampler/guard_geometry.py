@@ -19,7 +19,7 @@ from typing import TypeVar
 import numpy as np
 
 from trajeglish_env.batch_geometry import PaddedRows, nearest_first
-from trajeglish_env.compiled import overlaps
+from trajeglish_env.compiled import overlaps, pair_compiled
 from trajeglish_env.edge_cells import EdgeCells
 from trajeglish_env.geometry import to_global
 from trajeglish_env.sampler.candidate_memo import CandidateMemo, memo_keys
@@ -291,7 +291,7 @@ class GuardGeometry:
             if ld is not None:
                 lanes[row] = ld
         for ld, rows in _by_scene(lanes, list(lanes)):
-            q = np.flatnonzero(vehicles & np.isin(rr, rows))
+            q = np.flatnonzero(vehicles & _among(rr, rows))
             keep[q] = ~ld.against(origin[q])  # off the lanes too: a junction is no way into the oncoming lane
         return keep, lanes
 
@@ -328,7 +328,7 @@ class GuardGeometry:
             if ss is not None:
                 signals[row] = ss
         for ss, rows in _by_scene(signals, list(signals)):  # rows of one scene share its signals: one pass
-            q = np.flatnonzero(riders & np.isin(rr, rows))
+            q = np.flatnonzero(riders & _among(rr, rows))
             red[q] = ss.near_red(origin[q, :2], tt[q], extent[q]).any(axis=1)
             green[q] = ss.green_ahead(origin[q], size[q, 0], tt[q])
         return red, green, signals
@@ -355,6 +355,24 @@ class GuardGeometry:
         now = rs.xyh[rr, :, tt]
         state, present, _, moved = latest
         sizes = rs.size[rr]
+        kernels = pair_compiled()
+        if kernels is not None:  # the same numbers, compiled (pair_kernels.neighbours)
+            into_ok = moved & valid_now & valid_after & ~rs.row_external[rr]
+            order, count = np.empty(present.shape, np.int64), np.empty(n, np.int64)
+            escape, tangled = np.empty(present.shape, bool), np.empty(n, bool)
+            floats = (np.ascontiguousarray(a, np.float64) for a in (origin, size, extent))
+            kernels.neighbours(
+                *floats,
+                who.astype(np.int64),
+                np.ascontiguousarray(state, np.float64),
+                present,
+                sizes,
+                *(self.escape, into_ok, np.ascontiguousarray(now, np.float64), order, count, escape, tangled),
+            )
+            k = int(count.max(initial=0))
+            idx, real = order[:, :k], np.arange(k) < count[:, None]
+            rows = np.arange(n)[:, None]
+            return state[rows, idx], sizes[rows, idx], real, escape[rows, idx] & real, tangled
         d = np.hypot(state[..., 0] - origin[:, None, 0], state[..., 1] - origin[:, None, 1])
         near = present & (d < extent[:, None] + half_diagonal(sizes))
         near[np.arange(n), who] = False
@@ -458,7 +476,7 @@ class GuardGeometry:
             off[q] = self._excess(p, sel[q], tokens[q], cand[q]) > p.edges.limit[sel[q]][:, None]
         red = p.red[sel]
         for ss, rows in _by_scene(p.signals, np.unique(p.rows[sel][red]).tolist()):  # one pass per scene
-            q = np.flatnonzero(red & np.isin(p.rows[sel], rows))
+            q = np.flatnonzero(red & _among(p.rows[sel], rows))
             pick = sel[q]
             near = ss.near_red(p.origin[pick, :2], p.t[pick], p.extent[pick])
             off[q] |= ss.violations(p.origin[pick, :2], cand[q, :, :2], p.t[pick], near)
@@ -469,7 +487,7 @@ class GuardGeometry:
             off[follow] |= step > cap[follow, None] + FOLLOW_SLACK
         way = p.keep_way[sel]
         for ld, rows in _by_scene(p.lanes, np.unique(p.rows[sel][way]).tolist()):  # one pass per scene
-            q = np.flatnonzero(way & np.isin(p.rows[sel], rows))
+            q = np.flatnonzero(way & _among(p.rows[sel], rows))
             off[q] |= ld.against(cand[q])
         go = p.depart[sel]
         if go.any():  # standing or creeping: the step must grow by DEPART_GAIN a step up to DEPART_PACE
@@ -491,3 +509,8 @@ def _by_scene(per_row: dict[int, T], rows: list[int]) -> list[tuple[T, list[int]
         ss = per_row[row]
         groups.setdefault(id(ss), (ss, []))[1].append(row)
     return list(groups.values())
+
+
+def _among(values: np.ndarray, rows: list[int]) -> np.ndarray:
+    """``np.isin(values, rows)``, a comparison where ``rows`` is one row (a single env: every call)."""
+    return values == rows[0] if len(rows) == 1 else np.isin(values, rows)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from trajeglish_env.compiled import pair_compiled
 from trajeglish_env.sampler.guard_signals import DEPART_GAIN, DEPART_PACE, DEPART_STEP
 
 # Steps of the departure phase after a stall: the rule holds for at most this many steps after the last
@@ -42,7 +43,15 @@ def stalled(mxyh: np.ndarray, valid: np.ndarray, t: np.ndarray, min_steps: int) 
     """``[n]`` from the model states ``mxyh [n,T,3]`` / ``valid [n,T]`` of n agents up to their steps ``t
     [n]``: those whose last run of standing steps (moving less than :data:`DEPART_STEP` m each) lasted at
     least ``min_steps`` steps, ended at most :data:`RELEASE_STEPS` steps before ``t`` (or at ``t``), and
-    came after a step that drove (more than :data:`DROVE_MOVE` m)."""
+    came after a step that drove (more than :data:`DROVE_MOVE` m). Compiled where numba is available
+    (:mod:`~trajeglish_env.pair_kernels`)."""
+    kernels = pair_compiled()
+    if kernels is not None:
+        out = np.empty(len(valid), bool)
+        kernels.stalled(
+            np.ascontiguousarray(mxyh, np.float64), valid, t.astype(np.int64), int(min_steps), out
+        )
+        return out
     n, T = valid.shape
     k = np.arange(1, T)
     move = np.hypot(*(mxyh[:, 1:, :2] - mxyh[:, :-1, :2]).transpose(2, 0, 1))  # [n,T-1] step k-1 -> k

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from trajeglish_env.compiled import pair_compiled
 from trajeglish_env.scenario import MapKind, Scenario
 
 CELL = 0.5  # metres: a grid cell's side
@@ -112,6 +113,12 @@ class LaneDirections:
 
     def against(self, xyh: np.ndarray) -> np.ndarray:
         """``[...]`` boxes at ``xyh [...,3]`` whose centre is on some lane and whose heading runs against
-        every lane there."""
+        every lane there (compiled where numba is available: :mod:`~trajeglish_env.pair_kernels`)."""
+        kernels = pair_compiled()
+        if kernels is not None:
+            flat = np.ascontiguousarray(xyh, np.float64).reshape(-1, 3)
+            out = np.empty(len(flat), bool)
+            kernels.lanes_against(self.masks, self.x0, self.y0, self.cell, flat, AGREE, out)
+            return out.reshape(xyh.shape[:-1])
         bits = self.lane_bits(xyh[..., :2])
         return (bits != 0) & ((bits & AGREE[direction_bin(xyh[..., 2])]) == 0)

@@ -12,7 +12,7 @@ import numpy as np
 
 from trajeglish_env.batch_geometry import edge_rows, road_edges
 from trajeglish_env.scenario import Scenario, agent_name
-from trajeglish_env.tokenizer.tokenize import tokenize
+from trajeglish_env.tokenizer.tokenize import tokenize, tokenize_moves
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
 # A row's road edges as :func:`~trajeglish_env.batch_geometry.edge_rows` gives them: columns [7,S]
@@ -328,6 +328,20 @@ class RowStates:
             raise RuntimeError(f"rows {rows[~self.stepping[rows]].tolist()} are not stepping")
         t = self.now[rows]
         ok = np.broadcast_to(np.asarray(valid, dtype=bool), (n,)) & self.valid[rows, agents, t]
+        bad = ok & ~np.isfinite(next_xyh).all(axis=1)
+        if bad.any():
+            q = int(np.flatnonzero(bad)[0])
+            b, a = int(rows[q]), int(agents[q])
+            sc = self.scenes[b]
+            name = (
+                agent_name(sc.kind[a], sc.track_id[a])
+                if sc is not None and a < sc.num_agents
+                else f"agent {a}"
+            )
+            raise ValueError(
+                f"supplied state of external {name} (agent index {a}) of row {b} at step {int(t[q]) + 1}: "
+                f"expected finite x, y, heading, got {next_xyh[q].tolist()}"
+            )
         self.xyh[rows, agents, t + 1] = np.where(ok[:, None], next_xyh, 0.0)
         self.valid[rows, agents, t + 1] = ok
         self.known[rows, agents, t] = True
@@ -342,19 +356,24 @@ class RowStates:
             return
         rows, agents, t, nxt, ok = (np.concatenate(parts) for parts in zip(*self._supplied, strict=True))
         self._supplied = []
-        pair = np.stack([self.mxyh[rows, agents, t], nxt], 1)[:, None]  # [n,1,2,3]
-        tok = tokenize(
-            self.vocab,
-            pair,
-            np.stack([ok, ok], 1)[:, None],
-            self.size[rows, agents][:, None, :],
-            self.kind[rows, agents][:, None],
+        if len(rows) > 1:  # an agent supplied twice before the call: its last supply counts
+            _, last = np.unique((rows * self.N + agents)[::-1], return_index=True)
+            keep = np.sort(len(rows) - 1 - last)
+            rows, agents, t, nxt, ok = rows[keep], agents[keep], t[keep], nxt[keep], ok[keep]
+        self.tokens[rows, agents, t] = -1
+        self.mxyh[rows, agents, t + 1] = 0.0
+        rows, agents, t, nxt = rows[ok], agents[ok], t[ok], nxt[ok]
+        if not len(rows):
+            return
+        base = self.mxyh[rows, agents, t]
+        tokens, states, error = tokenize_moves(
+            self.vocab, base, nxt, self.size[rows, agents], self.kind[rows, agents]
         )
-        self.tokens[rows, agents, t] = np.where(ok, tok.tokens[:, 0, 0], -1)
-        self.mxyh[rows, agents, t + 1] = np.where(ok[:, None], np.nan_to_num(tok.xyh[:, 0, 1]), 0.0)
-        drift = ok & (np.nan_to_num(tok.error[:, 0, 1]) > self.drift_tolerance)
+        self.tokens[rows, agents, t] = tokens
+        self.mxyh[rows, agents, t + 1] = states
+        drift = error > self.drift_tolerance
         if drift.any():
-            self._warn_drift(rows[drift], agents[drift], tok.error[drift, 0, 1], t[drift])
+            self._warn_drift(rows[drift], agents[drift], error[drift], t[drift])
 
     def _warn_drift(self, rows: np.ndarray, agents: np.ndarray, error: np.ndarray, t: np.ndarray) -> None:
         """Warn once per row start and agent whose tokenized state drifts beyond ``drift_tolerance``."""

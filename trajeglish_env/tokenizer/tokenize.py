@@ -23,7 +23,7 @@ import numpy as np
 
 from trajeglish_env.geometry import to_global, to_local
 from trajeglish_env.scenario import AgentKind, Scenario
-from trajeglish_env.tokenizer.nearest import nearest_templates, templates_within
+from trajeglish_env.tokenizer.nearest import SearchTable, nearest_templates, templates_within
 from trajeglish_env.tokenizer.noise import NoiseConfig, sample_nucleus
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
@@ -101,6 +101,34 @@ def check_inputs(xyh: np.ndarray, valid: np.ndarray, size: np.ndarray, kind: np.
         _fail(f"size: {agent} needs a finite length and width > 0, got {size.reshape(-1, 2)[flat].tolist()}")
 
 
+def nearest_moves(
+    table: SearchTable, base: np.ndarray, target: np.ndarray, size: np.ndarray, threads: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One step of tokenizing ``m`` agents of one class: from states ``base [m,3]`` towards ``target [m,3]``
+    (boxes ``size [m,2]``), the nearest template ``[m]``, its corner distance to the target ``[m]`` (m) and
+    the state it leads to ``[m,3]``."""
+    index, dist = nearest_templates(table, to_local(base, target), size, threads=threads)
+    return index, dist, to_global(base, table.templates[index])
+
+
+def tokenize_moves(
+    vocab: MotionVocabulary, base: np.ndarray, target: np.ndarray, size: np.ndarray, kind: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`tokenize` of single moves, lean for a few agents stepped at a time (an env's supplied egos):
+    ``n`` agents at finite states ``base [n,3]`` moving to finite ``target [n,3]`` (``size [n,2]``, ``kind
+    [n]``). Returns the tokens ``[n]``, the tokenized states ``[n,3]`` and their corner distances to the
+    targets ``[n]``, the numbers :func:`tokenize` gives for the same two-step tracks."""
+    n = len(base)
+    tokens, states, error = np.empty(n, np.int64), np.empty((n, 3)), np.empty(n)
+    base, target, size = (np.asarray(a, dtype=np.float64) for a in (base, target, size))
+    for k in np.unique(kind).tolist():
+        at = np.flatnonzero(kind == k)
+        tokens[at], error[at], states[at] = nearest_moves(
+            vocab.search_tables[k], base[at], target[at], size[at]
+        )
+    return tokens, states, error
+
+
 def tokenize(
     vocab: MotionVocabulary,
     xyh: np.ndarray,
@@ -160,21 +188,20 @@ def tokenize(
             if isinstance(active, np.ndarray) and not len(active):
                 continue
             base = states[t, active]
-            local = to_local(base, logged[t + 1, active])
             table = vocab.search_tables[k]
             if noise is None:
-                index, dist = nearest_templates(table, local, box[active], threads=threads)
-                noisy = index
+                index, dist, states[t + 1, active] = nearest_moves(
+                    table, base, logged[t + 1, active], box[active], threads
+                )
             else:
+                local = to_local(base, logged[t + 1, active])
                 pair_row, pair_template, pair_dist = templates_within(table, local, box[active], margin)
                 heads = np.flatnonzero(np.r_[True, pair_row[1:] != pair_row[:-1]])
                 index, dist = pair_template[heads], pair_dist[heads]
                 uniform = draws.take(active)  # type: ignore[union-attr]
-                noisy = pair_template[sample_nucleus(pair_row, pair_dist, noise, uniform)]
+                input_tokens[t, active] = pair_template[sample_nucleus(pair_row, pair_dist, noise, uniform)]
+                states[t + 1, active] = to_global(base, table.templates[index])
             tokens[t, active] = index
-            if noise is not None:
-                input_tokens[t, active] = noisy
-            states[t + 1, active] = to_global(base, table.templates[index])
             error[t + 1, active] = dist
 
     inverse = np.argsort(order)

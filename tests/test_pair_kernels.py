@@ -1,0 +1,266 @@
+"""The compiled kernels of the guard's view of a pair (trajeglish_env/pair_kernels.py): the obstacles near
+each agent, the following rule's caps, the stall rule's history and the wrong-way rule's lanes equal the
+NumPy path's, call by call, on every call of guarded rollouts of a bundled SUMO scene (with and without the
+escape rule) and on a crowd of boxes drawn on top of one another; the supplied ego's lean tokenization
+equals the general tokenizer's."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+from helpers import bundle_scene
+
+import trajeglish_env.guard_kernels as guard_kernels
+import trajeglish_env.sampler.guard_follow as guard_follow
+import trajeglish_env.sampler.guard_geometry as guard_geometry
+import trajeglish_env.sampler.guard_stall as guard_stall
+import trajeglish_env.sampler.lane_directions as lane_directions
+from trajeglish_env.compiled import pair_compiled
+from trajeglish_env.sampler.lane_directions import LaneDirections
+
+MODULES = (guard_follow, guard_geometry, guard_stall, lane_directions)
+
+
+def _numpy(fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)`` on the NumPy paths (the kernels switched off in every module that asks for them)."""
+    with pytest.MonkeyPatch.context() as mp:
+        for m in MODULES:
+            mp.setattr(m, "pair_compiled", lambda: None)
+        return fn(*args)
+
+
+def _equal(got: Any, want: Any) -> None:
+    got, want = (x if isinstance(x, tuple) else (x,) for x in (got, want))
+    assert len(got) == len(want)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+        assert a.dtype == b.dtype and a.shape == b.shape
+
+
+def _rollout_calls(escape: bool) -> dict[str, int]:
+    """Guarded rollouts (shipped model, 2 rollouts x 30 steps) of a bundled SUMO scene: each call of the
+    neighbours, following caps, stall history and lanes is answered by the kernels and by NumPy, compared."""
+    from trajeglish_env.benchmark.workloads import benchmark_scenes
+    from trajeglish_env.checkpoint import load_pretrained
+    from trajeglish_env.sampler import RolloutEngine, SamplingConfig
+
+    assert pair_compiled() is not None, (
+        "numba is a dependency of trajeglish_env: install it (pip install numba)"
+    )
+    counts = {"neighbours": 0, "follow": 0, "stall": 0, "lanes": 0, "near": 0, "capped": 0, "stalled": 0}
+    neighbours, follow, stalled = (
+        guard_geometry.GuardGeometry._neighbours,
+        guard_follow.follow_caps,
+        guard_stall.stalled,
+    )
+    against = LaneDirections.against
+
+    def spy_neighbours(self, *args):  # type: ignore[no-untyped-def]
+        got = neighbours(self, *args)
+        _equal(got, _numpy(neighbours, self, *args))
+        counts["neighbours"] += 1
+        counts["near"] += int(got[2].sum())
+        return got
+
+    def spy_follow(*args):  # type: ignore[no-untyped-def]
+        got = follow(*args)
+        _equal(got, _numpy(follow, *args))
+        counts["follow"] += 1
+        counts["capped"] += int(np.isfinite(got).sum())
+        return got
+
+    def spy_stalled(*args):  # type: ignore[no-untyped-def]
+        got = stalled(*args)
+        _equal(got, _numpy(stalled, *args))
+        counts["stall"] += 1
+        counts["stalled"] += int(got.sum())
+        return got
+
+    def spy_against(self, xyh):  # type: ignore[no-untyped-def]
+        got = against(self, xyh)
+        _equal(got, _numpy(against, self, xyh))
+        counts["lanes"] += 1
+        return got
+
+    sc = benchmark_scenes(24)[2]
+    live = sc.valid[:, sc.current_index]
+    config = SamplingConfig(temperature=1.0, guard_escape=escape)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(guard_geometry.GuardGeometry, "_neighbours", spy_neighbours)
+        mp.setattr(guard_geometry, "follow_caps", spy_follow)
+        mp.setattr(guard_geometry, "stalled", spy_stalled)
+        mp.setattr(LaneDirections, "against", spy_against)
+        RolloutEngine(load_pretrained(), sc, 2, 30, live, config=config).run()
+    return counts
+
+
+@pytest.mark.parametrize("escape", [True, False])
+def test_the_kernels_answer_every_call_of_guarded_rollouts_as_numpy_does(escape: bool) -> None:
+    counts = _rollout_calls(escape)
+    assert counts["neighbours"] >= 30 and counts["follow"] >= 30 and counts["lanes"] >= 30
+    assert counts["near"] > 100 and counts["capped"] > 50  # agents near, and agents following others
+    assert counts["stall"] >= 1
+
+
+def _crowd(n: int, agents: int, seed: int) -> tuple[Any, ...]:
+    """``n`` pairs of rows of ``agents`` boxes drawn within a few metres of one another (many overlap now,
+    some overlapped before they moved, some did not), as the guard's view of a step holds them."""
+    rng = np.random.default_rng(seed)
+    rr = np.arange(n)
+    who = rng.integers(0, agents, n)
+    tt = np.full(n, 1)
+    xyh = np.zeros((n, agents, 3, 3))
+    xyh[:, :, 1, :2] = rng.uniform(-6, 6, (n, agents, 2))
+    xyh[:, :, 1, 2] = rng.uniform(-np.pi, np.pi, (n, agents))
+    xyh[:, :, 2] = xyh[:, :, 1] + np.concatenate(
+        [rng.uniform(-1.5, 1.5, (n, agents, 2)), rng.uniform(-0.3, 0.3, (n, agents, 1))], axis=2
+    )
+    valid = rng.random((n, agents, 3)) < 0.9
+    size = np.column_stack([rng.uniform(0.5, 5.0, n * agents), rng.uniform(0.5, 2.2, n * agents)])
+    rs = SimpleNamespace(
+        valid=valid, xyh=xyh, size=size.reshape(n, agents, 2), row_external=rng.random((n, agents)) < 0.2
+    )
+    origin = xyh[rr, who, 1]
+    own = rs.size[rr, who]
+    extent = 3.0 + guard_geometry.half_diagonal(own)
+    moved = rng.random((n, agents)) < 0.5
+    state = np.where(moved[..., None] & valid[:, :, 2, None], xyh[:, :, 2], xyh[:, :, 1])
+    present = (moved & valid[:, :, 2]) | (valid[:, :, 1] & ~moved)
+    latest = (state, present, np.zeros((n, agents, 2)), moved)
+    return rs, rr, who, tt, origin, own, extent, latest
+
+
+@pytest.mark.parametrize("escape", [True, False])
+def test_the_neighbours_of_a_crowd_equal_numpy(escape: bool) -> None:
+    """Ties of distance included (boxes on one spot), the nearest first, the others padded as NumPy pads."""
+    geometry = guard_geometry.GuardGeometry(np.zeros((3, 4, 3)), escape=escape)
+    args = _crowd(400, 24, 11)
+    args[7][0][:50, :6] = args[7][0][:50, :1]  # six agents on one spot in 50 rows: equal distances
+    got = geometry._neighbours(*args)
+    want = _numpy(geometry._neighbours, *args)
+    _equal(got, want)
+    assert got[4].sum() > 100 and got[2].sum() > 1000  # tangled pairs, and many agents near
+    assert (got[3].sum() > 20) == escape  # agents kept only to be escaped, with the rule
+
+
+def test_following_caps_and_stalls_of_crowds_and_histories_equal_numpy() -> None:
+    rng = np.random.default_rng(4)
+    n, agents = 500, 16
+    origin = np.column_stack([rng.uniform(-20, 20, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
+    state = origin[:, None] + np.concatenate(
+        [rng.uniform(-30, 30, (n, agents, 2)), rng.normal(0, 0.3, (n, agents, 1))], axis=2
+    )
+    pace = rng.uniform(-0.2, 3.0, n)
+    pace[:40] = np.nan
+    pace[40:80] = 0.0
+    turn = rng.normal(0, 0.05, n)
+    args = (origin, rng.uniform(0.5, 5, (n, 2)), pace, turn, state, rng.uniform(0.5, 5, (n, agents, 2)))
+    present, riders = rng.random((n, agents)) < 0.8, rng.random((n, agents)) < 0.9
+    # boxes on the edge of the path, just inside and just outside it, straight ahead of riders heading east
+    edge = np.arange(0, n, 5)
+    origin[edge] = [0.0, 0.0, 0.0]
+    turn[edge] = 0.0
+    halves = (args[1][edge, 1, None] + args[5][edge, :, 1]) / 2 + guard_follow.FOLLOW_SIDE
+    state[edge, :, 0] = rng.uniform(3, 30, (len(edge), agents))
+    state[edge, :, 1] = halves + np.where(rng.random((len(edge), agents)) < 0.5, -1e-9, 1e-9)
+    state[edge, :, 2] = 0.0
+    velocity = rng.normal(0, 8, (n, agents, 2))
+    caps = guard_follow.follow_caps(*args, present, velocity, riders, 3.0)
+    _equal(caps, _numpy(guard_follow.follow_caps, *args, present, velocity, riders, 3.0))
+    assert 100 < np.isfinite(caps).sum() < n
+    # histories: drive, stand for a while, perhaps set off; gaps and a step not reached yet
+    T = 40
+    speed = np.where(rng.random((n, T)) < 0.5, 0.0, rng.uniform(0, 1.5, (n, T)))
+    speed[:, 10:25] *= rng.random((n, 1)) < 0.5
+    heading = rng.uniform(-np.pi, np.pi, (n, 1))
+    xy = np.cumsum(speed[..., None] * np.stack([np.cos(heading), np.sin(heading)], -1), axis=1)
+    mxyh = np.concatenate([xy, np.broadcast_to(heading[..., None], (n, T, 1))], axis=2)
+    valid = rng.random((n, T)) < 0.97
+    t = rng.integers(1, T, n)
+    for steps in (1, 5, 10):
+        got = guard_stall.stalled(mxyh, valid, t, steps)
+        _equal(got, _numpy(guard_stall.stalled, mxyh, valid, t, steps))
+        assert 0 < got.sum() < n
+    # every run length and every wait after it, to the limits of the rule: drive 5 steps, stand `run` steps
+    run, wait = (a.ravel() for a in np.meshgrid(np.arange(1, 13), np.arange(0, 26)))
+    moves = np.zeros((len(run), T))
+    moves[:, 1:6] = 1.0
+    moves[np.arange(T)[None] > 5 + run[:, None]] = 0.3  # sets off again after the run (when it is reached)
+    xy = np.stack([np.cumsum(moves, axis=1), np.zeros((len(run), T))], -1)
+    mxyh = np.concatenate([xy, np.zeros((len(run), T, 1))], axis=2)
+    valid = np.ones((len(run), T), bool)
+    for steps in (3, 8):
+        got = guard_stall.stalled(mxyh, valid, 5 + run + wait, steps)
+        _equal(got, _numpy(guard_stall.stalled, mxyh, valid, 5 + run + wait, steps))
+        expect = (run >= steps) & (wait == 0)  # standing still at t: stalled once the run is long enough
+        np.testing.assert_array_equal(got[wait == 0], expect[wait == 0])
+        assert got.sum() > 10 and (~got).sum() > 10
+
+
+def test_lanes_against_off_the_grid_and_at_every_heading_equal_numpy() -> None:
+    sc = bundle_scene("sumo-random-999000-0-0")
+    lanes = LaneDirections.of(sc)
+    assert lanes is not None
+    rng = np.random.default_rng(2)
+    ny, nx = lanes.masks.shape
+    m = 50000
+    xy = rng.uniform(
+        [lanes.x0 - 5, lanes.y0 - 5], [lanes.x0 + nx * lanes.cell + 5, lanes.y0 + ny * lanes.cell + 5], (m, 2)
+    )
+    xyh = np.column_stack([xy, rng.uniform(-4 * np.pi, 4 * np.pi, m)]).reshape(100, 500, 3)
+    xyh[0, :5, 0] = np.nan
+    got = lanes.against(xyh)
+    with np.errstate(invalid="ignore"):
+        want = _numpy(lanes.against, xyh)
+    _equal(got, want)
+    assert 0.01 < got.mean() < 0.5
+
+
+def test_the_kernels_are_off_with_the_guard_kernels() -> None:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(guard_kernels, "AVAILABLE", False)
+        assert pair_compiled() is None
+    assert pair_compiled() is not None
+
+
+def test_a_supplied_move_tokenizes_as_the_general_tokenizer_does() -> None:
+    """tokenize_moves (an env's supplied egos) against tokenize of the same two-step tracks: vehicles,
+    pedestrians and cyclists of a SUMO scene at every logged step."""
+    from trajeglish_env.checkpoint import load_pretrained
+    from trajeglish_env.tokenizer.tokenize import tokenize, tokenize_moves
+
+    vocab = load_pretrained().vocabulary
+    sc = bundle_scene("sumo-random-999000-0-1")
+    a, t = np.nonzero(sc.valid[:, :-1] & sc.valid[:, 1:])
+    base = sc.xyh[a, t] + np.random.default_rng(0).normal(0, 0.05, (len(a), 3))  # a model's view, off the log
+    target = sc.xyh[a, t + 1]
+    tokens, states, error = tokenize_moves(vocab, base, target, sc.size[a], sc.kind[a].astype(np.int64))
+    ref = tokenize(
+        vocab,
+        np.stack([base, target], 1)[:, None],
+        np.ones((len(a), 1, 2), bool),
+        sc.size[a][:, None],
+        sc.kind[a].astype(np.int64)[:, None],
+    )
+    np.testing.assert_array_equal(tokens, ref.tokens[:, 0, 0])
+    np.testing.assert_array_equal(states, ref.xyh[:, 0, 1])
+    np.testing.assert_array_equal(error, ref.error[:, 0, 1])
+    assert len(np.unique(sc.kind[a])) >= 2 and len(a) > 500
+
+
+def test_a_non_finite_supplied_state_is_refused_naming_the_agent() -> None:
+    from trajeglish_env.benchmark.workloads import benchmark_scenes
+    from trajeglish_env.env import raw_env
+
+    env = raw_env([benchmark_scenes(24)[0]])
+    env.reset(seed=0)
+    eng = env.batch.rows.engine
+    (ego,) = np.flatnonzero(eng.row_external[0])
+    with pytest.raises(
+        ValueError, match=r"supplied state of external vehicle_\d+ .* expected finite x, y, heading"
+    ):
+        eng.supply(np.array([0]), np.array([ego]), np.array([[np.nan, 0.0, 0.0]]))

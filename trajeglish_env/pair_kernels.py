@@ -1,0 +1,193 @@
+"""Compiled kernels of the guard's view of a pair (numba, when installed): the obstacles near each sampled
+agent, the following rule's speed cap and the stall rule's history, number for number the NumPy code of
+:mod:`~trajeglish_env.sampler.guard_geometry`, :mod:`~trajeglish_env.sampler.guard_follow` and
+:mod:`~trajeglish_env.sampler.guard_stall` they stand in for.
+
+Each of those is a few dozen array calls on arrays of a few agents by a few dozen, called once or twice per
+model call; in a single env their overhead, not their arithmetic, is the cost (stop 88: about a tenth of a
+step). The loops here run the same float64 operations in the same order (no fused multiply-adds: numba's
+default; sines, cosines and hypotenuses from the same C library as NumPy's here, which the tests check),
+so every cap, flag and neighbour order equals the NumPy path's (``tests/test_pair_kernels.py``). Loaded on
+first use through :func:`~trajeglish_env.compiled.pair_compiled`; without numba the NumPy paths run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from trajeglish_env.guard_kernels import _jit, box_gap
+from trajeglish_env.sampler.guard_follow import (
+    FOLLOW_GAP,
+    FOLLOW_SIDE,
+    GRIP_BRAKE_STEP,
+    MAX_CURVATURE,
+    SAME_WAY,
+    STEP_SECONDS,
+)
+from trajeglish_env.sampler.guard_signals import DEPART_STEP
+from trajeglish_env.sampler.guard_stall import DROVE_MOVE, RELEASE_STEPS
+
+COS_SAME_WAY = float(np.cos(SAME_WAY))
+
+
+@_jit
+def follow_caps(
+    origin: np.ndarray,
+    size: np.ndarray,
+    pace: np.ndarray,
+    turn: np.ndarray,
+    state: np.ndarray,
+    sizes: np.ndarray,
+    present: np.ndarray,
+    velocity: np.ndarray,
+    riders: np.ndarray,
+    decel: float,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled (its NumPy twin is guard_follow.follow_caps)
+    """``out [n]``: :func:`~trajeglish_env.sampler.guard_follow.follow_caps` of the same arguments."""
+    dt = STEP_SECONDS
+    for i in range(present.shape[0]):
+        c, s = np.cos(origin[i, 2]), np.sin(origin[i, 2])
+        least = pace[i] if (pace[i] >= 0.05 or np.isnan(pace[i])) else 0.05  # np.maximum keeps NaN
+        bend = turn[i] / least
+        if np.isnan(bend):
+            bend = 0.0
+        curvature = min(max(bend, -MAX_CURVATURE), MAX_CURVATURE)
+        cap = np.inf
+        for j in range(present.shape[1]):
+            if not (present[i, j] and riders[i, j]):
+                continue
+            dx, dy = state[i, j, 0] - origin[i, 0], state[i, j, 1] - origin[i, 1]
+            along, across = dx * c + dy * s, dy * c - dx * s
+            if not along > 0:
+                continue
+            if not np.cos(state[i, j, 2] - origin[i, 2]) > COS_SAME_WAY:
+                continue
+            off_path = np.abs(across - curvature * along * along / 2)
+            if not off_path < (size[i, 1] + sizes[i, j, 1]) / 2 + FOLLOW_SIDE:
+                continue
+            gap = along - (size[i, 0] + sizes[i, j, 0]) / 2
+            v_ahead = max(velocity[i, j, 0] * c + velocity[i, j, 1] * s, 0.0)
+            budget = gap - FOLLOW_GAP + v_ahead * v_ahead / (2 * decel)
+            speed = decel * (np.sqrt(dt * dt + 2 * max(budget, 0.0) / decel) - dt)
+            step = speed * dt
+            if step < cap:
+                cap = step
+        if np.isfinite(cap):
+            floor = 0.0 if np.isnan(pace[i]) else pace[i] - GRIP_BRAKE_STEP
+            out[i] = max(cap, floor)
+        else:
+            out[i] = np.inf
+
+
+@_jit
+def _move(mxyh: np.ndarray, valid: np.ndarray, i: int, k: int, t: int) -> float:
+    """Agent ``i``'s move (m) from step ``k - 1`` to ``k``; NaN where unknown (either state invalid, or
+    after ``t``)."""  # pragma: no cover - compiled
+    if not (valid[i, k] and valid[i, k - 1] and k <= t):
+        return np.nan
+    return math.hypot(mxyh[i, k, 0] - mxyh[i, k - 1, 0], mxyh[i, k, 1] - mxyh[i, k - 1, 1])
+
+
+@_jit
+def stalled(
+    mxyh: np.ndarray, valid: np.ndarray, t: np.ndarray, min_steps: int, out: np.ndarray
+) -> None:  # pragma: no cover - compiled (its NumPy twin is guard_stall.stalled)
+    """``out [n]``: :func:`~trajeglish_env.sampler.guard_stall.stalled` of the same arguments."""
+    for i in range(valid.shape[0]):
+        last_stand = 0
+        for k in range(1, valid.shape[1]):
+            if _move(mxyh, valid, i, k, t[i]) < DEPART_STEP:
+                last_stand = k
+        start = 0  # the last step at or before the run's end that did not stand (0: none)
+        for k in range(max(last_stand, 1), 0, -1):
+            if not _move(mxyh, valid, i, k, t[i]) < DEPART_STEP:
+                start = k
+                break
+        drove = False
+        for k in range(1, start + 1):
+            if _move(mxyh, valid, i, k, t[i]) > DROVE_MOVE:
+                drove = True
+                break
+        run = last_stand - start
+        out[i] = last_stand > 0 and run >= min_steps and t[i] - last_stand <= RELEASE_STEPS and drove
+
+
+@_jit
+def neighbours(
+    origin: np.ndarray,
+    size: np.ndarray,
+    extent: np.ndarray,
+    who: np.ndarray,
+    state: np.ndarray,
+    present: np.ndarray,
+    sizes: np.ndarray,
+    escape_rule: bool,
+    into_ok: np.ndarray,
+    now: np.ndarray,
+    order: np.ndarray,
+    count: np.ndarray,
+    escape: np.ndarray,
+    tangled: np.ndarray,
+) -> None:  # pragma: no cover - compiled (its NumPy twin is GuardGeometry._neighbours)
+    """The obstacles of :meth:`~trajeglish_env.sampler.guard_geometry.GuardGeometry._neighbours`: per pair,
+    ``order [n,N]`` its near agents by (distance, index) then the others by index, ``count [n]`` how many
+    are near, ``escape [n,N]`` (per agent) those kept only to be escaped, ``tangled [n]`` whether its box
+    overlaps one already. ``into_ok [n,N]``: the agents that may have moved into its box this step (moved,
+    present before and after, not external); ``now [n,N,3]`` their states before."""
+    n, agents = present.shape
+    dist, listed = np.empty(agents), np.zeros(agents, np.bool_)
+    for i in range(n):
+        tangled[i] = False
+        used = 0
+        ox, oy, oh, ol, ow = origin[i, 0], origin[i, 1], origin[i, 2], size[i, 0], size[i, 1]
+        for j in range(agents):
+            escape[i, j] = False
+            dist[j] = np.hypot(state[i, j, 0] - ox, state[i, j, 1] - oy)
+            reach = extent[i] + np.hypot(sizes[i, j, 0], sizes[i, j, 1]) / 2
+            if j == who[i] or not (present[i, j] and dist[j] < reach):
+                continue
+            sl, sw = sizes[i, j, 0], sizes[i, j, 1]
+            if box_gap(ox, oy, oh, ol, ow, state[i, j, 0], state[i, j, 1], state[i, j, 2], sl, sw) < 0:
+                tangled[i] = True
+                if not (escape_rule and into_ok[i, j]):
+                    continue
+                if box_gap(ox, oy, oh, ol, ow, now[i, j, 0], now[i, j, 1], now[i, j, 2], sl, sw) < 0:
+                    continue  # overlapping before it moved too: tangled, not escapable
+                escape[i, j] = True
+            # insert j after every listed agent no farther than it: (distance, index) order
+            at = used
+            while at > 0 and dist[order[i, at - 1]] > dist[j]:
+                order[i, at] = order[i, at - 1]
+                at -= 1
+            order[i, at] = j
+            used += 1
+        count[i] = used
+        listed[:] = False
+        for q in range(used):
+            listed[order[i, q]] = True
+        for j in range(agents):  # then the agents not near, by index
+            if not listed[j]:
+                order[i, used] = j
+                used += 1
+
+
+@_jit
+def lanes_against(
+    masks: np.ndarray, x0: float, y0: float, cell: float, xyh: np.ndarray, agree: np.ndarray, out: np.ndarray
+) -> None:  # pragma: no cover - compiled (its NumPy twin is LaneDirections.against)
+    """``out [m]``: :meth:`~trajeglish_env.sampler.lane_directions.LaneDirections.against` of boxes ``xyh
+    [m,3]`` on the grid ``masks [ny,nx]`` at ``(x0, y0)`` of cells of side ``cell``."""
+    ny, nx = masks.shape
+    bins = agree.shape[0]
+    width = 2 * np.pi / bins
+    for i in range(xyh.shape[0]):
+        fx, fy = np.floor((xyh[i, 0] - x0) / cell), np.floor((xyh[i, 1] - y0) / cell)
+        if not (0 <= fx < nx and 0 <= fy < ny):  # off the grid (NaN too): no lane, never against
+            out[i] = False
+            continue
+        bits = np.int64(masks[np.int64(fy), np.int64(fx)])
+        heading = np.int64(np.floor(np.mod(xyh[i, 2], 2 * np.pi) / width)) % bins
+        out[i] = bits != 0 and (bits & agree[heading]) == 0
