@@ -171,3 +171,26 @@ def test_compiled_box_overlaps_equal_box_collisions(kernels_switch) -> None:  # 
     want = box_collisions(a, size_a, b, size_b)
     np.testing.assert_array_equal(got, want)
     assert 0.2 < want.mean() < 0.8 and not want[1000:1500].all()
+
+
+def test_compiled_all_safe_equals_numpy_on_real_maps(kernels_switch) -> None:  # type: ignore[no-untyped-def]
+    """Squares of every size around points of three maps, over blocks computed or not, safe or not, and
+    beyond the grid: the same verdicts."""
+    edges, centres = _maps()
+    padded = _padded(edges)
+    rng = np.random.default_rng(9)
+    cells = EdgeCells()
+    ids = cells.map_ids(edges)
+    n = 4000
+    rows = rng.integers(0, len(edges), n)
+    points = np.stack(centres)[rows] + rng.uniform(-40, 40, (n, 2))
+    kernels_switch(True)
+    near = np.repeat(points[:3000], 8, axis=0) + rng.uniform(-4, 4, (24000, 2))  # blocks computed there
+    cells.signed(ids[np.repeat(rows[:3000], 8)], np.repeat(rows[:3000], 8), near, padded)
+    reach = rng.uniform(0.0, 4.0, n)
+    points[:200] += 1e4  # beyond the grid
+    got = cells.all_safe(ids[rows], points, reach)
+    kernels_switch(False)
+    want = cells.all_safe(ids[rows], points, reach)
+    np.testing.assert_array_equal(got, want)
+    assert want.sum() > 50 and (~want[200:]).sum() > 1000 and not want[:200].any()

@@ -278,6 +278,12 @@ class EdgeCells:
         blocks a vehicle's candidates reach are computed when its corners are first measured."""
         if not len(maps) or not self.slots:
             return np.zeros(len(maps), bool)
+        kernels = compiled()
+        if kernels is not None:  # the same verdicts, block by block (guard_kernels.all_safe)
+            out = np.empty(len(maps), bool)
+            where = (np.ascontiguousarray(centre, np.float64), np.ascontiguousarray(reach, np.float64))
+            kernels.all_safe(self.params, self.table, self.block_safe, maps.astype(np.int64), *where, out)
+            return out
         x0, y0, side = self.params[maps, 0], self.params[maps, 1], self.params[maps, 2] * BLOCK
         lo_x, lo_y, hi_x, hi_y = (
             np.floor((centre[:, k] + sign * reach - origin) / side).astype(np.int64)

@@ -343,3 +343,38 @@ def box_overlaps(
     for i in range(a.shape[0]):
         ax, ay, ah, al, aw = a[i, 0], a[i, 1], a[i, 2], size_a[i, 0], size_a[i, 1]
         out[i] = box_gap(ax, ay, ah, al, aw, b[i, 0], b[i, 1], b[i, 2], size_b[i, 0], size_b[i, 1]) < 0
+
+
+@_jit
+def all_safe(
+    params: np.ndarray,
+    table: np.ndarray,
+    block_safe: np.ndarray,
+    maps: np.ndarray,
+    centre: np.ndarray,
+    reach: np.ndarray,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled (its NumPy twin is EdgeCells.all_safe)
+    """``out [n]``: :meth:`~trajeglish_env.edge_cells.EdgeCells.all_safe` (every block the square of
+    half-side ``reach`` around ``centre`` touches computed and safe), block by block."""
+    for i in range(maps.shape[0]):
+        m = maps[i]
+        x0, y0, side = params[m, 0], params[m, 1], params[m, 2] * BLOCK
+        nbx, nby, base = np.int64(params[m, 3]), np.int64(params[m, 4]), np.int64(params[m, 5])
+        lo_x = np.int64(np.floor((centre[i, 0] + -1 * reach[i] - x0) / side))
+        lo_y = np.int64(np.floor((centre[i, 1] + -1 * reach[i] - y0) / side))
+        hi_x = np.int64(np.floor((centre[i, 0] + 1 * reach[i] - x0) / side))
+        hi_y = np.int64(np.floor((centre[i, 1] + 1 * reach[i] - y0) / side))
+        ok = True
+        for by in range(lo_y, hi_y + 1):
+            for bx in range(lo_x, hi_x + 1):
+                if bx < 0 or by < 0 or bx >= nbx or by >= nby:
+                    ok = False
+                    break
+                slot = table[base + by * nbx + bx]
+                if slot < 0 or not block_safe[slot]:
+                    ok = False
+                    break
+            if not ok:
+                break
+        out[i] = ok

@@ -188,15 +188,13 @@ def guard_view(
     drafted = np.flatnonzero(draft >= 0)
     if not len(drafted):
         return moved, after
-    # pair q moves before pair p when both are of one row and q comes first: an exclusive prefix per row
-    mark = np.zeros((n, N), np.int32)
-    mark[drafted, who[drafted]] = 1
-    prefix = np.cumsum(mark, axis=0) - mark
-    start = np.r_[0, np.flatnonzero(np.diff(rr)) + 1]
-    first = np.repeat(start, np.diff(np.r_[start, n]))
-    moved |= (prefix - prefix[first]) > 0
-    # each row's drafted next states, read by the pairs of that row (only where they count as moved)
+    # pair q moves before pair p when both are of one row and q comes first: per row and agent, the first
+    # pair that drafts it (n: none), before p or not
     rows, inverse = np.unique(rr, return_inverse=True)
+    first = np.full((len(rows), N), n)
+    np.minimum.at(first, (inverse[drafted], who[drafted]), drafted)
+    moved |= first[inverse] < np.arange(n)[:, None]
+    # each row's drafted next states, read by the pairs of that row (only where they count as moved)
     row_after = rs.xyh[rows, :, rs.now[rows] + 1].copy()
     row_after[inverse[drafted], who[drafted]] = draft_states(rs, rr[drafted], who[drafted], draft[drafted])
     after = np.where(moved[..., None], row_after[inverse], after)
