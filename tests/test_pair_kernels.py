@@ -1,8 +1,8 @@
 """The compiled kernels of the guard's view of a pair (trajeglish_env/pair_kernels.py): the obstacles near
-each agent, the following rule's caps, the stall rule's history and the wrong-way rule's lanes equal the
-NumPy path's, call by call, on every call of guarded rollouts of a bundled SUMO scene (with and without the
-escape rule) and on a crowd of boxes drawn on top of one another; the supplied ego's lean tokenization
-equals the general tokenizer's."""
+each agent, the following rule's caps, the stall rule's history, the wrong-way rule's lanes and the
+candidates' verdicts equal the NumPy path's, call by call, on every call of guarded rollouts of a
+bundled SUMO scene (with and without the escape rule) and on a crowd of boxes drawn on top of one
+another; the supplied ego's lean tokenization equals the general tokenizer's."""
 
 from __future__ import annotations
 
@@ -51,13 +51,23 @@ def _rollout_calls(escape: bool) -> dict[str, int]:
     assert pair_compiled() is not None, (
         "numba is a dependency of trajeglish_env: install it (pip install numba)"
     )
-    counts = {"neighbours": 0, "follow": 0, "stall": 0, "lanes": 0, "near": 0, "capped": 0, "stalled": 0}
+    counts = dict.fromkeys(["neighbours", "follow", "stall", "lanes", "near", "capped", "stalled"], 0)
+    counts.update(dict.fromkeys(["blocked", "collide", "off", "jump"], 0))
     neighbours, follow, stalled = (
         guard_geometry.GuardGeometry._neighbours,
         guard_follow.follow_caps,
         guard_stall.stalled,
     )
     against = LaneDirections.against
+    blocked = guard_geometry.GuardGeometry.blocked_parts
+
+    def spy_blocked(self, *args):  # type: ignore[no-untyped-def]
+        got = blocked(self, *args)
+        _equal(got, _numpy(blocked, self, *args))
+        counts["blocked"] += 1
+        for name, part in zip(("collide", "off", "jump"), (got[0], got[2], got[3]), strict=True):
+            counts[name] += int(part.sum())
+        return got
 
     def spy_neighbours(self, *args):  # type: ignore[no-untyped-def]
         got = neighbours(self, *args)
@@ -94,6 +104,7 @@ def _rollout_calls(escape: bool) -> dict[str, int]:
         mp.setattr(guard_geometry, "follow_caps", spy_follow)
         mp.setattr(guard_geometry, "stalled", spy_stalled)
         mp.setattr(LaneDirections, "against", spy_against)
+        mp.setattr(guard_geometry.GuardGeometry, "blocked_parts", spy_blocked)
         RolloutEngine(load_pretrained(), sc, 2, 30, live, config=config).run()
     return counts
 
@@ -103,7 +114,8 @@ def test_the_kernels_answer_every_call_of_guarded_rollouts_as_numpy_does(escape:
     counts = _rollout_calls(escape)
     assert counts["neighbours"] >= 30 and counts["follow"] >= 30 and counts["lanes"] >= 30
     assert counts["near"] > 100 and counts["capped"] > 50  # agents near, and agents following others
-    assert counts["stall"] >= 1
+    assert counts["stall"] >= 1 and counts["blocked"] >= 30
+    assert counts["collide"] > 50 and counts["off"] > 50 and counts["jump"] > 50  # every rule masks some
 
 
 def _crowd(n: int, agents: int, seed: int) -> tuple[Any, ...]:
@@ -264,3 +276,37 @@ def test_a_non_finite_supplied_state_is_refused_naming_the_agent() -> None:
         ValueError, match=r"supplied state of external vehicle_\d+ .* expected finite x, y, heading"
     ):
         eng.supply(np.array([0]), np.array([ego]), np.array([[np.nan, 0.0, 0.0]]))
+
+
+def test_the_verdicts_on_a_crowd_equal_numpy() -> None:
+    """Every rule without a map at once on synthetic pairs: obstacles to avoid and to escape, following
+    caps, departures under the green and the stall rule, speed changes; the shipped vehicle templates."""
+    from trajeglish_env.checkpoint import load_pretrained
+    from trajeglish_env.edge_cells import EdgeCells
+    from trajeglish_env.sampler.guard_edges import RoadView
+
+    templates = load_pretrained().vocabulary.templates
+    geometry = guard_geometry.GuardGeometry(templates, step_change=0.8, stall_steps=5, follow_decel=3.0)
+    rng = np.random.default_rng(8)
+    n, k = 300, 6
+    origin = np.column_stack([rng.uniform(-3, 3, (n, 2)), rng.uniform(-np.pi, np.pi, n)])
+    near = origin[:, None] + np.concatenate(
+        [rng.uniform(-5, 5, (n, k, 2)), rng.normal(0, 1, (n, k, 1))], axis=2
+    )
+    pace = rng.uniform(0, 2.5, n)
+    pace[:30] = np.nan
+    edges = RoadView(np.zeros(n, bool), np.zeros(n), np.full(n, -1), np.zeros(n, np.int64), EdgeCells(), ())  # type: ignore[arg-type]
+    pairs = guard_geometry.Pairs(
+        *(np.zeros(n, np.int64), np.arange(n), np.ones(n, np.int64), origin, rng.uniform(1, 5, (n, 2))),
+        *(np.zeros(n, np.int64), np.full(n, 4.0), near, rng.uniform(0.5, 5, (n, k, 2))),
+        *(rng.random((n, k)) < 0.7, rng.random((n, k)) < 0.3, edges, np.zeros(n, bool)),
+        *(rng.random(n) < 0.2, {}, pace, rng.random(n) < 0.2, np.zeros(n, bool), {}),
+        *(np.where(rng.random(n) < 0.5, rng.uniform(0, 2, n), np.inf), np.zeros((n, 8))),
+    )
+    sel = rng.permutation(n)[:250]
+    tokens = rng.integers(0, templates.shape[1], (250, 40))
+    got = geometry.blocked_parts(pairs, sel, tokens)
+    want = _numpy(geometry.blocked_parts, pairs, sel, tokens)
+    _equal(got, want)
+    for part in got:
+        assert 100 < part.sum() < part.size - 100

@@ -21,6 +21,7 @@ from trajeglish_env.guard_kernels import _jit, box_gap
 from trajeglish_env.sampler.guard_follow import (
     FOLLOW_GAP,
     FOLLOW_SIDE,
+    FOLLOW_SLACK,
     GRIP_BRAKE_STEP,
     MAX_CURVATURE,
     SAME_WAY,
@@ -191,3 +192,58 @@ def lanes_against(
         bits = np.int64(masks[np.int64(fy), np.int64(fx)])
         heading = np.int64(np.floor(np.mod(xyh[i, 2], 2 * np.pi) / width)) % bins
         out[i] = bits != 0 and (bits & agree[heading]) == 0
+
+
+@_jit
+def blocked_core(
+    cand: np.ndarray,
+    size: np.ndarray,
+    near_xyh: np.ndarray,
+    near_size: np.ndarray,
+    near_real: np.ndarray,
+    near_escape: np.ndarray,
+    step: np.ndarray,
+    cap: np.ndarray,
+    need_go: np.ndarray,
+    need_stall: np.ndarray,
+    pace: np.ndarray,
+    change_limit: np.ndarray,
+    collide: np.ndarray,
+    escape: np.ndarray,
+    off: np.ndarray,
+    jump: np.ndarray,
+) -> None:  # pragma: no cover - compiled (its NumPy twin: GuardGeometry.blocked_parts without numba)
+    """The rules of :meth:`~trajeglish_env.sampler.guard_geometry.GuardGeometry.blocked_parts` that need no
+    map, for candidate poses ``cand [m,c,3]`` (forward steps ``step [m,c]``) of ``m`` pairs: ``collide`` /
+    ``escape [m,c]`` overlaps with an obstacle to avoid or only to escape; ``off [m,c]`` faster than the
+    following ``cap [m]`` allows, or slower than a departure needs (``need_go [m]``, NaN: none); ``jump
+    [m,c]`` a forward step changed by more than ``change_limit [m]`` from ``pace [m]``, or slower than a
+    stalled rider's ``need_stall [m]``."""
+    for i in range(step.shape[0]):
+        own = np.hypot(size[i, 0], size[i, 1]) / 2
+        for v in range(step.shape[1]):
+            x, y, h = cand[i, v, 0], cand[i, v, 1], cand[i, v, 2]
+            hard, soft = False, False
+            for k in range(near_xyh.shape[1]):
+                if not near_real[i, k]:
+                    continue
+                limit = own + np.hypot(near_size[i, k, 0], near_size[i, k, 1]) / 2
+                dx, dy = x - near_xyh[i, k, 0], y - near_xyh[i, k, 1]
+                if not dx * dx + dy * dy < limit * limit:  # circles apart: boxes apart
+                    continue
+                nx, ny, nh = near_xyh[i, k, 0], near_xyh[i, k, 1], near_xyh[i, k, 2]
+                if (
+                    box_gap(
+                        x, y, h, size[i, 0], size[i, 1], nx, ny, nh, near_size[i, k, 0], near_size[i, k, 1]
+                    )
+                    < 0
+                ):
+                    if near_escape[i, k]:
+                        soft = True
+                    else:
+                        hard = True
+            collide[i, v], escape[i, v] = hard, soft
+            s = step[i, v]
+            off[i, v] = s > cap[i] + FOLLOW_SLACK or s < need_go[i]
+            change = np.abs(s - pace[i]) / change_limit[i]
+            jump[i, v] = (change > 1.0 and not np.isnan(change)) or s < need_stall[i]

@@ -451,14 +451,11 @@ class GuardGeometry:
             p.rows[sel], p.agents[sel], p.memo_keys[sel], tokens, want, measure, width
         )
 
-    def blocked_parts(
-        self, p: Pairs, sel: np.ndarray, tokens: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`blocked` split ``[m,c]``: overlaps with an obstacle to avoid, with one only to escape
-        (``Pairs.near_escape``); the map rules; the speed-change rule (:meth:`jumps`) with the stall rule."""
-        kind, size = p.kind[sel], p.size[sel]
-        cand = to_global(p.origin[sel][:, None], self.templates[kind[:, None], tokens])  # [m,c,3]
-        collide, escape = np.zeros(tokens.shape, bool), np.zeros(tokens.shape, bool)
+    def _collisions(self, p: Pairs, sel: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``[m,c]`` candidate poses ``cand [m,c,3]`` of pairs ``sel [m]`` overlapping an obstacle to avoid,
+        and one only to escape (``Pairs.near_escape``)."""
+        size = p.size[sel]
+        collide, escape = np.zeros(cand.shape[:2], bool), np.zeros(cand.shape[:2], bool)
         if p.near_xyh.shape[1]:
             nx, ns, real = p.near_xyh[sel], p.near_size[sel], p.near_real[sel]
             dx = cand[:, :, None, 0] - nx[:, None, :, 0]
@@ -470,34 +467,47 @@ class GuardGeometry:
                 soft = p.near_escape[sel][i, k]
                 collide[i[hit & ~soft], v[hit & ~soft]] = True
                 escape[i[hit & soft], v[hit & soft]] = True
-        off = np.zeros(tokens.shape, bool)
+        return collide, escape
+
+    def blocked_parts(
+        self, p: Pairs, sel: np.ndarray, tokens: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`blocked` split ``[m,c]``: overlaps with an obstacle to avoid, with one only to escape
+        (``Pairs.near_escape``); the map rules; the speed-change rule (:meth:`jumps`) with the stall rule."""
+        kind, size = p.kind[sel], p.size[sel]
+        cand = to_global(p.origin[sel][:, None], self.templates[kind[:, None], tokens])  # [m,c,3]
+        step = self.templates[kind[:, None], tokens, 0]
+        # standing or creeping riders under the green or the stall rule: the step must grow by DEPART_GAIN
+        # a step up to DEPART_PACE (NaN: no such need)
+        need_go, need_stall = (
+            np.where(flag, departure_need(p.pace[sel]), np.nan) for flag in (p.depart[sel], p.stall[sel])
+        )
+        kernels = pair_compiled()
+        if kernels is not None:  # the same verdicts, compiled (pair_kernels.blocked_core)
+            collide, escape, off, jump = (np.empty(tokens.shape, bool) for _ in range(4))
+            near = (p.near_xyh[sel], p.near_size[sel], p.near_real[sel], p.near_escape[sel])
+            rules = (p.follow_cap[sel], need_go, need_stall, p.pace[sel], self.step_change[kind])
+            kernels.blocked_core(
+                cand, np.ascontiguousarray(size), *near, step, *rules, collide, escape, off, jump
+            )
+        else:
+            collide, escape = self._collisions(p, sel, cand)
+            # no faster than lets it stop behind the box ahead (inf: no box), no slower than a departure
+            off = (step > p.follow_cap[sel][:, None] + FOLLOW_SLACK) | (step < need_go[:, None])
+            jump = self.jumps(p, sel, tokens) | (step < need_stall[:, None])
         q = np.flatnonzero(p.edges.road[sel])
         if len(q):
-            off[q] = self._excess(p, sel[q], tokens[q], cand[q]) > p.edges.limit[sel[q]][:, None]
+            off[q] |= self._excess(p, sel[q], tokens[q], cand[q]) > p.edges.limit[sel[q]][:, None]
         red = p.red[sel]
         for ss, rows in _by_scene(p.signals, np.unique(p.rows[sel][red]).tolist()):  # one pass per scene
             q = np.flatnonzero(red & _among(p.rows[sel], rows))
             pick = sel[q]
-            near = ss.near_red(p.origin[pick, :2], p.t[pick], p.extent[pick])
-            off[q] |= ss.violations(p.origin[pick, :2], cand[q, :, :2], p.t[pick], near)
-        cap = p.follow_cap[sel]
-        follow = np.isfinite(cap)
-        if follow.any():  # no faster than lets it stop behind the box ahead
-            step = self.templates[kind[follow, None], tokens[follow], 0]
-            off[follow] |= step > cap[follow, None] + FOLLOW_SLACK
+            near_red = ss.near_red(p.origin[pick, :2], p.t[pick], p.extent[pick])
+            off[q] |= ss.violations(p.origin[pick, :2], cand[q, :, :2], p.t[pick], near_red)
         way = p.keep_way[sel]
         for ld, rows in _by_scene(p.lanes, np.unique(p.rows[sel][way]).tolist()):  # one pass per scene
             q = np.flatnonzero(way & _among(p.rows[sel], rows))
             off[q] |= ld.against(cand[q])
-        go = p.depart[sel]
-        if go.any():  # standing or creeping: the step must grow by DEPART_GAIN a step up to DEPART_PACE
-            need = departure_need(p.pace[sel[go]])
-            off[go] |= self.templates[kind[go, None], tokens[go], 0] < need[:, None]
-        jump = self.jumps(p, sel, tokens)
-        stall = p.stall[sel]
-        if stall.any():  # the stall rule's mask is the green rule's, widened with the speed-change rule
-            need = departure_need(p.pace[sel[stall]])
-            jump[stall] |= self.templates[kind[stall, None], tokens[stall], 0] < need[:, None]
         return collide, escape, off, jump
 
 
