@@ -310,3 +310,49 @@ def test_the_verdicts_on_a_crowd_equal_numpy() -> None:
     _equal(got, want)
     for part in got:
         assert 100 < part.sum() < part.size - 100
+
+
+def _memo_run(numpy_path: bool) -> tuple[list[np.ndarray], list[tuple[np.ndarray, ...]], Any]:
+    """60 lookups of a candidate memory (slots whose keys change or stay, entries wanted or not, repeated
+    entries) answered from a table of truths: the answers, the measurements asked for, the memory."""
+    from trajeglish_env.sampler.candidate_memo import KEY_WIDTH, CandidateMemo
+
+    rng = np.random.default_rng(12)
+    truth = rng.normal(size=(4, 10, 3, 50))  # the answer of (row, agent, key version, entry)
+    memo, answers, asked = CandidateMemo(), [], []
+    version = np.zeros((4, 10), np.int64)
+    for _ in range(60):
+        m = int(rng.integers(1, 12))
+        slots = rng.permutation(40)[:m]
+        rows, agents = slots // 10, slots % 10
+        change = rng.random(m) < 0.3
+        version[rows[change], agents[change]] = (version[rows[change], agents[change]] + 1) % 3
+        keys = np.repeat(version[rows, agents][:, None], KEY_WIDTH, axis=1).astype(np.float64)
+        entries = rng.integers(0, 50, (m, 7))
+        want = rng.random((m, 7)) < 0.8
+        at = (rows, agents, version[rows, agents])
+
+        def measure(
+            i: np.ndarray, j: np.ndarray, at: tuple = at, entries: np.ndarray = entries
+        ) -> np.ndarray:  # type: ignore[type-arg]
+            asked.append((i.copy(), j.copy()))
+            return truth[at[0][i], at[1][i], at[2][i], entries[i, j]]
+
+        lookup = (rows, agents, keys, entries, want, measure, 50)
+        got = _numpy(memo.lookup, *lookup) if numpy_path else memo.lookup(*lookup)
+        expect = np.where(want, truth[rows[:, None], agents[:, None], at[2][:, None], entries], np.nan)
+        np.testing.assert_array_equal(got, expect)
+        answers.append(got)
+    return answers, asked, memo
+
+
+def test_the_candidate_memory_answers_and_keeps_as_numpy_does() -> None:
+    """The compiled memory (pair_kernels.memo_gather) against the NumPy one: the same answers (the truths),
+    the same measurements asked for, the same memory afterwards."""
+    (got, got_asked, got_memo), (want, want_asked, want_memo) = _memo_run(False), _memo_run(True)
+    for a, b in zip(got, want, strict=True):
+        _equal(a, b)
+    assert len(got_asked) == len(want_asked) > 20
+    for a, b in zip(got_asked, want_asked, strict=True):
+        _equal(a, b)
+    _equal((got_memo.keys, got_memo.values), (want_memo.keys, want_memo.values))

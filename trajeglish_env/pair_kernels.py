@@ -247,3 +247,41 @@ def blocked_core(
             off[i, v] = s > cap[i] + FOLLOW_SLACK or s < need_go[i]
             change = np.abs(s - pace[i]) / change_limit[i]
             jump[i, v] = (change > 1.0 and not np.isnan(change)) or s < need_stall[i]
+
+
+@_jit
+def memo_gather(
+    keys_store: np.ndarray,
+    values: np.ndarray,
+    rows: np.ndarray,
+    agents: np.ndarray,
+    keys: np.ndarray,
+    entries: np.ndarray,
+    want: np.ndarray,
+    got: np.ndarray,
+) -> int:  # pragma: no cover - compiled (its NumPy twin: CandidateMemo.lookup without numba)
+    """The memory part of :meth:`~trajeglish_env.sampler.candidate_memo.CandidateMemo.lookup`: slots whose
+    stored key differs from ``keys [m,K]`` (compared first for every slot, then cleared and re-keyed in
+    order) lose their answers; ``got [m,c]`` the stored answers at ``entries`` where ``want`` (NaN
+    elsewhere). Returns how many wanted entries are not known yet (NaN)."""
+    m = rows.shape[0]
+    stale = np.zeros(m, np.bool_)
+    for i in range(m):
+        for q in range(keys.shape[1]):
+            if not keys_store[rows[i], agents[i], q] == keys[i, q]:
+                stale[i] = True
+                break
+    for i in range(m):
+        if stale[i]:
+            values[rows[i], agents[i], :] = np.nan
+            keys_store[rows[i], agents[i], :] = keys[i, :]
+    missing = 0
+    for i in range(m):
+        for j in range(entries.shape[1]):
+            if want[i, j]:
+                got[i, j] = values[rows[i], agents[i], entries[i, j]]
+                if np.isnan(got[i, j]):
+                    missing += 1
+            else:
+                got[i, j] = np.nan
+    return missing
