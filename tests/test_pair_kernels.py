@@ -356,3 +356,22 @@ def test_the_candidate_memory_answers_and_keeps_as_numpy_does() -> None:
     for a, b in zip(got_asked, want_asked, strict=True):
         _equal(a, b)
     _equal((got_memo.keys, got_memo.values), (want_memo.keys, want_memo.values))
+
+
+def test_kept_up_poses_equal_numpy() -> None:
+    """Arcs and straight lines (a turn under 1e-6 rad), standing and creeping motions (the step cap), from
+    poses all round the circle: the poses of guard_ahead.kept_up, number for number."""
+    from trajeglish_env.pair_kernels import kept_up_poses
+    from trajeglish_env.sampler.guard_ahead import kept_up
+
+    rng = np.random.default_rng(6)
+    n = 5000
+    origin = np.column_stack([rng.uniform(-500, 500, (n, 2)), rng.uniform(-4, 4, n)])
+    step = np.column_stack([rng.uniform(-0.5, 3.5, n), rng.normal(0, 0.2, n), rng.normal(0, 0.05, n)])
+    step[:500, 2] = rng.uniform(-1e-6, 1e-6, 500)  # straight
+    step[500:700, :2] = rng.uniform(-1e-3, 1e-3, (200, 2))  # creeping: AHEAD_MOST_STEPS steps
+    step[700:750] = 0.0
+    distance = np.array([7.5, 15.0, 30.0])
+    got = np.empty((n, 3, 3))
+    kept_up_poses(origin, step, distance, got)
+    _equal(got, kept_up(origin[:, None], step[:, None], distance))

@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from trajeglish_env.guard_kernels import _jit, box_gap
+from trajeglish_env.sampler.guard_ahead import AHEAD_MOST_STEPS
 from trajeglish_env.sampler.guard_follow import (
     FOLLOW_GAP,
     FOLLOW_SIDE,
@@ -285,3 +286,29 @@ def memo_gather(
             else:
                 got[i, j] = np.nan
     return missing
+
+
+@_jit
+def kept_up_poses(
+    origin: np.ndarray, step: np.ndarray, distance: np.ndarray, out: np.ndarray
+) -> None:  # pragma: no cover - compiled (its NumPy twin is guard_ahead.kept_up)
+    """``out [n,J,3]``: :func:`~trajeglish_env.sampler.guard_ahead.kept_up` of poses ``origin [n,3]`` and
+    motions ``step [n,3]`` kept up for each of ``distance [J]`` m."""
+    for i in range(origin.shape[0]):
+        sx, sy, turn = step[i, 0], step[i, 1], step[i, 2]
+        move = np.hypot(sx, sy)
+        straight = np.abs(turn) < 1e-6
+        th = 1.0 if straight else turn
+        c, s = np.cos(th), np.sin(th)
+        det = (1 - c) * (1 - c) + s * s
+        cx = ((1 - c) * sx - s * sy) / det
+        cy = (s * sx + (1 - c) * sy) / det
+        oc, os_ = np.cos(origin[i, 2]), np.sin(origin[i, 2])
+        for q in range(distance.shape[0]):
+            n = min(distance[q] / max(move, 1e-9), AHEAD_MOST_STEPS)
+            cn, sn = np.cos(n * th), np.sin(n * th)
+            x = n * sx if straight else cx - (cn * cx - sn * cy)
+            y = n * sy if straight else cy - (sn * cx + cn * cy)
+            out[i, q, 0] = origin[i, 0] + oc * x - os_ * y
+            out[i, q, 1] = origin[i, 1] + os_ * x + oc * y
+            out[i, q, 2] = (origin[i, 2] + n * turn + np.pi) % (2.0 * np.pi) - np.pi

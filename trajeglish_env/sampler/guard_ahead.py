@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from trajeglish_env.compiled import pair_compiled
 from trajeglish_env.geometry import to_global
 from trajeglish_env.sampler.guard_edges import RoadView
 
@@ -67,7 +68,13 @@ def road_reach(
     if not len(i):
         return reach
     k = np.arange(1, AHEAD_CHECKS + 1)
-    pose = kept_up(origin[i, None], step[i, j, None], distance * k / AHEAD_CHECKS)  # [n,J,3]
+    kernels = pair_compiled()
+    if kernels is not None:  # the same poses, compiled (pair_kernels.kept_up_poses)
+        pose = np.empty((len(i), AHEAD_CHECKS, 3))
+        floats = (np.ascontiguousarray(a, np.float64) for a in (origin[i], step[i, j]))
+        kernels.kept_up_poses(*floats, np.asarray(distance * k / AHEAD_CHECKS, np.float64), pose)
+    else:
+        pose = kept_up(origin[i, None], step[i, j, None], distance * k / AHEAD_CHECKS)  # [n,J,3]
     off = edges.beyond(sel[i], pose, size[i])  # [n,J]: one pass for every point
     reach[i, j] = np.where(off.any(axis=1), np.argmax(off, axis=1), AHEAD_CHECKS)
     return reach

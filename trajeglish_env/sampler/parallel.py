@@ -190,7 +190,8 @@ def guard_view(
         return moved, after
     # pair q moves before pair p when both are of one row and q comes first: per row and agent, the first
     # pair that drafts it (n: none), before p or not
-    rows, inverse = np.unique(rr, return_inverse=True)
+    starts = np.r_[True, rr[1:] != rr[:-1]]  # the pairs are sorted by row: each row's block of them
+    rows, inverse = rr[starts], np.cumsum(starts) - 1
     first = np.full((len(rows), N), n)
     np.minimum.at(first, (inverse[drafted], who[drafted]), drafted)
     moved |= first[inverse] < np.arange(n)[:, None]
