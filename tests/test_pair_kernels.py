@@ -15,14 +15,18 @@ import pytest
 from helpers import bundle_scene
 
 import trajeglish_env.guard_kernels as guard_kernels
+import trajeglish_env.sampler.candidate_memo as candidate_memo
+import trajeglish_env.sampler.engine as engine
+import trajeglish_env.sampler.guard_ahead as guard_ahead
 import trajeglish_env.sampler.guard_follow as guard_follow
 import trajeglish_env.sampler.guard_geometry as guard_geometry
 import trajeglish_env.sampler.guard_stall as guard_stall
 import trajeglish_env.sampler.lane_directions as lane_directions
+import trajeglish_env.sampler.parallel as parallel
 from trajeglish_env.compiled import pair_compiled
 from trajeglish_env.sampler.lane_directions import LaneDirections
 
-MODULES = (guard_follow, guard_geometry, guard_stall, lane_directions)
+MODULES = (candidate_memo, guard_ahead, guard_follow, guard_geometry, guard_stall, lane_directions, parallel)
 
 
 def _numpy(fn: Callable[..., Any], *args: Any) -> Any:
@@ -52,7 +56,7 @@ def _rollout_calls(escape: bool) -> dict[str, int]:
         "numba is a dependency of trajeglish_env: install it (pip install numba)"
     )
     counts = dict.fromkeys(["neighbours", "follow", "stall", "lanes", "near", "capped", "stalled"], 0)
-    counts.update(dict.fromkeys(["blocked", "collide", "off", "jump"], 0))
+    counts.update(dict.fromkeys(["blocked", "collide", "off", "jump", "view", "seen"], 0))
     neighbours, follow, stalled = (
         guard_geometry.GuardGeometry._neighbours,
         guard_follow.follow_caps,
@@ -60,6 +64,14 @@ def _rollout_calls(escape: bool) -> dict[str, int]:
     )
     against = LaneDirections.against
     blocked = guard_geometry.GuardGeometry.blocked_parts
+    view = parallel.guard_view
+
+    def spy_view(*args):  # type: ignore[no-untyped-def]
+        got = view(*args)
+        _equal(got, _numpy(view, *args))
+        counts["view"] += 1
+        counts["seen"] += int(got[0].sum())
+        return got
 
     def spy_blocked(self, *args):  # type: ignore[no-untyped-def]
         got = blocked(self, *args)
@@ -105,6 +117,8 @@ def _rollout_calls(escape: bool) -> dict[str, int]:
         mp.setattr(guard_geometry, "stalled", spy_stalled)
         mp.setattr(LaneDirections, "against", spy_against)
         mp.setattr(guard_geometry.GuardGeometry, "blocked_parts", spy_blocked)
+        mp.setattr(parallel, "guard_view", spy_view)
+        mp.setattr(engine, "guard_view", spy_view)
         RolloutEngine(load_pretrained(), sc, 2, 30, live, config=config).run()
     return counts
 
@@ -114,7 +128,7 @@ def test_the_kernels_answer_every_call_of_guarded_rollouts_as_numpy_does(escape:
     counts = _rollout_calls(escape)
     assert counts["neighbours"] >= 30 and counts["follow"] >= 30 and counts["lanes"] >= 30
     assert counts["near"] > 100 and counts["capped"] > 50  # agents near, and agents following others
-    assert counts["stall"] >= 1 and counts["blocked"] >= 30
+    assert counts["stall"] >= 1 and counts["blocked"] >= 30 and counts["view"] >= 30 and counts["seen"] > 500
     assert counts["collide"] > 50 and counts["off"] > 50 and counts["jump"] > 50  # every rule masks some
 
 

@@ -312,3 +312,50 @@ def kept_up_poses(
             out[i, q, 0] = origin[i, 0] + oc * x - os_ * y
             out[i, q, 1] = origin[i, 1] + os_ * x + oc * y
             out[i, q, 2] = (origin[i, 2] + n * turn + np.pi) % (2.0 * np.pi) - np.pi
+
+
+@_jit
+def guard_view(
+    known: np.ndarray,
+    rank: np.ndarray,
+    controlled: np.ndarray,
+    external: np.ndarray,
+    xyh: np.ndarray,
+    now: np.ndarray,
+    rr: np.ndarray,
+    who: np.ndarray,
+    draft: np.ndarray,
+    drafted: np.ndarray,
+    moved: np.ndarray,
+    after: np.ndarray,
+) -> None:  # pragma: no cover - compiled (its NumPy twin is parallel.guard_view)
+    """``moved [n,N]`` and ``after [n,N,3]`` of :func:`~trajeglish_env.sampler.parallel.guard_view` for pairs
+    ``(rr, who)`` sorted by row (``draft [n]``: their carried drafts, -1 none; ``drafted [n,3]``: the next
+    states those drafts give), from the rows' ``known``, acting ``rank``, ``controlled``/``external`` flags,
+    states ``xyh`` and steps ``now``."""
+    n, agents = moved.shape
+    first, last = np.empty(agents, np.int64), np.empty(agents, np.int64)
+    start = 0
+    while start < n:
+        r, stop = rr[start], start
+        while stop < n and rr[stop] == r:
+            stop += 1
+        first[:], last[:] = n, -1  # per agent: the first and the last pair of the row that drafts it
+        for q in range(start, stop):
+            if draft[q] >= 0:
+                if first[who[q]] == n:
+                    first[who[q]] = q
+                last[who[q]] = q
+        t = now[r]
+        for p in range(start, stop):
+            own = rank[r, who[p]]
+            for a in range(agents):
+                # decided this step, but not a logged agent acting after it; or drafted by a pair before it
+                seen = known[r, a, t] and not (
+                    own >= 0 and rank[r, a] > own and not (controlled[r, a] or external[r, a])
+                )
+                seen = seen or first[a] < p
+                moved[p, a] = seen
+                source = drafted[last[a]] if seen and last[a] >= 0 else xyh[r, a, t + 1]
+                after[p, a, 0], after[p, a, 1], after[p, a, 2] = source[0], source[1], source[2]
+        start = stop

@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from trajeglish_env.compiled import pair_compiled
 from trajeglish_env.geometry import to_global
 from trajeglish_env.sampler.rows import RowStates
 from trajeglish_env.sampler.sampling import counter_uniform, draft_draws
@@ -182,6 +183,15 @@ def guard_view(
     call), and ``after [n,N,3]``, their next states (drafted ones for the predecessors). ``draft [n]``: the
     drafts the call's inputs carried (-1: none, i.e. not moved)."""
     n, N = len(rr), rs.N
+    kernels = pair_compiled()
+    if kernels is not None:  # the same view, compiled (pair_kernels.guard_view)
+        moved, after, states = np.empty((n, N), bool), np.empty((n, N, 3)), np.zeros((n, 3))
+        some = np.flatnonzero(draft >= 0)
+        states[some] = draft_states(rs, rr[some], who[some], draft[some])
+        flags = (rs.known, rs.acting_rank, rs.row_controlled, rs.row_external, rs.xyh, rs.now)
+        pairs = (rr.astype(np.int64), who.astype(np.int64), draft.astype(np.int64))
+        kernels.guard_view(*flags, *pairs, states, moved, after)
+        return moved, after
     t = rs.now[rr]
     moved = rs.guard_moved(rr, who, t)
     after = rs.xyh[rr, :, t + 1].copy()
