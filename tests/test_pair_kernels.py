@@ -20,13 +20,23 @@ import trajeglish_env.sampler.engine as engine
 import trajeglish_env.sampler.guard_ahead as guard_ahead
 import trajeglish_env.sampler.guard_follow as guard_follow
 import trajeglish_env.sampler.guard_geometry as guard_geometry
+import trajeglish_env.sampler.guard_neighbours as guard_neighbours
 import trajeglish_env.sampler.guard_stall as guard_stall
 import trajeglish_env.sampler.lane_directions as lane_directions
 import trajeglish_env.sampler.parallel as parallel
 from trajeglish_env.compiled import pair_compiled
 from trajeglish_env.sampler.lane_directions import LaneDirections
 
-MODULES = (candidate_memo, guard_ahead, guard_follow, guard_geometry, guard_stall, lane_directions, parallel)
+MODULES = (
+    candidate_memo,
+    guard_ahead,
+    guard_follow,
+    guard_geometry,
+    guard_neighbours,
+    guard_stall,
+    lane_directions,
+)
+MODULES += (parallel,)
 
 
 def _numpy(fn: Callable[..., Any], *args: Any) -> Any:

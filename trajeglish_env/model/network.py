@@ -40,9 +40,7 @@ def additive_mask(allowed: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     )
 
 
-# class logits of up to this many rows of several classes come from one product with every class's head slice
-# (exact: each output column is its own dot product; stop 84 and 88 checked 1 .. 64 rows)
-JOINT_HEAD_ROWS = 64
+JOINT_HEAD_ROWS = 64  # rows of several classes whose logits come from one product (exact: checked 1 .. 64)
 
 
 class TrajeglishModel(nn.Module):
