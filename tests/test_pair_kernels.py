@@ -65,70 +65,45 @@ def _rollout_calls(escape: bool) -> dict[str, int]:
     assert pair_compiled() is not None, (
         "numba is a dependency of trajeglish_env: install it (pip install numba)"
     )
-    counts = dict.fromkeys(["neighbours", "follow", "stall", "lanes", "near", "capped", "stalled"], 0)
-    counts.update(dict.fromkeys(["blocked", "collide", "off", "jump", "view", "seen"], 0))
-    neighbours, follow, stalled = (
-        guard_geometry.GuardGeometry._neighbours,
-        guard_follow.follow_caps,
-        guard_stall.stalled,
-    )
-    against = LaneDirections.against
-    blocked = guard_geometry.GuardGeometry.blocked_parts
-    view = parallel.guard_view
+    counts: dict[str, int] = {}
 
-    def spy_view(*args):  # type: ignore[no-untyped-def]
-        got = view(*args)
-        _equal(got, _numpy(view, *args))
-        counts["view"] += 1
-        counts["seen"] += int(got[0].sum())
-        return got
+    def spy(fn: Callable[..., Any], name: str, tally: Callable[[Any], dict[str, int]]) -> Callable[..., Any]:
+        """``fn`` answered by the kernels and by NumPy, compared; its calls counted under ``name`` and what
+        ``tally`` finds in its answers added up."""
 
-    def spy_blocked(self, *args):  # type: ignore[no-untyped-def]
-        got = blocked(self, *args)
-        _equal(got, _numpy(blocked, self, *args))
-        counts["blocked"] += 1
-        for name, part in zip(("collide", "off", "jump"), (got[0], got[2], got[3]), strict=True):
-            counts[name] += int(part.sum())
-        return got
+        def both(*args: Any) -> Any:
+            got = fn(*args)
+            _equal(got, _numpy(fn, *args))
+            for key, value in {name: 1, **tally(got)}.items():
+                counts[key] = counts.get(key, 0) + value
+            return got
 
-    def spy_neighbours(self, *args):  # type: ignore[no-untyped-def]
-        got = neighbours(self, *args)
-        _equal(got, _numpy(neighbours, self, *args))
-        counts["neighbours"] += 1
-        counts["near"] += int(got[2].sum())
-        return got
+        return both
 
-    def spy_follow(*args):  # type: ignore[no-untyped-def]
-        got = follow(*args)
-        _equal(got, _numpy(follow, *args))
-        counts["follow"] += 1
-        counts["capped"] += int(np.isfinite(got).sum())
-        return got
-
-    def spy_stalled(*args):  # type: ignore[no-untyped-def]
-        got = stalled(*args)
-        _equal(got, _numpy(stalled, *args))
-        counts["stall"] += 1
-        counts["stalled"] += int(got.sum())
-        return got
-
-    def spy_against(self, xyh):  # type: ignore[no-untyped-def]
-        got = against(self, xyh)
-        _equal(got, _numpy(against, self, xyh))
-        counts["lanes"] += 1
-        return got
-
+    parts = ("collide", "escape", "off", "jump")
+    spies = {
+        (guard_geometry, "neighbours"): spy(
+            guard_neighbours.neighbours, "neighbours", lambda g: {"near": int(g[2].sum())}
+        ),
+        (guard_geometry, "follow_caps"): spy(
+            guard_follow.follow_caps, "follow", lambda g: {"capped": int(np.isfinite(g).sum())}
+        ),
+        (guard_geometry, "stalled"): spy(guard_stall.stalled, "stall", lambda g: {"stalled": int(g.sum())}),
+        (LaneDirections, "against"): spy(LaneDirections.against, "lanes", lambda g: {}),
+        (guard_geometry.GuardGeometry, "blocked_parts"): spy(
+            guard_geometry.GuardGeometry.blocked_parts,
+            "blocked",
+            lambda g: {k: int(v.sum()) for k, v in zip(parts, g, strict=True)},
+        ),
+    }
+    view = spy(parallel.guard_view, "view", lambda g: {"seen": int(g[0].sum())})
+    spies.update({(parallel, "guard_view"): view, (engine, "guard_view"): view})
     sc = benchmark_scenes(24)[2]
     live = sc.valid[:, sc.current_index]
     config = SamplingConfig(temperature=1.0, guard_escape=escape)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(guard_geometry.GuardGeometry, "_neighbours", spy_neighbours)
-        mp.setattr(guard_geometry, "follow_caps", spy_follow)
-        mp.setattr(guard_geometry, "stalled", spy_stalled)
-        mp.setattr(LaneDirections, "against", spy_against)
-        mp.setattr(guard_geometry.GuardGeometry, "blocked_parts", spy_blocked)
-        mp.setattr(parallel, "guard_view", spy_view)
-        mp.setattr(engine, "guard_view", spy_view)
+        for (owner, name), wrapper in spies.items():
+            mp.setattr(owner, name, wrapper)
         RolloutEngine(load_pretrained(), sc, 2, 30, live, config=config).run()
     return counts
 
@@ -173,11 +148,10 @@ def _crowd(n: int, agents: int, seed: int) -> tuple[Any, ...]:
 @pytest.mark.parametrize("escape", [True, False])
 def test_the_neighbours_of_a_crowd_equal_numpy(escape: bool) -> None:
     """Ties of distance included (boxes on one spot), the nearest first, the others padded as NumPy pads."""
-    geometry = guard_geometry.GuardGeometry(np.zeros((3, 4, 3)), escape=escape)
-    args = _crowd(400, 24, 11)
+    args = (*_crowd(400, 24, 11), escape)
     args[7][0][:50, :6] = args[7][0][:50, :1]  # six agents on one spot in 50 rows: equal distances
-    got = geometry._neighbours(*args)
-    want = _numpy(geometry._neighbours, *args)
+    got = guard_neighbours.neighbours(*args)
+    want = _numpy(guard_neighbours.neighbours, *args)
     _equal(got, want)
     assert got[4].sum() > 100 and got[2].sum() > 1000  # tangled pairs, and many agents near
     assert (got[3].sum() > 20) == escape  # agents kept only to be escaped, with the rule

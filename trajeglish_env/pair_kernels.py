@@ -133,8 +133,8 @@ def neighbours(
     count: np.ndarray,
     escape: np.ndarray,
     tangled: np.ndarray,
-) -> None:  # pragma: no cover - compiled (its NumPy twin is GuardGeometry._neighbours)
-    """The obstacles of :meth:`~trajeglish_env.sampler.guard_geometry.GuardGeometry._neighbours`: per pair,
+) -> None:  # pragma: no cover - compiled (its NumPy twin is guard_neighbours.neighbours)
+    """The obstacles of :func:`~trajeglish_env.sampler.guard_neighbours.neighbours`: per pair,
     ``order [n,N]`` its near agents by (distance, index) then the others by index, ``count [n]`` how many
     are near, ``escape [n,N]`` (per agent) those kept only to be escaped, ``tangled [n]`` whether its box
     overlaps one already. ``into_ok [n,N]``: the agents that may have moved into its box this step (moved,

@@ -193,7 +193,7 @@ class GuardGeometry:
         origin, size, kind = rs.mxyh[rr, who, tt], rs.size[rr, who], rs.kind[rr, who]
         extent = self.move[kind] + half_diagonal(size)  # candidate corners lie within this of the origin
         latest = seen_states(rs, rr, who, tt, view)
-        *near, escape, tangled = self._neighbours(rs, rr, who, tt, origin, size, extent, latest)
+        *near, escape, tangled = neighbours(rs, rr, who, tt, origin, size, extent, latest, self.escape)
         padded = (
             self._columns.sync(rs.edges, lambda e: e[0]),  # type: ignore[index]
             self._links.sync(rs.edges, lambda e: e[1]),  # type: ignore[index]
@@ -328,20 +328,6 @@ class GuardGeometry:
             red[q] = ss.near_red(origin[q, :2], tt[q], extent[q]).any(axis=1)
             green[q] = ss.green_ahead(origin[q], size[q, 0], tt[q])
         return red, green, signals
-
-    def _neighbours(
-        self,
-        rs: RowStates,
-        rr: np.ndarray,
-        who: np.ndarray,
-        tt: np.ndarray,
-        origin: np.ndarray,
-        size: np.ndarray,
-        extent: np.ndarray,
-        latest: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """:func:`~trajeglish_env.sampler.guard_neighbours.neighbours` under this geometry's escape rule."""
-        return neighbours(rs, rr, who, tt, origin, size, extent, latest, self.escape)
 
     def blocked(self, p: Pairs, sel: np.ndarray, tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For pairs ``sel [m]`` and their candidate ``tokens [m,c]``: which would overlap an obstacle, and
