@@ -76,3 +76,5 @@ def test_cli_demo_with_a_checkpoint(
     # the tiny model's 7 guarded NPCs of the default scene over 5 steps (seed 0): none collides or leaves
     # the road (unguarded, one of them left it)
     assert result["npc_collision_rate"] == 0.0 and result["npc_offroad_rate"] == 0.0
+    # the steady rate after the first timestep (which pays the first use's compiling), and that step apart
+    assert result["env_steps_per_s"] > 0 and result["first_step_s"] > 0
