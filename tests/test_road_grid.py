@@ -131,7 +131,7 @@ def test_kept_road_codes_are_those_computed_afresh(womd: Scenario, monkeypatch: 
         now = int(eng.now[0])
         steps = np.full((1, eng.N), now)
         before = sum(computed)
-        with torch.no_grad(), linear_compute(eng._compute_dtype):
+        with torch.inference_mode(), linear_compute(eng._compute_dtype):  # as the engine's steps run
             got = eng.roads.codes(eng, rows, agents, steps)
         assert torch.equal(got, fresh(now))
         read += int(eng.valid[0, :, now].sum())
@@ -140,7 +140,7 @@ def test_kept_road_codes_are_those_computed_afresh(womd: Scenario, monkeypatch: 
             if now - back <= womd.current_index:
                 break
             before = sum(computed)
-            with torch.no_grad(), linear_compute(eng._compute_dtype):
+            with torch.inference_mode(), linear_compute(eng._compute_dtype):
                 got = eng.roads.codes(eng, rows, agents, steps - back)
             assert torch.equal(got, fresh(now - back))
             assert sum(computed) == before
