@@ -176,3 +176,73 @@ def test_actions_for_finished_agents_are_ignored_and_unknown_names_refused() -> 
         check_scene_actions([["a"]], [{"a": zero, "c": zero}], lambda name: box, [{"a", "b"}])
     with pytest.raises(KeyError, match="no live agent"):
         check_scene_actions([["a"]], [{"a": zero, "b": zero}], lambda name: box)
+
+
+def two_scenes() -> BatchedParallelEnv:
+    """Scene 0 on the merge, scene 1 on the roundabout, every agent external (IDM NPCs: fast)."""
+    penv = BatchedParallelEnv(2, npc="idm", external="all", max_cycles=6, reward=KEEP_GOING)
+    for i, scene in enumerate([MERGE, RING]):
+        penv.reset_scenes([i], seed=i, options={"scene": scene})
+    return penv
+
+
+def test_one_dict_for_a_batch_is_a_type_error_naming_the_expected_list() -> None:
+    """PettingZoo's single-env format (one dict) on a batch: a TypeError, not a bare ``KeyError: 0`` (or,
+    with one key, a count that reads like a wrong number of scenes)."""
+    penv = two_scenes()
+    t = [penv.core.sim(i).t for i in range(2)]
+    zero = np.zeros(2, np.float32)
+    expected = r"step: expected a list of 2 action dicts \(one per scene\), got a dict"
+    with pytest.raises(TypeError, match=expected):
+        penv.step({a: zero for a in penv.agents[0][:2]})
+    with pytest.raises(TypeError, match=expected):
+        penv.step({penv.agents[0][0]: zero})
+    not_a_dict = r"scene 1's actions must be a dict agent name -> action, got ndarray"
+    with pytest.raises(TypeError, match=not_a_dict):
+        penv.step([{a: zero for a in penv.agents[0]}, np.zeros((len(penv.agents[1]), 2), np.float32)])
+    assert [penv.core.sim(i).t for i in range(2)] == t  # nothing moved
+    penv.step(tuple({a: zero for a in agents} for agents in penv.agents))  # a tuple of dicts is a list
+    assert [penv.core.sim(i).t for i in range(2)] == [s + 1 for s in t]
+
+
+def test_a_bad_action_names_its_scene_and_scenario_as_agent_names_repeat_across_scenes() -> None:
+    penv = two_scenes()
+    actions = [{a: np.zeros(2, np.float32) for a in agents} for agents in penv.agents]
+    agent = penv.agents[1][0]
+    actions[1][agent] = np.zeros(3, np.float32)
+    named = f"step: scene 1 \\({RING}\\): agent {agent}: action"
+    with pytest.raises(ValueError, match=named + r" .* must be a finite array of shape \(2,\)"):
+        penv.step(actions)
+    actions[1][agent] = np.array([0.0, 4.0], np.float32)
+    with pytest.raises(ValueError, match=named + " .* outside the action space"):
+        penv.step(actions)
+
+
+def test_reset_scenes_refuses_bools_floats_a_lone_int_out_of_range_and_repeated_indices() -> None:
+    penv = two_scenes()
+    penv.step([{a: np.zeros(2, np.float32) for a in agents} for agents in penv.agents])
+    t = [penv.core.sim(i).t for i in range(2)]
+    with pytest.raises(TypeError, match=r"reset_scenes: scene index True \(bool\) is not an integer; "):
+        penv.reset_scenes([True])  # was scene 1
+    with pytest.raises(TypeError, match=r"scene index 0\.0 \(float\) is not an integer; expected integers"):
+        penv.reset_scenes([0.0])  # was scene 0
+    with pytest.raises(TypeError, match=r"expected a sequence of scene indices \(integers in \[0, 2\)\)"):
+        penv.reset_scenes(1)
+    with pytest.raises(ValueError, match=r"scene indices \[2\] out of range for 2 scenes"):
+        penv.reset_scenes([0, 2])
+    with pytest.raises(ValueError, match=r"reset_scenes: scene indices \[0\] listed more than once"):
+        penv.reset_scenes([0, 1, 0], seed=7)  # was scene 0 restarted twice, two copies of its observations
+    assert [penv.core.sim(i).t for i in range(2)] == t  # nothing restarted
+    obs, _ = penv.reset_scenes(np.array([1]), seed=5)  # NumPy integers are indices
+    assert len(obs) == 1 and penv.core.sim(1).t < t[1] and penv.core.sim(0).t == t[0]
+
+
+def test_a_batched_parallel_env_shows_each_scenes_simulation_to_a_centralised_critic() -> None:
+    """README "Several learned agents in one scene": ``penv.sim(i).view()`` (there is no ``unwrapped``)."""
+    penv = two_scenes()
+    for i, scene in enumerate([MERGE, RING]):
+        view = penv.sim(i).view()
+        assert view.scenario.scenario_id == scene and view.t == penv.core.sim(i).t
+        sim = penv.core.sim(i)
+        assert penv.sim(i) is sim and view.xyh.shape[0] == view.scenario.num_agents
+        assert {sim.names[a] for a in np.flatnonzero(view.external)} >= set(penv.agents[i])

@@ -58,6 +58,21 @@ def test_inverse_actions_reach_the_target() -> None:
     assert action_towards("token", now, 11.0, target, 4.5, LIMITS, 0.1, templates) == 2
 
 
+def test_action_towards_refuses_a_target_that_is_no_state_naming_the_agent() -> None:
+    """``action_towards(agent, [x, y])`` (no heading) was a bare ``IndexError: index 2 is out of bounds``."""
+    env = raw_env(small_scenes()[:1], npc="replay")
+    env.reset(seed=0)
+    agent = env.agent_selection
+    for target, shown in (([0, 0], r"\[0, 0\] \(shape \(2,\)\)"), ([0.0, np.nan, 0.0], r"\[0.0, nan, 0.0\]")):
+        with pytest.raises(
+            ValueError,
+            match=rf"agent '{agent}': .* finite \(x, y, heading\) array of shape \(3,\), got {shown}",
+        ):
+            env.action_towards(agent, target)
+    with pytest.raises(ValueError, match="got abc"):
+        action_towards("delta", np.zeros(3), 1.0, "abc", 4.5, LIMITS, 0.1)
+
+
 def test_logged_paths_resample_extend_and_project() -> None:
     t = np.arange(11)
     xyh = np.zeros((2, 11, 3))

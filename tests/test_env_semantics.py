@@ -261,6 +261,24 @@ def test_bad_inputs_are_refused_with_clear_errors(tmp_path: object) -> None:
         EnvConfig(order="sometimes")
 
 
+def test_an_unknown_option_lists_every_accepted_one_and_the_closest() -> None:
+    """``scene=`` (for ``scenes=``) listed the valid options without ``scenes``, ``render_mode`` and
+    ``config``, and no hint."""
+    with pytest.raises(TypeError, match=r"\['scene'\] \(did you mean 'scenes'\?\); valid options: ") as err:
+        trajeglish_env.env(scene="data/womd", npc="replay")
+    assert all(f"'{name}'" in str(err.value) for name in ("scenes", "render_mode", "config", "max_cycles"))
+    with pytest.raises(TypeError, match=r"\['zzz'\]; valid options: "):  # no close match: no hint
+        EnvConfig().with_overrides(zzz=1)
+
+
+def test_render_size_is_one_positive_int() -> None:
+    """A ``render_size`` of (H, W) was a TypeError comparing a tuple with an int."""
+    square = r"render_size: expected a positive int \(the square picture's side in pixels\), got \(320, 240\)"
+    with pytest.raises(TypeError, match=square):
+        trajeglish_env.env(npc="replay", render_size=(320, 240))
+    assert EnvConfig(render_size=np.int64(64)).render_size == 64
+
+
 def test_missing_shipped_model_names_the_alternatives(
     monkeypatch: pytest.MonkeyPatch, tmp_path: object
 ) -> None:

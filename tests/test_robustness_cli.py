@@ -155,6 +155,16 @@ def test_json_errors_are_one_object_on_stdout(files, capsys) -> None:
     assert len(captured.err.strip().splitlines()) == 1
 
 
+def test_traceback_mode_prints_the_traceback_and_still_exits_2(files, capsys, monkeypatch) -> None:
+    """With TRAJEGLISH_TRACEBACK=1 bad input propagated out of main: exit code 1, not the README's 2."""
+    monkeypatch.setenv("TRAJEGLISH_TRACEBACK", "1")
+    missing = files["tmp"] / "nothere.scn.npz"
+    assert _run(["render", str(missing), "--out", str(files["tmp"] / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err and f"FileNotFoundError: {missing}" in err
+    assert err.strip().splitlines()[-1] == f"trajeglish render: error: {missing}: no such scenario file"
+
+
 @pytest.mark.parametrize("error", [RuntimeError("boom"), KeyError("boom"), IndexError("boom")])
 def test_unexpected_exceptions_keep_their_traceback(files, monkeypatch, error) -> None:
     import trajeglish_env.render
@@ -173,6 +183,45 @@ def test_a_bare_array_as_a_tokenizer_file_is_a_clear_error(tmp_path: Path) -> No
     np.save(tmp_path / "v.npy", np.zeros(3))
     with pytest.raises(VocabularyError, match="v.npy: not a readable tokenizer file .*single array"):
         MotionVocabulary.load(tmp_path / "v.npy")
+
+
+def test_a_text_file_or_a_pickled_npz_gets_no_advice_to_load_it_unsafely(tmp_path: Path, capsys) -> None:
+    """A text file or a foreign .npz of pickled objects given as a scenario shard, a vocabulary, log
+    details or a checkpoint: NumPy's "you can load it unsafely using the allow_pickle= keyword argument"
+    (or torch's "pop from empty list") stood in the message."""
+    from trajeglish_env.checkpoint import CheckpointError, load_checkpoint
+    from trajeglish_env.metrics.log_details_io import load_log_details
+    from trajeglish_env.scenario import ScenarioError
+    from trajeglish_env.scenario_io import load_scenarios
+    from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, VocabularyError
+
+    text = tmp_path / "notes.scn.npz"
+    text.write_text("this is not a scenario file\n")
+    pickled = tmp_path / "foreign.npz"
+    np.savez(pickled, a=np.array([{"x": 1}], dtype=object))
+    plain = "not a NumPy .npz archive written by trajeglish (it holds pickled objects or is not an archive)"
+    loads = [
+        (load_scenarios, ScenarioError, "scenario file"),
+        (MotionVocabulary.load, VocabularyError, "tokenizer file"),
+        (load_log_details, ValueError, "log-details file"),
+    ]
+    for load, error, what in loads:
+        with pytest.raises(error) as err:
+            load(text)
+        assert str(err.value) == f"{text}: not a readable {what} (truncated or corrupt?): {plain}"
+        with pytest.raises(error, match="foreign.npz: ") as err:
+            load(pickled)
+        assert "allow_pickle" not in str(err.value)
+    with pytest.raises(VocabularyError, match=f"foreign.npz: not a readable tokenizer file .*{plain[:30]}"):
+        MotionVocabulary.load(pickled)  # no header read first: its arrays are read, the pickled one fails
+    with pytest.raises(
+        CheckpointError, match=r"notes.scn.npz: not a readable checkpoint .*: not a zip archive$"
+    ):
+        load_checkpoint(text)
+    with pytest.raises(CheckpointError, match="foreign.npz: a NumPy .npz archive, not a model checkpoint"):
+        load_checkpoint(pickled)
+    assert _run(["render", str(text), "--out", str(tmp_path / "x.png"), "--quiet"]) == 2
+    assert f"{text}: not a readable scenario file (truncated or corrupt?): {plain}" in capsys.readouterr().err
 
 
 def test_files_of_the_wrong_kind_are_named_with_what_was_expected(tmp_path: Path, capsys) -> None:

@@ -37,6 +37,13 @@ def crowd_scene(n: int = 210, steps: int = 40, seed: int = 0) -> Scenario:
     )
 
 
+@pytest.mark.parametrize("count", [0, -1, 1.5, True])
+def test_rollout_names_a_bad_rollout_count(count: object) -> None:
+    """``rollout(..., rollouts=0)`` said "rows must be >= 1, got 0", the engine's word for it."""
+    with pytest.raises(ValueError, match=rf"rollout: rollouts must be an integer >= 1 .*got {count!r}"):
+        rollout(tiny_checkpoint(), straight_road_scene(num_agents=2, steps=20), rollouts=count, horizon=2)
+
+
 def test_subsets_cover_everyone_with_the_sdc_first_and_padding_first() -> None:
     sc = crowd_scene()
     pos = sc.xyh[:, 10, :2]

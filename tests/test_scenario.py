@@ -146,17 +146,20 @@ def test_from_arrays_checks_the_raw_values_before_casting() -> None:
     kind of 257 a freeway lane, and [P, 3] points were reshaped into other points, all silently."""
     xyh, valid, size = np.zeros((2, 5, 3)), np.ones((2, 5), bool), np.ones((2, 2))
     cases = (
-        ({"kind": np.array([0, 256])}, r"kind: expected whole numbers in \[0, 2\], got .*256"),
-        ({"kind": np.array([0.0, 1.7])}, r"kind: expected whole numbers in \[0, 2\], got .*1.7"),
-        ({"kind": [0, 1], "valid": np.full((2, 5), 0.5)}, "valid: expected booleans"),
-        ({"kind": [0, 1], "sdc": 1.5}, r"sdc: expected whole numbers >= 0, got .*1.5"),
+        (
+            {"kind": np.array([0, 256])},
+            r"field 'kind': expected whole numbers in \[0, 2\], got 256 at agent 1",
+        ),
+        ({"kind": np.array([0.0, 1.7])}, r"field 'kind': expected whole numbers in \[0, 2\], got 1.7"),
+        ({"kind": [0, 1], "valid": np.full((2, 5), 0.5)}, "field 'valid': expected booleans"),
+        ({"kind": [0, 1], "sdc": 1.5}, r"field 'sdc': expected whole numbers >= 0, got 1.5"),
         (
             {"kind": [0, 1], "polylines": [np.zeros((3, 3))], "polyline_kinds": [1]},
             r"polylines\[0\]: expected",
         ),
         (
             {"kind": [0, 1], "polylines": [np.zeros((3, 2))], "polyline_kinds": [257]},
-            "polyline_kinds: expected",
+            "field 'polyline_kinds': expected",
         ),
     )
     for kw, message in cases:
@@ -174,3 +177,24 @@ def test_from_arrays_checks_the_raw_values_before_casting() -> None:
         current_index=1,
     )
     assert ok.sdc == 1 and ok.valid.dtype == bool and ok.num_polylines == 2
+
+
+def test_from_arrays_errors_name_the_scene_the_agent_and_its_track_id() -> None:
+    """A kind of 7 said ``kind: expected whole numbers in [0, 2], got np.int64(7)`` (no agent, no track id,
+    no scene), and a scene without an id was ``scenario: field 'size': ...``."""
+    xyh, valid, size = np.zeros((2, 5, 3)), np.ones((2, 5), bool), np.ones((2, 2))
+    whole = r"^scenario 'a1': field 'kind': expected whole numbers in \[0, 2\], got 7"
+    with pytest.raises(ScenarioError, match=whole + r" at agent 1 \(track_id 101\)$"):
+        Scenario.from_arrays(xyh, valid, size, np.array([0, 7]), track_id=[100, 101], scenario_id="a1")
+    with pytest.raises(
+        ScenarioError, match=r"^scenario <no id>: field 'kind': .* got 7 at agent 1 \(track_id 1\)$"
+    ):
+        Scenario.from_arrays(xyh, valid, size, np.array([0, 7]))
+    with pytest.raises(ScenarioError, match=r"^scenario <no id>: field 'size': agent 0: "):
+        Scenario.from_arrays(xyh, valid, np.array([[4.5, 0.0], [4.5, 2.0]]), [0, 0])
+    with pytest.raises(
+        ScenarioError, match=r"field 'polyline_kinds': .* got 257 at polyline 0 \(map_id 40\)$"
+    ):
+        Scenario.from_arrays(
+            xyh, valid, size, [0, 0], polylines=[np.zeros((3, 2))], polyline_kinds=[257], polyline_ids=[40]
+        )

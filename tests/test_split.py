@@ -254,8 +254,9 @@ def test_split_parallel_env_plays_exactly_what_one_process_plays() -> None:
         with pytest.raises(ValueError, match=r"scene indices \[5\] out of range for 5 scenes"):
             split.reset_scenes([5])
         assert [len(p) for p in split.apply(_scene_count)] == [2, 3]
+        assert split.apply(lambda env, k: k * len(env.agents), 10) == [20, 30]  # a lambda goes by value
         with pytest.raises(TypeError, match="must pickle to reach the worker processes"):
-            split.apply(lambda env: env)  # said before anything is sent, the workers go on
+            split.apply(_scene_count, threading.Lock())  # said before anything is sent, the workers go on
         assert [len(p) for p in split.apply(_scene_count)] == [2, 3]
     finally:
         split.close()
@@ -506,3 +507,72 @@ def test_a_commands_oserror_reaches_the_caller_and_the_worker_lives_on() -> None
         assert split.apply(_ones) == [1, 1]
     finally:
         split.close()
+
+
+def _defined_late(name: str, source: str, monkeypatch: pytest.MonkeyPatch) -> object:
+    """A function of ``__main__`` defined now, after the workers forked (their ``__main__`` lacks it)."""
+    namespace = {"__name__": "__main__"}
+    exec(source, namespace)
+    monkeypatch.setattr(sys.modules["__main__"], name, namespace[name], raising=False)
+    return namespace[name]
+
+
+def test_apply_takes_a_function_defined_after_the_workers_forked(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Such a function pickled by reference, and every worker died unpickling it (``AttributeError: Can't
+    get attribute 'late' on <module '__main__'>``): the env was lost. Now it goes by value."""
+    venv = SplitEgoEnv(4, processes=2, npc="idm", max_cycles=5)
+    try:
+        venv.reset(seed=0)
+        late = _defined_late("late", "def late(env, k):\n    return k * len(env.envs)\n", monkeypatch)
+        assert venv.apply(late, 3) == [6, 6]
+        k = 5
+        assert venv.apply(lambda env: k * len(env.envs)) == [10, 10]  # a closure too
+        venv.step(np.zeros((4, 2), np.float32))
+    finally:
+        venv.close()
+
+
+def _refuse_to_load() -> None:
+    raise ImportError("no module named 'gone' here")
+
+
+class _LoadsNowhere:
+    """A function that pickles here and cannot be unpickled in a worker."""
+
+    def __init__(self) -> None:
+        self.__qualname__ = "gone.fn"
+
+    def __call__(self, env: BatchedEgoEnv) -> int:
+        return 0
+
+    def __reduce__(self) -> tuple[object, tuple[()]]:
+        return _refuse_to_load, ()
+
+
+def test_a_function_a_worker_cannot_load_is_a_clear_error_and_the_env_goes_on(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The worker died unpickling the command; now the caller gets an error naming the function, the
+    worker's scenes, the cause and the remedy, and the env goes on."""
+    venv = SplitEgoEnv(4, processes=2, npc="idm", max_cycles=5)
+    try:
+        venv.reset(seed=0)
+        with pytest.raises(
+            shards_module.CommandLoadError,
+            match=r"apply: 'gone.fn' did not reach the workers: SplitEgoEnv: the worker of scenes 0..1 could "
+            r"not load it: ImportError: no module named 'gone' here; define it at module level before",
+        ):
+            venv.apply(_LoadsNowhere())
+        assert venv.workers.pending == [0, 0]
+        venv.step(np.zeros((4, 2), np.float32))
+        assert venv.apply(_ones) == [1, 1]
+        # without cloudpickle, a late function of __main__ goes by reference: the workers say they lack it
+        monkeypatch.setitem(sys.modules, "cloudpickle", None)
+        later = _defined_late("later", "def later(env):\n    return 0\n", monkeypatch)
+        with pytest.raises(shards_module.CommandLoadError, match=r"'later' .*Can't get attribute 'later'"):
+            venv.apply(later)
+        venv.step(np.zeros((4, 2), np.float32))
+        assert venv.apply(_ones) == [1, 1]
+    finally:
+        venv.close()
+    assert all(not w.is_alive() for w in venv.workers.workers)

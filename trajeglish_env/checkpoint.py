@@ -23,7 +23,7 @@ from trajeglish_env.model.encoder import SIGNAL_PARAMS
 from trajeglish_env.model.lanes import LANE_PARAMS
 from trajeglish_env.model.neighbours import NEIGHBOUR_PARAMS
 from trajeglish_env.model.network import TrajeglishModel
-from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.scenario_io import atomic_path, load_failure
 from trajeglish_env.tokenizer.extend import embedding_sources, is_extension
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, VocabularyError
 
@@ -254,9 +254,10 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt/truncated/foreign files
+        # a checkpoint is a zip archive: torch's legacy reader's error for any other file means nothing
+        reason = load_failure(exc, "a checkpoint") if zipfile.is_zipfile(path) else "not a zip archive"
         raise CheckpointError(
-            f"{path}: not a readable checkpoint (not written by trajeglish, truncated or corrupt?): "
-            f"{_load_failure(exc)}"
+            f"{path}: not a readable checkpoint (not written by trajeglish, truncated or corrupt?): {reason}"
         ) from exc
     if not isinstance(payload, dict) or payload.get("format") != FORMAT_NAME:
         raise CheckpointError(f"{path}: not a trajeglish_env checkpoint (no '{FORMAT_NAME}' header)")
@@ -327,6 +328,8 @@ def _check_archive(path: Path) -> None:
         )
     if "__format__.npy" in names:
         raise CheckpointError(f"{path}: a scenario shard, not a model checkpoint")
+    if names and all(name.endswith(".npy") for name in names):
+        raise CheckpointError(f"{path}: a NumPy .npz archive, not a model checkpoint")
     if bad is not None:
         raise CheckpointError(f"{path}: corrupt checkpoint: its member {bad!r} fails its CRC check")
 
@@ -339,18 +342,6 @@ def _check_sources(sources: torch.Tensor, drawn: int, where: str) -> None:
             f"{where}: token_source must map every token to one of the {drawn} drawn ones and each of those "
             "to itself (a corrupt reading extension?)"
         )
-
-
-def _load_failure(exc: Exception) -> str:
-    """One line saying why ``torch.load`` failed: its own message is often many lines of advice about
-    ``weights_only`` that does not apply here (checkpoints never need pickled code)."""
-    text = str(exc)
-    marker = "WeightsUnpickler error:"
-    if marker in text:  # the weights-only unpickler met something that is not a checkpoint's data
-        text = text.split(marker, 1)[1]
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    reason = lines[0] if lines else "no details"
-    return f"{type(exc).__name__}: {reason[:200]}"
 
 
 def pretrained_path() -> Path:

@@ -9,6 +9,7 @@ import argparse
 import json
 import os
 import sys
+import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -244,8 +245,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     Bad input (:data:`USER_ERRORS`) is one line on stderr (and an ``error`` object on stdout with
     ``--json``) and exit code 2; Ctrl-C or SIGTERM one line and exit code 130; any other exception is a bug
-    and propagates with its traceback. With
-    ``TRAJEGLISH_TRACEBACK=1`` bad input propagates too (to see where a ValueError came from).
+    and propagates with its traceback. With ``TRAJEGLISH_TRACEBACK=1`` bad input's traceback is printed
+    before that line (to see where a ValueError came from), still exit code 2.
     """
     words = list(sys.argv[1:] if argv is None else argv)
     try:
@@ -267,7 +268,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     except USER_ERRORS as exc:
         if os.environ.get("TRAJEGLISH_TRACEBACK", "") not in ("", "0"):
-            raise
+            traceback.print_exc()
         message = one_line(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
         rank = os.environ.get("RANK", "0")
         if rank == "0":  # the JSON object once per job (stdout stays one object)

@@ -138,16 +138,21 @@ class Scenario:
         """Build and validate a Scenario from plain arrays and a list of polylines (how users bring data).
         The raw values are checked before they are cast (a kind of 256 or 1.7, a validity of 0.5, an sdc of
         1.5 or a polyline of [P, 3] points would otherwise turn silently into other values)."""
-        _check_whole("kind", kind, 0, max(AgentKind))
-        _check_whole("polyline_kinds", [] if polyline_kinds is None else polyline_kinds, 0, max(MapKind))
-        _check_whole("sdc", sdc, 0, None)
+        sid = scenario_label(metadata.get("scenario_id", ""))
+        line_kinds = [] if polyline_kinds is None else polyline_kinds
+        tracks = np.arange(np.size(kind)) if track_id is None else np.ravel(track_id)
+        lines = np.arange(np.size(line_kinds)) if polyline_ids is None else np.ravel(polyline_ids)
+        _check_whole(sid, "kind", kind, 0, max(AgentKind), ("agent", "track_id", tracks))
+        _check_whole(sid, "polyline_kinds", line_kinds, 0, max(MapKind), ("polyline", "map_id", lines))
+        _check_whole(sid, "sdc", sdc, 0, None)
         raw_valid = np.asarray(valid)
         if raw_valid.dtype != bool and not np.isin(raw_valid, (0, 1)).all():
-            raise ScenarioError("valid: expected booleans (or 0 / 1), got other values")
+            raise ScenarioError(f"{sid}: field 'valid': expected booleans (or 0 / 1), got other values")
         for k, line in enumerate([] if polylines is None else polylines):
             if np.shape(line) != (2,) and (np.ndim(line) != 2 or np.shape(line)[1] != 2):
                 raise ScenarioError(
-                    f"polylines[{k}]: expected [P, 2] points (x, y; a point: [2]); got {np.shape(line)}"
+                    f"{sid}: polylines[{k}]: expected [P, 2] points (x, y; a point: [2]); "
+                    f"got {np.shape(line)}"
                 )
         polylines = (
             [] if polylines is None else [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in polylines]
@@ -155,7 +160,8 @@ class Scenario:
         kinds = np.asarray([] if polyline_kinds is None else polyline_kinds, dtype=np.int8)
         if len(kinds) != len(polylines):
             raise ScenarioError(
-                f"polyline_kinds: expected {len(polylines)} kinds (one per polyline), got {len(kinds)}"
+                f"{sid}: field 'polyline_kinds': expected {len(polylines)} kinds (one per polyline), "
+                f"got {len(kinds)}"
             )
         offsets = np.zeros(len(polylines) + 1, dtype=np.int64)
         offsets[1:] = np.cumsum([len(p) for p in polylines])
@@ -280,7 +286,7 @@ class _Checker:
 
     def __init__(self, scenario: Scenario):
         self.sc = scenario
-        self.sid = f"scenario {scenario.scenario_id!r}" if scenario.scenario_id else "scenario"
+        self.sid = scenario_label(scenario.scenario_id)
 
     def fail(self, name: str, msg: str) -> NoReturn:
         """Raise the ScenarioError of field ``name``."""
@@ -454,20 +460,34 @@ def scene_kind(scene: Scenario) -> str:
     return scene.source
 
 
-def _check_whole(field: str, values: object, low: int, high: int | None) -> None:
-    """A ScenarioError unless every one of ``values`` is a whole number in ``[low, high]`` (no bools)."""
+def scenario_label(scenario_id: object) -> str:
+    """How error messages name a scene: ``scenario 'ID'``, or ``scenario <no id>`` for an empty id."""
+    return f"scenario {scenario_id!r}" if scenario_id else "scenario <no id>"
+
+
+def _check_whole(
+    sid: str, field: str, values: object, low: int, high: int | None, entry: tuple | None = None
+) -> None:
+    """A ScenarioError unless every one of ``values`` is a whole number in ``[low, high]`` (no bools),
+    naming the scene ``sid``, the field and the first offending entry (``entry``: what one is, the name of
+    its id and the ids, e.g. ``("agent", "track_id", ids)``)."""
     array = np.asarray(values)
     if array.size == 0:
         return
     if array.dtype == bool or not np.issubdtype(array.dtype, np.number):
-        raise ScenarioError(f"{field}: expected whole numbers, got {array.dtype} values")
+        raise ScenarioError(f"{sid}: field '{field}': expected whole numbers, got {array.dtype} values")
     bad = ~np.isfinite(array.astype(np.float64)) | (array != np.round(array)) | (array < low)
     if high is not None:
         bad |= array > high
     if bad.any():
-        first = array.reshape(-1)[np.flatnonzero(bad.reshape(-1))[0]]
+        index = int(np.flatnonzero(bad.reshape(-1))[0])
+        first = array.reshape(-1)[index].item()
         rng = f"in [{low}, {high}]" if high is not None else f">= {low}"
-        raise ScenarioError(f"{field}: expected whole numbers {rng}, got {first!r}")
+        at = ""
+        if entry is not None:
+            what, id_name, ids = entry
+            at = f" at {what} {index}" + (f" ({id_name} {ids[index]})" if index < len(ids) else "")
+        raise ScenarioError(f"{sid}: field '{field}': expected whole numbers {rng}, got {first!r}{at}")
 
 
 def scenario_seed(seed: int, scenario_id: str) -> int:

@@ -27,6 +27,19 @@ SUFFIX = ".scn.npz"
 _SCALARS = {"sdc": int, "scenario_id": str, "source": str, "dt": float, "current_index": int}
 
 
+def load_failure(exc: BaseException, expected: str = "a NumPy .npz archive written by trajeglish") -> str:
+    """One line saying why NumPy or torch could not read a file, in place of their advice to load pickled
+    data unsafely (a file of trajeglish's never holds pickled objects): an error message's reason."""
+    text = str(exc)
+    if "allow_pickle" in text or "pickled (object) data" in text:  # NumPy met pickled objects or no archive
+        return f"not {expected} (it holds pickled objects or is not an archive)"
+    marker = "WeightsUnpickler error:"
+    if marker in text:  # torch's weights-only unpickler met something that is not a checkpoint's data
+        text = text.split(marker, 1)[1]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return f"{type(exc).__name__}: {(lines[0] if lines else 'no details')[:200]}"
+
+
 def scenario_fields() -> list[str]:
     """Names of all Scenario fields, in declaration order."""
     return [f.name for f in dataclasses.fields(Scenario)]
@@ -238,8 +251,7 @@ def _unreadable(path: Path, exc: BaseException) -> ScenarioError:
             f"{path}: a WOMD TFRecord file, not a scenario file (*.scn.npz): convert it first, `trajeglish "
             "convert-womd FILE --out DIR`, and pass DIR"
         )
-    reason = f"{type(exc).__name__}: {exc}".splitlines()[0]
-    return ScenarioError(f"{path}: not a readable scenario file (truncated or corrupt?): {reason}")
+    return ScenarioError(f"{path}: not a readable scenario file (truncated or corrupt?): {load_failure(exc)}")
 
 
 def _missing_file(path: Path) -> str:

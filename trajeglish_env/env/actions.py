@@ -150,11 +150,12 @@ def action_towards(
     limits: VehicleLimits,
     dt: float,
     templates: np.ndarray | None = None,
+    agent: str = "",
 ) -> np.ndarray | int:
     """The action whose next state is nearest to ``target [3]`` from state ``xyh [3]`` at ``speed``
     (clipped to the action space; ``templates [V,3]`` of the agent's class for ``token``; ``limits``: the
-    agent's class's, :func:`class_limits`)."""
-    local = to_local(np.asarray(xyh, dtype=np.float64), np.asarray(target, dtype=np.float64))
+    agent's class's, :func:`class_limits`; ``agent``: its name, for the error on a bad target)."""
+    local = to_local(np.asarray(xyh, dtype=np.float64), _checked_target(target, agent))
     if action_type == "delta":
         return np.clip(local, DELTA_LOW, DELTA_HIGH).astype(np.float32)
     if action_type == "token":
@@ -174,6 +175,21 @@ def action_towards(
     nxt, _ = bicycle_step(origin, np.float64(speed), actions, np.float64(length), limits, dt)
     gap = ((nxt[:, :2] - local[:2]) ** 2).sum(-1) + (wrap_angle(nxt[:, 2] - local[2]) * length / 2) ** 2
     return np.array([a_cmd, steering[np.argmin(gap)]], dtype=np.float32)
+
+
+def _checked_target(target: object, agent: str = "") -> np.ndarray:
+    """``target`` as a float64 ``(x, y, heading)`` array; a ValueError naming ``agent`` for anything else."""
+    try:
+        state = np.asarray(target, dtype=np.float64)
+    except (TypeError, ValueError):
+        state = None
+    if state is None or state.shape != (3,) or not np.isfinite(state).all():
+        shape = f" (shape {np.shape(target)})" if state is not None else ""
+        raise ValueError(
+            f"action_towards: agent {agent!r}: expected a target state as a finite (x, y, heading) "
+            f"array of shape (3,), got {str(target)[:200]}{shape}"
+        )
+    return state
 
 
 def _corner_gap(templates: np.ndarray, local: np.ndarray, length: float) -> np.ndarray:

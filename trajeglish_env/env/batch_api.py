@@ -5,7 +5,7 @@ on each env's own per-scene steps."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from typing import Any
 
 import gymnasium
@@ -16,7 +16,7 @@ from gymnasium.vector.vector_env import AutoresetMode
 
 from trajeglish_env.env.actions import check_action, named_action_space
 
-__all__ = ["EgoVectorEnv", "ParallelBatchAPI", "check_scene_actions", "scene_seeds"]
+__all__ = ["EgoVectorEnv", "ParallelBatchAPI", "check_scene_actions", "scene_indices", "scene_seeds"]
 
 
 def scene_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
@@ -34,21 +34,64 @@ def scene_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | N
     return [None if s is None else int(s) for s in seeds]
 
 
+def scene_indices(indices: Iterable[int], n: int) -> list[int]:
+    """``reset_scenes``' scene indices as ints, checked before any scene restarts: a sequence of distinct
+    integers in [0, n) (bools, floats, a lone int are a TypeError; out of range or repeated a ValueError)."""
+    want = f"integers in [0, {n})"
+    if (
+        isinstance(indices, (int, np.integer, str, bytes, Mapping))
+        or not isinstance(indices, Iterable)
+        or (isinstance(indices, np.ndarray) and indices.ndim != 1)
+    ):
+        hint = f"; for one scene pass [{int(indices)}]" if isinstance(indices, (int, np.integer)) else ""
+        raise TypeError(
+            f"reset_scenes: expected a sequence of scene indices ({want}), got "
+            f"{type(indices).__name__} {indices!r}{hint}"
+        )
+    out = []
+    for k in indices:
+        if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)):
+            raise TypeError(
+                f"reset_scenes: scene index {k!r} ({type(k).__name__}) is not an integer; expected {want}"
+            )
+        out.append(int(k))
+    bad = [k for k in out if not 0 <= k < n]
+    if bad:
+        raise ValueError(f"reset_scenes: scene indices {bad} out of range for {n} scenes; expected {want}")
+    if len(set(out)) != len(out):
+        repeated = sorted({k for k in out if out.count(k) > 1})
+        raise ValueError(f"reset_scenes: scene indices {repeated} listed more than once in {out}")
+    return out
+
+
 def check_scene_actions(
     agents: Sequence[Sequence[str]],
     actions: Sequence[dict[str, Any]],
     action_space: Callable[[str], gymnasium.Space],
     episode_agents: Sequence[Collection[str]] | None = None,
+    scenario_ids: Sequence[str | None] | None = None,
 ) -> list[list[Any]]:
     """Per scene (its live agents ``agents[i]``), the checked values of ``actions[i]``, in agent order: one
     action per live agent, no unknown agent, each inside its space; the first problem raised, naming the
-    scene and the agent. Actions for agents of the episode that have finished (``episode_agents[i]``) are
-    ignored, as PettingZoo's parallel envs ignore them."""
-    if len(actions) != len(agents):
-        raise ValueError(f"step: expected {len(agents)} action dicts (one per scene), got {len(actions)}")
+    scene (and its scenario, ``scenario_ids[i]``, where given) and the agent. ``actions`` is a list (or
+    tuple) of one dict per scene (one dict alone is a TypeError). Actions for agents of the episode that
+    have finished (``episode_agents[i]``) are ignored, as PettingZoo's parallel envs ignore them."""
+    n = len(agents)
+    if isinstance(actions, (Mapping, str, bytes)) or not isinstance(actions, Sequence):
+        hint = " (a dict agent name -> action is one scene's actions: pass one such dict per scene)"
+        raise TypeError(
+            f"step: expected a list of {n} action dicts (one per scene), got a {type(actions).__name__}"
+            + (hint if isinstance(actions, Mapping) else "")
+        )
+    if len(actions) != n:
+        raise ValueError(f"step: expected {n} action dicts (one per scene), got {len(actions)}")
     out = []
     for i, names in enumerate(agents):
         given = actions[i]
+        if not isinstance(given, Mapping):
+            raise TypeError(
+                f"step: scene {i}'s actions must be a dict agent name -> action, got {type(given).__name__}"
+            )
         if names:
             missing = [a for a in names if a not in given]
             unknown = sorted(
@@ -61,7 +104,11 @@ def check_scene_actions(
                 raise KeyError(
                     f"step: scene {i} has no live agent(s) {unknown}; its agents are {list(names)}"
                 )
-        out.append([check_action(action_space(name), given[name], name) for name in names])
+        try:
+            out.append([check_action(action_space(name), given[name], name) for name in names])
+        except ValueError as exc:  # agent names repeat across scenes: name the scene too
+            scene = f"scene {i} ({scenario_ids[i]})" if scenario_ids and scenario_ids[i] else f"scene {i}"
+            raise ValueError(f"step: {scene}: {exc}") from None
     return out
 
 
@@ -156,12 +203,9 @@ class ParallelBatchAPI:
         seed: int | list[int | None] | None = None,
         options: dict[str, Any] | None = None,
     ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-        """Reset the scenes ``indices`` (seeds as :meth:`reset`, per listed scene); returns their
-        observations and infos, in that order."""
-        indices = [int(i) for i in indices]
-        bad = [i for i in indices if not 0 <= i < self.num_envs]
-        if bad:
-            raise ValueError(f"reset_scenes: scene indices {bad} out of range for {self.num_envs} scenes")
+        """Reset the scenes ``indices`` (a list of distinct scene indices, checked by :func:`scene_indices`;
+        seeds as :meth:`reset`, per listed scene); returns their observations and infos, in that order."""
+        indices = scene_indices(indices, self.num_envs)
         return self._reset_scenes(indices, scene_seeds(seed, len(indices)), options)
 
     def _reset_scenes(

@@ -3,6 +3,7 @@ and observation types, rewards, vehicle limits, episode length and rendering (fr
 
 from __future__ import annotations
 
+import difflib
 import math
 import numbers
 import os
@@ -20,6 +21,8 @@ OBSERVATION_TYPES = ("vector", "bev")
 ORDERS = ("first", "last", "random")
 NPC_NAMES = ("trajeglish", "replay", "constant_velocity", "idm")
 MIN_BEV_RESOLUTION = 0.05  # m per pixel: finer rasters sample each box at millions of points
+# The envs' own keyword arguments besides EnvConfig's fields (named in the unknown-option error).
+ENV_KEYWORDS = ("scenes", "config", "render_mode")
 
 
 @dataclass(frozen=True)
@@ -264,8 +267,17 @@ class EnvConfig:
             object.__setattr__(self, "max_cycles", int(cycles))
         if not isinstance(self.render_legend, bool):
             raise TypeError(f"EnvConfig.render_legend must be a bool, got {self.render_legend!r}")
-        if self.render_size < 16 or not self.render_radius > 0:
-            raise ValueError("EnvConfig.render_size must be >= 16 pixels and render_radius > 0 m")
+        size = self.render_size
+        if not isinstance(size, numbers.Integral) or isinstance(size, bool):
+            raise TypeError(
+                f"render_size: expected a positive int (the square picture's side in pixels), got {size!r}"
+            )
+        if size < 16 or not self.render_radius > 0:
+            raise ValueError(
+                f"EnvConfig.render_size must be >= 16 pixels and render_radius > 0 m, "
+                f"got {size!r} and {self.render_radius!r}"
+            )
+        object.__setattr__(self, "render_size", int(size))
         threads = self.torch_threads
         if not (
             threads in ("auto", None)
@@ -282,5 +294,13 @@ class EnvConfig:
         known = {f.name for f in fields(self)}
         unknown = sorted(set(overrides) - known)
         if unknown:
-            raise TypeError(f"unknown environment option(s) {unknown}; valid options: {sorted(known)}")
+            valid = sorted(known | set(ENV_KEYWORDS))
+            close = {name: difflib.get_close_matches(name, valid, n=1) for name in unknown}
+            hints = [
+                f"{match[0]!r}" + (f" for {name!r}" if len(unknown) > 1 else "")
+                for name, match in close.items()
+                if match
+            ]
+            hint = f" (did you mean {', '.join(hints)}?)" if hints else ""
+            raise TypeError(f"unknown environment option(s) {unknown}{hint}; valid options: {valid}")
         return replace(self, **overrides)

@@ -4,7 +4,9 @@ in its own process, driven over a pipe by the split envs of :mod:`~trajeglish_en
 
 A worker answers each command with ``("ok", result)`` or ``("error", exception)``: the exception keeps its
 type when it pickles and carries the worker's traceback as a note, and the caller adds which scenes the
-worker holds. The caller counts the answers it has not read yet (a command interrupted by Ctrl-C, an
+worker holds. A command the worker cannot unpickle (say a function of ``__main__`` defined after it forked)
+is answered with a :class:`CommandLoadError`, and the worker goes on.
+The caller counts the answers it has not read yet (a command interrupted by Ctrl-C, an
 error in another worker) and reads them before its next command, and pickles every worker's command
 before it sends any, so the pipes stay in step; a worker that dies is an error naming its scenes, not a
 hang. Workers are forked (Linux, :func:`~trajeglish_env.cores.can_fork`), so they share the caller's
@@ -38,6 +40,7 @@ from trajeglish_env.worker_pool import die_with_parent
 
 __all__ = [
     "MIN_SCENES_PER_PROCESS",
+    "CommandLoadError",
     "ShardWorkers",
     "auto_env_processes",
     "checked_processes",
@@ -129,6 +132,27 @@ def prepared_config(
     return config.with_overrides(npc=npc)
 
 
+class CommandLoadError(RuntimeError):
+    """A worker could not unpickle a command sent to it (e.g. a reference to a function its ``__main__``
+    lacks): the command did not run, and the worker goes on. ``nowhere``: no worker of the call ran it."""
+
+    nowhere = False
+
+
+def pickled_by_value(message: Any) -> bytes | None:
+    """``message`` pickled by cloudpickle, which sends functions and classes of ``__main__`` (even ones
+    defined after the workers forked), lambdas and closures by value with the globals they use; None where
+    cloudpickle is not installed or cannot take it."""
+    try:
+        import cloudpickle
+    except ImportError:
+        return None
+    try:
+        return bytes(cloudpickle.dumps(message))
+    except Exception:
+        return None
+
+
 class _Method:
     """What a worker answers for a scene attribute that is a method: the proxy then calls it remotely."""
 
@@ -193,9 +217,15 @@ def _serve(
         return
     while True:
         try:
-            command, args = conn.recv()
+            data = conn.recv_bytes()
         except (EOFError, KeyboardInterrupt, OSError):  # the caller closed its end, or is gone (killed)
             break
+        try:  # unpickled apart, so that a command this process cannot load is its error, not the worker's end
+            command, args = pickle.loads(data)
+        except Exception as error:
+            if not _reply(conn, ("error", CommandLoadError(f"{type(error).__name__}: {error}"))):
+                break
+            continue
         if command == "close":
             env.close()
             _reply(conn, ("ok", None))
@@ -323,6 +353,8 @@ class ShardWorkers:
             raise RuntimeError(f"{self.owner}: no command is waiting for {self.name(shard)}")
         status, payload = self._read(shard)
         if status == "error":
+            if isinstance(payload, CommandLoadError):  # nothing ran: the scenes go in the message itself
+                raise CommandLoadError(f"{self.owner}: {self.name(shard)} could not load it: {payload}")
             payload.add_note(f"{self.owner}: raised by {self.name(shard)}")
             raise payload
         return payload
@@ -335,17 +367,23 @@ class ShardWorkers:
     def all(self, command: str, per_shard: Sequence[tuple[Any, ...]]) -> list[Any]:
         """``command`` to every worker (its own arguments each; all pickled before any is sent), run at
         once; their answers in order."""
-        messages = [bytes(ForkingPickler.dumps((command, args))) for args in per_shard]
+        return self.all_pickled([bytes(ForkingPickler.dumps((command, args))) for args in per_shard])
+
+    def all_pickled(self, messages: Sequence[bytes]) -> list[Any]:
+        """A pickled command (``(command, args)``) to every worker, its own each, run at once; their
+        answers in order."""
         for k, message in enumerate(messages):
             self._send_bytes(k, message)
-        answers, error = [], None
+        answers, errors = [], []
         for k in range(len(self.shards)):  # every answer is read after an error (Ctrl-C stops at once: the
             try:  # answers left are read before the next command)
                 answers.append(self.receive(k))
             except Exception as exc:
-                error = error or exc
-        if error is not None:
-            raise error
+                errors.append(exc)
+        if errors:
+            if len(errors) == len(self.shards) and all(isinstance(e, CommandLoadError) for e in errors):
+                errors[0].nowhere = True  # no worker ran it: the caller may send it again another way
+            raise errors[0]
         return answers
 
     def methods(self, name: str, per_shard: Sequence[tuple[Any, ...]]) -> list[Any]:

@@ -350,6 +350,7 @@ class Simulation:
             class_limits(int(self.sc.kind[agent]), self.config.limits),
             self.dt,
             templates,
+            self.names[agent],
         )
 
     def view(self) -> WorldView:

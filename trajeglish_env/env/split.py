@@ -23,6 +23,7 @@ from __future__ import annotations
 import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 import gymnasium
@@ -35,12 +36,14 @@ from trajeglish_env.env.gym_ego import check_single
 from trajeglish_env.env.scenes import scene_set
 from trajeglish_env.env.shards import (
     MIN_SCENES_PER_PROCESS,
+    CommandLoadError,
     ShardWorkers,
     _Method,
     auto_env_processes,
     auto_gpu_processes,
     checked_processes,
     on_gpu,
+    pickled_by_value,
     prepared_config,
     shard_ranges,
     start_method,
@@ -131,6 +134,14 @@ def _ego_spaces(env: BatchedEgoEnv) -> tuple[gymnasium.Space, gymnasium.Space]:
     return env.single_observation_space, env.single_action_space
 
 
+def _not_loaded(name: str, error: CommandLoadError) -> CommandLoadError:
+    """The error of an ``apply`` whose function the workers could not load, with what to do."""
+    return CommandLoadError(
+        f"apply: {name!r} did not reach the workers: {error}; define it at module level before creating "
+        "the env, or in an importable module"
+    )
+
+
 class SplitWorkers:
     """What both split envs share: their workers (started by :meth:`_start`), ``apply`` and stopping."""
 
@@ -163,18 +174,32 @@ class SplitWorkers:
 
     def apply(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> list[Any]:
         """``fn(shard_env, *args, **kwargs)`` in every worker (``shard_env``: the shard's one-process env,
-        whose scene ``j`` is scene ``shards[k].start + j`` here); the results, one per shard. ``fn`` must
-        pickle (a module-level function; a lambda or a local function is a TypeError saying so)."""
-        import pickle
-
+        whose scene ``j`` is scene ``shards[k].start + j`` here); the results, one per shard. ``fn`` goes by
+        reference where the workers can load it (a module's function, one of ``__main__`` defined before the
+        env: it then runs on the worker's own globals), else by value with cloudpickle (a lambda, a closure,
+        a function of ``__main__`` defined after the env forked its workers: a copy of the globals it uses
+        at each call). One that pickles neither way is a TypeError here, before any worker moves; one the
+        workers still cannot load a ``CommandLoadError`` naming it, and the env goes on."""
+        name = getattr(fn, "__qualname__", repr(fn))
+        message = ("apply", (fn, args, kwargs))
         try:
-            pickle.dumps((fn, args, kwargs))
-        except (pickle.PicklingError, AttributeError, TypeError) as exc:
-            raise TypeError(
-                f"apply: {getattr(fn, '__qualname__', fn)!r} and its arguments must pickle to reach the "
-                f"worker processes (a module-level function, not a lambda or a local function): {exc}"
-            ) from exc
-        return self.workers.all("apply", [(fn, args, kwargs)] * self.processes)
+            first, by_reference = bytes(ForkingPickler.dumps(message)), True
+        except Exception as exc:  # a lambda or a local function: by value, if cloudpickle takes it
+            first, by_reference = pickled_by_value(message), False
+            if first is None:
+                raise TypeError(
+                    f"apply: {name!r} and its arguments must pickle to reach the worker processes: {exc}"
+                ) from exc
+        try:
+            return self.workers.all_pickled([first] * self.processes)
+        except CommandLoadError as exc:  # the workers lack it (defined after they forked): by value
+            again = pickled_by_value(message) if by_reference and exc.nowhere else None
+            if again is None:
+                raise _not_loaded(name, exc) from exc
+        try:
+            return self.workers.all_pickled([again] * self.processes)
+        except CommandLoadError as exc:
+            raise _not_loaded(name, exc) from exc
 
     def _render(self) -> tuple[Any, ...]:
         return tuple(f for part in self.workers.methods("render", [()] * self.processes) for f in part)
@@ -305,10 +330,10 @@ def _parallel_spaces(env: BatchedParallelEnv) -> tuple[gymnasium.Space, tuple[st
 
 def _reset_scenes(
     env: BatchedParallelEnv, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[list[str]]]:
-    """A shard's ``reset_scenes`` with explicit seeds, and its scenes' agents after it."""
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[list[str]], list[str | None]]:
+    """A shard's ``reset_scenes`` with explicit seeds, and its scenes' agents and scenario ids after it."""
     obs, infos = env.reset_scenes(indices, seeds, options) if indices else ([], [])
-    return obs, infos, env.agents
+    return obs, infos, env.agents, env._scenario_ids
 
 
 def _step(
@@ -341,6 +366,7 @@ class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
         self.render_mode = render_mode
         self.agents: list[list[str]] = [[] for _ in range(self.num_envs)]
         self.episode_agents: list[set[str]] = [set() for _ in range(self.num_envs)]  # live or finished
+        self._scenario_ids: list[str | None] = [None] * self.num_envs  # named in action errors
 
     def _reset_scenes(
         self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
@@ -354,9 +380,10 @@ class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
         args = [(_reset_scenes, (local, shard_seeds, options), {}) for local, shard_seeds in per_shard]
         answers = self.workers.all("apply", args)
         found: dict[int, tuple[dict[str, Any], dict[str, Any]]] = {}
-        for k, (obs, infos, agents) in enumerate(answers):
+        for k, (obs, infos, agents, ids) in enumerate(answers):
             start = self.shards[k].start
             self.agents[start : start + len(agents)] = [list(a) for a in agents]
+            self._scenario_ids[start : start + len(ids)] = ids
             for j, local in enumerate(per_shard[k][0]):
                 found[start + local] = (obs[j], infos[j])
         for i in indices:
@@ -366,7 +393,7 @@ class SplitParallelEnv(SplitWorkers, ParallelBatchAPI):
     def step(self, actions: Sequence[dict[str, Any]]) -> tuple[list[dict[str, Any]], ...]:
         """One timestep of every scene that has agents (every action checked here before any worker
         moves); per-scene lists of observations, rewards, terminations, truncations and infos."""
-        check_scene_actions(self.agents, actions, self.action_space, self.episode_agents)
+        check_scene_actions(self.agents, actions, self.action_space, self.episode_agents, self._scenario_ids)
         args = [(_step, (list(actions[s.start : s.stop]),), {}) for s in self.shards]
         out: tuple[list[dict[str, Any]], ...] = ([], [], [], [], [])
         for k, (results, agents) in enumerate(self.workers.all("apply", args)):

@@ -326,6 +326,7 @@ class BatchedParallelEnv(ParallelBatchAPI):
         self.render_mode = render_mode
         self.agents: list[list[str]] = [[] for _ in range(self.num_envs)]
         self.episode_agents: list[set[str]] = [set() for _ in range(self.num_envs)]  # live or finished
+        self._scenario_ids: list[str | None] = [None] * self.num_envs  # each scene's, from its last reset
         self._observation = self.core.single_observation_space
         self._actions = (self.core.config.action, self.core.vocab_size)
 
@@ -340,9 +341,15 @@ class BatchedParallelEnv(ParallelBatchAPI):
             sim = self.core.sim(i)
             self.agents[i] = [sim.names[a] for a in sim.external_order()]
             self.episode_agents[i] = set(self.agents[i])
+            self._scenario_ids[i] = sim.sc.scenario_id
             observations.append(self._observe(i, self.agents[i]))
             infos.append({sim.names[a]: sim.agent_info(a) for a in sim.external_order()})
         return observations, infos
+
+    def sim(self, scene: int) -> Simulation:
+        """Scene ``scene``'s running simulation (``sim(i).view()``: every agent's state, e.g. for a
+        centralised critic; a RuntimeError for a scene whose agents have all finished, until it is reset)."""
+        return self.core.sim(scene)
 
     def _observe(self, scene: int, names: Sequence[str]) -> dict[str, np.ndarray]:
         sim = self.core.sim(scene)
@@ -354,7 +361,9 @@ class BatchedParallelEnv(ParallelBatchAPI):
         """Every scene's actions checked (:func:`check_scene_actions`) before anything moves: the flat
         (scenes, agents, actions) to play."""
         scenes, agents, values = [], [], []
-        checks = check_scene_actions(self.agents, actions, self.action_space, self.episode_agents)
+        checks = check_scene_actions(
+            self.agents, actions, self.action_space, self.episode_agents, self._scenario_ids
+        )
         for i, checked in enumerate(checks):
             if not checked:
                 continue

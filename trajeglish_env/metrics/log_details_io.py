@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from trajeglish_env.metrics.log_details import LogDetails
-from trajeglish_env.scenario_io import SUFFIX, atomic_path, scenario_ids
+from trajeglish_env.scenario_io import SUFFIX, atomic_path, load_failure, scenario_ids
 
 __all__ = ["DETAILS_SUFFIX", "details_for_files", "details_path", "load_log_details", "save_log_details"]
 
@@ -57,15 +57,19 @@ def load_log_details(path: str | os.PathLike[str]) -> list[LogDetails]:
         raise FileNotFoundError(f"{path}: no such log-details file")
     try:
         with np.load(path, allow_pickle=False) as data:
-            if "__format__" not in data.files or str(data["__format__"]) != FORMAT_NAME:
-                raise ValueError(f"{path}: not a log-details file (no '{FORMAT_NAME}' header)")
-            if int(data["__version__"]) != FORMAT_VERSION:
-                raise ValueError(f"{path}: log-details version {int(data['__version__'])} is not supported")
-            count = int(data["__count__"])
-            names = [f.name for f in fields(LogDetails)]
-            return [LogDetails(**{n: data[f"{i}/{n}"] for n in names}) for i in range(count)]
-    except (zipfile.BadZipFile, EOFError, OSError, KeyError) as exc:
-        raise ValueError(f"{path}: not a readable log-details file (truncated or corrupt?): {exc}") from exc
+            named = "__format__" in data.files and str(data["__format__"]) == FORMAT_NAME
+            version = int(data["__version__"]) if named else None
+            if named and version == FORMAT_VERSION:
+                count = int(data["__count__"])
+                names = [f.name for f in fields(LogDetails)]
+                return [LogDetails(**{n: data[f"{i}/{n}"] for n in names}) for i in range(count)]
+    except (zipfile.BadZipFile, EOFError, OSError, KeyError, ValueError) as exc:
+        raise ValueError(
+            f"{path}: not a readable log-details file (truncated or corrupt?): {load_failure(exc)}"
+        ) from exc
+    if not named:
+        raise ValueError(f"{path}: not a log-details file (no '{FORMAT_NAME}' header)")
+    raise ValueError(f"{path}: log-details version {version} is not supported")
 
 
 def details_for_files(files: Sequence[str | os.PathLike[str]]) -> list[LogDetails | None]:

@@ -11,6 +11,7 @@ Python, do not share a core)."""
 from __future__ import annotations
 
 import multiprocessing
+import numbers
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -60,6 +61,9 @@ def rollout(
     Linux (:func:`can_fork`), else one); the result is the same. Same seed, same rollout. ``ckpt``: a
     Checkpoint, a checkpoint file or ``"shipped"`` (the pretrained model).
     """
+    if isinstance(rollouts, bool) or not isinstance(rollouts, numbers.Integral) or rollouts < 1:
+        raise ValueError(f"rollout: rollouts must be an integer >= 1 (futures to sample), got {rollouts!r}")
+    rollouts = int(rollouts)
     if isinstance(ckpt, (str, os.PathLike)):
         ckpt = load_named(os.fspath(ckpt))
     if not isinstance(ckpt, Checkpoint):

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from trajeglish_env.scenario import AgentKind
-from trajeglish_env.scenario_io import atomic_path
+from trajeglish_env.scenario_io import atomic_path, load_failure
 from trajeglish_env.tokenizer.nearest import SearchTable
 
 FORMAT_NAME = "trajeglish_env.tokenizer"
@@ -166,17 +166,21 @@ class MotionVocabulary:
         try:
             data = np.load(path, allow_pickle=False)
             if isinstance(data, np.ndarray):  # a bare .npy array, not an archive of fields
-                raise ValueError("a single array, not a tokenizer archive")
+                raise VocabularyError(
+                    f"{path}: not a readable tokenizer file (a single array, not an archive)"
+                )
             with data:
                 if any(not name.endswith(".npy") for name in data.zip.namelist()):  # a torch checkpoint...
-                    raise ValueError(
-                        "a zip of other files, not a tokenizer archive (a checkpoint? a vocabulary is a "
-                        "tokenizer .npz, as `trajeglish tokenizer fit` writes)"
+                    raise VocabularyError(
+                        f"{path}: not a readable tokenizer file (a zip of other files: a checkpoint? a "
+                        "vocabulary is a tokenizer .npz, as `trajeglish tokenizer fit` writes)"
                     )
                 state = {k: data[k] for k in data.files}
+        except VocabularyError:
+            raise
         except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error) as exc:
             raise VocabularyError(
-                f"{path}: not a readable tokenizer file (truncated or corrupt?): {exc}"
+                f"{path}: not a readable tokenizer file (truncated or corrupt?): {load_failure(exc)}"
             ) from exc
         state = {k: (v.item() if v.ndim == 0 else v) for k, v in state.items()}
         return cls.from_state(state, where=str(path))
