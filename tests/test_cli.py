@@ -25,7 +25,8 @@ def test_convert_womd_then_render(tmp_path, capsys) -> None:
     assert _json(capsys) == {
         "scene": "637f20cafde22ff8",
         "source": "womd",
-        "agents": 83,
+        "agents": 83,  # every track of the scene
+        "agents_now": 50,  # present at its current step: the picture's "agents=50 now of 83"
         "out": str(tmp_path / "w.png"),
     }
     # a corrupt file among the inputs makes the command fail, but the good file stays converted

@@ -46,6 +46,19 @@ def test_a_road_that_is_all_shown_and_standing_vehicles_are_left_out() -> None:
         CoverageConfig(tolerance=0)
 
 
+def test_seconds_ahead_is_the_first_state_off_the_lanes_capped_at_the_horizon() -> None:
+    """All shown: exactly horizon / 10 s (it was one step more, 2.1 s for a 20-step horizon), or the log's
+    last step when the log ends first; a vehicle leaving the lanes at step k: k / 10 s."""
+    scene = straight_road_scene(num_agents=6, steps=40)  # current step 10: 29 steps of future
+    cfg = dataclasses.replace(load_pretrained().config, map_select="agents", map_stride=8)
+    assert vehicle_coverage(scene, cfg, CoverageConfig(horizon=20)).tolist() == [[1.0, 2.0]] * 4
+    assert vehicle_coverage(scene, cfg, CoverageConfig(horizon=80)).tolist() == [[1.0, 2.9]] * 4
+    xyh = scene.xyh.copy()
+    xyh[2, scene.current_index + 7 :, 1] = 30.0  # vehicle 2 is 26.5 m off every lane from step 7 on
+    got = vehicle_coverage(dataclasses.replace(scene, xyh=xyh), cfg, CoverageConfig(horizon=20))
+    assert got.tolist() == [[1.0, 2.0], [0.3, 0.7], [1.0, 2.0], [1.0, 2.0]]  # 6 of its 20 states shown
+
+
 def test_the_command_prints_a_table_and_json(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
     from trajeglish_env.scenario_io import save_scenarios
 

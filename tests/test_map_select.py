@@ -99,7 +99,7 @@ def test_the_road_ahead_is_where_each_agent_would_be_at_its_speed_and_turn_rate(
 def test_chunks_of_the_road_ahead_show_more_of_the_path_of_highway_env_vehicles() -> None:
     """The 16 bundled highway-env scenes, the shipped model's 64 chunks of 20 points: chosen nearest the
     agents and where they drive to, the chunks show 0.88 of the vehicles' next 2.4 s of path (a median
-    2.5 s, all of it), against 0.49 (0.9 s) nearest the agents alone."""
+    2.4 s, all of it), against 0.49 (0.9 s) nearest the agents alone."""
     from trajeglish_env.env.scenes import load_bundle
     from trajeglish_env.map_coverage import CoverageConfig, coverage_by_kind
 

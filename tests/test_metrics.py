@@ -332,6 +332,9 @@ def test_the_log_scores_highest_and_constant_velocity_lower():
     assert log.collision_rate == 0.0 and log.offroad_rate == 0.0
     both = mean_scores([log, constant])
     assert both.metametric == pytest.approx((log.metametric + constant.metametric) / 2)
+    # counts are totals over the scenes (4 + 4 rollouts), and the mean's label says so
+    assert both.num_rollouts == 8 and both.num_evaluated == log.num_evaluated + constant.num_evaluated
+    assert both.scenario_id == "mean of 2 scenes (num_rollouts, num_evaluated: totals over them)"
     assert set(log.to_dict()) >= {"metametric", "kinematic", "interactive", "map_based", "min_ade"}
 
 

@@ -64,6 +64,19 @@ def test_png_gif_and_mp4_outputs(tmp_path, straight_scene: Scenario) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.gif", "scene.mp4", "scene.png"]
 
 
+def test_the_title_counts_the_agents_present_of_every_track(straight_scene: Scenario) -> None:
+    """The title said ``agents=50`` (present at its step) while `render --json` said ``agents: 83`` (every
+    track): each now says which it counts."""
+    r = SceneRenderer(straight_scene, config=RenderConfig(96, 96))
+    try:
+        r.frame(10)  # the last of the 6 agents enters at step 20
+        assert r._text.get_text().endswith("  t=+0.0s  agents=5 now of 6")
+        r.frame(30)
+        assert r._text.get_text().endswith("agents=6 now of 6")
+    finally:
+        r.close()
+
+
 def test_wrong_rollout_shape_is_refused(straight_scene: Scenario) -> None:
     with pytest.raises(ValueError, match="with N = 6 agents"):
         SceneRenderer(straight_scene, xyh=np.zeros((5, 91, 3)), valid=np.ones((5, 91), bool))

@@ -279,3 +279,50 @@ def test_a_demo_of_an_unknown_scene_names_the_flag_and_makes_no_folder(tmp_path:
         assert _run(["demo", "--scene", scene, "--out", str(tmp_path / "d")]) == 2
         assert f"--scene {scene}: " in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
+
+
+def test_train_resume_of_a_folder_without_a_run_is_refused_before_anything(files, capsys) -> None:
+    """`train --resume` into a folder holding no last.pt (a mistyped --out) started a new full-size run."""
+    empty = files["tmp"] / "emptydir"
+    empty.mkdir()
+    for out in (empty, files["tmp"] / "run"):  # an empty folder, and one that is not there
+        argv = ["train", "--data", str(files["tmp"] / "data"), "--out", str(out), "--resume", "--json"]
+        assert _run(argv) == 2
+        captured = capsys.readouterr()
+        message = f"--resume: no run to resume in {out} (no {out / 'last.pt'}); to start a new run there"
+        assert json.loads(captured.out)["type"] == "FileNotFoundError"
+        (line,) = captured.err.strip().splitlines()
+        assert line.startswith(f"trajeglish train: error: {message}") and line.endswith("leave out --resume")
+    assert list(empty.iterdir()) == [] and not (files["tmp"] / "run").exists()  # nothing written
+
+
+def test_tokenizer_outputs_are_checked_before_the_work(files, capsys, monkeypatch) -> None:
+    """`tokenizer fit --out DIR` fitted first, then failed with a raw "[Errno 21] Is a directory" naming a
+    temporary file; extend's --out / --reading-out likewise, and any output under a plain file."""
+    import trajeglish_env.tokenizer.extend as extend_module
+    import trajeglish_env.tokenizer.fit as fit_module
+
+    def no_work(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the work began before the output was checked")
+
+    for module, name in ((fit_module, "fit_from_directory"), (fit_module, "evaluate_directory")):
+        monkeypatch.setattr(module, name, no_work)
+    monkeypatch.setattr(extend_module, "extend_vocabulary", no_work)
+    tmp, data, plain = files["tmp"], str(files["tmp"] / "data"), files["plain"]
+    cases = [
+        (["fit", "--data", data, "--out", data], f"--out {data}: is a directory; expected a file to write, "
+         f"e.g. {data}/vocab.npz"),
+        (["fit", "--data", data, "--out", f"{plain}/v.npz"], f"--out {plain}/v.npz: {plain} is a file, not "
+         "a directory"),
+        (["eval", "--data", data, "--out", f"{plain}/plots"], f"--out {plain}/plots: {plain} is a file"),
+        (["eval", "--data", data, "--out", str(plain)], f"--out {plain}: exists and is not a directory"),
+        (["extend", "--out", str(tmp)], f"--out {tmp}: is a directory; expected a file to write, e.g. "
+         f"{tmp}/vocab.npz"),
+        (["extend", "--out", f"{tmp}/v.npz", "--reading-out", str(tmp)], f"--reading-out {tmp}: is a "
+         f"directory; expected a file to write, e.g. {tmp}/model.pt"),
+    ]  # fmt: skip
+    for argv, expected in cases:
+        assert _run(["tokenizer", *argv, "--quiet"]) == 2, argv
+        (line,) = capsys.readouterr().err.strip().splitlines()
+        assert line.startswith(f"trajeglish tokenizer {argv[0]}: error: {expected}"), (argv, line)
+    assert not (tmp / "v.npz").exists()

@@ -241,6 +241,25 @@ def test_the_same_input_twice_is_converted_once(tmp_path, capsys, two_records):
     assert "is the same file as" in capsys.readouterr().err
 
 
+def test_a_repeated_input_is_named_as_it_was_given(tmp_path, capsys, monkeypatch, two_records):
+    """``convert-womd bad/copy.tfrecord ./bad/copy.tfrecord`` said "bad/copy.tfrecord is the same file as
+    bad/copy.tfrecord" (both read back through Path, which drops the "./")."""
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "copy.tfrecord").write_bytes(two_records)
+    monkeypatch.chdir(tmp_path)
+    argv = ["convert-womd", "bad/copy.tfrecord", "./bad/copy.tfrecord", "bad/copy.tfrecord", "--out", "o"]
+    assert main([*argv, "--json", "--quiet"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["converted"] == ["bad/copy.tfrecord"] and report["duplicates"] == [
+        {"file": "./bad/copy.tfrecord", "same_as": "bad/copy.tfrecord"},
+        {"file": "bad/copy.tfrecord", "same_as": "bad/copy.tfrecord"},
+    ]
+    assert main(argv) == 0  # the notes on stderr (the outputs are there: skipped this time)
+    err = capsys.readouterr().err
+    assert "./bad/copy.tfrecord is the same file as bad/copy.tfrecord: converted once" in err
+    assert "note: bad/copy.tfrecord is given again: converted once" in err
+
+
 def test_a_ragged_track_is_named():
     proto = ScenarioProto.FromString(_scenario_record("ragged"))
     del proto.tracks[1].states[-1]

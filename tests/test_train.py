@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
+import signal
 import socket
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -492,3 +497,110 @@ def test_resuming_a_complete_run_keeps_its_model(scenes_dir, tmp_path, capsys) -
     )
     assert again["steps"] == 3 and (run / "model.pt").read_bytes() == kept
     assert "is complete (step 3 of 3): nothing to train" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="POSIX signals and process groups")
+@pytest.mark.parametrize("to", ["group", "process"])
+def test_sigterm_with_loader_workers_ends_in_one_line_and_the_run_resumes(scenes_dir, tmp_path, to) -> None:
+    """`timeout` or a job scheduler's SIGTERM to the process group also reached the loader's workers, which
+    torch ends on a SIGTERM their parent did not send: "DataLoader worker ... killed by signal" followed
+    the interrupt (a traceback and exit code 1, or "Exception ignored"). Now they leave it to the trainer."""
+    run = tmp_path / "r"
+    cli = [sys.executable, "-m", "trajeglish_env.cli", "train", "--data", str(scenes_dir), "--out", str(run)]
+    job = subprocess.Popen(
+        [*cli, "--preset", "tiny", "--steps", "100000", "--batch-size", "2", "--workers", "2"]
+        + ["--checkpoint-every", "1", "--quiet"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a job under `timeout` or a scheduler
+    )
+    deadline = time.monotonic() + 60
+    while job.poll() is None and time.monotonic() < deadline and not (run / "last.pt").is_file():
+        time.sleep(0.05)  # a step is checkpointed: the workers are busy filling the loader's queue
+    if to == "group":  # `timeout`, `kill -TERM -PGID`: the workers get it too (this failed)
+        os.killpg(job.pid, signal.SIGTERM)
+    else:  # `kill PID`
+        job.send_signal(signal.SIGTERM)
+    _, err = job.communicate(timeout=60)
+    assert job.returncode == 130, err
+    assert "Traceback" not in err and "Exception ignored" not in err, err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("trajeglish train: interrupted;") and "train --resume goes on from step" in last
+    step = load_checkpoint(run / "last.pt").trainer["step"]
+    assert f"goes on from step {step} " in last
+    again = subprocess.run(
+        [*cli, "--resume", "--minutes", "0.01", "--workers", "0", "--json", "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert again.returncode == 0, again.stderr
+    result = json.loads(again.stdout)
+    assert result["resumed_from"] == step and result["steps"] > step
+
+
+def test_a_refitted_schedule_goes_on_from_the_learning_rate_reached() -> None:
+    base = TrainConfig(steps=100, lr=1e-3, warmup_steps=10)
+    assert base.refitted(5, 300) == dataclasses.replace(base, steps=300)  # in the warmup: its slope kept
+    late = base.refitted(50, 80)
+    assert late.lr_at(50) == pytest.approx(base.lr_at(50)) and late.lr_at(80) == 0.0
+    assert late.lr_at(79) == pytest.approx(base.lr_at(50) / 30)  # linear to 0 at the new end
+    again = late.refitted(60, 70)  # refitted again: from the rate the last fit gives at step 60
+    assert again.lr_at(60) == pytest.approx(late.lr_at(60)) and again.lr_at(70) == 0.0
+
+
+def test_a_schedule_fitted_to_the_budget_ends_at_0_when_the_steps_slow_down(
+    scenes_dir, tmp_path, monkeypatch
+) -> None:
+    """`--minutes M --fit-steps` fitted the schedule once, to the step rate of the budget's first tenth: a
+    run that slowed down later ran out of time with the learning rate at 10-30 % of its peak. It is refitted
+    after every step now, the decay going on from the learning rate reached. A fake clock (steps that
+    take ever longer) makes this independent of the machine's speed."""
+    import types
+
+    import trajeglish_env.training.train as train_module
+    from trajeglish_env.training.loss import TrainingLoss
+
+    clock = types.SimpleNamespace(t=0.0, steps=0)
+    clock.perf_counter = lambda: clock.t
+    forward = TrainingLoss.forward
+
+    def slowing(self, batch):  # type: ignore[no-untyped-def]
+        clock.t += 0.01 * (1 + clock.steps / 50)  # step k takes 10 ms * (1 + k / 50) of the fake clock
+        clock.steps += 1
+        return forward(self, batch)
+
+    monkeypatch.setattr(train_module, "time", clock)  # the training loop's clock only
+    monkeypatch.setattr(TrainingLoss, "forward", slowing)
+    cfg = _quick(steps=100_000, warmup_steps=10, checkpoint_every=10)
+    kw = dict(vocabulary=grid_vocabulary(), progress=False, fit_steps=True)
+    result = train(scenes_dir, tmp_path / "a", tiny_config(), cfg, time_limit=2.0, **kw)  # about 100 steps
+    n = result["steps_fitted_to_time"]
+    lrs = [row["lr"] for row in load_checkpoint(tmp_path / "a" / "last.pt").trainer["history"]]
+    assert len(lrs) == result["steps"] == n and 80 < n < 120 and not result["stopped_by_time_limit"], result
+    assert lrs.index(max(lrs)) == 9 and max(lrs) == pytest.approx(cfg.lr)
+    assert (np.diff(lrs[9:]) <= 0).all()  # no jump up at a refit
+    # the schedule ended with the budget: 0 a step after the last (was 0.35 * lr: fitted once to 149 steps,
+    # out of time at 101)
+    assert lrs[-1] == pytest.approx(lrs[-2] - lrs[-1]) and lrs[-1] < 0.03 * cfg.lr, lrs[-5:]
+    # the same run interrupted after step 70's checkpoint: the resume goes on with the schedule saved there
+    real_write = train_module.write_metrics
+
+    def interrupt_at_75(path, history):  # type: ignore[no-untyped-def]
+        if history[-1]["step"] == 75:
+            raise KeyboardInterrupt
+        real_write(path, history)
+
+    clock.t, clock.steps = 0.0, 0
+    monkeypatch.setattr(train_module, "write_metrics", interrupt_at_75)
+    with pytest.raises(KeyboardInterrupt):
+        train(scenes_dir, tmp_path / "b", tiny_config(), cfg, time_limit=2.0, **kw)
+    monkeypatch.setattr(train_module, "write_metrics", real_write)
+    saved = load_checkpoint(tmp_path / "b" / "last.pt").trainer["train_config"]
+    assert saved["decay_from"][0] == 70  # refitted at step 70, and saved with it
+    again = train(scenes_dir, tmp_path / "b", tiny_config(), cfg, resume=True, time_limit=100.0, **kw)
+    assert again["resumed_from"] == 70 and again["steps"] == again["steps_fitted_to_time"] == saved["steps"]
+    resumed = [row["lr"] for row in load_checkpoint(tmp_path / "b" / "last.pt").trainer["history"]]
+    assert resumed[:71] == lrs[:71]  # the same learning rate as the uninterrupted run's at step 71
+    assert resumed[-1] == pytest.approx(resumed[-2] - resumed[-1]) and resumed[-1] < 0.03 * cfg.lr

@@ -230,7 +230,8 @@ def test_bad_inputs_fail_with_one_line(root: Path, tmp_path: Path, capsys) -> No
             "--num-model-parameters",
             "1.5M",
         ],
-        "holds an export with other settings (config differ)": [
+        "holds an export with other settings (config.rollouts: 1 -> 32; config.seed: 0 -> 3; "
+        "config.steps: 1 -> 80)": [
             *export,
             "--out",
             sub,

@@ -90,3 +90,38 @@ def test_sigterm_stops_generate_with_workers_in_one_line(tmp_path: Path) -> None
     while time.monotonic() < deadline and [c for c in children if Path(f"/proc/{c}").exists()]:
         time.sleep(0.2)
     assert not [c for c in children if Path(f"/proc/{c}").exists()], "orphaned workers"
+
+
+def _workers_of(pid: int) -> list[int]:
+    """The spawned pool workers among ``pid``'s children (not multiprocessing's resource tracker)."""
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    found = []
+    for child in children:
+        try:
+            line = Path(f"/proc/{child}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in line and b"resource_tracker" not in line:
+            found.append(int(child))
+    return found
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="process groups and /proc")
+def test_ctrl_c_while_the_workers_start_prints_only_the_callers_line(tmp_path: Path) -> None:
+    """Ctrl-C (SIGINT to the process group) while `generate --workers 2`'s spawned workers still import:
+    each printed a KeyboardInterrupt traceback before the caller's one line; they start with it held now."""
+    command = [sys.executable, "-m", "trajeglish_env.cli", "generate", "--scenes", "40", "--scenes-per-shard"]
+    command += ["1", "--workers", "2", "--out", str(tmp_path / "g"), "--quiet"]
+    job = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while job.poll() is None and time.monotonic() < deadline and len(_workers_of(job.pid)) < 2:
+        time.sleep(0.02)
+    time.sleep(0.3)  # the workers' Python is up (it handles Ctrl-C) and imports (for seconds)
+    for worker in _workers_of(job.pid):  # Ctrl-C reaches them first (it raced the caller's teardown)
+        os.kill(worker, signal.SIGINT)
+    time.sleep(1.0)
+    os.killpg(job.pid, signal.SIGINT)
+    _, err = job.communicate(timeout=60)
+    assert job.returncode == 130, err
+    assert "Traceback" not in err, err
+    assert err.strip().splitlines()[-1].startswith("trajeglish generate: interrupted;")

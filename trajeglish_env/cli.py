@@ -66,7 +66,7 @@ def cmd_convert_womd(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.sources.womd_convert import convert_womd
 
     ranks = init_ranks()
-    files = [Path(f) for f in args.files]
+    files = list(args.files)  # as given: a repeat is named in the user's spelling (``./a`` and ``a``)
     result = convert_womd(files, output_dir(args.out), not args.quiet and ranks.main, args.workers, ranks)
     result["_silent"] = not ranks.main  # under torchrun the main rank prints the merged report
     if result.get("failed"):
@@ -82,7 +82,14 @@ def cmd_render(args: argparse.Namespace) -> dict[str, Any]:
         view_radius=args.radius, follow_sdc=args.follow_sdc, show_ids=args.ids, legend=args.legend
     )
     out = save_render(scene, args.out, config=config, fps=args.fps)
-    return {"scene": scene.scenario_id, "source": scene.source, "agents": scene.num_agents, "out": str(out)}
+    now = int(scene.valid[:, scene.current_index].sum())  # the picture's "agents=K now of N"
+    return {
+        "scene": scene.scenario_id,
+        "source": scene.source,
+        "agents": scene.num_agents,
+        "agents_now": now,
+        "out": str(out),
+    }
 
 
 def cmd_curves(args: argparse.Namespace) -> dict[str, Any]:

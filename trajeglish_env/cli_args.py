@@ -130,11 +130,31 @@ POSITIVE = integer_at_least(1)
 NON_NEGATIVE = integer_at_least(0)
 
 
+def _no_file_above(out: Path, option: str) -> None:
+    """The nearest existing folder above ``out`` must be a folder (not a file the output would go under)."""
+    above = next((p for p in out.absolute().parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise NotADirectoryError(f"{option} {out}: {above} is a file, not a directory")
+
+
 def output_dir(path: str, option: str = "--out") -> Path:
-    """An output directory: it may not exist yet, but it may not be a file."""
+    """An output directory: it may not exist yet, but it may not be a file (nor lie under one)."""
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{option} {out}: exists and is not a directory")
+    _no_file_above(out, option)
+    return out
+
+
+def output_file(path: str, option: str, example: str) -> Path:
+    """An output file, checked before any work: it may not be a directory (``example``: a file name to
+    suggest in it) nor lie under a file."""
+    out = Path(path)
+    if out.is_dir():
+        raise IsADirectoryError(
+            f"{option} {out}: is a directory; expected a file to write, e.g. {out / example}"
+        )
+    _no_file_above(out, option)
     return out
 
 
@@ -191,8 +211,9 @@ def add_budget_and_mix_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--fit-steps",
         action="store_true",
-        help="with --minutes: the step rate over the first tenth of the budget sets the schedule's length, "
-        "so the learning rate decays to 0 as the budget ends (--steps is then the most)",
+        help="with --minutes: the step rate sets the schedule's length (first over a tenth of the budget, "
+        "then refitted after every step), so the learning rate decays to 0 as the budget ends (--steps is "
+        "the most)",
     )
     p.add_argument(
         "--repeat",
@@ -274,7 +295,7 @@ def interrupted_note(args: argparse.Namespace) -> str:
         "the files already written are whole (atomic writes), and generate, convert-womd, train --resume, "
         "export-submission and scorecard go on from them"
     )
-    if args.command_name == "train" and getattr(args, "out", None):
+    if args.command_name.split()[-1] == "train" and getattr(args, "out", None):  # "trajeglish train"
         from trajeglish_env.training.run_records import resume_point
 
         step = resume_point(Path(args.out))
@@ -282,6 +303,6 @@ def interrupted_note(args: argparse.Namespace) -> str:
             f"; train --resume goes on from step {step} ({Path(args.out) / 'last.pt'}; the steps since are "
             "taken again, --checkpoint-every N to lose fewer)"
             if step is not None
-            else "; no checkpoint was written yet, so train --resume starts again"
+            else "; no checkpoint was written yet, so run train again without --resume (a new run)"
         )
     return note

@@ -6,7 +6,14 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from trajeglish_env.cli_args import NON_NEGATIVE, POSITIVE, add_cover_args, output_dir, positive_float
+from trajeglish_env.cli_args import (
+    NON_NEGATIVE,
+    POSITIVE,
+    add_cover_args,
+    output_dir,
+    output_file,
+    positive_float,
+)
 from trajeglish_env.cli_womd import AddCommand
 from trajeglish_env.tokenizer.extend import VEHICLE_COVER_RADIUS
 from trajeglish_env.tokenizer.fit import VOCAB_SIZES
@@ -15,6 +22,7 @@ from trajeglish_env.tokenizer.fit import VOCAB_SIZES
 def cmd_tokenizer_fit(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.tokenizer.fit import fit_from_directory
 
+    output_file(args.out, "--out", "vocab.npz")  # before the fit, not after it
     return fit_from_directory(
         args.data,
         vocab_size=args.vocab,
@@ -34,7 +42,7 @@ def cmd_tokenizer_eval(args: argparse.Namespace) -> dict[str, Any]:
         args.data,
         vocab_sizes=tuple(args.vocab or (128, 256, 384, 512)),
         fit_data=args.fit_data,
-        out_dir=output_dir(args.out),
+        out_dir=output_dir(args.out),  # checked before the fits
         seed=args.seed,
         trials=args.trials,
         methods=tuple(args.methods or METHODS),
@@ -54,9 +62,13 @@ def cmd_tokenizer_extend(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
 
     assets = pretrained_path().parent.resolve()
-    for flag, path in (("--out", args.out), ("--reading-out", args.reading_out)):
+    for flag, path, example in (
+        ("--out", args.out, "vocab.npz"),
+        ("--reading-out", args.reading_out, "model.pt"),
+    ):
         if path is None:
             continue
+        output_file(path, flag, example)
         if Path(path).resolve().parent == assets:  # the docs' old example rewrote the shipped model
             raise ValueError(
                 f"{flag} {path}: refusing to write into the package's shipped assets ({assets}); write it "

@@ -70,6 +70,17 @@ def default_train_args() -> argparse.Namespace:
     return parser.parse_args(["--data", "-", "--out", "-"])
 
 
+def check_resumable(args: argparse.Namespace) -> None:
+    """``--resume`` of an ``--out`` holding no run (a mistyped path) is refused before anything loads,
+    not started from scratch (a folder with ``model.pt`` alone gets the training's own refusal)."""
+    out = output_dir(args.out)
+    if args.resume and not args.overwrite and not any((out / f).is_file() for f in ("last.pt", "model.pt")):
+        raise FileNotFoundError(
+            f"--resume: no run to resume in {out} (no {out / 'last.pt'}); to start a new run there, "
+            "leave out --resume"
+        )
+
+
 def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.checkpoint import load_checkpoint, load_named
     from trajeglish_env.checkpoint_reading import fine_tune_note, is_reading, training_start
@@ -78,6 +89,7 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
     from trajeglish_env.training.train import train
 
+    check_resumable(args)
     if args.vocab == "shipped":  # the package's own 384-token vocabulary, wherever it is installed
         vocabulary = load_default_tokenizer()
     else:
@@ -250,7 +262,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="continue from RUN/last.pt exactly where it stopped, with its own model, vocabulary and "
         "settings (flags at their default values take the run's, listed on stderr; one given with another "
-        "value that differs from the run's is refused, naming it)",
+        "value that differs from the run's is refused, naming it; an --out without last.pt is refused)",
     )
     p.add_argument(
         "--overwrite",

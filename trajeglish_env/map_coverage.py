@@ -57,7 +57,7 @@ def vehicle_coverage(
 ) -> np.ndarray:
     """``[V,2]`` per moving vehicle of the window framed on the sdc at the current step (its ``max_agents``
     agents nearest the sdc): the share of its next ``horizon`` logged states shown, and the seconds ahead
-    of its first state not shown (the horizon when all are)."""
+    of its first state not shown (``horizon`` / 10 when all are, or the log's end when it comes first)."""
     t0 = scene.current_index
     frame = scene.xyh[scene.sdc, t0]
     live = np.flatnonzero(scene.valid[:, t0])
@@ -80,13 +80,9 @@ def vehicle_coverage(
             continue
         local = to_local(frame, scene.xyh[i, future])[:, :2]
         shown = _segment_distances(local, points[lanes], point_mask[lanes]) <= config.tolerance
-        first_miss = int(np.argmin(shown)) if not shown.all() else len(shown)
-        out.append(
-            (
-                shown.mean(),
-                (future[first_miss] - t0 if first_miss < len(future) else end - t0) / STEPS_PER_SECOND,
-            )
-        )
+        # the step of the first state off the shown lanes; all shown: the last step looked at (the cap)
+        ahead = future[int(np.argmin(shown))] - t0 if not shown.all() else end - 1 - t0
+        out.append((shown.mean(), ahead / STEPS_PER_SECOND))
     return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
 

@@ -281,7 +281,8 @@ class SceneRenderer:
                 self._labels.append(self.ax.text(x, y, str(self.scenario.track_id[i]), fontsize=6, zorder=8))
         if self.config.title:
             t = (step - self.scenario.current_index) * self.scenario.dt
-            head = f"{self.scenario.source}:{self.scenario.scenario_id}  t={t:+.1f}s  agents={len(live)}"
+            shown = f"agents={len(live)} now of {len(self.xyh)}"  # present at this step, of every track
+            head = f"{self.scenario.source}:{self.scenario.scenario_id}  t={t:+.1f}s  {shown}"
             self._text.set_text(head + (f"\n{caption}" if caption else ""))
         self.fig.canvas.draw()
         rgba = np.asarray(self.fig.canvas.buffer_rgba())

@@ -21,6 +21,7 @@ import gzip
 import hashlib
 import itertools
 import json
+import reprlib
 import shutil
 import sys
 import tarfile
@@ -158,15 +159,31 @@ def _manifest(files: list[Path], ckpt: Checkpoint, config: ExportConfig, meta: S
     }
 
 
+def _differences(old: dict[str, Any], new: dict[str, Any], prefix: str = "") -> list[str]:
+    """``name: old -> new`` for each field where two manifests differ (nested ones as ``config.seed``)."""
+    out: list[str] = []
+    for key in sorted(set(old) | set(new)):
+        was, now, name = old.get(key, "(unset)"), new.get(key, "(unset)"), f"{prefix}{key}"
+        if was == now:
+            continue
+        if isinstance(was, dict) and isinstance(now, dict):
+            out += _differences(was, now, f"{name}.")
+        elif key == "model" and not prefix:
+            out.append("model: other weights")  # two digests say nothing more
+        else:
+            out.append(f"{name}: {reprlib.repr(was)} -> {reprlib.repr(now)}")
+    return out
+
+
 def _check_manifest(out: Path, manifest: dict, write: bool) -> None:
     """Refuse to mix settings in one output directory; the main rank writes the manifest of a new run."""
     path = out / MANIFEST
     if path.is_file():
         old = json.loads(path.read_text())
-        differ = sorted(k for k in manifest if old.get(k) != manifest[k])
+        differ = _differences(old, manifest)
         if differ:
             raise ValueError(
-                f"{path}: this directory holds an export with other settings ({', '.join(differ)} differ); "
+                f"{path}: this directory holds an export with other settings ({'; '.join(differ)}); "
                 "use another --out or delete it"
             )
     elif write:

@@ -48,6 +48,8 @@ def _exit_on_sigterm(signum: int, frame: object) -> None:
 def _start_worker(parent: int) -> None:
     """A pool worker's first act: leave Ctrl-C to the caller, clean up on SIGTERM, end with the caller."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):  # held while it started (_HeldSpawnProcess): now dropped
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
     die_with_parent(parent)
 
@@ -57,13 +59,36 @@ def _processes(pool: ProcessPoolExecutor) -> list[multiprocessing.process.BasePr
     return list((getattr(pool, "_processes", None) or {}).values())
 
 
+class _HeldSpawnProcess(multiprocessing.context.SpawnProcess):
+    """A spawned worker that starts with Ctrl-C held until :func:`_start_worker` ignores it: a Ctrl-C
+    while it imported (seconds) printed its KeyboardInterrupt traceback over the caller's one line."""
+
+    def start(self) -> None:
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})  # the child inherits the mask
+        try:
+            super().start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
+class _HeldSpawnContext(multiprocessing.context.SpawnContext):
+    Process = _HeldSpawnProcess
+
+
+def _context(method: str) -> multiprocessing.context.BaseContext:
+    """``method``'s context; for spawn (POSIX), one whose workers start with Ctrl-C held."""
+    if method == "spawn" and hasattr(signal, "pthread_sigmask"):
+        return _HeldSpawnContext()
+    return multiprocessing.get_context(method)
+
+
 @contextmanager
 def worker_pool(workers: int, method: str = "spawn") -> Iterator[ProcessPoolExecutor]:
     """A ``ProcessPoolExecutor`` of ``workers`` processes (``method``: spawn, no fork of a process that may
     hold torch threads) that is torn down at once when the block raises (Ctrl-C included)."""
     pool = ProcessPoolExecutor(
         max_workers=workers,
-        mp_context=multiprocessing.get_context(method),
+        mp_context=_context(method),
         initializer=_start_worker,
         initargs=(os.getpid(),),
     )

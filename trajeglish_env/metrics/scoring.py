@@ -265,7 +265,8 @@ def score_rollouts(
 
 def mean_scores(results: Sequence[RealismScores], config: str | MetricsConfig | None = None) -> RealismScores:
     """Dataset-level scores: the plain mean of every field over scenes (buckets recomputed from the mean
-    feature scores, which equals their mean since they are linear)."""
+    feature scores, which equals their mean since they are linear), but ``num_rollouts`` and
+    ``num_evaluated`` are totals over them, as the ``scenario_id`` label says."""
     if not results:
         raise ValueError("mean_scores: no results to average")
     cfg = get_config(config if config is not None else results[0].config)
@@ -285,4 +286,5 @@ def mean_scores(results: Sequence[RealismScores], config: str | MetricsConfig | 
     mean.update(_aggregates(cfg, {f: mean[f] for f in FEATURE_NAMES}))
     mean["num_rollouts"] = int(sum(r.num_rollouts for r in results))
     mean["num_evaluated"] = int(sum(r.num_evaluated for r in results))
-    return RealismScores(config=cfg.name, scenario_id=f"mean of {len(results)} scenes", **mean)
+    label = f"mean of {len(results)} scenes (num_rollouts, num_evaluated: totals over them)"
+    return RealismScores(config=cfg.name, scenario_id=label, **mean)

@@ -144,23 +144,27 @@ def convert_file(path: str, target: str) -> dict[str, Any]:
     return result
 
 
-def unique_inputs(paths: Sequence[Path]) -> tuple[list[Path], list[dict[str, str]]]:
+def unique_inputs(
+    paths: Sequence[str | os.PathLike[str]],
+) -> tuple[list[Path], list[dict[str, str]]]:
     """``paths`` without repeats of one file (the same path, another spelling of it or a link to it:
-    compared by device and inode, else by resolved path), and ``{"file", "same_as"}`` for each repeat."""
-    seen: dict[object, Path] = {}
+    compared by device and inode, else by resolved path), and ``{"file", "same_as"}`` for each repeat,
+    both spelled as given (``./a`` stays ``./a``)."""
+    seen: dict[object, str] = {}
     unique: list[Path] = []
     duplicates: list[dict[str, str]] = []
-    for path in paths:
+    for given in paths:
+        path, spelling = Path(given), os.fspath(given)
         try:
             stat = path.stat()
             key: object = (stat.st_dev, stat.st_ino)
         except OSError:
             key = path.resolve()
-        first = seen.setdefault(key, path)
-        if first is path:
-            unique.append(path)
+        if key in seen:
+            duplicates.append({"file": spelling, "same_as": seen[key]})
         else:
-            duplicates.append({"file": str(path), "same_as": str(first)})
+            seen[key] = spelling
+            unique.append(path)
     return unique, duplicates
 
 
@@ -206,10 +210,12 @@ def convert_womd(
     start = time.perf_counter()
     ranks = ranks or Ranks()
     out = Path(out)
-    paths, duplicates = unique_inputs([Path(f) for f in files])
+    paths, duplicates = unique_inputs(files)
     if ranks.main:
         for entry in duplicates:
-            note = f"{entry['file']} is the same file as {entry['same_as']}: converted once"
+            file, same = entry["file"], entry["same_as"]
+            what = "given again" if file == same else f"the same file as {same}"
+            note = f"{file} is {what}: converted once"
             tqdm.write(f"convert-womd: note: {note}", file=sys.stderr)
     names: dict[str, Path] = {}
     for path in paths:

@@ -185,6 +185,8 @@ def resumed_config(
     saved["precision"] = config.precision  # arithmetic, not the schedule: a run may go on on another CPU
     saved["repeat"] = tuple((str(k), int(n)) for k, n in saved["repeat"])  # lists once serialized
     saved["collision_sources"] = tuple(str(k) for k in saved["collision_sources"])
+    saved["decay_from"] = tuple(saved["decay_from"])  # where a fitted schedule's decay goes on from
+    config = dataclasses.replace(config, decay_from=saved["decay_from"])  # a record, never a request
     if fit_steps:  # the schedule's length was fitted to the first call's budget
         config = dataclasses.replace(config, steps=int(saved["steps"]))
     if defaults is not None:

@@ -43,11 +43,13 @@ from trajeglish_env.model.encoder import SIGNAL_PARAMS
 from trajeglish_env.model.network import TrajeglishModel
 from trajeglish_env.tokenizer.noise import NoiseConfig
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary, load_default_tokenizer
+from trajeglish_env.training.budget import ScheduleFit, out_of_time
 from trajeglish_env.training.closed_loop import ClosedLoopConfig, closed_loop_batch
 from trajeglish_env.training.curves import plot_curve, write_metrics
 from trajeglish_env.training.dataset import collate_windows, window_config
 from trajeglish_env.training.device_noise import DeviceTemplates, device_input_tokens
 from trajeglish_env.training.kind_repeat import window_order
+from trajeglish_env.training.loader_signals import loader_batches, quiet_worker
 from trajeglish_env.training.loss import TrainingLoss
 from trajeglish_env.training.mass_term_checks import check_mass_terms
 from trajeglish_env.training.offroad_mass import OffroadTerm
@@ -133,6 +135,9 @@ class TrainConfig:
     # the arithmetic of a step on CPU (training/precision.py): "auto" (bfloat16 autocast where the CPU has
     # native bfloat16, else float32), "float32" or "bfloat16"; CUDA always autocasts to bfloat16
     precision: str = "auto"
+    # (step a, fraction f) of a schedule refitted to a time budget (train --fit-steps, training/budget.py):
+    # from step a on the learning rate decays linearly from f * lr to 0 at `steps`; () for none
+    decay_from: tuple[int, float] = ()
 
     def __post_init__(self) -> None:
         if not self.signal_lr_scale > 0:
@@ -162,11 +167,30 @@ class TrainConfig:
     def lr_at(self, step: int) -> float:
         """Learning rate at ``step``: linear warmup, then linear decay to 0 at ``steps``; a warmup longer than
         half the schedule (a short run, or one fitted to a small budget) is cut to half of it, so the
-        learning rate still peaks and reaches 0."""
-        warm = min(self.warmup_steps, self.steps // 2)
+        learning rate still peaks and reaches 0. A refitted schedule decays from ``decay_from`` on."""
+        if self.decay_from and step >= self.decay_from[0]:
+            start, share = self.decay_from
+            return self.lr * share * max(0.0, (self.steps - step) / max(1, self.steps - start))
+        warm = self.warm()
         if step < warm:
             return self.lr * (step + 1) / warm
         return self.lr * max(0.0, (self.steps - step) / max(1, self.steps - warm))
+
+    def warm(self) -> int:
+        """The warmup's length: ``warmup_steps``, at most half the schedule."""
+        return min(self.warmup_steps, self.steps // 2)
+
+    def decaying(self, step: int) -> bool:
+        """Whether ``step`` is past the warmup (a refitted schedule always is)."""
+        return bool(self.decay_from) or step >= self.warm()
+
+    def refitted(self, step: int, steps: int) -> TrainConfig:
+        """The schedule ending at ``steps`` instead; once past the warmup, its learning rate goes on from
+        ``step``'s without a jump, linearly to 0."""
+        new = dataclasses.replace(self, steps=steps)
+        if self.decay_from or step >= min(self.warm(), new.warm()):
+            new = dataclasses.replace(new, decay_from=(step, self.lr_at(step) / self.lr))
+        return new
 
 
 def _param_groups(model: TrajeglishModel, config: TrainConfig) -> list[dict[str, Any]]:
@@ -206,11 +230,12 @@ def train(
     ``time_limit``: seconds after this call starts when no further step is taken (a wall-clock budget,
     e.g. a lent machine's): the step reached is validated and checkpointed like the last one, and a later
     ``resume`` continues the same schedule (``config.steps``, which the limit does not change).
-    ``fit_steps`` (with ``time_limit``, a new run): the step rate over the first tenth of the budget sets the
-    schedule's length, so the learning rate reaches 0 as the budget ends (``config.steps`` is then the most);
-    the fitted length is saved, and a ``resume`` keeps it. A new run into a folder with a ``last.pt`` needs
-    ``overwrite`` (:func:`check_run_folder`). ``resume_defaults``: the settings a flag left unset means (the
-    CLI's defaults); on a resume each field ``config`` leaves at them takes the run's own value.
+    ``fit_steps`` (with ``time_limit``, a new run): the step rate sets the schedule's length, refitted as it
+    changes (:mod:`.budget`), so the learning rate reaches 0 as the budget ends (``config.steps`` is then the
+    most); the fitted schedule is saved, and a ``resume`` keeps it. A new run into a folder with a
+    ``last.pt`` needs ``overwrite`` (:func:`check_run_folder`). ``resume_defaults``: the settings a flag left
+    unset means (the CLI's defaults); on a resume each field ``config`` leaves at them takes the run's own
+    value.
     """
     if fit_steps and time_limit is None:
         raise ValueError("train: fit_steps needs a time_limit (train --fit-steps needs --minutes)")
@@ -309,6 +334,7 @@ def train(
         num_workers=config.num_workers,
         collate_fn=collate_windows,
         persistent_workers=False,
+        worker_init_fn=quiet_worker,
         pin_memory=device.type == "cuda",
     )
     autocast = step_autocast(config.precision, device, model_config.d_model)
@@ -327,100 +353,96 @@ def train(
     unstable = 0  # consecutive steps whose gradients were not finite
     window_tokens, window_loss = 0.0, 0.0
     stopped = False  # the time limit ended the run before config.steps
-    # the schedule is fitted to the budget from the step rate after the 5th step (warmed up), measured over
-    # at least 10 steps and a tenth of the budget: the loaders' first, prefetched batches come faster
-    probe = (5, 15, 0.1 * (time_limit or 0.0)) if fit_steps and start_step == 0 else None
-    probe_t = 0.0
+    # a new run's schedule fitted to the budget from the step rate, and refitted as the rate changes
+    fit: ScheduleFit | None = None
+    if fit_steps and start_step == 0 and deadline is not None and time_limit is not None:
+        fit = ScheduleFit(deadline, time_limit, config.steps)
     closed_loop = config.closed_loop()
     # seconds spent waiting for the loaders' next batch (a share near 1: data, not the model, sets the pace)
     data_wait, window_wait, asked = 0.0, 0.0, time.perf_counter()
-    for batch in loader:
-        waited = time.perf_counter() - asked
-        data_wait, window_wait = data_wait + waited, window_wait + waited
-        batch = batch_to(batch, device)
-        if config.noise_on_device and noise is not None:
-            batch["input_tokens"] = device_input_tokens(batch, templates, noise)
-        if closed_loop is not None:  # inputs: the model's own rollout; targets: the way back to the log
-            batch = closed_loop_batch(model, batch, vocabulary, closed_loop)
-        for group in optimizer.param_groups:
-            group["lr"] = config.lr_at(step) * group.get("lr_scale", 1.0)
-        with autocast:
-            loss_sum, n = loss_module(batch)
-        global_n = n.detach().clone()
-        if dd.world > 1:
-            dist.all_reduce(global_n)
-        # DDP averages gradients over W processes, hence the factor W: the update equals one process's.
-        (loss_sum * dd.world / global_n.clamp(min=1)).backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-        finite = bool(torch.isfinite(grad_norm))  # the norm of the reduced gradients: same on every rank
-        if finite:
-            optimizer.step()
-            unstable = 0
-        else:  # skip the update rather than poison the weights (and the next checkpoint) with NaN
-            unstable += 1
+    with bar, loader_batches(loader) as batches:  # the workers leave interrupts to this process
+        for batch in batches:
+            waited = time.perf_counter() - asked
+            data_wait, window_wait = data_wait + waited, window_wait + waited
+            batch = batch_to(batch, device)
+            if config.noise_on_device and noise is not None:
+                batch["input_tokens"] = device_input_tokens(batch, templates, noise)
+            if closed_loop is not None:  # inputs: the model's own rollout; targets: the way back to the log
+                batch = closed_loop_batch(model, batch, vocabulary, closed_loop)
+            step_lr = config.lr_at(step)
+            for group in optimizer.param_groups:
+                group["lr"] = step_lr * group.get("lr_scale", 1.0)
+            with autocast:
+                loss_sum, n = loss_module(batch)
+            global_n = n.detach().clone()
+            if dd.world > 1:
+                dist.all_reduce(global_n)
+            # DDP averages gradients over W processes, hence the factor W: the update equals one process's.
+            (loss_sum * dd.world / global_n.clamp(min=1)).backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+            finite = bool(torch.isfinite(grad_norm))  # the norm of the reduced gradients: same on every rank
+            if finite:
+                optimizer.step()
+                unstable = 0
+            else:  # skip the update rather than poison the weights (and the next checkpoint) with NaN
+                unstable += 1
+                if dd.main:
+                    bar.write(
+                        f"train: non-finite gradients at step {step + 1}; update skipped", file=sys.stderr
+                    )
+                if unstable > MAX_UNSTABLE_STEPS:
+                    raise TrainingDiverged(diverged_note(last, unstable, step + 1))
+            optimizer.zero_grad(set_to_none=True)
+            step += 1
+            if fit is not None:
+                config = fit.after_step(config, step, time.perf_counter(), device, dd.world)
+                bar.total = config.steps
+            batch_loss = torch.stack([loss_sum.detach().float(), n.float()])
+            if dd.world > 1:
+                dist.all_reduce(batch_loss)
+            if finite:
+                window_loss += float(batch_loss[0])
+                window_tokens += float(batch_loss[1])
+            tokens_seen += int(batch_loss[1])
+            stopped = out_of_time(deadline, time.perf_counter(), device, dd.world) and step < config.steps
+            final = step == config.steps or stopped
             if dd.main:
-                bar.write(f"train: non-finite gradients at step {step + 1}; update skipped", file=sys.stderr)
-            if unstable > MAX_UNSTABLE_STEPS:
-                raise TrainingDiverged(diverged_note(last, unstable, step + 1))
-        optimizer.zero_grad(set_to_none=True)
-        step += 1
-        if probe is not None and step == probe[0]:
-            probe_t = time.perf_counter()
-        elif probe is not None and _rank0_says(
-            step >= probe[1] and time.perf_counter() - probe_t >= probe[2], device, dd.world
-        ):
-            rate = (step - probe[0]) / max(time.perf_counter() - probe_t, 1e-9)
-            config = dataclasses.replace(
-                config, steps=_steps_in_time(config.steps, step, rate, deadline or 0.0, device, dd.world)
-            )
-            bar.total, probe = config.steps, None
-        batch_loss = torch.stack([loss_sum.detach().float(), n.float()])
-        if dd.world > 1:
-            dist.all_reduce(batch_loss)
-        if finite:
-            window_loss += float(batch_loss[0])
-            window_tokens += float(batch_loss[1])
-        tokens_seen += int(batch_loss[1])
-        stopped = _out_of_time(deadline, device, dd.world) and step < config.steps
-        final = step == config.steps or stopped
-        if dd.main:
-            row: dict[str, Any] = {}
-            if step % config.log_every == 0 or final:
-                now = time.perf_counter()
-                row = {
-                    "step": step,
-                    "loss": window_loss / max(window_tokens, 1),
-                    "lr": config.lr_at(step - 1),
-                    "grad_norm": float(grad_norm),
-                    "tokens_per_s": window_tokens / max(now - last_log, 1e-9),
-                    "data_wait": window_wait / max(now - last_log, 1e-9),
-                }
-                window_loss, window_tokens, window_wait, last_log = 0.0, 0.0, 0.0, now
-            if val_scenes and (step % config.val_every == 0 or final):
-                row.setdefault("step", step)
-                row["val_nll"] = validation_nll(
-                    model, val_scenes, vocabulary, config.val_windows, config.seed, device
-                )
-            if row:
-                history.append(row)
-                write_metrics(metrics_path, history)
-                bar.set_postfix({k: f"{v:.3g}" for k, v in row.items() if k in SHOWN})
-            if step % config.checkpoint_every == 0 or final:
-                save_last(
-                    last,
-                    model,
-                    vocabulary,
-                    optimizer,
-                    config,
-                    step,
-                    history,
-                    facts,
-                )
-        bar.update(1)
-        if final:
-            break
-        asked = time.perf_counter()
-    bar.close()
+                row: dict[str, Any] = {}
+                if step % config.log_every == 0 or final:
+                    now = time.perf_counter()
+                    row = {
+                        "step": step,
+                        "loss": window_loss / max(window_tokens, 1),
+                        "lr": step_lr,
+                        "grad_norm": float(grad_norm),
+                        "tokens_per_s": window_tokens / max(now - last_log, 1e-9),
+                        "data_wait": window_wait / max(now - last_log, 1e-9),
+                    }
+                    window_loss, window_tokens, window_wait, last_log = 0.0, 0.0, 0.0, now
+                if val_scenes and (step % config.val_every == 0 or final):
+                    row.setdefault("step", step)
+                    row["val_nll"] = validation_nll(
+                        model, val_scenes, vocabulary, config.val_windows, config.seed, device
+                    )
+                if row:
+                    history.append(row)
+                    write_metrics(metrics_path, history)
+                    bar.set_postfix({k: f"{v:.3g}" for k, v in row.items() if k in SHOWN})
+                if step % config.checkpoint_every == 0 or final:
+                    save_last(
+                        last,
+                        model,
+                        vocabulary,
+                        optimizer,
+                        config,
+                        step,
+                        history,
+                        facts,
+                    )
+            bar.update(1)
+            if final:
+                break
+            asked = time.perf_counter()
     elapsed = time.perf_counter() - t0
     result: dict[str, Any] = {"out": str(out), "steps": step, "resumed_from": start_step}
     if time_limit is not None:
@@ -454,31 +476,3 @@ def train(
     if dd.world > 1:
         dist.barrier()
     return result
-
-
-def _steps_in_time(
-    most: int, step: int, rate: float, deadline: float, device: torch.device, world: int
-) -> int:
-    """The schedule's length the rest of the budget allows at ``rate`` steps/s (92 % of it: validation and
-    checkpoints take the rest), at most ``most``; under torchrun every rank takes rank 0's."""
-    left = max(0.0, deadline - time.perf_counter())
-    steps = float(min(most, step + max(1, int(0.92 * left * rate))))
-    if world > 1:
-        flag = torch.tensor([steps], device=device, dtype=torch.float64)
-        dist.broadcast(flag, src=0)
-        steps = float(flag.item())
-    return int(steps)
-
-
-def _out_of_time(deadline: float | None, device: torch.device, world: int) -> bool:
-    """Whether the wall-clock budget is spent; under torchrun every rank takes rank 0's answer."""
-    return deadline is not None and _rank0_says(time.perf_counter() >= deadline, device, world)
-
-
-def _rank0_says(flag: bool, device: torch.device, world: int) -> bool:
-    """``flag`` as rank 0 sees it (under torchrun: a decision on a clock every rank must take alike)."""
-    if world > 1:
-        value = torch.tensor([float(flag)], device=device)
-        dist.broadcast(value, src=0)
-        flag = bool(value.item())
-    return flag
