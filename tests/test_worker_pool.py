@@ -110,8 +110,9 @@ def _workers_of(pid: int) -> list[int]:
 def test_ctrl_c_while_the_workers_start_prints_only_the_callers_line(tmp_path: Path) -> None:
     """Ctrl-C (SIGINT to the process group) while `generate --workers 2`'s spawned workers still import:
     each printed a KeyboardInterrupt traceback before the caller's one line; they start with it held now."""
-    command = [sys.executable, "-m", "trajeglish_env.cli", "generate", "--scenes", "40", "--scenes-per-shard"]
-    command += ["1", "--workers", "2", "--out", str(tmp_path / "g"), "--quiet"]
+    # scenes enough that the job is still running when Ctrl-C comes, however fast the machine
+    command = [sys.executable, "-m", "trajeglish_env.cli", "generate", "--scenes", "5000"]
+    command += ["--scenes-per-shard", "1", "--workers", "2", "--out", str(tmp_path / "g"), "--quiet"]
     job = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + 60
     while job.poll() is None and time.monotonic() < deadline and len(_workers_of(job.pid)) < 2:
@@ -120,6 +121,7 @@ def test_ctrl_c_while_the_workers_start_prints_only_the_callers_line(tmp_path: P
     for worker in _workers_of(job.pid):  # Ctrl-C reaches them first (it raced the caller's teardown)
         os.kill(worker, signal.SIGINT)
     time.sleep(1.0)
+    assert job.poll() is None, "the job ended before Ctrl-C"
     os.killpg(job.pid, signal.SIGINT)
     _, err = job.communicate(timeout=60)
     assert job.returncode == 130, err
