@@ -92,6 +92,13 @@ def test_sigterm_stops_generate_with_workers_in_one_line(tmp_path: Path) -> None
     assert not [c for c in children if Path(f"/proc/{c}").exists()], "orphaned workers"
 
 
+def _ctrl_c_as_at_a_terminal() -> None:
+    """The job's Ctrl-C as a terminal's: a test run started in the background (``cmd &``, nohup) ignores
+    SIGINT, and its children inherit that (the job then ran on through the test's Ctrl-C)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def _workers_of(pid: int) -> list[int]:
     """The spawned pool workers among ``pid``'s children (not multiprocessing's resource tracker)."""
     children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
@@ -113,7 +120,13 @@ def test_ctrl_c_while_the_workers_start_prints_only_the_callers_line(tmp_path: P
     # scenes enough that the job is still running when Ctrl-C comes, however fast the machine
     command = [sys.executable, "-m", "trajeglish_env.cli", "generate", "--scenes", "5000"]
     command += ["--scenes-per-shard", "1", "--workers", "2", "--out", str(tmp_path / "g"), "--quiet"]
-    job = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    job = subprocess.Popen(
+        command,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=_ctrl_c_as_at_a_terminal,
+    )
     deadline = time.monotonic() + 60
     while job.poll() is None and time.monotonic() < deadline and len(_workers_of(job.pid)) < 2:
         time.sleep(0.02)
