@@ -343,7 +343,8 @@ def test_env_section_also_runs_the_default_npcs_split_over_processes(monkeypatch
     monkeypatch.setattr(suite, "_env_job", env_job)
     highway = {"env": "x", "steps_per_s": 1.0, "mean_vehicles": 100.0, "agent_steps_per_s": 100.0}
     monkeypatch.setattr(measure, "highway_env_speed", lambda *a: highway)
-    config = BenchConfig(sections=("env",), batches=(4, 8), guards=(True,))
+    # quick: the section's AEC runs (the real model) are not what this test checks
+    config = BenchConfig(sections=("env",), batches=(4, 8), guards=(True,), quick=True)
     result = run_suite(config, progress=False)
     split = [c for c in calls if c[2] == "auto"]
     assert split == [("trajeglish_guard", 8, "auto")]  # B = 4 is too small to split
