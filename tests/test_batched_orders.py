@@ -131,7 +131,7 @@ def test_a_bad_action_in_one_scene_changes_nothing_and_a_retry_plays_on() -> Non
 def test_the_unbatched_parallel_env_checks_every_action_before_any_agent_acts() -> None:
     env = parallel_env(npc="idm", external="all", max_cycles=4)
     env.reset(seed=0, options={"scene": MERGE})
-    raw = env.aec_env
+    raw = env.aec_env.unwrapped
     t, agents = raw.sim.t, list(env.agents)
     actions = {a: np.zeros(2, np.float32) for a in agents}
     with pytest.raises(KeyError, match=f"no action for agent\\(s\\) \\['{agents[-1]}'\\]"):

@@ -20,16 +20,17 @@ from trajeglish_env.env.scene_batch import SceneBatch
 from trajeglish_env.env.scenes import scene_set
 from trajeglish_env.env.simulation import AgentReport, Simulation, agent_names, select_external
 from trajeglish_env.heap import release_freed_memory
-from trajeglish_env.scenario import Scenario
+from trajeglish_env.scenario import Scenario, agent_name
 
 
 class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
     """Driving scenes with Trajeglish (or rule-based) NPCs; the external agents are the AEC agents.
 
-    Agents: the external agents of the current scene, named ``<kind>_<track id>`` (e.g. ``vehicle_2406``);
-    ``agents`` is kept in this step's acting order. ``scenes``: None (the shipped bundle), Scenarios, a
-    path to scenario files, or ``"highway[:kinds]"``; ``reset(seed, options={"scene": index or
-    scenario_id})``. Settings: :class:`~trajeglish_env.env.config.EnvConfig` (or its fields as keywords).
+    Agents: the external agents of the current scene, named ``<kind>_<track id>`` (e.g. ``vehicle_2406``),
+    or ``agent_0`` .. by slot (``agent_names="slot"``: fixed ``possible_agents``); ``agents`` is kept in
+    this step's acting order. ``scenes``: None (the shipped bundle), Scenarios, a path to scenario files,
+    or ``"highway[:kinds]"``; ``reset(seed, options={"scene": index or scenario_id})``. Settings:
+    :class:`~trajeglish_env.env.config.EnvConfig` (or its fields as keywords).
 
     Observation (same space for every agent): ``vector`` Box[-1,1]^D float32 or ``bev`` Box uint8
     [5,H,W], see :mod:`trajeglish_env.env.observations`. Action: ``continuous`` Box[-1,1]^2 (acceleration,
@@ -77,9 +78,11 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         self._renderer: Any = None  # a LiveRenderer, made on the first render (imports matplotlib)
 
     def _first_scene_agents(self) -> list[str]:
-        """``possible_agents`` before the first reset: the first scene's external agents, or none when the
-        external spec does not fit that scene (track ids of another scene: checked at reset, against the
-        scene the episode plays)."""
+        """``possible_agents`` before the first reset: the slot names (``agent_names="slot"``: for the env's
+        life), or the first scene's external agents, or none when the external spec does not fit that scene
+        (track ids of another scene: checked at reset, against the scene the episode plays)."""
+        if (slots := self.config.slot_names) is not None:
+            return slots
         first = self.scenes.get(0)
         try:
             external = select_external(first, self.config.external, np.random.default_rng(0))
@@ -112,12 +115,14 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
 
     def _start(self, scenario: Scenario, rng: np.random.Generator) -> None:
         self.sim = sim = self.batch.start(0, scenario, rng)
-        self.possible_agents = [sim.names[i] for i in sim.external_index]
-        self._index = {sim.names[i]: int(i) for i in sim.external_index}
-        self.rewards = dict.fromkeys(self.possible_agents, 0.0)
-        self._cumulative_rewards = dict.fromkeys(self.possible_agents, 0.0)
-        self.terminations = dict.fromkeys(self.possible_agents, False)
-        self.truncations = dict.fromkeys(self.possible_agents, False)
+        names = [sim.names[i] for i in sim.external_index]
+        if self.config.slot_names is None:  # track names: each scene has its own (slot names are fixed)
+            self.possible_agents = names
+        self._index = {name: int(i) for name, i in zip(names, sim.external_index, strict=True)}
+        self.rewards = dict.fromkeys(names, 0.0)
+        self._cumulative_rewards = dict.fromkeys(names, 0.0)
+        self.terminations = dict.fromkeys(names, False)
+        self.truncations = dict.fromkeys(names, False)
         self.infos: dict[str, dict[str, Any]] = {sim.names[i]: sim.agent_info(i) for i in sim.external_index}
         first = self.batch.advance()
         if first is None:  # no external agent acts (cannot happen: they are present at the current step)
@@ -193,6 +198,12 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         if agent not in self._index:
             raise KeyError(f"no external agent named {agent!r}; external agents: {sorted(self._index)}")
         return self._index[agent]
+
+    def agent_track(self, agent: str) -> str:
+        """The class and track id of an external agent (``vehicle_68``; its name too unless the agents
+        are named by slot, ``agent_names="slot"``)."""
+        i = self.agent_index(agent)
+        return agent_name(self.scenario.kind[i], self.scenario.track_id[i])
 
     def action_towards(self, agent: str, target: np.ndarray) -> np.ndarray | int:
         """The action that brings external ``agent`` closest to state ``target [3]`` at the next step."""

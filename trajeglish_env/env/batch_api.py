@@ -10,13 +10,21 @@ from typing import Any
 
 import gymnasium
 import numpy as np
+from gymnasium.utils import seeding
 from gymnasium.vector import VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 from gymnasium.vector.vector_env import AutoresetMode
 
 from trajeglish_env.env.actions import check_action, named_action_space
 
-__all__ = ["EgoVectorEnv", "ParallelBatchAPI", "check_scene_actions", "scene_indices", "scene_seeds"]
+__all__ = [
+    "EgoVectorEnv",
+    "ParallelBatchAPI",
+    "check_scene_actions",
+    "reset_mask",
+    "scene_indices",
+    "scene_seeds",
+]
 
 
 def scene_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | None]:
@@ -32,6 +40,20 @@ def scene_seeds(seed: int | Sequence[int | None] | None, n: int) -> list[int | N
         if s is not None and (isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0):
             raise ValueError(f"reset: scene {i}'s seed must be a non-negative integer or None, got {s!r}")
     return [None if s is None else int(s) for s in seeds]
+
+
+def reset_mask(mask: Any, n: int) -> np.ndarray | None:
+    """``options["reset_mask"]`` checked as Gymnasium's vector envs check it: None, or a bool array of
+    shape ``(n,)`` with at least one True."""
+    if mask is None:
+        return None
+    if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_:
+        raise TypeError(f"reset: options['reset_mask'] must be a NumPy bool array, got {mask!r}")
+    if mask.shape != (n,):
+        raise ValueError(f"reset: options['reset_mask'] must have shape ({n},), got {mask.shape}")
+    if not mask.any():
+        raise ValueError("reset: options['reset_mask'] resets no scene (at least one True expected)")
+    return mask
 
 
 def scene_indices(indices: Iterable[int], n: int) -> list[int]:
@@ -122,9 +144,13 @@ class EgoVectorEnv(VectorEnv):
     _obs: Any
 
     def reset_each(
-        self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
+        self,
+        seeds: Sequence[int | None],
+        options: Sequence[dict[str, Any] | None],
+        scenes: Sequence[int] | None = None,
     ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
-        """Reset scene i with ``seeds[i]`` / ``options[i]``: per-scene observations and infos."""
+        """Reset scene i with ``seeds[i]`` / ``options[i]`` for every i of ``scenes`` (None: all): every
+        scene's observation, the reset scenes' infos."""
         raise NotImplementedError
 
     def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
@@ -134,11 +160,18 @@ class EgoVectorEnv(VectorEnv):
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[Any, dict[str, Any]]:
-        """Reset every scene (``seed + i`` for scene i, or a list of seeds; ``options`` go to each)."""
-        self._np_random_seed = seed if isinstance(seed, int) else None
-        observations, infos = self.reset_each(scene_seeds(seed, self.num_envs), [options] * self.num_envs)
+        """Reset every scene (``seed + i`` for scene i, or a list of seeds; ``options`` go to each), or
+        those of ``options["reset_mask"]`` (a bool array, one per scene, as Gymnasium's vector envs take it:
+        the others go on; infos only of the reset ones)."""
+        seeds = scene_seeds(seed, self.num_envs)
+        options = dict(options) if options is not None else None
+        mask = reset_mask(options.pop("reset_mask", None) if options is not None else None, self.num_envs)
+        if isinstance(seed, (int, np.integer)):  # VectorEnv.reset's seeding of np_random
+            self._np_random, self._np_random_seed = seeding.np_random(int(seed))
+        scenes = list(range(self.num_envs)) if mask is None else np.flatnonzero(mask).tolist()
+        observations, infos = self.reset_each(seeds, [options] * self.num_envs, scenes)
         merged: dict[str, Any] = {}
-        for i, info in enumerate(infos):
+        for i, info in zip(scenes, infos, strict=True):
             merged = self._add_info(merged, info, i)
         return self._batched(observations), merged
 

@@ -19,6 +19,7 @@ if TYPE_CHECKING:
 ACTION_TYPES = ("token", "continuous", "delta")
 OBSERVATION_TYPES = ("vector", "bev")
 ORDERS = ("first", "last", "random")
+AGENT_NAMES = ("track", "slot")
 NPC_NAMES = ("trajeglish", "replay", "constant_velocity", "idm")
 MIN_BEV_RESOLUTION = 0.05  # m per pixel: finer rasters sample each box at millions of points
 # The envs' own keyword arguments besides EnvConfig's fields (named in the unknown-option error).
@@ -188,6 +189,13 @@ class EnvConfig:
     external: ``"sdc"`` (default), ``"all"``, a tuple of track ids, or :class:`RandomAgents`; the other
       agents present at the current step are NPCs (agents that appear later enter where the log has them;
       Trajeglish NPCs then drive them, ``TrajeglishNPC.drive_entering``, rule-based NPCs replay them).
+    agent_names: ``"track"`` (default): an external agent is named by class and track id
+      (``vehicle_68``), so each scene has its own names and ``possible_agents`` is set at every reset;
+      ``"slot"``: ``agent_0`` .. ``agent_{n-1}`` in the order ``external`` gives them (the sdc is
+      ``agent_0``), and ``possible_agents`` is those n names for the env's life, as PettingZoo's stock
+      wrappers and multi-agent libraries built on ``possible_agents`` expect (n: 1 for ``"sdc"``, the
+      tuple's length, or ``RandomAgents.k``; ``"all"`` has no fixed n: take ``RandomAgents(k,
+      at_most=True)``).
     order: intra-timestep position of the external agents: ``"first"`` (before every NPC: NPCs react to
       them within the step), ``"last"`` (after the NPCs of their model context), ``"random"`` (a random
       order of all agents per episode), or a tuple of agent names acting first, in that order.
@@ -206,6 +214,7 @@ class EnvConfig:
     """
 
     external: str | tuple[int, ...] | RandomAgents = "sdc"
+    agent_names: str = "track"
     order: str | tuple[str, ...] = "first"
     npc: str | TrajeglishNPC | NPCPolicy = "trajeglish"
     action: str = "continuous"
@@ -235,6 +244,16 @@ class EnvConfig:
         elif not isinstance(ext, RandomAgents):
             raise ValueError(
                 f"EnvConfig.external: expected 'sdc', 'all', track ids or RandomAgents, got {ext!r}"
+            )
+        if self.agent_names not in AGENT_NAMES:
+            raise ValueError(
+                f"EnvConfig.agent_names: expected one of {AGENT_NAMES}, got {self.agent_names!r}"
+            )
+        if self.agent_names == "slot" and ext == "all":
+            raise ValueError(
+                "EnvConfig.agent_names='slot' needs a fixed number of external agents, and external='all' "
+                "has none: take RandomAgents(k, at_most=True) (every agent of a scene with at most k of "
+                "them, k slot names)"
             )
         order = self.order
         if isinstance(order, list):
@@ -288,6 +307,15 @@ class EnvConfig:
             )
         if isinstance(threads, numbers.Integral):
             object.__setattr__(self, "torch_threads", int(threads))
+
+    @property
+    def slot_names(self) -> list[str] | None:
+        """The fixed external agent names of ``agent_names="slot"`` (None for ``"track"``)."""
+        if self.agent_names != "slot":
+            return None
+        ext = self.external
+        count = 1 if ext == "sdc" else ext.k if isinstance(ext, RandomAgents) else len(ext)  # type: ignore[arg-type]
+        return [f"agent_{j}" for j in range(count)]
 
     def with_overrides(self, **overrides: Any) -> EnvConfig:
         """A copy with some fields replaced (unknown names are refused, naming the valid ones)."""

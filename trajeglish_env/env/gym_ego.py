@@ -49,8 +49,9 @@ class EgoEnv(gymnasium.Env):
         ego's name and the scene's id."""
         if isinstance(seed, np.integer):
             seed = int(seed)  # numpy integers, as the batched envs take them
-        super().reset(seed=seed)
+        super().reset(seed=seed)  # np_random_seed; np_random is the AEC env's stream, below
         self.aec.reset(seed=seed, options=options)
+        self._np_random = self.aec.unwrapped.np_random
         self.agent = self.aec.agents[0]
         return self.aec.observe(self.agent), self._info()
 
@@ -78,6 +79,18 @@ class EgoEnv(gymnasium.Env):
             bool(aec.truncations[agent]),
             self._info(),
         )
+
+    @property
+    def np_random(self) -> np.random.Generator:
+        """The generator the env draws its scenes and episodes from (the AEC env's episode stream): seeded
+        by ``reset(seed=...)``, advanced by every unseeded reset; one set here is drawn from next."""
+        return self.aec.unwrapped.np_random
+
+    @np_random.setter
+    def np_random(self, value: np.random.Generator) -> None:
+        raw = self.aec.unwrapped
+        raw.np_random = raw._episodes.np_random = self._np_random = value
+        self._np_random_seed = -1  # Gymnasium's mark of a generator set by hand
 
     # what rule-based and learned ego policies (policies/) read of an AEC env, read through to it: a policy
     # given this env drives its ego as it drives the AEC env's (it failed on 'EgoEnv' has no 'sim')

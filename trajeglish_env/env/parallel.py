@@ -14,15 +14,15 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils.conversions import aec_to_parallel_wrapper
 
 from trajeglish_env.env.actions import check_action
-from trajeglish_env.env.aec import raw_env
+from trajeglish_env.env.aec import env
 from trajeglish_env.env.config import EnvConfig
 
 
 class SceneAwareParallelEnv(aec_to_parallel_wrapper):
-    """``aec_to_parallel_wrapper`` that refreshes ``possible_agents`` at every reset (each scene has its
-    own agents; the stock wrapper copies them once, at construction) and checks a step's actions (one per
-    live agent, no unknown agent, each inside its space; a finished agent's is ignored) before any agent
-    acts."""
+    """``aec_to_parallel_wrapper`` that refreshes ``possible_agents`` at every reset (with track names
+    each scene has its own agents; the stock wrapper copies them once, at construction) and checks a step's
+    actions (one per live agent, no unknown agent, each inside its space; a finished agent's, or one of
+    ``possible_agents`` absent from the episode, is ignored) before any agent acts."""
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Every live agent's action at once (see the module docstring); refused before ``reset``, for a
@@ -73,4 +73,5 @@ def parallel_env(
     scenes: Any = None, config: EnvConfig | None = None, render_mode: str | None = None, **options: Any
 ) -> ParallelEnv:
     """The parallel environment (same arguments as :class:`~trajeglish_env.env.aec.raw_env`)."""
-    return SceneAwareParallelEnv(raw_env(scenes, config, render_mode, **options))
+    # the order-enforced AEC env, as PettingZoo's own pairs wrap it: parallel_to_aec gives that env back
+    return SceneAwareParallelEnv(env(scenes, config, render_mode, **options))

@@ -31,6 +31,16 @@ def agent_names(scenario: Scenario) -> list[str]:
     return [agent_name(k, i) for k, i in zip(scenario.kind, scenario.track_id, strict=True)]
 
 
+def episode_names(scenario: Scenario, external: np.ndarray, style: str) -> list[str]:
+    """Names of every agent of an episode: by class and track id, the external agents ``agent_j`` instead
+    (j: their place in ``external``) with ``style`` ``"slot"`` (EnvConfig.agent_names)."""
+    names = agent_names(scenario)
+    if style == "slot":
+        for j, i in enumerate(external):
+            names[int(i)] = f"agent_{j}"
+    return names
+
+
 def select_external(scenario: Scenario, spec: object, rng: np.random.Generator) -> np.ndarray:
     """Indices of the external agents, in their configured order; clear errors for unknown ids or agents
     absent at the current step (e.g. a scene whose sdc is not present)."""
@@ -113,7 +123,8 @@ class Roles:
     def draw(cls, scenario: Scenario, config: EnvConfig, rng: np.random.Generator) -> Roles:
         """The roles of an episode (external agents, then order, then the seed: the stream's order)."""
         external = select_external(scenario, config.external, rng)
-        priority = acting_priority(config.order, external, agent_names(scenario), rng)
+        names = episode_names(scenario, external, config.agent_names)
+        priority = acting_priority(config.order, external, names, rng)
         return cls(external, priority, int(rng.integers(2**31 - 1)))
 
     def mask(self, n: int) -> np.ndarray:
@@ -158,7 +169,7 @@ class Simulation:
         cur = scenario.current_index
         self.dt = float(scenario.dt)
         self.horizon = horizon
-        self.names = agent_names(scenario)
+        self.names = episode_names(scenario, roles.external_index, config.agent_names)
         self.external_index = roles.external_index
         self.external = roles.mask(scenario.num_agents)
         self.npc = scenario.valid[:, cur] & ~self.external

@@ -281,18 +281,31 @@ class SplitEgoEnv(SplitWorkers, EgoVectorEnv):
         return [(list(values[s.start : s.stop]),) for s in self.shards]
 
     def reset_each(
-        self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
+        self,
+        seeds: Sequence[int | None],
+        options: Sequence[dict[str, Any] | None],
+        scenes: Sequence[int] | None = None,
     ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
-        """Reset scene i with ``seeds[i]`` and ``options[i]``; per-scene observations and infos."""
+        """Reset scene i with ``seeds[i]`` and ``options[i]``, for every i of ``scenes`` (None: all); every
+        scene's observation and the reset scenes' infos."""
         if len(seeds) != self.num_envs or len(options) != self.num_envs:
             raise ValueError(f"reset_each: expected {self.num_envs} seeds and options (one per scene)")
-        args = [(list(seeds[s.start : s.stop]), list(options[s.start : s.stop])) for s in self.shards]
+        chosen = list(range(self.num_envs) if scenes is None else scenes)
+        args = [
+            (
+                list(seeds[s.start : s.stop]),
+                list(options[s.start : s.stop]),
+                [k - s.start for k in chosen if s.start <= k < s.stop],
+            )
+            for s in self.shards
+        ]
         observations, infos = [], []
         for obs, info in self.workers.methods("reset_each", args):
             observations += obs
             infos += info
-        self.agents = [info["agent"] for info in infos]
-        return observations, infos
+        for k, info in zip(sorted(chosen), infos, strict=True):
+            self.agents[k] = info["agent"]
+        return observations, [infos[sorted(chosen).index(k)] for k in chosen]
 
     def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
         """Step every scene (every action checked before any worker moves); per scene ``(obs, reward,

@@ -231,10 +231,15 @@ class BatchedEgoEnv(EgoVectorEnv):
         return {**info, "agent": self.agents[scene], "scenario_id": self.core.sim(scene).sc.scenario_id}
 
     def reset_each(
-        self, seeds: Sequence[int | None], options: Sequence[dict[str, Any] | None]
+        self,
+        seeds: Sequence[int | None],
+        options: Sequence[dict[str, Any] | None],
+        scenes: Sequence[int] | None = None,
     ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
-        """Reset scene i with ``seeds[i]`` and ``options[i]``; per-scene observations and infos."""
-        infos = [self.restart(i, s, o) for i, (s, o) in enumerate(zip(seeds, options, strict=True))]
+        """Reset scene i with ``seeds[i]`` and ``options[i]``, for every i of ``scenes`` (None: all); every
+        scene's observation and the reset scenes' infos."""
+        chosen = range(self.num_envs) if scenes is None else scenes
+        infos = [self.restart(i, seeds[i], options[i]) for i in chosen]
         self.core.position()
         return self._observe_all(), infos
 
