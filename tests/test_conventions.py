@@ -4,6 +4,7 @@ the env draws from, and the vector envs' seeded ``np_random`` and ``reset_mask``
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import numpy as np
@@ -135,3 +136,19 @@ def test_vector_envs_seed_np_random_and_reset_only_the_masked_scenes(split: bool
                 venv.reset(options={"reset_mask": bad})
     finally:
         venv.close()
+
+
+def test_env_warnings_point_at_the_callers_line_and_name_slots_with_their_car() -> None:
+    env = trajeglish_env.env(
+        npc="idm", agent_names="slot", external=RandomAgents(40, at_most=True), max_cycles=3
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        env.reset(
+            seed=0, options={"scene": "sumo-random-999000-0-0", "sceen": 1}
+        )  # through PettingZoo's wrapper
+    assert [w.filename for w in caught] == [__file__, __file__]  # not a line inside the env or PettingZoo
+    options, goal = (str(w.message) for w in caught)
+    assert "'sceen' ignored" in options
+    slot = re.search(r"external agent\(s\) (agent_\d+) \(((vehicle|pedestrian|cyclist)_\d+)\)", goal)
+    assert slot is not None and env.unwrapped.agent_track(slot.group(1)) == slot.group(2)

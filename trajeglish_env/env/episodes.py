@@ -7,7 +7,6 @@ alone as in one holding it among others."""
 from __future__ import annotations
 
 import numbers
-import warnings
 from typing import Any
 
 import numpy as np
@@ -15,6 +14,7 @@ from gymnasium.utils import seeding
 
 from trajeglish_env.env.scenes import SceneSet, scene_index
 from trajeglish_env.scenario import Scenario, scenario_seed
+from trajeglish_env.user_warnings import warn_at_caller
 
 RESET_OPTIONS = ("scene",)  # the keys reset(options=...) reads
 
@@ -33,11 +33,9 @@ class EpisodeStream:
         each is named in a warning: a misspelt ``"scene"`` must not pass unnoticed."""
         unknown = sorted(str(k) for k in (options or {}) if k not in RESET_OPTIONS)
         if unknown:
-            warnings.warn(
+            warn_at_caller(
                 f"reset options: {', '.join(map(repr, unknown))} ignored; the env reads only "
-                f"{', '.join(map(repr, RESET_OPTIONS))} (a scene index or scenario_id)",
-                UserWarning,
-                stacklevel=3,
+                f"{', '.join(map(repr, RESET_OPTIONS))} (a scene index or scenario_id)"
             )
         if seed is not None:
             if isinstance(seed, numbers.Integral) and not isinstance(seed, bool):

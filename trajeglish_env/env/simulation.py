@@ -4,7 +4,6 @@ simulations (one per scene row) together with the NPC driver; the AEC env is a b
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -24,6 +23,7 @@ from trajeglish_env.env.world import WorldView
 from trajeglish_env.geometry import wrap_angle
 from trajeglish_env.scenario import Scenario, agent_name
 from trajeglish_env.tokenizer.vocabulary import MotionVocabulary
+from trajeglish_env.user_warnings import warn_at_caller
 
 
 def agent_names(scenario: Scenario) -> list[str]:
@@ -202,18 +202,15 @@ class Simulation:
         self.goal_paid = np.zeros(len(ext), dtype=bool)  # the goal reward is paid once per episode
         self.has_goal = self.routes.length >= config.reward.min_route_length
         if not self.has_goal.all():  # nothing to drive for: their reward is the penalties alone
-            names = [agent_name(scenario.kind[a], scenario.track_id[a]) for a in ext[~self.has_goal]]
-            shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
-            warnings.warn(
-                f"scene {scenario.scenario_id!r}: external agent(s) {shown} move less than "
-                f"RewardConfig.min_route_length ({config.reward.min_route_length:g} m) in the log: no goal, "
-                "no progress to earn, only penalties (infos 'has_goal' False)",
-                UserWarning,
-                stacklevel=2,
+            shown = shown_names(self.names, scenario, ext[~self.has_goal])
+            warn_at_caller(
+                f"scene {scenario.scenario_id!r}: external agent(s) {shown} "
+                f"move less than RewardConfig.min_route_length ({config.reward.min_route_length:g} m) in the "
+                "log: no goal, no progress to earn, only penalties (infos 'has_goal' False)"
             )
         self.observer = make_observer(config.observation, scenario, config.obs)
         self.edges = road_edges(scenario)
-        _warn_bad_starts(scenario, ext, self.edges, config.reward.offroad_margin)
+        _warn_bad_starts(scenario, ext, self.names, self.edges, config.reward.offroad_margin)
         edge_columns, edge_links = edge_rows(self.edges)
         self.state = SceneState(
             row=row,
@@ -419,7 +416,19 @@ def apply_actions(
     return nxt
 
 
-def _warn_bad_starts(scenario: Scenario, ext: np.ndarray, edges: Any, margin: float) -> None:
+def shown_names(names: list[str], scenario: Scenario, agents: np.ndarray) -> str:
+    """Up to 5 of ``agents`` by their episode names, each slot name with its car (``agent_0
+    (vehicle_81)``), for a warning."""
+    shown = []
+    for a in agents[:5]:
+        track = agent_name(scenario.kind[a], scenario.track_id[a])
+        shown.append(names[a] if names[a] == track else f"{names[a]} ({track})")
+    return ", ".join(shown) + (f" and {len(agents) - 5} more" if len(agents) > 5 else "")
+
+
+def _warn_bad_starts(
+    scenario: Scenario, ext: np.ndarray, names: list[str], edges: Any, margin: float
+) -> None:
     """Name the external agents whose episode is lost before they act: overlapping another agent, or a
     vehicle off the road, at the current step (WOMD's parked cars and crowded pedestrians: 7 of the shared
     scene's 50 agents under ``external="all"``), as a reset names those without a goal."""
@@ -429,11 +438,9 @@ def _warn_bad_starts(scenario: Scenario, ext: np.ndarray, edges: Any, margin: fl
     off = offroad(xyh[ext], scenario.size[ext], scenario.kind[ext], edges, margin)
     for flags, what in ((hit, "overlapping another agent"), (off, f"off the road (more than {margin:g} m)")):
         if flags.any():
-            names = [agent_name(scenario.kind[a], scenario.track_id[a]) for a in ext[flags]]
-            shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
-            warnings.warn(
-                f"scene {scenario.scenario_id!r}: external agent(s) {shown} start {what}: their first step "
-                "already counts it (a penalty, the episode ended under the default RewardConfig)",
-                UserWarning,
-                stacklevel=3,
+            shown = shown_names(names, scenario, ext[flags])
+            warn_at_caller(
+                f"scene {scenario.scenario_id!r}: external agent(s) {shown} "
+                f"start {what}: their first step already counts it (a penalty, the episode ended under the "
+                "default RewardConfig)"
             )
