@@ -84,6 +84,20 @@ def policy_for(policies: PolicyMap, agent: str) -> Policy:
     return check_policy(policies, agent, "policies")
 
 
+def aec_of(env: Any) -> Any:
+    """The AEC env to play: ``env`` itself, or the one inside a (wrapped) ``EgoEnv``; anything else is a
+    TypeError saying what is expected."""
+    if hasattr(env, "agent_iter"):
+        return env
+    inner = getattr(getattr(env, "unwrapped", None), "aec", None)
+    if inner is None or not hasattr(inner, "agent_iter"):
+        raise TypeError(
+            f"play_episode / evaluate play a PettingZoo AEC env (trajeglish_env.env(...)) or an EgoEnv "
+            f"(gymnasium.make('trajeglish_env/Ego-v0')), got {type(env).__name__}"
+        )
+    return inner
+
+
 def play_episode(
     env: Any,
     policies: PolicyMap,
@@ -92,7 +106,9 @@ def play_episode(
     video: str | os.PathLike[str] | None = None,
 ) -> EpisodeResult:
     """Reset ``env`` and play one AEC episode to the end; optionally write its video (GIF/MP4: the path is
-    checked before the episode plays)."""
+    checked before the episode plays). ``env``: an AEC env, or a Gymnasium ``EgoEnv`` (made or wrapped: its
+    AEC env is played, the policies driving its ego)."""
+    env = aec_of(env)
     if video is not None:
         from trajeglish_env.render import check_output
 

@@ -94,6 +94,18 @@ def test_registered_with_gymnasium_and_pettingzoo() -> None:
     ego = gymnasium.make("trajeglish_env/EgoIDM-v0", scenes=small_scenes(), max_cycles=3)
     obs, info = ego.reset(seed=0)
     assert obs.shape == ego.observation_space.shape and info["agent"].startswith("vehicle_")
+    # make_vec's vector entry point: the batched env (one model call for all scenes)
+    from trajeglish_env.env.vector import BatchedEgoEnv
+
+    venv = gymnasium.make_vec(
+        "trajeglish_env/EgoIDM-v0",
+        3,
+        vectorization_mode="vector_entry_point",
+        scenes=small_scenes(),
+        max_cycles=3,
+    )
+    assert isinstance(venv, BatchedEgoEnv) and venv.spec.id == "trajeglish_env/EgoIDM-v0"
+    assert venv.reset(seed=0)[0].shape == (3, *ego.observation_space.shape)
     aec = pettingzoo.make("aec", "trajeglish_env/Traffic-v0", scenes=small_scenes(), npc="replay")
     aec.reset(seed=0)
     assert aec.agents == [aec.agent_selection]

@@ -605,3 +605,29 @@ def test_a_custom_npc_returning_nan_is_named_and_save_scenarios_names_swapped_ar
         env.step(np.zeros(2, np.float32))
     with pytest.raises(TypeError, match=r"got list and str \(swapped\?\)"):
         save_scenarios(small_scenes()[:1], str(tmp_path / "x.scn.npz"))
+
+
+def test_agents_without_a_goal_earn_no_progress_reward() -> None:
+    """The reset warning says so; they were paid up to route length / 10 m (QA, stop 90: a pedestrian
+    2 m along its 4 m path earned +0.13)."""
+    import trajeglish_env
+    from trajeglish_env.env import RandomAgents
+
+    env = trajeglish_env.parallel_env(
+        npc="idm", external=RandomAgents(40, at_most=True), max_cycles=30, reward=RewardConfig(comfort=0.0)
+    )
+    with pytest.warns(UserWarning, match="no goal and no progress reward"):
+        _, infos = env.reset(seed=0, options={"scene": "sumo-random-999000-0-0"})
+    idle = [a for a in env.agents if not infos[a]["has_goal"]]
+    moved = dict.fromkeys(idle, 0.0)
+    paid = dict.fromkeys(idle, 0.0)
+    for _ in range(30):
+        if not env.agents:
+            break
+        out = env.step({a: np.array([1.0, 0.0], np.float32) for a in env.agents})  # full throttle
+        for a in idle:
+            if a in out[1]:
+                paid[a] += out[1][a] if not (out[4][a]["collision"] or out[4][a]["offroad"]) else 0.0
+                moved[a] = out[4][a]["progress_m"]
+    assert len(idle) >= 3 and max(moved.values()) > 1.0  # they do move along their short paths
+    assert all(v == 0.0 for v in paid.values()), paid

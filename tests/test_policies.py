@@ -288,3 +288,16 @@ def test_a_function_given_as_policies_and_a_bad_video_path_fail_before_the_episo
         play_episode(env, lane_keeper, seed=0)
     with pytest.raises(ValueError, match=r"x\.avi: expected a \.gif or \.mp4 output path"):
         play_episode(env, ReplayPolicy(), seed=0, video=tmp_path / "x.avi")
+
+
+def test_play_episode_plays_an_ego_envs_aec_env_and_refuses_other_objects() -> None:
+    import gymnasium
+
+    import trajeglish_env  # noqa: F401 (registers the ids)
+    from policies import ConstantVelocityPolicy, play_episode
+
+    ego = gymnasium.make("trajeglish_env/EgoIDM-v0", max_cycles=5)  # wrapped (OrderEnforcing, PassiveChecker)
+    result = play_episode(ego, ConstantVelocityPolicy(), seed=0)
+    assert result.steps == 5 and [a[:8] for a in result.returns] == ["vehicle_"]  # its ego alone
+    with pytest.raises(TypeError, match="a PettingZoo AEC env .* or an EgoEnv .*, got dict"):
+        play_episode({}, ConstantVelocityPolicy())

@@ -45,12 +45,18 @@ PETTINGZOO_ENTRY_POINTS = {
 
 def register_gymnasium() -> None:
     """Register :data:`GYM_ENVS` with Gymnasium (idempotent), so that ``gymnasium.make(
-    "trajeglish_env/Ego-v0")`` works after ``import trajeglish_env``."""
+    "trajeglish_env/Ego-v0")`` works after ``import trajeglish_env``, and ``gymnasium.make_vec(id, n,
+    vectorization_mode="vector_entry_point")`` makes the batched env (one model call for all n scenes)."""
     from gymnasium.envs.registration import register, registry
 
     for env_id, kwargs in GYM_ENVS.items():
         if env_id not in registry:
-            register(env_id, entry_point="trajeglish_env.env.gym_ego:EgoEnv", kwargs=kwargs)
+            register(
+                env_id,
+                entry_point="trajeglish_env.env.gym_ego:EgoEnv",
+                vector_entry_point="trajeglish_env.env.vector:BatchedEgoEnv",
+                kwargs=kwargs,
+            )
 
 
 def register_pettingzoo() -> None:

@@ -206,7 +206,7 @@ class Simulation:
             warn_at_caller(
                 f"scene {scenario.scenario_id!r}: external agent(s) {shown} "
                 f"move less than RewardConfig.min_route_length ({config.reward.min_route_length:g} m) in the "
-                "log: no goal, no progress to earn, only penalties (infos 'has_goal' False)"
+                "log: no goal and no progress reward, only penalties (infos 'has_goal' False)"
             )
         self.observer = make_observer(config.observation, scenario, config.obs)
         self.edges = road_edges(scenario)
@@ -263,7 +263,7 @@ class Simulation:
         self.goal_paid[rows] |= goal
         outcome = step_reward(
             self.config.reward,
-            gained,
+            np.where(self.has_goal[rows], gained, 0.0),  # no goal, no progress reward (progress_m counts on)
             self.routes.length[rows],
             new_hit,
             new_off,
