@@ -14,7 +14,9 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import sys
 import threading
+import traceback
 from collections.abc import Iterable, Iterator
 from typing import Any
 
@@ -34,9 +36,35 @@ def held_interrupts() -> Iterator[None]:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
+def _batch_transfer_cut(kind: type[BaseException], value: BaseException, tb: Any) -> bool:
+    """Whether an uncaught error is a batch's file descriptor transfer cut off: multiprocessing's
+    ``resource_sharer`` thread reports it through ``sys.excepthook`` (a traceback on stderr) when the other
+    end of a worker's connection goes away, as the training process does when it is interrupted."""
+    if not issubclass(kind, (OSError, EOFError)):
+        return False
+    return any(frame.filename.endswith("resource_sharer.py") for frame in traceback.extract_tb(tb))
+
+
+def quiet_transfer_errors() -> None:
+    """Drop the tracebacks of batch transfers cut off by an interrupt (:func:`_batch_transfer_cut`);
+    every other uncaught error is reported as before. Idempotent."""
+    hook = sys.excepthook
+    if getattr(hook, "drops_cut_transfers", False):
+        return
+
+    def excepthook(kind: type[BaseException], value: BaseException, tb: Any) -> None:
+        if not _batch_transfer_cut(kind, value, tb):
+            hook(kind, value, tb)
+
+    excepthook.drops_cut_transfers = True  # type: ignore[attr-defined]
+    sys.excepthook = excepthook
+
+
 def quiet_worker(worker_id: int) -> None:
-    """A loader worker's ``worker_init_fn``: Ctrl-C ignored, SIGTERM held, and a thread that ends the
-    worker on a SIGTERM from its parent and drops any other."""
+    """A loader worker's ``worker_init_fn``: Ctrl-C ignored, SIGTERM held, a thread that ends the worker
+    on a SIGTERM from its parent and drops any other, and no traceback for a batch transfer the interrupted
+    trainer cut off."""
+    quiet_transfer_errors()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if not _MASKS:
         return
@@ -56,6 +84,7 @@ def _end_on_parents_sigterm(parent: int) -> None:
 def loader_batches(loader: Iterable[Any]) -> Iterator[Iterator[Any]]:
     """The loader's batches, its workers started with interrupts held and shut down when the block ends,
     however it ends (an interrupt included), not whenever the iterator is freed."""
+    quiet_transfer_errors()  # the trainer's side of a batch transfer an interrupt cuts off
     with held_interrupts():
         batches = iter(loader)
     try:
