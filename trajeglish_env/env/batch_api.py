@@ -150,7 +150,7 @@ class EgoVectorEnv(VectorEnv):
         scenes: Sequence[int] | None = None,
     ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
         """Reset scene i with ``seeds[i]`` / ``options[i]`` for every i of ``scenes`` (None: all): every
-        scene's observation, the reset scenes' infos."""
+        scene's observation, the reset scenes' infos in scene order."""
         raise NotImplementedError
 
     def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:

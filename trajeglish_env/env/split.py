@@ -287,10 +287,10 @@ class SplitEgoEnv(SplitWorkers, EgoVectorEnv):
         scenes: Sequence[int] | None = None,
     ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
         """Reset scene i with ``seeds[i]`` and ``options[i]``, for every i of ``scenes`` (None: all); every
-        scene's observation and the reset scenes' infos."""
+        scene's observation and the reset scenes' infos, in scene order."""
         if len(seeds) != self.num_envs or len(options) != self.num_envs:
             raise ValueError(f"reset_each: expected {self.num_envs} seeds and options (one per scene)")
-        chosen = list(range(self.num_envs) if scenes is None else scenes)
+        chosen = sorted(range(self.num_envs) if scenes is None else scenes)
         args = [
             (
                 list(seeds[s.start : s.stop]),
@@ -303,9 +303,9 @@ class SplitEgoEnv(SplitWorkers, EgoVectorEnv):
         for obs, info in self.workers.methods("reset_each", args):
             observations += obs
             infos += info
-        for k, info in zip(sorted(chosen), infos, strict=True):
+        for k, info in zip(chosen, infos, strict=True):
             self.agents[k] = info["agent"]
-        return observations, [infos[sorted(chosen).index(k)] for k in chosen]
+        return observations, infos
 
     def step_each(self, actions: Any) -> list[tuple[Any, float, bool, bool, dict[str, Any], Any]]:
         """Step every scene (every action checked before any worker moves); per scene ``(obs, reward,

@@ -237,8 +237,8 @@ class BatchedEgoEnv(EgoVectorEnv):
         scenes: Sequence[int] | None = None,
     ) -> tuple[list[np.ndarray], list[dict[str, Any]]]:
         """Reset scene i with ``seeds[i]`` and ``options[i]``, for every i of ``scenes`` (None: all); every
-        scene's observation and the reset scenes' infos."""
-        chosen = range(self.num_envs) if scenes is None else scenes
+        scene's observation and the reset scenes' infos, in scene order."""
+        chosen = sorted(range(self.num_envs) if scenes is None else scenes)
         infos = [self.restart(i, seeds[i], options[i]) for i in chosen]
         self.core.position()
         return self._observe_all(), infos
