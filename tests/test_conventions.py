@@ -152,3 +152,24 @@ def test_env_warnings_point_at_the_callers_line_and_name_slots_with_their_car() 
     assert "'sceen' ignored" in options
     slot = re.search(r"external agent\(s\) (agent_\d+) \(((vehicle|pedestrian|cyclist)_\d+)\)", goal)
     assert slot is not None and env.unwrapped.agent_track(slot.group(1)) == slot.group(2)
+
+
+def test_slot_names_give_a_fixed_size_global_state() -> None:
+    from pettingzoo.test import state_test
+
+    kw = dict(
+        npc="idm", agent_names="slot", external=RandomAgents(3, with_sdc=True, at_most=True), max_cycles=8
+    )
+    state_test(trajeglish_env.env(**kw), trajeglish_env.parallel_env(**kw), num_cycles=10)  # PettingZoo's
+    env = trajeglish_env.parallel_env(**kw)
+    obs, _ = env.reset(seed=0, options={"scene": MERGE})
+    state = env.state()
+    d = env.observation_space("agent_0").shape[0]
+    assert state.shape == env.state_space.shape == (3 * d,)
+    for j in range(3):  # each slot's observation in its place
+        assert np.array_equal(state[j * d : (j + 1) * d], obs[f"agent_{j}"])
+    raw = trajeglish_env.raw_env(npc="idm", max_cycles=3)  # track names: no fixed size
+    raw.reset(seed=0)
+    assert not hasattr(raw, "state_space")
+    with pytest.raises(NotImplementedError, match="agent_names='slot'"):
+        raw.state()

@@ -73,6 +73,8 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         self._episodes = EpisodeStream(self.scenes)
         self.np_random = self._episodes.np_random
         self.possible_agents = self._first_scene_agents()
+        if self.config.slot_names is not None:  # a fixed-size global state needs fixed agents
+            self.state_space = stacked_space(self._observation_space, len(self.possible_agents))
         self.agents = []
         self.sim: Simulation | None = None
         self._renderer: Any = None  # a LiveRenderer, made on the first render (imports matplotlib)
@@ -192,6 +194,24 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
             raise RuntimeError("call reset() before using the environment")
         return self.sim
 
+    def state(self) -> np.ndarray:
+        """With slot names (``agent_names="slot"``): every slot's observation now, stacked along the first
+        axis (zeros for a slot the episode leaves empty or whose agent has left): a fixed-size global view
+        for centralised critics (``state_space``). With track names the agents, and so any such size,
+        change with the scene: NotImplementedError (``env.unwrapped.sim`` holds the whole scene)."""
+        slots = self.config.slot_names
+        if slots is None:
+            raise NotImplementedError(
+                "state(): a fixed-size global state needs fixed agents: pass agent_names='slot' (with track "
+                "names env.unwrapped.sim holds the whole scene)"
+            )
+        self._sim()
+        space = self._observation_space
+        parts = np.zeros((len(slots), *space.shape), space.dtype)
+        for agent, obs in self.observe_all(list(self.agents)).items():
+            parts[slots.index(agent)] = obs
+        return parts.reshape(-1, *space.shape[1:])
+
     # ------------------------------------------------------------------ helpers for policies and users
     def agent_index(self, agent: str) -> int:
         """Index in the scene of an external agent's name."""
@@ -247,6 +267,13 @@ class raw_env(AECEnv):  # noqa: N801 (PettingZoo naming convention)
         if self._renderer is not None:
             self._renderer.close()
         release_freed_memory()
+
+
+def stacked_space(space: spaces.Box, n: int) -> spaces.Box:
+    """``n`` copies of an observation space stacked along its first axis (the slots' global state)."""
+    return spaces.Box(
+        np.concatenate([space.low] * n, axis=0), np.concatenate([space.high] * n, axis=0), dtype=space.dtype
+    )
 
 
 def env(
